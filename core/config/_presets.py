@@ -1,0 +1,86 @@
+"""Named parameter presets, each copied from its published source."""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Mapping
+from types import MappingProxyType
+
+from core.config._params import ConfigError, Params
+
+_DEFAULT = Params()
+
+PRESETS: Mapping[str, Params] = MappingProxyType(
+    {
+        "default": _DEFAULT,
+        # OpenRatSLAM config_irataus.txt.in (anchors §1.1 table, column "irataus"; others = code defaults).
+        "irat": _DEFAULT.replace(
+            image_crop_y_max=150, template_x_size=60, template_y_size=20, vt_match_threshold=0.03,
+            vt_shift_match=4, vt_step_match=1, vt_active_decay=1.0, pc_dim_xy=11, pc_vt_inject_energy=0.1,
+            pc_cell_x_size=0.015, exp_delta_pc_threshold=2.0, exp_loops=20, exp_initial_em_deg=140.0,
+        ),
+        # OpenRatSLAM config_stlucia.txt.in (anchors §1.1, column "stlucia"), visual odometry windows included.
+        "stlucia": _DEFAULT.replace(
+            image_crop_x_min=40, image_crop_x_max=600, image_crop_y_min=150, image_crop_y_max=300,
+            template_x_size=60, template_y_size=10, vt_match_threshold=0.085, vt_shift_match=5, vt_step_match=1,
+            vt_normalisation=0.4, pc_dim_xy=30, pc_vt_inject_energy=0.15, pc_cell_x_size=2.0, pc_vt_restore=0.04,
+            exp_delta_pc_threshold=1.0, exp_loops=20,
+            vtrans_image_x_min=195, vtrans_image_x_max=475, vtrans_image_y_min=270, vtrans_image_y_max=430,
+            vrot_image_x_min=195, vrot_image_x_max=475, vrot_image_y_min=75, vrot_image_y_max=240,
+            camera_fov_deg=53.0, camera_hz=10.0, vtrans_scaling=1000.0, vtrans_max=20.0,
+        ),
+        # OpenRatSLAM config_oxford_newcollege.txt.in (anchors §1.1, column "newcollege").
+        "newcollege": _DEFAULT.replace(
+            template_x_size=60, template_y_size=10, vt_match_threshold=0.054, vt_patch_normalise=2,
+            vt_panoramic=True, pc_dim_xy=30, pc_vt_inject_energy=0.2, pc_cell_x_size=1.0,
+            exp_delta_pc_threshold=2.0, exp_loops=100,
+        ),
+        # OpenRatSLAM2 Table I (lake). The printed crop has y_max=150 < y_min=300: swapped here to 150..300.
+        "lake": _DEFAULT.replace(
+            image_crop_x_min=40, image_crop_x_max=600, image_crop_y_min=150, image_crop_y_max=300,
+            template_x_size=60, template_y_size=20, vt_shift_match=25, vt_step_match=5, vt_match_threshold=0.073,
+            vt_normalisation=0.0, vt_patch_normalise=2, vt_panoramic=False, pc_dim_xy=18, pc_cell_x_size=1.0,
+            pc_vt_inject_energy=0.2, exp_delta_pc_threshold=2.0, vt_active_decay=1.0, pc_vt_restore=0.05,
+            exp_loops=50, exp_initial_em_deg=180.0, exp_correction=0.5,
+        ),
+        # Menezes et al. 2023 Table 1, "Virtual Tour" column.
+        "circle": _DEFAULT.replace(
+            vtrans_image_x_min=0, vtrans_image_x_max=256, vtrans_image_y_min=0, vtrans_image_y_max=64,
+            vtrans_scaling=10.0, vtrans_max=0.1,
+            vrot_image_x_min=0, vrot_image_x_max=256, vrot_image_y_min=0, vrot_image_y_max=64,
+            camera_fov_deg=360.0, camera_hz=1.0,
+            vt_panoramic=False, vt_match_threshold=0.05, vt_shift_match=5, vt_step_match=2, vt_normalisation=0.5,
+            vt_active_decay=1.5, template_x_size=128, template_y_size=32,
+            pc_vt_restore=0.05, pc_dim_xy=80, pc_vt_inject_energy=0.06, pc_dim_th=35, exp_delta_pc_threshold=4.0,
+            pc_cell_x_size=1.0, exp_loops=250, exp_initial_em_deg=140.0,
+        ),
+        # PoseidonSLAM thesis Table 4.1: lattice [15,15,15,8] at 0.1 m, VPR Guard 26/3/20, motion gate
+        # 0.12/0.05 m, clamps 20.0/0.05, sync_stale_sec 0.75. The thesis front-end is a CNN; the intensity
+        # template keys (template size, threshold, shift, normalisation, injection, experience threshold,
+        # exp_loops, initial heading) are chosen by us, not taken from the thesis.
+        "poseidon": _DEFAULT.replace(
+            pc_dim_xy=15, pc_dim_z=15, pc_dim_th=8, pc_cell_x_size=0.1, pc_cell_z_size=0.1,
+            vpr_guard=True, vpr_window=26, vpr_min_rep=3, vpr_leak_rate=20,
+            motion_gate=True, min_event_trans_xy=0.12, min_event_dz=0.05,
+            max_correction_norm=20.0, max_correction_step=0.05, sync_stale_sec=0.75,
+            template_x_size=64, template_y_size=24, vt_match_threshold=0.06, vt_shift_match=4, vt_step_match=1,
+            vt_normalisation=0.5, vt_active_decay=1.0, pc_vt_inject_energy=0.1, exp_delta_pc_threshold=2.0,
+            exp_loops=20, exp_initial_em_deg=0.0,
+        ),
+    }
+)
+
+
+def preset(name: str) -> Params:
+    """Return the preset called ``name``.
+
+    Raises:
+        ConfigError: unknown name (the valid ones and the closest are listed).
+    """
+    try:
+        return PRESETS[name]
+    except KeyError:
+        close = difflib.get_close_matches(name, list(PRESETS), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        msg = f"unknown preset {name!r} (valid: {', '.join(PRESETS)}){hint}"
+        raise ConfigError(msg) from None

@@ -1,0 +1,206 @@
+"""The SLAM engine: one object holding the whole state, advanced one camera frame at a time.
+
+Per-frame order (OpenRatSLAM's node graph run in batch, as multisession-ratslam's
+``Ratslam.__call__``; anchors §1.1 and §1.3):
+
+1. motion: the log's odometry, or visual odometry from the image;
+2. local view: match or create a template → (id, relative_rad);
+3. pose cells ``on_view_template`` (link a new template / inject a known one);
+4. pose cells ``on_odo``: excite, inhibit, global inhibition, normalise, path integration, decode;
+5. experience decision ``get_action`` (create node / link to an existing experience / nothing),
+   gated by VPR Guard and the motion gate when enabled (PoseidonSLAM);
+6. experience map ``on_odo`` then the action; 7. relaxation while a loop closure has not settled.
+
+Everything is numpy and deterministic: the same frames give the same state, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from core.experience_map import ExperienceMap, LinkKind
+from core.gate import EventGate
+from core.localview import LocalViewCells
+from core.motion import ZERO_MOTION, Motion
+from core.paths import ExperienceGraph, NoPath, PathResult, Weight
+from core.posecells import PoseCellNetwork
+from core.visual_odometry import VisualOdometry
+
+if TYPE_CHECKING:
+    from core.config import Params
+
+
+class Action(IntEnum):
+    """OpenRatSLAM ``TopologicalAction`` codes (0 = nothing)."""
+
+    NONE = 0
+    CREATE_NODE = 1
+    CREATE_EDGE = 2
+    SET_NODE = 3
+
+
+@dataclass(frozen=True, slots=True)
+class StepResult:
+    """What one frame did."""
+
+    frame: int
+    template: int
+    template_created: bool
+    relative_rad: float
+    action: Action
+    experience: int
+    loop_closure: bool
+    motion: Motion
+
+
+class Engine:
+    """RatSLAM-family SLAM state machine (3-DoF RatSLAM or 4-DoF PoseidonSLAM lattice).
+
+    Args:
+        params: the parameter set (``core.config.Params``).
+        origin: opaque tag stamped on templates and experiences created from now on
+            (the store uses the session id); change it with :attr:`origin`.
+    """
+
+    def __init__(self, params: Params, origin: int = 0) -> None:
+        self.params = params
+        self.origin = origin
+        self.local_view = LocalViewCells(params)
+        self.odometry = VisualOdometry(params)
+        self.pose_cells = PoseCellNetwork(params)
+        self.map = ExperienceMap(params, self.pose_cells.rank)
+        self.gate = EventGate(params)
+        self.lv_origin: list[int] = []
+        self.frames = 0
+        self.last_stamp = math.nan
+        self.loop_closures = 0
+
+    # ------------------------------------------------------------------ step
+    def step(self, image: np.ndarray, motion: Motion | None, stamp: float) -> StepResult:
+        """Process one camera frame with the motion since the previous one.
+
+        Args:
+            image: uint8 pixels (H, W) grey or (H, W, 3) RGB.
+            motion: odometry since the previous frame, or None to use visual odometry.
+            stamp: log time of the frame in seconds.
+
+        Returns:
+            The template, action and current experience after this frame.
+        """
+        if motion is None:
+            dt = 0.0 if math.isnan(self.last_stamp) else max(stamp - self.last_stamp, 0.0)
+            vtrans, vrot = self.odometry.process(image, dt)
+            motion = Motion(vtrans * dt, 0.0, 0.0, vrot * dt, dt) if dt > 0 else ZERO_MOTION
+        template, relative_rad, created = self.local_view.process(image)
+        if created:
+            self.lv_origin.append(self.origin)
+        self.pose_cells.on_view_template(template, relative_rad, self.local_view.count, created)
+        self.pose_cells.on_odo(motion.dx, motion.dyaw, motion.dz)
+        gate_open = self.gate.observe(template)
+        action, target = self._get_action(template)
+        self.map.on_odo(motion)
+        loop_closure = False
+        if action == Action.CREATE_NODE:
+            a = self.map.accum
+            if gate_open and self.gate.allows_event(a[0], a[1], a[2]):
+                self.map.create_experience(template, self.pose_cells.best.copy(), stamp, self.origin)
+            else:
+                action = Action.NONE
+        elif action == Action.CREATE_EDGE:
+            loop_closure = self.map.create_link(self.map.current, target, relative_rad, LinkKind.LOOP)
+            self.map.set_experience(target, relative_rad)
+            self.loop_closures += int(loop_closure)
+        if self.map.relax_pending:
+            self.map.relax()
+        self.frames += 1
+        self.last_stamp = stamp
+        return StepResult(
+            self.frames - 1, template, created, relative_rad, action, self.map.current, loop_closure, motion
+        )
+
+    def _get_action(self, template: int) -> tuple[Action, int]:
+        """Choose the topological action (OpenRatSLAM ``PosecellNetwork::get_action``).
+
+        Create an experience when the template has none; otherwise, when the packet
+        moved more than ``exp_delta_pc_threshold`` cells from the current experience
+        or the template changed, link to the closest other experience of this
+        template if it is within the threshold, else create one.
+        """
+        em = self.map
+        candidates = em.experiences_of_template(template)
+        if em.current < 0 or not candidates:
+            return Action.CREATE_NODE, -1
+        threshold = self.params.exp_delta_pc_threshold
+        delta_current = float(self.pose_cells.delta_to(em.lattice_coords[em.current]))
+        if delta_current <= threshold and template == self.pose_cells.prev_vt:
+            return Action.NONE, -1
+        others = [c for c in candidates if c != em.current]
+        if others:
+            deltas = self.pose_cells.delta_to(em.lattice_coords[others])
+            best = int(np.argmin(deltas))
+            if float(deltas[best]) < threshold:
+                return Action.CREATE_EDGE, others[best]
+        return Action.CREATE_NODE, -1
+
+    # --------------------------------------------------------------- queries
+    @property
+    def template_count(self) -> int:
+        """Return the number of local view templates."""
+        return self.local_view.count
+
+    @property
+    def experience_count(self) -> int:
+        """Return the number of experiences."""
+        return self.map.count
+
+    def graph(self) -> ExperienceGraph:
+        """Return a path-query structure over the current experience graph."""
+        src, dst, _, dt, distance, _ = self.map.links
+        return ExperienceGraph(self.map.poses, src, dst, dt, distance)
+
+    def shortest_path(self, source: int, target: int, weight: Weight = "time") -> PathResult | NoPath:
+        """Return the shortest path between two experiences (see :class:`core.paths.ExperienceGraph`)."""
+        return self.graph().shortest_path(source, target, weight)
+
+    def settle(self, max_iterations: int = 100_000) -> int:
+        """Relax until the map settles (largest correction below ``exp_relax_tolerance``)."""
+        total = 0
+        while self.map.relax_pending and total < max_iterations:
+            total += self.map.relax()
+        return total
+
+    # -------------------------------------------------------------- snapshot
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Return the whole state as plain arrays (schema in docs/architecture.md)."""
+        state: dict[str, np.ndarray] = {}
+        state.update(self.local_view.snapshot())
+        state["lv_origin"] = np.asarray(self.lv_origin, dtype=np.int64)
+        state.update(self.odometry.snapshot())
+        state.update(self.pose_cells.snapshot())
+        state.update(self.map.snapshot())
+        state.update(self.gate.snapshot())
+        state["eng_frames"] = np.asarray(self.frames, dtype=np.int64)
+        state["eng_last_stamp"] = np.asarray(self.last_stamp, dtype=np.float64)
+        state["eng_loop_closures"] = np.asarray(self.loop_closures, dtype=np.int64)
+        return state
+
+    @classmethod
+    def restore(cls, params: Params, state: Mapping[str, np.ndarray], origin: int = 0) -> Engine:
+        """Rebuild an engine from :meth:`snapshot` arrays so that it continues bit for bit."""
+        engine = cls(params, origin)
+        engine.local_view = LocalViewCells.restore(params, state)
+        engine.lv_origin = np.asarray(state["lv_origin"], dtype=np.int64).tolist()
+        engine.odometry = VisualOdometry.restore(params, state)
+        engine.pose_cells = PoseCellNetwork.restore(params, state)
+        engine.map = ExperienceMap.restore(params, engine.pose_cells.rank, state)
+        engine.gate = EventGate.restore(params, state)
+        engine.frames = int(state["eng_frames"])
+        engine.last_stamp = float(state["eng_last_stamp"])
+        engine.loop_closures = int(state.get("eng_loop_closures", np.asarray(0)))
+        return engine

@@ -1,0 +1,73 @@
+"""Wrapping-lattice helpers shared by the pose cells and the experience decisions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+
+def wrap_angle(angle: npt.ArrayLike) -> np.ndarray:
+    """Wrap angles to (-π, π] (OpenRatSLAM ``clip_rad_180``)."""
+    a = np.asarray(angle, dtype=np.float64)
+    wrapped = np.mod(a + math.pi, 2.0 * math.pi) - math.pi
+    return np.where(wrapped == -math.pi, math.pi, wrapped)
+
+
+def wrap_scalar(angle: float) -> float:
+    """Wrap one angle to (-π, π] without numpy overhead."""
+    wrapped = math.fmod(angle + math.pi, 2.0 * math.pi)
+    if wrapped < 0.0:
+        wrapped += 2.0 * math.pi
+    wrapped -= math.pi
+    return math.pi if wrapped == -math.pi else wrapped
+
+
+def wrapped_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
+    """Return per-axis minimum distances |a-b| on a periodic lattice of size ``dims``.
+
+    Multisession RatSLAM Eq. 2: distances respect the network's periodic boundaries.
+    """
+    d = np.abs(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64))
+    dims_f = np.asarray(dims, dtype=np.float64)
+    d = np.mod(d, dims_f)
+    return np.minimum(d, dims_f - d)
+
+
+def wrapped_distance(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
+    """Return the wrapped Euclidean lattice distance (OpenRatSLAM ``get_delta_pc``), last axis summed."""
+    d = wrapped_delta(a, b, dims)
+    return np.sqrt(np.sum(d * d, axis=-1))
+
+
+def gaussian_kernel_1d(size: int, var: float) -> np.ndarray:
+    """Return a normalised 1-D Gaussian of odd ``size`` and width ``var``.
+
+    OpenRatSLAM builds its excitatory/inhibitory weights as
+    ``exp(-(Σ (i-c)²) / (2 var²))`` over a ``size``-cube and normalises the sum to 1
+    (``norm2d``). That cube is the outer product of these 1-D kernels.
+    """
+    centre = size // 2
+    offsets = np.arange(size, dtype=np.float64) - centre
+    k = np.exp(-(offsets * offsets) / (2.0 * var * var))
+    return k / k.sum()
+
+
+def periodic_kernel_spectrum(shape: tuple[int, ...], sizes: tuple[int, ...], var: float) -> np.ndarray:
+    """Return ``rfftn`` of the separable Gaussian kernel wrapped onto a lattice of ``shape``.
+
+    The kernel's centre sits at index 0 and offsets wrap modulo each axis, so a
+    product in the frequency domain is exactly the circular convolution of
+    Multisession RatSLAM Eq. 3 (connections wrap across every face).
+    """
+    kernel = np.ones(shape, dtype=np.float64)
+    for axis, (dim, size) in enumerate(zip(shape, sizes, strict=True)):
+        k1 = gaussian_kernel_1d(size, var)
+        wrapped = np.zeros(dim, dtype=np.float64)
+        centre = size // 2
+        np.add.at(wrapped, (np.arange(size) - centre) % dim, k1)
+        view_shape = [1] * len(shape)
+        view_shape[axis] = dim
+        kernel = kernel * wrapped.reshape(view_shape)
+    return np.fft.rfftn(kernel)

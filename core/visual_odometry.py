@@ -1,0 +1,91 @@
+"""Visual odometry from scanline intensity profiles (OpenRatSLAM ``VisualOdometry``; anchors §1.1).
+
+Each frame's crop windows (``vtrans_image_*`` and ``vrot_image_*``) are reduced to
+column-intensity profiles (mean of each column / 255). The current profile is
+compared with the previous one at every column shift up to a quarter of the
+width, by mean absolute difference over the overlap. The best shift of the
+rotation profile gives the yaw rate ``shift · fov/width · rate``; the smallest
+difference of the translation profile gives the speed ``min_diff · vtrans_scaling``
+capped at ``vtrans_max``. ``rate`` is ``1/dt`` when the frame interval is known, so
+the estimate does not depend on the playback rate (OpenRatSLAM uses ``camera_hz``,
+which is the fallback here).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from core.localview import crop, greyscale
+
+if TYPE_CHECKING:
+    from core.config import Params
+
+
+def column_profile(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np.ndarray:
+    """Return the column means (/255) of the cropped window."""
+    return crop(grey, x_min, x_max, y_min, y_max).mean(axis=0) / 255.0
+
+
+def best_shift(current: np.ndarray, previous: np.ndarray, max_shift: int) -> tuple[int, float]:
+    """Return (shift, mean abs difference) minimising |current[k+s] − previous[k]| over the overlap.
+
+    Positive shifts mean the scene moved towards higher columns (to the right).
+    Ties go to the smallest |shift|, then the negative one.
+    """
+    width = current.shape[0]
+    best = (0, math.inf)
+    for magnitude in range(max_shift + 1):
+        for shift in ((0,) if magnitude == 0 else (-magnitude, magnitude)):
+            if shift >= 0:
+                diff = np.abs(current[shift:] - previous[: width - shift]).mean()
+            else:
+                diff = np.abs(current[: width + shift] - previous[-shift:]).mean()
+            if diff < best[1]:
+                best = (shift, float(diff))
+    return best
+
+
+class VisualOdometry:
+    """Estimates forward speed and yaw rate from consecutive camera frames."""
+
+    def __init__(self, params: Params) -> None:
+        self.params = params
+        self.prev_vtrans = np.zeros(0)
+        self.prev_vrot = np.zeros(0)
+
+    def process(self, image: np.ndarray, dt: float) -> tuple[float, float]:
+        """Return (vtrans m/s, vrot rad/s) for ``image``; (0, 0) on the first frame."""
+        p = self.params
+        grey = greyscale(image)
+        vtrans_profile = column_profile(
+            grey, p.vtrans_image_x_min, p.vtrans_image_x_max, p.vtrans_image_y_min, p.vtrans_image_y_max
+        )
+        vrot_profile = column_profile(
+            grey, p.vrot_image_x_min, p.vrot_image_x_max, p.vrot_image_y_min, p.vrot_image_y_max
+        )
+        vtrans = vrot = 0.0
+        if self.prev_vtrans.shape == vtrans_profile.shape and self.prev_vrot.shape == vrot_profile.shape:
+            rate = 1.0 / dt if dt > 0 else p.camera_hz
+            shift, _ = best_shift(vrot_profile, self.prev_vrot, max(1, vrot_profile.shape[0] // 4))
+            vrot = shift * math.radians(p.camera_fov_deg) / vrot_profile.shape[0] * rate
+            _, diff = best_shift(vtrans_profile, self.prev_vtrans, max(1, vtrans_profile.shape[0] // 4))
+            vtrans = min(diff * p.vtrans_scaling, p.vtrans_max)
+        self.prev_vtrans = vtrans_profile
+        self.prev_vrot = vrot_profile
+        return vtrans, vrot
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Return the previous profiles (keys ``vo_*``)."""
+        return {"vo_prev_vtrans": self.prev_vtrans.copy(), "vo_prev_vrot": self.prev_vrot.copy()}
+
+    @classmethod
+    def restore(cls, params: Params, state: Mapping[str, np.ndarray]) -> VisualOdometry:
+        """Rebuild from :meth:`snapshot` arrays."""
+        vo = cls(params)
+        vo.prev_vtrans = np.asarray(state["vo_prev_vtrans"], dtype=np.float64).copy()
+        vo.prev_vrot = np.asarray(state["vo_prev_vrot"], dtype=np.float64).copy()
+        return vo

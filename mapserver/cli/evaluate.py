@@ -1,0 +1,88 @@
+"""``mapserver evaluate MAP.json --ground-truth GT.tum``: accuracy of a map against ground truth."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Any
+
+from mapserver.cli._output import emit_json, info
+from mapserver.errors import InputError
+from mapserver.evaluation import evaluate_map, plot_map_vs_ground_truth
+from mapserver.formats import read_map_json, read_tum
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``evaluate`` command to the CLI."""
+    parser = subparsers.add_parser(
+        "evaluate",
+        help="accuracy of a map against ground truth (APE RMSE, Hausdorff)",
+        description=(
+            "Align the map's experiences rigidly to the ground truth (Umeyama 1991; planar maps in xy) and "
+            "report the APE RMSE of their positions, the same for the raw odometry when known, and the "
+            "symmetric Hausdorff distance between the aligned experiences and the ground truth."
+        ),
+    )
+    parser.add_argument(
+        "map", metavar="MAP.json", help="map JSON written by 'process' or 'export --format json'"
+    )
+    parser.add_argument("--ground-truth", required=True, metavar="GT.tum", help="ground truth, TUM format")
+    parser.add_argument(
+        "--json", action="store_true", help="print the result as JSON on the last stdout line"
+    )
+    parser.add_argument("--plot", metavar="PNG", help="also draw the aligned map over the ground truth")
+    parser.add_argument(
+        "--max-diff",
+        type=float,
+        default=0.05,
+        metavar="S",
+        help="accept stamps up to S seconds outside the ground truth's time span (default 0.05)",
+    )
+    parser.add_argument("--session", metavar="NAME", help="evaluate only this session's experiences")
+    parser.add_argument(
+        "--odometry",
+        metavar="ODOM.tum",
+        help="raw odometry trajectory (TUM) for the baseline; default: the map's 'odometry' key if any",
+    )
+    parser.set_defaults(func=run)
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.4f} m"
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate the map, print the summary (stderr) and, with ``--json``, the result (stdout)."""
+    max_diff = float(args.max_diff)
+    if not math.isfinite(max_diff) or max_diff < 0.0:
+        msg = f"--max-diff must be a non-negative number of seconds, got {args.max_diff!r}"
+        raise InputError(msg)
+    doc = read_map_json(args.map)
+    gt = read_tum(args.ground_truth)
+    odometry = read_tum(args.odometry) if args.odometry else None
+    if args.plot:
+        plot_dir = Path(args.plot).resolve().parent
+        if not plot_dir.is_dir():
+            msg = f"directory of --plot does not exist: {str(plot_dir)!r}"
+            raise InputError(msg)
+    result = evaluate_map(doc, gt, odometry=odometry, max_diff_s=max_diff, session=args.session)
+    info(
+        f"{args.map}: {result['experiences']} experiences, {result['aligned']} with ground truth "
+        f"({len(gt)} poses), evaluated in {result['dims']}-D"
+    )
+    info(
+        f"  APE RMSE (experiences): {_fmt(result['ape_rmse'])}  mean {_fmt(result['ape_mean'])}  "
+        f"max {_fmt(result['ape_max'])}"
+    )
+    info(f"  APE RMSE (odometry):    {_fmt(result['odometry_ape_rmse'])}")
+    info(f"  Hausdorff:              {_fmt(result['hausdorff'])}")
+    if args.plot:
+        plot_map_vs_ground_truth(
+            doc, gt, args.plot, odometry=odometry, max_diff_s=max_diff, session=args.session
+        )
+        result["plot"] = str(args.plot)
+        info(f"  plot written to {args.plot}")
+    if args.json:
+        emit_json(result)
+    return 0

@@ -1,0 +1,73 @@
+"""``mapserver process LOG``: run the SLAM engine over one mission log."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from mapserver import pipeline
+from mapserver.cli._output import emit_json, info
+from mapserver.cli._progress import progress_bar
+from mapserver.errors import InputError
+from mapserver.ingest.topics import parse_topics_arg
+from mapserver.params import resolve_params
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add the ``process`` command."""
+    parser = subparsers.add_parser("process", help="run the SLAM engine over a mission log")
+    parser.add_argument("log", help="ROS 1 .bag, ROS 2 bag directory, .db3 or .mcap")
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--preset", help="parameter preset (irat, stlucia, newcollege, lake, circle, poseidon)")
+    group.add_argument("--config", help="OpenRatSLAM config_*.txt or OpenRatSLAM2 YAML file")
+    parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt")
+    parser.add_argument("--out", help="write the map JSON here")
+    parser.add_argument("--db", help="store the session in this database (SQLAlchemy URL)")
+    parser.add_argument("--map", dest="map_name", help="name of the new map when the session connects to none")
+    parser.add_argument("--no-merge", action="store_true", help="always keep the session a separate map")
+    parser.add_argument("--stop-after", type=int, help="process only this many frames (resume later with --db)")
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line of stdout")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Process the log and report the summary."""
+    log = Path(args.log)
+    if not log.exists():
+        msg = f"log not found: {str(log)!r}"
+        raise InputError(msg)
+    params = resolve_params(args.preset, args.config, log)
+    topics = parse_topics_arg(args.topics) if args.topics else None
+    if args.map_name and not args.db:
+        msg = "--map needs --db"
+        raise InputError(msg)
+    update, close = progress_bar(f"processing {log.name}")
+    try:
+        if args.db:
+            result = pipeline.process_into_store(
+                log,
+                params,
+                db_url=args.db,
+                map_name=args.map_name,
+                topics=topics,
+                merge=not args.no_merge,
+                stop_after=args.stop_after,
+                out=args.out,
+                progress=update,
+            )
+        else:
+            if args.stop_after is not None:
+                msg = "--stop-after needs --db (the stored state is what a later run resumes from)"
+                raise InputError(msg)
+            result = pipeline.process_log(log, params, topics=topics, out=args.out, progress=update)
+    finally:
+        close()
+    summary = result.summary()
+    info(
+        f"{summary['frames']} frames → {summary['templates']} templates, {summary['experiences']} experiences, "
+        f"{summary['links']} links, {summary['loop_closures']} loop closures, {len(summary['merges'])} merges "
+        f"in {summary['seconds']:.2f} s (map {summary['map']!r})"
+    )
+    if args.json:
+        emit_json(summary)
+    return 0

@@ -1,0 +1,47 @@
+"""One exception family for mapserver; the CLI and the API map it to exit codes and HTTP statuses."""
+
+from __future__ import annotations
+
+
+class MapServerError(Exception):
+    """Root of mapserver's errors (CLI exit 1, HTTP 500 unless a subclass says otherwise)."""
+
+    exit_code = 1
+    http_status = 500
+
+
+class InputError(MapServerError):
+    """The user's input is unusable: missing file, not a bag, corrupt, bad parameter (exit 2, HTTP 400)."""
+
+    exit_code = 2
+    http_status = 400
+
+
+class IngestError(InputError):
+    """A mission log cannot be read or has no usable topics."""
+
+
+class ConfigError(InputError):
+    """A preset, configuration file or parameter is invalid."""
+
+
+class NotFoundError(MapServerError):
+    """A named map, session, experience or job does not exist (exit 2, HTTP 404)."""
+
+    exit_code = 2
+    http_status = 404
+
+
+class ConflictError(MapServerError):
+    """The request conflicts with stored state, e.g. no path exists or a merge is refused (HTTP 409)."""
+
+    exit_code = 1
+    http_status = 409
+
+
+class StoreError(MapServerError):
+    """The database could not complete an operation."""
+
+
+class MergeError(ConflictError):
+    """Two maps cannot be merged (no confirmed match)."""

@@ -1,0 +1,540 @@
+"""Map JSON (``mapserver-map/1``) and TUM trajectory files: building, reading and writing them.
+
+The public contract for both formats is ``docs/interfaces.md`` (shared): a map JSON holds the effective
+parameters, the sessions, the template count, the experiences (SE(3) pose as position + unit quaternion, plus
+``yaw``) and the links; a TUM file holds one ``timestamp x y z qx qy qz qw`` line per pose.
+
+Extensions written here (consumers must ignore keys they do not know): every link also carries
+``"transform": [dx, dy, dz, dyaw]`` (pose of ``to`` in the frame of ``from``), and a map may carry
+``"odometry": [[stamp, x, y, z], ...]``, the raw dead-reckoning position of every processed frame, which
+:mod:`mapserver.evaluation` uses for the odometry baseline.
+
+Every writer is atomic: it writes a temporary file in the destination's directory and ``os.replace``-s it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from mapserver.errors import InputError, MapServerError
+
+MAP_FORMAT = "mapserver-map/1"
+"""Value of the ``format`` key of every map JSON this module writes and accepts."""
+
+LINK_KINDS: dict[int, str] = {0: "odometry", 1: "loop", 2: "merge", 3: "manual"}
+"""``em_link_kind`` code → map JSON link ``kind``."""
+
+TUM_HEADER = "# timestamp x y z qx qy qz qw"
+
+_TOP_KEYS = ("format", "params", "sessions", "templates", "experiences", "links")
+_EXPERIENCE_KEYS = ("id", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw", "template", "stamp", "session")
+_EXPERIENCE_NUMBERS = ("id", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw", "template", "stamp")
+_LINK_KEYS = ("from", "to", "dt", "distance", "kind")
+_SESSION_KEYS = ("name", "log_sha256", "frames")
+
+PathLike = str | os.PathLike[str]
+
+
+@dataclass(frozen=True, slots=True)
+class SessionInfo:
+    """One session of a map as listed in the map JSON.
+
+    Attributes:
+        name: session name (unique within the map).
+        log_sha256: hex SHA-256 of the mission log the session was built from.
+        frames: number of frames processed.
+
+    """
+
+    name: str
+    log_sha256: str
+    frames: int
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A timed sequence of SE(3) poses.
+
+    Attributes:
+        stamps_s: (N,) float64 times in seconds.
+        positions_xyz: (N, 3) float64 positions in metres.
+        quat_xyzw: (N, 4) float64 unit quaternions (x, y, z, w).
+
+    """
+
+    stamps_s: npt.NDArray[np.float64]
+    positions_xyz: npt.NDArray[np.float64]
+    quat_xyzw: npt.NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        stamps = np.asarray(self.stamps_s, dtype=np.float64).reshape(-1)
+        n = stamps.shape[0]
+        positions = np.asarray(self.positions_xyz, dtype=np.float64).reshape(n, 3)
+        quats = np.asarray(self.quat_xyzw, dtype=np.float64).reshape(n, 4)
+        object.__setattr__(self, "stamps_s", stamps)
+        object.__setattr__(self, "positions_xyz", positions)
+        object.__setattr__(self, "quat_xyzw", quats)
+
+    def __len__(self) -> int:
+        return int(self.stamps_s.shape[0])
+
+    def sorted(self) -> Trajectory:
+        """Return the trajectory in stamp order (stable, so equal stamps keep their order)."""
+        order = np.argsort(self.stamps_s, kind="stable")
+        if np.array_equal(order, np.arange(len(self))):
+            return self
+        return Trajectory(self.stamps_s[order], self.positions_xyz[order], self.quat_xyzw[order])
+
+
+# ----------------------------------------------------------------------------------------------- rotations
+
+
+def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
+    """Return the unit quaternion of a rotation by ``yaw`` about the z axis.
+
+    Args:
+        yaw: angle in radians, counter-clockwise about +z.
+
+    Returns:
+        ``(qx, qy, qz, qw)`` = ``(0, 0, sin(yaw/2), cos(yaw/2))``; for yaw in (−π, π] ``qw ≥ 0``.
+
+    """
+    half = 0.5 * float(yaw)
+    return 0.0, 0.0, math.sin(half), math.cos(half)
+
+
+def yaw_from_quaternion(qx: float, qy: float, qz: float, qw: float) -> float:
+    """Yaw (rotation about z, ZYX Euler convention) of a quaternion, in (−π, π].
+
+    The quaternion is normalised first, so any non-zero scaling of a unit quaternion gives the same yaw.
+
+    Args:
+        qx: x component.
+        qy: y component.
+        qz: z component.
+        qw: scalar component.
+
+    Returns:
+        ``atan2(2(qw·qz + qx·qy), 1 − 2(qy² + qz²))`` of the normalised quaternion.
+
+    Raises:
+        ValueError: the quaternion has zero norm.
+
+    """
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if norm == 0.0 or not math.isfinite(norm):
+        msg = f"quaternion has no orientation: {(qx, qy, qz, qw)!r}"
+        raise ValueError(msg)
+    qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return math.pi if yaw == -math.pi else yaw
+
+
+# ----------------------------------------------------------------------------------------------- map JSON
+
+
+def _plain(value: Any) -> Any:
+    """Convert numpy scalars/arrays, tuples and mappings to plain JSON-able Python values."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def map_json(
+    *,
+    params: Mapping[str, Any],
+    snapshot: Mapping[str, npt.NDArray[Any]],
+    sessions: Sequence[SessionInfo],
+    session_name_by_origin: Mapping[int, str],
+    odometry: npt.ArrayLike | None = None,
+) -> dict[str, Any]:
+    """Build the contract's map JSON document from an engine snapshot.
+
+    Experience ids are the snapshot's row indices; the quaternion is the rotation by the experience's yaw
+    about z (RatSLAM maps are 4-DoF: x, y, z, yaw). Every value is a plain Python ``int``/``float``/``str``.
+
+    Args:
+        params: effective parameters (``Params.to_dict()``); numpy values are converted.
+        snapshot: ``core.Engine.snapshot()`` arrays (see ``docs/architecture.md``); uses ``lv_means``,
+            ``em_pose``, ``em_template``, ``em_stamp``, ``em_origin`` and the ``em_link_*`` arrays.
+        sessions: the map's sessions, in order.
+        session_name_by_origin: ``em_origin`` tag → session name. An origin missing from it gives
+            ``"session": null``.
+        odometry: optional (N, 4) ``[stamp, x, y, z]`` raw dead-reckoning positions per frame; written as
+            the ``"odometry"`` extension key when given.
+
+    Returns:
+        ``{"format", "params", "sessions", "templates", "experiences", "links"}`` (+ ``"odometry"``).
+
+    Raises:
+        ValueError: a link kind code is unknown or ``odometry`` has the wrong shape.
+
+    """
+    pose = np.asarray(snapshot["em_pose"], dtype=np.float64).reshape(-1, 4)
+    n_exp = pose.shape[0]
+    templates = np.asarray(snapshot["em_template"]).reshape(-1).tolist()
+    stamps = np.asarray(snapshot["em_stamp"], dtype=np.float64).reshape(-1).tolist()
+    origins = np.asarray(snapshot["em_origin"]).reshape(-1).tolist()
+    half = 0.5 * pose[:, 3]
+    qz = np.sin(half).tolist()
+    qw = np.cos(half).tolist()
+    xyz_yaw = pose.tolist()
+    experiences = [
+        {
+            "id": i,
+            "x": xyz_yaw[i][0],
+            "y": xyz_yaw[i][1],
+            "z": xyz_yaw[i][2],
+            "qx": 0.0,
+            "qy": 0.0,
+            "qz": qz[i],
+            "qw": qw[i],
+            "yaw": xyz_yaw[i][3],
+            "template": int(templates[i]),
+            "stamp": stamps[i],
+            "session": session_name_by_origin.get(int(origins[i])),
+        }
+        for i in range(n_exp)
+    ]
+
+    link_from = np.asarray(snapshot["em_link_from"]).reshape(-1).tolist()
+    link_to = np.asarray(snapshot["em_link_to"]).reshape(-1).tolist()
+    link_dt = np.asarray(snapshot["em_link_dt"], dtype=np.float64).reshape(-1).tolist()
+    link_dist = np.asarray(snapshot["em_link_distance"], dtype=np.float64).reshape(-1).tolist()
+    link_kind = np.asarray(snapshot["em_link_kind"]).reshape(-1).tolist()
+    link_tf = np.asarray(snapshot["em_link_transform"], dtype=np.float64).reshape(-1, 4).tolist()
+    links = []
+    for k in range(len(link_from)):
+        kind = LINK_KINDS.get(int(link_kind[k]))
+        if kind is None:
+            msg = f"unknown em_link_kind {link_kind[k]!r} on link {k}"
+            raise ValueError(msg)
+        links.append(
+            {
+                "from": int(link_from[k]),
+                "to": int(link_to[k]),
+                "dt": link_dt[k],
+                "distance": link_dist[k],
+                "kind": kind,
+                "transform": link_tf[k],
+            }
+        )
+
+    if "lv_means" in snapshot:
+        n_templates = int(np.asarray(snapshot["lv_means"]).shape[0])
+    else:
+        n_templates = int(np.asarray(snapshot["lv_templates"]).shape[0])
+
+    doc: dict[str, Any] = {
+        "format": MAP_FORMAT,
+        "params": _plain(dict(params)),
+        "sessions": [
+            {"name": str(s.name), "log_sha256": str(s.log_sha256), "frames": int(s.frames)} for s in sessions
+        ],
+        "templates": n_templates,
+        "experiences": experiences,
+        "links": links,
+    }
+    if odometry is not None:
+        odo = np.asarray(odometry, dtype=np.float64)
+        if odo.ndim != 2 or odo.shape[1] != 4:
+            msg = f"odometry must have shape (N, 4) [stamp, x, y, z], got {odo.shape!r}"
+            raise ValueError(msg)
+        doc["odometry"] = odo.tolist()
+    return doc
+
+
+def atomic_write_bytes(path: PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically: temporary file in the same directory, fsync, ``os.replace``.
+
+    Args:
+        path: destination file; its directory must exist.
+        data: the complete file content.
+
+    """
+    target = Path(path)
+    directory = target.parent if str(target.parent) else Path(".")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_name, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        raise
+
+
+def write_map_json(path: PathLike, doc: Mapping[str, Any]) -> None:
+    """Write a map JSON document atomically as UTF-8.
+
+    Args:
+        path: destination file; its directory must exist.
+        doc: the document (numpy values are converted to plain Python values).
+
+    Raises:
+        MapServerError: the document holds NaN or an infinity (not valid JSON) or a non-JSON value.
+
+    """
+    try:
+        text = json.dumps(_plain(doc), ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+    except (ValueError, TypeError) as err:
+        msg = f"cannot write map JSON {str(path)!r}: {err}"
+        raise MapServerError(msg) from err
+    atomic_write_bytes(path, (text + "\n").encode("utf-8"))
+
+
+def _reject_constant(token: str) -> Any:
+    msg = f"non-finite number {token!r}"
+    raise ValueError(msg)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def read_map_json(path: PathLike) -> dict[str, Any]:
+    """Read and validate a map JSON file.
+
+    Checks the ``format`` key, the presence of every top-level key of the contract, the keys of every
+    session, experience and link, that experience numbers are numbers, and that link endpoints name
+    experiences of the map.
+
+    Args:
+        path: the map JSON file.
+
+    Returns:
+        The parsed document.
+
+    Raises:
+        InputError: the file is missing, unreadable, not JSON, or does not follow ``mapserver-map/1``; the
+            message is one line naming the reason.
+
+    """
+    name = str(path)
+    try:
+        raw = Path(path).read_bytes()
+    except FileNotFoundError:
+        msg = f"map file not found: {name!r}"
+        raise InputError(msg) from None
+    except OSError as err:
+        msg = f"cannot read map file {name!r}: {err.strerror or err}"
+        raise InputError(msg) from None
+    try:
+        doc = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant)
+    except UnicodeDecodeError as err:
+        msg = f"map file {name!r} is not UTF-8: {err.reason} at byte {err.start}"
+        raise InputError(msg) from None
+    except json.JSONDecodeError as err:
+        msg = f"map file {name!r} is not valid JSON: {err.msg} at line {err.lineno} column {err.colno}"
+        raise InputError(msg) from None
+    except ValueError as err:
+        msg = f"map file {name!r} is not valid JSON: {err}"
+        raise InputError(msg) from None
+    if not isinstance(doc, dict):
+        msg = f"map file {name!r} is not a JSON object"
+        raise InputError(msg)
+    fmt = doc.get("format")
+    if fmt != MAP_FORMAT:
+        msg = f"map file {name!r} has format {fmt!r}, expected {MAP_FORMAT!r}"
+        raise InputError(msg)
+    missing = [k for k in _TOP_KEYS if k not in doc]
+    if missing:
+        msg = f"map file {name!r} lacks key(s) {', '.join(missing)}"
+        raise InputError(msg)
+    for key in ("sessions", "experiences", "links"):
+        if not isinstance(doc[key], list):
+            msg = f"map file {name!r}: {key!r} is not a list"
+            raise InputError(msg)
+    if not isinstance(doc["params"], dict):
+        msg = f"map file {name!r}: 'params' is not an object"
+        raise InputError(msg)
+    if not _is_number(doc["templates"]):
+        msg = f"map file {name!r}: 'templates' is not a number: {doc['templates']!r}"
+        raise InputError(msg)
+    _check_items(name, "sessions", doc["sessions"], _SESSION_KEYS)
+    _check_items(name, "experiences", doc["experiences"], _EXPERIENCE_KEYS)
+    _check_items(name, "links", doc["links"], _LINK_KEYS)
+    ids = set()
+    for i, exp in enumerate(doc["experiences"]):
+        for key in _EXPERIENCE_NUMBERS:
+            if not _is_number(exp[key]):
+                msg = f"map file {name!r}: experiences[{i}].{key} is not a number: {exp[key]!r}"
+                raise InputError(msg)
+        ids.add(exp["id"])
+    for k, link in enumerate(doc["links"]):
+        for key in ("from", "to"):
+            if link[key] not in ids:
+                msg = f"map file {name!r}: links[{k}].{key} = {link[key]!r} is not an experience id"
+                raise InputError(msg)
+    if "odometry" in doc:
+        odo = doc["odometry"]
+        ok = isinstance(odo, list) and all(
+            isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in odo
+        )
+        if not ok:
+            msg = f"map file {name!r}: 'odometry' is not a list of [stamp, x, y, z]"
+            raise InputError(msg)
+    return doc
+
+
+def _check_items(name: str, key: str, items: list[Any], required: Sequence[str]) -> None:
+    for i, item in enumerate(items):
+        if not isinstance(item, dict):
+            msg = f"map file {name!r}: {key}[{i}] is not an object"
+            raise InputError(msg)
+        missing = [k for k in required if k not in item]
+        if missing:
+            msg = f"map file {name!r}: {key}[{i}] lacks key(s) {', '.join(missing)}"
+            raise InputError(msg)
+
+
+def map_trajectory(doc: Mapping[str, Any]) -> Trajectory:
+    """Return the experience poses of a map JSON document as a trajectory.
+
+    Args:
+        doc: a map JSON document (as from :func:`read_map_json` or :func:`map_json`).
+
+    Returns:
+        One pose per experience (stamp = the experience's ``stamp``), in stamp order; experiences with equal
+        stamps keep the document's order.
+
+    """
+    exps = doc["experiences"]
+    stamps = np.array([float(e["stamp"]) for e in exps], dtype=np.float64)
+    positions = np.array([[e["x"], e["y"], e["z"]] for e in exps], dtype=np.float64).reshape(-1, 3)
+    quats = np.array([[e["qx"], e["qy"], e["qz"], e["qw"]] for e in exps], dtype=np.float64).reshape(-1, 4)
+    return Trajectory(stamps, positions, quats).sorted()
+
+
+def odometry_trajectory(doc: Mapping[str, Any]) -> Trajectory | None:
+    """Return the ``"odometry"`` extension of a map JSON document as a trajectory (None when absent).
+
+    Args:
+        doc: a map JSON document.
+
+    Returns:
+        Raw dead-reckoning positions per frame in stamp order (identity orientation), or None when the
+        document has no (or an empty) ``"odometry"`` key.
+
+    """
+    rows = doc.get("odometry")
+    if not rows:
+        return None
+    arr = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
+    quats = np.zeros((arr.shape[0], 4))
+    quats[:, 3] = 1.0
+    return Trajectory(arr[:, 0], arr[:, 1:4], quats).sorted()
+
+
+# ----------------------------------------------------------------------------------------------- TUM
+
+
+def read_tum(path: PathLike) -> Trajectory:
+    """Read a TUM trajectory file (``timestamp x y z qx qy qz qw`` per line).
+
+    Blank lines and lines starting with ``#`` are skipped; fields are separated by whitespace. The poses are
+    returned in stamp order (stable).
+
+    Args:
+        path: the TUM file.
+
+    Returns:
+        The trajectory.
+
+    Raises:
+        InputError: the file is missing or unreadable, a line does not hold exactly 8 finite numbers (the
+            message names the line number), or the file holds no pose.
+
+    """
+    name = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        msg = f"trajectory file not found: {name!r}"
+        raise InputError(msg) from None
+    except UnicodeDecodeError as err:
+        msg = f"trajectory file {name!r} is not UTF-8 text: {err.reason} at byte {err.start}"
+        raise InputError(msg) from None
+    except OSError as err:
+        msg = f"cannot read trajectory file {name!r}: {err.strerror or err}"
+        raise InputError(msg) from None
+    rows: list[list[float]] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        fields = stripped.split()
+        if len(fields) != 8:
+            msg = f"{name}:{lineno}: expected 8 fields 'timestamp x y z qx qy qz qw', got {len(fields)}"
+            raise InputError(msg)
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            msg = f"{name}:{lineno}: not a number in {stripped!r}"
+            raise InputError(msg) from None
+        if not all(math.isfinite(v) for v in values):
+            msg = f"{name}:{lineno}: non-finite value in {stripped!r}"
+            raise InputError(msg)
+        rows.append(values)
+    if not rows:
+        msg = f"trajectory file {name!r} holds no pose"
+        raise InputError(msg)
+    arr = np.asarray(rows, dtype=np.float64)
+    return Trajectory(arr[:, 0], arr[:, 1:4], arr[:, 4:8]).sorted()
+
+
+def write_tum(
+    path: PathLike,
+    stamps_s: npt.ArrayLike,
+    positions_xyz: npt.ArrayLike,
+    quat_xyzw: npt.ArrayLike,
+) -> None:
+    """Write a TUM trajectory file atomically.
+
+    Stamps are written with ``%.9f`` (nanosecond resolution); positions and quaternion components with 17
+    significant digits, so reading the file back gives the same float64 values.
+
+    Args:
+        path: destination file; its directory must exist.
+        stamps_s: (N,) stamps in seconds.
+        positions_xyz: (N, 3) positions.
+        quat_xyzw: (N, 4) quaternions (x, y, z, w).
+
+    Raises:
+        ValueError: the shapes disagree.
+
+    """
+    stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+    n = stamps.shape[0]
+    positions = np.asarray(positions_xyz, dtype=np.float64)
+    quats = np.asarray(quat_xyzw, dtype=np.float64)
+    if positions.shape != (n, 3) or quats.shape != (n, 4):
+        msg = (
+            f"shapes disagree: stamps {stamps.shape!r}, positions {positions.shape!r}, quats {quats.shape!r}"
+        )
+        raise ValueError(msg)
+    lines = [TUM_HEADER]
+    for t, p, q in zip(stamps.tolist(), positions.tolist(), quats.tolist(), strict=True):
+        values = " ".join(f"{v:.17g}" for v in (*p, *q))
+        lines.append(f"{t:.9f} {values}")
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode("utf-8"))

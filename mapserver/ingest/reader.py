@@ -1,0 +1,377 @@
+"""Reading mission logs: ROS 1 ``.bag``, ROS 2 bag directories and standalone ``.db3`` / ``.mcap`` files.
+
+:func:`open_log` opens a log with ``rosbags.highlevel.AnyReader``, lists its topics, chooses the topic
+mapping (rule in :mod:`mapserver.ingest.topics`) and checks, before returning, that a usable camera topic
+exists and that its first image decodes. Every failure (missing path, not a bag, truncated or corrupt
+data, no camera, unsupported encoding) is one :class:`~mapserver.errors.IngestError` line naming the path.
+
+Stamps: images, odometry and ground truth are stamped with their message header stamp; a zero header stamp
+falls back to the bag's receive time. Frames are produced in bag (receive-time) order of the image topic;
+odometry is read as a second, independent stream in bag order and integrated up to each image's header
+stamp (the integration cursor never goes back: an image stamped before the previous one gets a zero
+motion). Odometry messages whose header stamp goes backwards are dropped. Since everything depends only on
+the message contents and their order within each topic, a ``.bag``, ``.db3`` and ``.mcap`` of the same
+data give identical frames.
+
+Odometry mode (twist integration or pose differencing, see :mod:`mapserver.ingest.odometry`), decided per
+log on first use unless given to :func:`open_log`: the odometry topic is scanned from its start until the
+first informative message: one with a non-zero twist means **twist**; a pose that moved (more than 1e-9 m
+or rad from the first message) while every twist so far was exactly zero means **pose**; a log that never
+moves is treated as twist (both give zero motion).
+
+Each streaming call (:meth:`MissionLog.frames`, :meth:`MissionLog.ground_truth`) opens its own readers,
+so several streams of one log may be consumed interleaved (rosbags readers share file positions).
+Memory is bounded regardless of log size: messages are streamed, never loaded all at once; the odometry
+buffer holds only the messages between two frames.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterator, Mapping
+from contextlib import ExitStack
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Connection
+from rosbags.typesys import Stores, get_typestore
+
+from core.motion import ZERO_MOTION, Motion
+from mapserver.errors import IngestError
+from mapserver.ingest.decode import decode_image
+from mapserver.ingest.frames import Frame, PoseSample
+from mapserver.ingest.odometry import (
+    OdometryMode,
+    OdometryState,
+    OdometryTrack,
+    pose_moved,
+    state_from_message,
+    twist_is_zero,
+)
+from mapserver.ingest.topics import TopicInfo, TopicMapping, map_topics
+
+LOG_SUFFIXES = (".bag", ".db3", ".mcap")
+_HASH_CHUNK = 1 << 20
+
+
+def _header_stamp(msg: Any, receive_ns: int) -> int:
+    """Return the header stamp in ns, or the receive time when the header stamp is zero."""
+    header = getattr(msg, "header", None)
+    if header is None:
+        return int(receive_ns)
+    stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return stamp if stamp != 0 else int(receive_ns)
+
+
+def _check_path(path: Path) -> None:
+    if not path.exists():
+        msg = f"log not found: {str(path)!r}"
+        raise IngestError(msg)
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            msg = f"not a ROS 2 bag directory (no metadata.yaml): {str(path)!r}"
+            raise IngestError(msg)
+        return
+    if path.suffix.lower() not in LOG_SUFFIXES:
+        msg = f"unsupported log {str(path)!r}: expected a .bag, .db3 or .mcap file or a ROS 2 bag directory"
+        raise IngestError(msg)
+
+
+def _new_reader(path: Path) -> AnyReader:
+    """Create and open an AnyReader, translating every failure into IngestError."""
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as err:  # rosbags raises many types for broken files (ReaderError, struct, OS, ...)
+        msg = f"not a readable bag (truncated or corrupt?): {str(path)!r}: {_describe(err)}"
+        raise IngestError(msg) from err
+    return reader
+
+
+def _describe(err: BaseException) -> str:
+    text = " ".join(str(err).split()) or type(err).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+class MissionLog:
+    """An open mission log; use :func:`open_log` to create one, and close it (it is a context manager).
+
+    Attributes:
+        path: the log's path.
+        topics: every topic with type, message count and mean rate.
+        mapping: the topics frames, odometry and ground truth are read from.
+        start_ns: receive time of the first message (ns).
+        end_ns: receive time of the last message (ns).
+
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        reader: AnyReader,
+        topics: list[TopicInfo],
+        mapping: TopicMapping,
+        odometry_mode: OdometryMode | None = None,
+    ) -> None:
+        self.path = path
+        self.topics = topics
+        self.mapping = mapping
+        self._reader: AnyReader | None = reader
+        self.start_ns = int(reader.start_time) if reader.message_count else 0
+        self.end_ns = int(reader.end_time) if reader.message_count else 0
+        self._odometry_mode = odometry_mode
+        self._sha256: str | None = None
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Close the underlying reader (idempotent)."""
+        reader, self._reader = self._reader, None
+        if reader is not None and reader.stack is not None:
+            reader.close()
+
+    def __enter__(self) -> MissionLog:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def _require_open(self) -> AnyReader:
+        if self._reader is None:
+            msg = f"log is closed: {str(self.path)!r}"
+            raise IngestError(msg)
+        return self._reader
+
+    # -- metadata --------------------------------------------------------------------------------------
+    @property
+    def duration_s(self) -> float:
+        """Seconds between the first and the last message (receive time)."""
+        return (self.end_ns - self.start_ns) * 1e-9
+
+    @property
+    def sha256(self) -> str:
+        """SHA-256 hex digest of the log file, or of all files of a bag directory in sorted order."""
+        if self._sha256 is None:
+            digest = hashlib.sha256()
+            files = (
+                sorted(p for p in self.path.rglob("*") if p.is_file()) if self.path.is_dir() else [self.path]
+            )
+            for file in files:
+                with file.open("rb") as handle:
+                    while chunk := handle.read(_HASH_CHUNK):
+                        digest.update(chunk)
+            self._sha256 = digest.hexdigest()
+        return self._sha256
+
+    def count_frames(self) -> int:
+        """Return the number of camera frames (messages on the image topic)."""
+        return next(t.count for t in self.topics if t.name == self.mapping.image)
+
+    @property
+    def odometry_mode(self) -> OdometryMode | None:
+        """``'twist'`` or ``'pose'`` (see the module docstring), None when the log has no odometry topic."""
+        if self.mapping.odometry is None:
+            return None
+        if self._odometry_mode is None:
+            self._odometry_mode = self._detect_odometry_mode()
+        return self._odometry_mode
+
+    def _detect_odometry_mode(self) -> OdometryMode:
+        reader = self._require_open()
+        assert self.mapping.odometry is not None
+        first: OdometryState | None = None
+        for conn, receive_ns, raw in self._messages(reader, self.mapping.odometry):
+            msg = self._deserialize(reader, raw, conn)
+            if not twist_is_zero(msg):
+                return "twist"
+            state = state_from_message(msg, _header_stamp(msg, receive_ns))
+            if first is None:
+                first = state
+            elif pose_moved(first, state):
+                return "pose"
+        return "twist"
+
+    # -- streaming -------------------------------------------------------------------------------------
+    def _connections(self, reader: AnyReader, topic: str) -> list[Connection]:
+        return [c for c in reader.connections if c.topic == topic]
+
+    def _messages(self, reader: AnyReader, topic: str) -> Iterator[tuple[Connection, int, bytes]]:
+        """Yield ``(connection, receive_ns, raw)`` of one topic in bag order, errors as IngestError."""
+        connections = self._connections(reader, topic)
+        if not connections:
+            return
+        iterator = reader.messages(connections=connections)
+        while True:
+            try:
+                item = next(iterator)
+            except StopIteration:
+                return
+            except Exception as err:
+                msg = f"corrupt log {str(self.path)!r} while reading {topic}: {_describe(err)}"
+                raise IngestError(msg) from err
+            yield item
+
+    def _deserialize(self, reader: AnyReader, raw: bytes, conn: Connection) -> Any:
+        try:
+            return reader.deserialize(raw, conn.msgtype)
+        except Exception as err:
+            msg = f"corrupt message on {conn.topic} in {str(self.path)!r}: {_describe(err)}"
+            raise IngestError(msg) from err
+
+    def _odometry_states(self, reader: AnyReader) -> Iterator[OdometryState]:
+        assert self.mapping.odometry is not None
+        for conn, receive_ns, raw in self._messages(reader, self.mapping.odometry):
+            msg = self._deserialize(reader, raw, conn)
+            yield state_from_message(msg, _header_stamp(msg, receive_ns))
+
+    def first_image(self) -> Any:
+        """Return the first deserialised message of the image topic (None when there is none)."""
+        reader = self._require_open()
+        for conn, _receive_ns, raw in self._messages(reader, self.mapping.image):
+            return self._deserialize(reader, raw, conn)
+        return None
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[Frame]:
+        """Yield camera frames in bag order with the motion since the previous frame.
+
+        Args:
+            start: index of the first frame to yield. Earlier frames are read (not decoded) so that the
+                motion of frame ``start`` is still relative to frame ``start - 1``: reading ``[0, k)`` then
+                ``[k, n)`` gives the same frames as ``[0, n)``.
+            stop: index after the last frame to yield (None: to the end).
+
+        Yields:
+            :class:`~mapserver.ingest.frames.Frame` objects; ``motion`` is ``Motion(0, 0, 0, 0, 0)`` for
+            frame 0 and None for every frame when the log has no odometry topic.
+
+        Raises:
+            IngestError: corrupt data or an undecodable image.
+
+        """
+        self._require_open()
+        mode = self.odometry_mode
+        topic = self.mapping.image
+        with ExitStack() as stack:
+            reader = _new_reader(self.path)
+            stack.callback(reader.close)
+            track: OdometryTrack | None = None
+            states: Iterator[OdometryState] = iter(())
+            if mode is not None:
+                odom_reader = _new_reader(self.path)
+                stack.callback(odom_reader.close)
+                states = self._odometry_states(odom_reader)
+                track = OdometryTrack(mode)
+            cursor: int | None = None
+            for index, (conn, receive_ns, raw) in enumerate(self._messages(reader, topic)):
+                if stop is not None and index >= stop:
+                    return
+                msg = self._deserialize(reader, raw, conn)
+                stamp = _header_stamp(msg, receive_ns)
+                motion: Motion | None = None
+                if track is not None:
+                    while not track.covers(stamp):
+                        state = next(states, None)
+                        if state is None:
+                            break
+                        track.push(state)
+                    if cursor is None:
+                        motion = ZERO_MOTION
+                        track.trim(stamp)
+                    else:
+                        motion = track.motion(cursor, stamp)
+                cursor = stamp if cursor is None else max(cursor, stamp)
+                if index >= start:
+                    yield Frame(stamp_ns=stamp, image=decode_image(msg, topic), motion=motion)
+
+    def ground_truth(self) -> Iterator[PoseSample]:
+        """Yield the ground-truth poses in bag order (nothing when the log has no ground-truth topic).
+
+        ``Odometry`` and ``PoseWithCovarianceStamped`` give ``msg.pose.pose``, ``PoseStamped`` ``msg.pose``;
+        stamps are header stamps (receive time when zero).
+        """
+        self._require_open()
+        topic = self.mapping.ground_truth
+        if topic is None:
+            return
+        reader = _new_reader(self.path)
+        try:
+            yield from self._ground_truth(reader, topic)
+        finally:
+            reader.close()
+
+    def _ground_truth(self, reader: AnyReader, topic: str) -> Iterator[PoseSample]:
+        for conn, receive_ns, raw in self._messages(reader, topic):
+            msg = self._deserialize(reader, raw, conn)
+            pose = msg.pose if conn.msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
+            yield PoseSample(
+                stamp_ns=_header_stamp(msg, receive_ns),
+                x=float(pose.position.x),
+                y=float(pose.position.y),
+                z=float(pose.position.z),
+                qx=float(pose.orientation.x),
+                qy=float(pose.orientation.y),
+                qz=float(pose.orientation.z),
+                qw=float(pose.orientation.w),
+            )
+
+
+def _topic_infos(reader: AnyReader) -> list[TopicInfo]:
+    duration_s = reader.duration * 1e-9 if reader.message_count else 0.0
+    infos = []
+    for name, info in sorted(reader.topics.items()):
+        count = int(info.msgcount)
+        rate = (count - 1) / duration_s if duration_s > 0 and count > 1 else 0.0
+        infos.append(TopicInfo(name=name, msgtype=str(info.msgtype or ""), count=count, rate_hz=rate))
+    return infos
+
+
+def open_log(
+    path: str | Path,
+    topics: Mapping[str, str] | None = None,
+    *,
+    odometry_mode: Literal["auto", "twist", "pose"] = "auto",
+) -> MissionLog:
+    """Open a mission log and choose its topics.
+
+    Args:
+        path: a ROS 1 ``.bag``, a ROS 2 bag directory (with ``metadata.yaml``), or a standalone ``.db3`` or
+            ``.mcap`` file.
+        topics: topic overrides, keys ``image``, ``odometry``, ``ground_truth`` (``none`` switches one off).
+        odometry_mode: ``auto`` (detect, see the module docstring), or force ``twist`` or ``pose``.
+
+    Returns:
+        The open log (close it, or use it as a context manager).
+
+    Raises:
+        IngestError: missing path, not a bag, truncated or corrupt, no usable camera topic, bad override,
+            unsupported image encoding (checked on the first image).
+
+    """
+    log_path = Path(path)
+    _check_path(log_path)
+    reader = _new_reader(log_path)
+    try:
+        infos = _topic_infos(reader)
+        mapping = map_topics(infos, topics, source=str(log_path))
+        mode: OdometryMode | None = None if odometry_mode == "auto" else odometry_mode
+        log = MissionLog(log_path, reader, infos, mapping, mode)
+        first = log.first_image()
+        if first is None:
+            msg = f"{log_path}: camera topic {mapping.image!r} has no readable messages"
+            raise IngestError(msg)
+        try:
+            decode_image(first, mapping.image)
+        except IngestError as err:
+            msg = f"{err} in {str(log_path)!r}"
+            raise IngestError(msg) from err
+    except IngestError:
+        reader.close()
+        raise
+    except Exception as err:
+        reader.close()
+        msg = f"not a readable bag (truncated or corrupt?): {str(log_path)!r}: {_describe(err)}"
+        raise IngestError(msg) from err
+    return log

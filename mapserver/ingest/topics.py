@@ -1,0 +1,219 @@
+"""Which topic of a mission log is the camera, the odometry and the ground truth.
+
+Automatic mapping rule (``inspect`` shows its result, ``--topics`` overrides it); topics with no messages
+are never chosen:
+
+* **image**: among ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage`` topics, the one with
+  the most messages; ties prefer a name containing ``camera`` or ``image``, then the alphabetically first.
+  Topics whose name contains ``depth`` are considered only when no other image topic exists (a depth
+  stream is not a camera for place recognition).
+* **odometry**: among ``nav_msgs/msg/Odometry`` topics that are not *truth-like*, the one with the most
+  messages (ties: alphabetical). A name is truth-like when it contains (case-insensitive) one of
+  ``ground_truth``, ``groundtruth``, ``truth``, ``overhead``, ``mocap``, ``vicon``, or has ``gt`` as a
+  token (the name split at ``/``, ``_``, ``-`` and ``.``; so ``/robot/gt/odom`` and ``/odom_gt`` are
+  truth-like but ``/lengths`` is not).
+* **ground_truth**: among truth-like ``Odometry``, ``PoseStamped`` and ``PoseWithCovarianceStamped``
+  topics, the one with the most messages (ties: alphabetical); if there is none, the only
+  ``PoseStamped``/``PoseWithCovarianceStamped`` topic when there is exactly one; otherwise none.
+
+Overrides (``--topics image=/a,odometry=/b``) name keys ``image``, ``odometry`` and ``ground_truth``; the
+value ``none`` (or an empty value) switches ``odometry`` or ``ground_truth`` off. An unknown key, a topic
+missing from the log or a topic of the wrong type is an :class:`~mapserver.errors.IngestError`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from mapserver.errors import IngestError, InputError
+
+IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+POSE_TYPES = frozenset({"geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped"})
+GROUND_TRUTH_TYPES = POSE_TYPES | {ODOMETRY_TYPE}
+TOPIC_KEYS = ("image", "odometry", "ground_truth")
+TRUTH_WORDS = ("ground_truth", "groundtruth", "truth", "overhead", "mocap", "vicon")
+TRUTH_TOKENS = ("gt",)
+_OFF_VALUES = frozenset({"", "none"})
+
+
+@dataclass(frozen=True, slots=True)
+class TopicInfo:
+    """One topic of a log.
+
+    Attributes:
+        name: topic name, e.g. ``/robot/camera/image``.
+        msgtype: ROS 2 style message type, e.g. ``sensor_msgs/msg/Image`` (also for ROS 1 logs).
+        count: number of messages.
+        rate_hz: mean rate over the whole log, ``(count - 1) / duration`` (0 when undefined).
+
+    """
+
+    name: str
+    msgtype: str
+    count: int
+    rate_hz: float
+
+
+@dataclass(frozen=True, slots=True)
+class TopicMapping:
+    """The topics a log is read from.
+
+    Attributes:
+        image: camera topic (always present).
+        odometry: odometry topic, or None (the engine then runs visual odometry).
+        ground_truth: ground-truth pose topic, or None.
+
+    """
+
+    image: str
+    odometry: str | None
+    ground_truth: str | None
+
+    def as_dict(self) -> dict[str, str | None]:
+        """Return the mapping as ``{"image", "odometry", "ground_truth"}``."""
+        return {"image": self.image, "odometry": self.odometry, "ground_truth": self.ground_truth}
+
+
+def is_truth_like(name: str) -> bool:
+    """Return True when a topic name looks like ground truth (see the module docstring)."""
+    lowered = name.lower()
+    if any(word in lowered for word in TRUTH_WORDS):
+        return True
+    tokens = re.split(r"[/_\-.]", lowered)
+    return any(token in TRUTH_TOKENS for token in tokens)
+
+
+def _camera_like(name: str) -> bool:
+    lowered = name.lower()
+    return "camera" in lowered or "image" in lowered
+
+
+def _pick_image(topics: Sequence[TopicInfo]) -> str | None:
+    candidates = [t for t in topics if t.msgtype in IMAGE_TYPES and t.count > 0]
+    if not candidates:
+        return None
+    non_depth = [t for t in candidates if "depth" not in t.name.lower()]
+    pool = non_depth or candidates
+    best = min(pool, key=lambda t: (-t.count, not _camera_like(t.name), t.name))
+    return best.name
+
+
+def _most(topics: Sequence[TopicInfo]) -> str | None:
+    if not topics:
+        return None
+    return min(topics, key=lambda t: (-t.count, t.name)).name
+
+
+def _pick_odometry(topics: Sequence[TopicInfo]) -> str | None:
+    return _most(
+        [t for t in topics if t.msgtype == ODOMETRY_TYPE and t.count > 0 and not is_truth_like(t.name)]
+    )
+
+
+def _pick_ground_truth(topics: Sequence[TopicInfo]) -> str | None:
+    truth = [t for t in topics if t.msgtype in GROUND_TRUTH_TYPES and t.count > 0 and is_truth_like(t.name)]
+    if truth:
+        return _most(truth)
+    poses = [t for t in topics if t.msgtype in POSE_TYPES and t.count > 0]
+    if len(poses) == 1:
+        return poses[0].name
+    return None
+
+
+def _override(
+    key: str, value: str, by_name: Mapping[str, TopicInfo], allowed: frozenset[str], source: str
+) -> str | None:
+    if key != "image" and value.strip().lower() in _OFF_VALUES:
+        return None
+    info = by_name.get(value)
+    if info is None:
+        msg = f"{source}: topic {value!r} given for {key!r} is not in the log"
+        raise IngestError(msg)
+    if info.msgtype not in allowed:
+        expected = ", ".join(sorted(allowed))
+        msg = f"{source}: topic {value!r} given for {key!r} has type {info.msgtype!r}, expected {expected}"
+        raise IngestError(msg)
+    return value
+
+
+def map_topics(
+    topics: Sequence[TopicInfo], overrides: Mapping[str, str] | None = None, *, source: str = "log"
+) -> TopicMapping:
+    """Choose the image, odometry and ground-truth topics (rule in the module docstring).
+
+    Args:
+        topics: the topics of the log.
+        overrides: explicit choices, keys ``image``, ``odometry``, ``ground_truth``.
+        source: the log's path, used in error messages.
+
+    Returns:
+        The mapping.
+
+    Raises:
+        IngestError: unknown key, topic not in the log or of the wrong type, or no usable camera topic.
+
+    """
+    overrides = dict(overrides or {})
+    unknown = sorted(set(overrides) - set(TOPIC_KEYS))
+    if unknown:
+        msg = f"{source}: unknown topic key {unknown[0]!r} (known: {', '.join(TOPIC_KEYS)})"
+        raise IngestError(msg)
+    by_name = {t.name: t for t in topics}
+    allowed = {
+        "image": IMAGE_TYPES,
+        "odometry": frozenset({ODOMETRY_TYPE}),
+        "ground_truth": GROUND_TRUTH_TYPES,
+    }
+    chosen: dict[str, str | None] = {
+        "image": _pick_image(topics),
+        "odometry": _pick_odometry(topics),
+        "ground_truth": _pick_ground_truth(topics),
+    }
+    for key, value in overrides.items():
+        chosen[key] = _override(key, value, by_name, allowed[key], source)
+    image = chosen["image"]
+    if image is None:
+        msg = f"{source}: no usable camera topic (sensor_msgs/msg/Image or CompressedImage with messages)"
+        raise IngestError(msg)
+    if by_name[image].count == 0:
+        msg = f"{source}: camera topic {image!r} has no messages"
+        raise IngestError(msg)
+    return TopicMapping(image=image, odometry=chosen["odometry"], ground_truth=chosen["ground_truth"])
+
+
+def parse_topics_arg(text: str) -> dict[str, str]:
+    """Parse the ``--topics`` syntax ``image=/a,odometry=/b`` into a dict.
+
+    Keys are not checked here (the log reader does that); values may be empty or ``none``.
+
+    Args:
+        text: comma-separated ``KEY=TOPIC`` pairs.
+
+    Returns:
+        ``{key: topic}``.
+
+    Raises:
+        InputError: a pair without ``=``, an empty key or a repeated key.
+
+    """
+    result: dict[str, str] = {}
+    for raw in text.split(","):
+        part = raw.strip()
+        if not part:
+            continue
+        key, sep, value = part.partition("=")
+        key, value = key.strip(), value.strip()
+        if not sep or not key:
+            msg = f"bad --topics entry {part!r}: expected KEY=TOPIC, e.g. image=/camera/image"
+            raise InputError(msg)
+        if key in result:
+            msg = f"bad --topics: key {key!r} given twice"
+            raise InputError(msg)
+        result[key] = value
+    if not result:
+        msg = f"bad --topics {text!r}: expected KEY=TOPIC[,KEY=TOPIC...]"
+        raise InputError(msg)
+    return result

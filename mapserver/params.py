@@ -1,0 +1,57 @@
+"""Choosing the engine parameters for a run: preset, config file, or the log's scenario.json."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from core import ConfigError as CoreConfigError
+from core import Params, load_config, preset
+from mapserver.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_PRESET = "circle"
+
+
+def resolve_params(
+    preset_name: str | None = None, config: str | Path | None = None, log: str | Path | None = None
+) -> Params:
+    """Return the parameters named by ``preset_name`` or loaded from ``config``.
+
+    With neither, a ``scenario.json`` written by ``mapserver simulate`` beside the log
+    names the preset that suits it; otherwise :data:`DEFAULT_PRESET` is used.
+
+    Raises:
+        ConfigError: both given, unknown preset, unreadable or invalid config file.
+    """
+    if preset_name and config:
+        msg = "give either --preset or --config, not both"
+        raise ConfigError(msg)
+    try:
+        if config:
+            return load_config(config)
+        if preset_name:
+            return preset(preset_name)
+        suggested = _scenario_preset(log)
+        return preset(suggested or DEFAULT_PRESET)
+    except CoreConfigError as err:
+        raise ConfigError(str(err)) from err
+
+
+def _scenario_preset(log: str | Path | None) -> str | None:
+    if log is None:
+        return None
+    path = Path(log)
+    scenario = (path if path.is_dir() else path.parent) / "scenario.json"
+    if not scenario.is_file():
+        scenario = path.parent / "scenario.json"
+    try:
+        name = json.loads(scenario.read_text(encoding="utf-8")).get("preset")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if isinstance(name, str):
+        logger.info("using preset %r from %s", name, scenario)
+        return name
+    return None

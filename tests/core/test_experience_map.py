@@ -1,0 +1,136 @@
+"""Experience creation, links in the source frame, 3-D relaxation that closes a square loop."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from core.config import Params
+from core.experience_map import ExperienceMap, LinkKind
+from core.motion import Motion
+
+
+def _em(**changes: object) -> ExperienceMap:
+    return ExperienceMap(Params().replace(**{"exp_initial_em_deg": 0.0, **changes}), 3)
+
+
+def _residuals(em: ExperienceMap) -> np.ndarray:
+    src, dst, t, _, _, _ = em.links
+    p = em.poses
+    yaw = p[src, 3]
+    pred_x = p[src, 0] + np.cos(yaw) * t[:, 0] - np.sin(yaw) * t[:, 1]
+    pred_y = p[src, 1] + np.sin(yaw) * t[:, 0] + np.cos(yaw) * t[:, 1]
+    return np.stack([p[dst, 0] - pred_x, p[dst, 1] - pred_y, p[dst, 2] - (p[src, 2] + t[:, 2])], axis=1)
+
+
+def test_new_experience_is_previous_plus_accumulated_odometry() -> None:
+    em = _em()
+    em.create_experience(0, np.zeros(3), 0.0, origin=7)
+    em.on_odo(Motion(3.0, 0.0, 1.0, math.pi / 2, 2.0))
+    em.on_odo(Motion(2.0, 0.0, 0.0, 0.0, 1.0))  # now facing +y
+    e1 = em.create_experience(1, np.ones(3), 3.0, origin=7)
+    assert em.poses[e1] == pytest.approx([3.0, 2.0, 1.0, math.pi / 2])
+    src, dst, t, dt, dist, kind = em.links
+    assert (int(src[0]), int(dst[0])) == (0, 1)
+    assert t[0] == pytest.approx([3.0, 2.0, 1.0, math.pi / 2])  # source frame = map frame (yaw 0)
+    assert dt[0] == pytest.approx(3.0)
+    assert dist[0] == pytest.approx(math.sqrt(9 + 4 + 1))
+    assert kind[0] == LinkKind.ODOMETRY
+    assert em.current == 1 and em.previous == 0
+
+
+def test_link_transform_is_in_the_source_frame() -> None:
+    em = _em(exp_initial_em_deg=90.0)
+    em.create_experience(0, np.zeros(3), 0.0, 0)  # facing +y
+    em.on_odo(Motion(2.0, 0.0, 0.0, 0.0, 1.0))  # 2 m along +y in the map
+    em.create_experience(1, np.zeros(3), 1.0, 0)
+    assert em.poses[1][:2] == pytest.approx([0.0, 2.0])
+    assert em.links[2][0] == pytest.approx([2.0, 0.0, 0.0, 0.0])  # 2 m ahead of the source
+
+
+def test_duplicate_links_are_not_added() -> None:
+    em = _em()
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    em.on_odo(Motion(1.0, 0.0, 0.0, 0.0, 1.0))
+    em.create_experience(1, np.zeros(3), 1.0, 0)
+    assert em.create_link(1, 0, 0.0, LinkKind.LOOP) is True
+    assert em.create_link(1, 0, 0.0, LinkKind.LOOP) is False
+    assert em.link_count == 2
+
+
+def test_relaxation_closes_a_square_loop_with_known_odometry_error() -> None:
+    """Sides 10, 10, 10 then a closure claiming 12 m: LS spreads the 2 m misclosure, 0.5 m per link."""
+    em = _em(exp_correction=0.5, exp_loops=5000, exp_relax_tolerance=1e-9)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    for k in range(1, 4):
+        em.on_odo(Motion(10.0, 0.0, 0.0, 0.0, 10.0))
+        em.create_experience(k, np.zeros(3), 10.0 * k, 0)
+        em.on_odo(Motion(0.0, 0.0, 0.0, math.pi / 2, 1.0))
+    assert em.poses[3][:2] == pytest.approx([0.0, 10.0])
+    em.on_odo(Motion(12.0, 0.0, 0.0, math.pi / 2, 12.0))  # 12 m instead of 10, then face e0's heading again
+    assert em.create_link(3, 0, 0.0, LinkKind.LOOP)
+    before = _residuals(em)
+    assert before[-1] == pytest.approx([0.0, 2.0, 0.0])
+    assert em.relax_pending
+    em.relax()
+    assert not em.relax_pending
+    after = _residuals(em)
+    assert np.allclose(after, np.tile([0.0, 0.5, 0.0], (4, 1)), atol=1e-6)
+    yaws = em.poses[:, 3]
+    assert yaws == pytest.approx([0.0, 0.0, math.pi / 2, math.pi])  # each created facing its arrival heading
+
+
+def test_relaxation_fixed_point_matches_linear_least_squares() -> None:
+    """Independent check: positions solve the normal equations of Σ‖p_j − p_i − R_i t_ij‖² for the final yaws."""
+    rng = np.random.default_rng(4)
+    em = _em(exp_loops=20000, exp_relax_tolerance=1e-11)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    for k in range(1, 12):
+        em.on_odo(Motion(2.0 + rng.normal(0, 0.2), 0.0, rng.normal(0, 0.1), 2 * math.pi / 12 + rng.normal(0, 0.05), 1))
+        em.create_experience(k, np.zeros(3), float(k), 0)
+    em.on_odo(Motion(2.0, 0.0, 0.0, 2 * math.pi / 12, 1.0))
+    em.create_link(11, 0, 0.0, LinkKind.LOOP)
+    em.create_link(5, 0, 0.0, LinkKind.LOOP)
+    em.relax()
+    src, dst, t, _, _, _ = em.links
+    n, k = em.count, em.link_count
+    yaw = em.poses[src, 3]
+    meas = np.stack(
+        [np.cos(yaw) * t[:, 0] - np.sin(yaw) * t[:, 1], np.sin(yaw) * t[:, 0] + np.cos(yaw) * t[:, 1], t[:, 2]], axis=1
+    )
+    a = np.zeros((k + 1, n))
+    a[np.arange(k), dst] = 1.0
+    a[np.arange(k), src] = -1.0
+    a[k, :] = 1.0  # gauge: fix the centroid to the relaxed one
+    centroid = em.poses[:, :3].mean(axis=0)
+    b = np.vstack([meas, centroid * n])
+    solution, *_ = np.linalg.lstsq(a, b, rcond=None)
+    assert np.allclose(em.poses[:, :3], solution, atol=1e-6)
+
+
+def test_correction_step_clamp_limits_each_iteration() -> None:
+    em = _em(exp_loops=1, max_correction_step=0.05, exp_relax_tolerance=0.0)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    em.on_odo(Motion(10.0, 0.0, 0.0, 0.0, 1.0))
+    em.create_experience(1, np.zeros(3), 1.0, 0)
+    em.add_link_raw(1, 0, np.array([-9.0, 0.0, 0.0, 0.0]), 1.0, 9.0, LinkKind.MANUAL)  # 1 m inconsistent
+    before = em.poses.copy()
+    em.relax(iterations=1)
+    moved = np.linalg.norm(em.poses[:, :3] - before[:, :3], axis=1)
+    assert moved.max() == pytest.approx(0.05)
+
+
+def test_snapshot_restore_round_trip() -> None:
+    em = _em()
+    em.create_experience(0, np.array([1.0, 2.0, 3.0]), 0.5, 3)
+    em.on_odo(Motion(1.0, 0.5, 0.2, 0.3, 1.0))
+    em.create_experience(2, np.array([4.0, 5.0, 6.0]), 1.5, 3)
+    em.on_odo(Motion(0.5, 0.0, 0.0, 0.0, 0.5))
+    snap = em.snapshot()
+    back = ExperienceMap.restore(em.params, 3, snap).snapshot()
+    assert snap.keys() == back.keys()
+    for key in snap:
+        assert np.array_equal(snap[key], back[key]), key
+    assert ExperienceMap.restore(em.params, 3, snap).experiences_of_template(2) == [1]

@@ -1,0 +1,220 @@
+"""Pose-cell dynamics, path integration across every face, injection saturation (hand-computed)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core.config import Params
+from core.posecells import PoseCellNetwork
+
+
+def _net(**changes: object) -> PoseCellNetwork:
+    return PoseCellNetwork(Params().replace(**changes))
+
+
+def _single(net: PoseCellNetwork, cell: tuple[int, ...]) -> None:
+    net.activity[...] = 0.0
+    net.activity[cell] = 1.0
+
+
+@pytest.mark.parametrize(
+    ("layer", "axis", "start", "cells", "expected"),
+    [
+        (0, 0, 2, 3.0, 5),  # θ=0 moves +x
+        (0, 0, 19, 3.0, 1),  # crosses the +x face: 19+3 = 22 ≡ 1 (mod 21)
+        (9, 1, 20, 2.0, 1),  # θ=90° (layer 9 of 36) moves +y across the +y face
+        (18, 0, 1, 3.0, 19),  # θ=180° moves −x across the −x face: 1−3 ≡ 19
+        (27, 1, 0, 1.0, 20),  # θ=270° moves −y across the −y face
+    ],
+)
+def test_packet_moves_v_dt_over_cell_size_cells(layer: int, axis: int, start: int, cells: float, expected: int) -> None:
+    net = _net(pc_dim_xy=21, pc_dim_th=36, pc_cell_x_size=0.5)
+    cell = [10, 10, layer]
+    cell[axis] = start
+    _single(net, tuple(cell))
+    net.path_integrate(forward_m=cells * 0.5, dyaw_rad=0.0)
+    moved = np.unravel_index(int(np.argmax(net.activity)), net.shape)
+    want = list(cell)
+    want[axis] = expected
+    assert tuple(int(v) for v in moved) == tuple(want)
+    assert net.activity.max() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_fractional_shift_splits_mass_bilinearly() -> None:
+    net = _net(pc_dim_xy=21, pc_dim_th=36, pc_cell_x_size=1.0)
+    _single(net, (20, 4, 0))
+    net.path_integrate(forward_m=2.25, dyaw_rad=0.0)  # 2.25 cells along +x from x=20: 22.25 ≡ 1.25
+    assert net.activity[1, 4, 0] == pytest.approx(0.75)
+    assert net.activity[2, 4, 0] == pytest.approx(0.25)
+    assert net.activity.sum() == pytest.approx(1.0)
+
+
+def test_diagonal_layer_uses_cos_and_sin() -> None:
+    net = _net(pc_dim_xy=21, pc_dim_th=8, pc_cell_x_size=1.0)
+    _single(net, (10, 10, 1))  # θ = 45°
+    net.path_integrate(forward_m=math.sqrt(2.0), dyaw_rad=0.0)  # one cell in x and in y
+    assert net.activity[11, 11, 1] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("start", "dyaw_cells", "expected"), [(3, 2.0, 5), (35, 2.0, 1), (0, -1.0, 35)])
+def test_heading_shift_wraps(start: int, dyaw_cells: float, expected: int) -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=36)
+    _single(net, (5, 5, start))
+    net.path_integrate(forward_m=0.0, dyaw_rad=dyaw_cells * 2 * math.pi / 36)
+    assert net.activity[5, 5, expected] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("start", "dz", "expected"), [(3, 0.2, 5), (14, 0.3, 2), (0, -0.1, 14)])
+def test_z_moves_dz_over_cell_z_size_across_faces(start: int, dz: float, expected: int) -> None:
+    net = _net(pc_dim_xy=15, pc_dim_z=15, pc_dim_th=8, pc_cell_x_size=0.1, pc_cell_z_size=0.1)
+    assert net.shape == (15, 15, 15, 8)
+    _single(net, (7, 7, start, 2))
+    net.path_integrate(forward_m=0.0, dyaw_rad=0.0, dz_m=dz)
+    assert net.activity[7, 7, expected, 2] == pytest.approx(1.0)
+
+
+def test_attractor_step_normalises_and_keeps_the_packet_centre() -> None:
+    net = _net(pc_dim_xy=21, pc_dim_th=36)
+    _single(net, (4, 17, 30))
+    net.step_attractor()
+    assert net.activity.sum() == pytest.approx(1.0)
+    assert net.activity.min() >= 0.0
+    assert np.unravel_index(int(np.argmax(net.activity)), net.shape) == (4, 17, 30)
+    best = net.decode()
+    assert best == pytest.approx([4.0, 17.0, 30.0], abs=1e-9)
+
+
+def test_excite_equals_direct_wrapped_convolution() -> None:
+    """The FFT path equals OpenRatSLAM's cell-by-cell spread (independent direct sum)."""
+    p = Params().replace(pc_dim_xy=9, pc_dim_th=10, pc_global_inhib=0.0)
+    net = PoseCellNetwork(p)
+    rng = np.random.default_rng(1)
+    cells = rng.random(net.shape)
+    cells /= cells.sum()
+    net.activity = cells.copy()
+    net.step_attractor()
+
+    def spread(src: np.ndarray, size: int, var: float) -> np.ndarray:
+        c = size // 2
+        offs = np.arange(size) - c
+        w = np.exp(-(offs[:, None, None] ** 2 + offs[None, :, None] ** 2 + offs[None, None, :] ** 2) / (2 * var * var))
+        w /= w.sum()
+        out = np.zeros_like(src)
+        for a in range(size):
+            for b in range(size):
+                for g in range(size):
+                    out += w[a, b, g] * np.roll(src, (offs[a], offs[b], offs[g]), axis=(0, 1, 2))
+        return out
+
+    excited = spread(cells, 7, 1.0)
+    inhibited = excited - spread(excited, 5, 2.0)
+    inhibited = np.maximum(inhibited, 0.0)
+    inhibited /= inhibited.sum()
+    assert np.allclose(net.activity, inhibited, atol=1e-12)
+
+
+def test_decode_is_the_circular_mean_of_a_two_cell_packet() -> None:
+    net = _net(pc_dim_xy=21, pc_dim_th=36)
+    net.activity[...] = 0.0
+    net.activity[20, 5, 0] = 0.5  # straddles the x face
+    net.activity[0, 5, 0] = 0.5
+    best = net.decode()
+    assert best[0] == pytest.approx(20.5, abs=1e-9)
+    assert best[1] == pytest.approx(5.0, abs=1e-9)
+
+
+def test_injection_saturation_sequence() -> None:
+    """OpenRatSLAM: energy = δ/30·(30 − e^{1.2·decay}); decay += vt_active_decay per repeat, −restore per frame."""
+    delta = 0.1
+    net = _net(pc_dim_xy=11, pc_dim_th=36, pc_vt_inject_energy=delta, vt_active_decay=1.0, pc_vt_restore=0.05,
+               vt_min_inject_age=0)
+    net.add_link(0, np.array([3.0, 4.0, 5.0]))
+    net.add_link(1, np.array([8.0, 8.0, 8.0]))
+    injected = []
+    for template in [0, 0, 0, 0, 1, 1, 1]:
+        net.activity[...] = 0.0
+        net.on_view_template(template, 0.0, template_count=2, created=False)
+        injected.append(float(net.activity[3, 4, 5]))
+    e = delta / 30.0
+    assert injected[0] == pytest.approx(e * (30 - math.exp(1.2 * 1.0)))  # first sighting: decay 1.0
+    assert injected[1] == pytest.approx(e * (30 - math.exp(1.2 * 2.0)))  # repeat: 1.0 + 1.0
+    assert injected[2] == 0.0  # 1.95 + 1.0 = 2.95 → e^{3.54} > 30: saturated
+    assert injected[3] == 0.0
+    decay = net.snapshot()["pc_link_decay"]
+    # template 0 decay: 3.85 after the 4th repeat, then 3 frames of −0.05 while template 1 is seen
+    assert decay[0] == pytest.approx(3.85 - 0.05 * 3)
+
+
+def test_young_templates_do_not_inject() -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=36, vt_min_inject_age=10)
+    net.add_link(0, np.array([3.0, 4.0, 5.0]))
+    net.activity[...] = 0.0
+    net.on_view_template(0, 0.0, template_count=10, created=False)  # 0 < 10 − 10 is false
+    assert net.activity.sum() == 0.0
+    net.on_view_template(0, 0.0, template_count=11, created=False)
+    assert net.activity[3, 4, 5] > 0.0
+
+
+def test_relative_rad_offsets_the_injected_heading() -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=36, vt_min_inject_age=0)
+    net.add_link(0, np.array([3.0, 4.0, 34.0]))
+    net.activity[...] = 0.0
+    net.on_view_template(0, 2 * (2 * math.pi / 36), template_count=1, created=False)  # +2 heading cells
+    assert net.activity[3, 4, 0] > 0.0  # 34 + 2 ≡ 0
+
+
+def test_new_template_links_to_the_packet_centre() -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=36)
+    net.on_view_template(0, 0.0, template_count=1, created=True)
+    snap = net.snapshot()
+    assert snap["pc_link_coords"][0] == pytest.approx([5.0, 5.0, 18.0])
+    assert snap["pc_link_decay"][0] == pytest.approx(1.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    forward=st.floats(-5.0, 5.0),
+    dyaw=st.floats(-1.0, 1.0),
+    seed=st.integers(0, 1000),
+)
+def test_path_integration_conserves_activity(forward: float, dyaw: float, seed: int) -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=12)
+    rng = np.random.default_rng(seed)
+    net.activity = rng.random(net.shape)
+    total = net.activity.sum()
+    net.path_integrate(forward, dyaw)
+    assert net.activity.sum() == pytest.approx(total, rel=1e-12)
+    assert net.activity.min() >= 0.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), steps=st.integers(1, 4))
+def test_attractor_output_is_a_distribution(seed: int, steps: int) -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=12)
+    rng = np.random.default_rng(seed)
+    net.activity = rng.random(net.shape) ** 8
+    for _ in range(steps):
+        net.step_attractor()
+    assert net.activity.sum() == pytest.approx(1.0, abs=1e-12)
+    assert net.activity.min() >= 0.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(shift=st.integers(-40, 40), seed=st.integers(0, 100))
+def test_integer_translation_is_invertible(shift: int, seed: int) -> None:
+    """On the axis-aligned heading layers (0°, 90°, 180°, 270°) an integer move is an exact roll."""
+    net = _net(pc_dim_xy=11, pc_dim_th=12, pc_cell_x_size=1.0)
+    rng = np.random.default_rng(seed)
+    net.activity = rng.random(net.shape)
+    before = net.activity.copy()
+    net.path_integrate(float(shift), 0.0)
+    moved = net.activity.copy()
+    net.path_integrate(float(-shift), 0.0)
+    for layer, axis, sign in [(0, 0, 1), (3, 1, 1), (6, 0, -1), (9, 1, -1)]:
+        assert np.array_equal(moved[:, :, layer], np.roll(before[:, :, layer], sign * shift, axis=axis))
+        assert np.array_equal(net.activity[:, :, layer], before[:, :, layer])

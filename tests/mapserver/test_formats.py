@@ -1,0 +1,329 @@
+"""Map JSON and TUM formats: exact documents, round trips and error messages."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mapserver.errors import InputError, MapServerError
+from mapserver.formats import (
+    MAP_FORMAT,
+    SessionInfo,
+    Trajectory,
+    map_json,
+    map_trajectory,
+    odometry_trajectory,
+    quaternion_from_yaw,
+    read_map_json,
+    read_tum,
+    write_map_json,
+    write_tum,
+    yaw_from_quaternion,
+)
+
+SQRT_HALF = math.sqrt(0.5)
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# ----------------------------------------------------------------------------------------------- rotations
+
+
+@given(st.floats(min_value=-math.pi, max_value=math.pi, exclude_min=True, allow_nan=False))
+def test_yaw_quaternion_round_trip(yaw: float) -> None:
+    q = quaternion_from_yaw(yaw)
+    assert q[0] == 0.0 and q[1] == 0.0
+    assert math.isclose(math.hypot(*q), 1.0, abs_tol=1e-15)
+    assert q[3] >= -1e-16  # yaw in (-pi, pi] -> qw >= 0
+    back = yaw_from_quaternion(*q)
+    assert -math.pi < back <= math.pi
+    assert abs(_wrap(back - yaw)) < 1e-12
+
+
+def test_quaternion_known_values() -> None:
+    assert quaternion_from_yaw(0.0) == (0.0, 0.0, 0.0, 1.0)
+    qx, qy, qz, qw = quaternion_from_yaw(math.pi / 2)
+    assert (qx, qy) == (0.0, 0.0)
+    assert qz == pytest.approx(SQRT_HALF, abs=1e-15)
+    assert qw == pytest.approx(SQRT_HALF, abs=1e-15)
+    assert yaw_from_quaternion(0.0, 0.0, 1.0, 0.0) == pytest.approx(math.pi)
+    # not normalised: same yaw
+    assert yaw_from_quaternion(0.0, 0.0, 2.0, 2.0) == pytest.approx(math.pi / 2)
+    with pytest.raises(ValueError, match="no orientation"):
+        yaw_from_quaternion(0.0, 0.0, 0.0, 0.0)
+
+
+# ----------------------------------------------------------------------------------------------- TUM
+
+
+def test_tum_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    n = 25
+    stamps = 1_600_000_000.0 + np.cumsum(rng.uniform(0.01, 0.2, n))
+    positions = rng.normal(0.0, 50.0, (n, 3))
+    quats = rng.normal(size=(n, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    path = tmp_path / "traj.tum"
+    write_tum(path, stamps, positions, quats)
+    lines = path.read_text(encoding="utf-8").splitlines()
+    assert lines[0] == "# timestamp x y z qx qy qz qw"
+    assert len(lines) == n + 1
+    assert lines[1].split()[0] == f"{stamps[0]:.9f}"
+    traj = read_tum(path)
+    assert len(traj) == n
+    np.testing.assert_allclose(traj.stamps_s, stamps, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(traj.positions_xyz, positions)
+    np.testing.assert_array_equal(traj.quat_xyzw, quats)
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left behind
+
+
+def test_read_tum_comments_blank_lines_and_order(tmp_path: Path) -> None:
+    path = tmp_path / "gt.txt"
+    path.write_text(
+        "# ground truth\n\n2.0 1 2 3 0 0 0 1\n   # indented comment\n1.0\t4 5 6 0 0 1 0\n\n",
+        encoding="utf-8",
+    )
+    traj = read_tum(path)
+    np.testing.assert_array_equal(traj.stamps_s, [1.0, 2.0])
+    np.testing.assert_array_equal(traj.positions_xyz, [[4, 5, 6], [1, 2, 3]])
+    np.testing.assert_array_equal(traj.quat_xyzw, [[0, 0, 1, 0], [0, 0, 0, 1]])
+
+
+@pytest.mark.parametrize(
+    ("bad_line", "reason"),
+    [
+        ("3.0 1 2 3 0 0 1", "expected 8 fields"),
+        ("3.0 1 2 x 0 0 0 1", "not a number"),
+        ("3.0 1 2 nan 0 0 0 1", "non-finite"),
+    ],
+)
+def test_read_tum_malformed_line_names_line_number(tmp_path: Path, bad_line: str, reason: str) -> None:
+    path = tmp_path / "bad.tum"
+    path.write_text(f"# header\n1.0 0 0 0 0 0 0 1\n\n{bad_line}\n5.0 0 0 0 0 0 0 1\n", encoding="utf-8")
+    with pytest.raises(InputError, match=reason) as info:
+        read_tum(path)
+    assert f"{path}:4:" in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_read_tum_missing_and_empty(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not found"):
+        read_tum(tmp_path / "nope.tum")
+    empty = tmp_path / "empty.tum"
+    empty.write_text("# only a comment\n", encoding="utf-8")
+    with pytest.raises(InputError, match="no pose"):
+        read_tum(empty)
+
+
+def test_write_tum_shape_mismatch(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="shapes disagree"):
+        write_tum(tmp_path / "x.tum", [0.0, 1.0], np.zeros((2, 3)), np.zeros((3, 4)))
+
+
+# ----------------------------------------------------------------------------------------------- map JSON
+
+
+def _tiny_snapshot() -> dict[str, np.ndarray]:
+    return {
+        "lv_templates": np.zeros((3, 2, 4), dtype=np.float32),
+        "lv_means": np.array([0.1, 0.2, 0.3]),
+        "em_pose": np.array([[0.0, 0.0, 0.0, 0.0], [1.0, 2.0, 0.5, math.pi / 2]]),
+        "em_template": np.array([0, 2], dtype=np.int64),
+        "em_stamp": np.array([10.0, 11.5]),
+        "em_origin": np.array([7, 8], dtype=np.int64),
+        "em_link_from": np.array([0], dtype=np.int64),
+        "em_link_to": np.array([1], dtype=np.int64),
+        "em_link_transform": np.array([[1.0, 2.0, 0.5, math.pi / 2]]),
+        "em_link_dt": np.array([1.5]),
+        "em_link_distance": np.array([2.25]),
+        "em_link_kind": np.array([1], dtype=np.int8),
+    }
+
+
+def _assert_plain(value: Any) -> None:
+    """Every value must be a plain JSON type (no numpy scalars)."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            assert type(k) is str
+            _assert_plain(v)
+    elif isinstance(value, list):
+        for v in value:
+            _assert_plain(v)
+    else:
+        assert value is None or type(value) in (int, float, str, bool), type(value)
+
+
+def test_map_json_exact_document() -> None:
+    doc = map_json(
+        params={"vt_match_threshold": np.float64(0.03), "pc_dim_xy": np.int64(21), "name": "irat"},
+        snapshot=_tiny_snapshot(),
+        sessions=[SessionInfo("a", "ab" * 32, 120), SessionInfo("b", "cd" * 32, np.int64(80))],
+        session_name_by_origin={7: "a", 8: "b"},
+    )
+    expected = {
+        "format": "mapserver-map/1",
+        "params": {"vt_match_threshold": 0.03, "pc_dim_xy": 21, "name": "irat"},
+        "sessions": [
+            {"name": "a", "log_sha256": "ab" * 32, "frames": 120},
+            {"name": "b", "log_sha256": "cd" * 32, "frames": 80},
+        ],
+        "templates": 3,
+        "experiences": [
+            {
+                "id": 0,
+                "x": 0.0,
+                "y": 0.0,
+                "z": 0.0,
+                "qx": 0.0,
+                "qy": 0.0,
+                "qz": 0.0,
+                "qw": 1.0,
+                "yaw": 0.0,
+                "template": 0,
+                "stamp": 10.0,
+                "session": "a",
+            },
+            {
+                "id": 1,
+                "x": 1.0,
+                "y": 2.0,
+                "z": 0.5,
+                "qx": 0.0,
+                "qy": 0.0,
+                "qz": pytest.approx(SQRT_HALF, abs=1e-15),
+                "qw": pytest.approx(SQRT_HALF, abs=1e-15),
+                "yaw": math.pi / 2,
+                "template": 2,
+                "stamp": 11.5,
+                "session": "b",
+            },
+        ],
+        "links": [
+            {
+                "from": 0,
+                "to": 1,
+                "dt": 1.5,
+                "distance": 2.25,
+                "kind": "loop",
+                "transform": [1.0, 2.0, 0.5, math.pi / 2],
+            }
+        ],
+    }
+    assert doc == expected
+    _assert_plain(doc)
+    json.dumps(doc, allow_nan=False)
+
+
+def test_map_json_unknown_origin_and_odometry_extension() -> None:
+    doc = map_json(
+        params={},
+        snapshot=_tiny_snapshot(),
+        sessions=[],
+        session_name_by_origin={7: "a"},
+        odometry=np.array([[10.0, 0.0, 0.0, 0.0], [10.5, 0.5, 0.1, 0.0]]),
+    )
+    assert [e["session"] for e in doc["experiences"]] == ["a", None]
+    assert doc["odometry"] == [[10.0, 0.0, 0.0, 0.0], [10.5, 0.5, 0.1, 0.0]]
+    odo = odometry_trajectory(doc)
+    assert odo is not None
+    np.testing.assert_array_equal(odo.positions_xyz, [[0.0, 0.0, 0.0], [0.5, 0.1, 0.0]])
+    _assert_plain(doc)
+
+
+def test_map_json_rejects_unknown_link_kind() -> None:
+    snap = _tiny_snapshot()
+    snap["em_link_kind"] = np.array([9], dtype=np.int8)
+    with pytest.raises(ValueError, match="em_link_kind"):
+        map_json(params={}, snapshot=snap, sessions=[], session_name_by_origin={})
+
+
+def _doc() -> dict[str, Any]:
+    return map_json(
+        params={"a": 1},
+        snapshot=_tiny_snapshot(),
+        sessions=[SessionInfo("a", "00", 2)],
+        session_name_by_origin={7: "a", 8: "a"},
+    )
+
+
+def test_map_json_write_read_round_trip(tmp_path: Path) -> None:
+    doc = _doc()
+    path = tmp_path / "map.json"
+    write_map_json(path, doc)
+    assert read_map_json(path) == doc
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.json"]
+    traj = map_trajectory(doc)
+    np.testing.assert_array_equal(traj.stamps_s, [10.0, 11.5])
+    np.testing.assert_array_equal(traj.positions_xyz, [[0, 0, 0], [1, 2, 0.5]])
+
+
+def test_map_trajectory_sorts_by_stamp() -> None:
+    doc = _doc()
+    doc["experiences"][0]["stamp"] = 20.0
+    traj = map_trajectory(doc)
+    np.testing.assert_array_equal(traj.stamps_s, [11.5, 20.0])
+    np.testing.assert_array_equal(traj.positions_xyz[0], [1, 2, 0.5])
+
+
+def test_write_map_json_rejects_nan(tmp_path: Path) -> None:
+    doc = _doc()
+    doc["experiences"][0]["x"] = float("nan")
+    with pytest.raises(MapServerError, match="cannot write map JSON"):
+        write_map_json(tmp_path / "map.json", doc)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("mutate", "reason"),
+    [
+        (lambda d: d.update(format="other/1"), "has format 'other/1'"),
+        (lambda d: d.pop("links"), "lacks key"),
+        (lambda d: d["experiences"][1].pop("stamp"), r"experiences\[1\] lacks key\(s\) stamp"),
+        (lambda d: d["experiences"][0].update(x="1"), r"experiences\[0\]\.x is not a number"),
+        (lambda d: d["links"][0].update(to=42), r"links\[0\]\.to = 42 is not an experience id"),
+        (lambda d: d.update(experiences={}), "'experiences' is not a list"),
+    ],
+)
+def test_read_map_json_validation(tmp_path: Path, mutate: Any, reason: str) -> None:
+    doc = _doc()
+    mutate(doc)
+    path = tmp_path / "map.json"
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    with pytest.raises(InputError, match=reason) as info:
+        read_map_json(path)
+    assert "\n" not in str(info.value)
+
+
+def test_read_map_json_unreadable(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not found"):
+        read_map_json(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "mapserver-map/1",\n "params": }', encoding="utf-8")
+    with pytest.raises(InputError, match=r"not valid JSON.*line 2"):
+        read_map_json(bad)
+    nan = tmp_path / "nan.json"
+    nan.write_text(json.dumps(_doc()).replace('"x": 0.0', '"x": NaN', 1), encoding="utf-8")
+    with pytest.raises(InputError, match="non-finite"):
+        read_map_json(nan)
+    arr = tmp_path / "arr.json"
+    arr.write_text("[]", encoding="utf-8")
+    with pytest.raises(InputError, match="not a JSON object"):
+        read_map_json(arr)
+    assert MAP_FORMAT == "mapserver-map/1"
+
+
+def test_trajectory_shapes() -> None:
+    traj = Trajectory([2.0, 1.0], [[0, 0, 0], [1, 1, 1]], [[0, 0, 0, 1], [0, 0, 0, 1]])
+    assert traj.positions_xyz.dtype == np.float64
+    s = traj.sorted()
+    np.testing.assert_array_equal(s.stamps_s, [1.0, 2.0])
+    np.testing.assert_array_equal(s.positions_xyz[0], [1, 1, 1])
