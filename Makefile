@@ -36,6 +36,8 @@ bench: install
 	$(BIN)/python bench/core_throughput.py --preset irat --templates 5000
 	$(BIN)/python bench/core_throughput.py --preset irat --templates 20000
 	$(BIN)/python bench/core_throughput.py --preset poseidon --templates 1000
+	$(BIN)/python bench/store.py
+	$(BIN)/python bench/api.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis

@@ -9,7 +9,10 @@ Per-frame order (OpenRatSLAM's node graph run in batch, as multisession-ratslam'
 4. pose cells ``on_odo``: excite, inhibit, global inhibition, normalise, path integration, decode;
 5. experience decision ``get_action`` (create node / link to an existing experience / nothing),
    gated by VPR Guard and the motion gate when enabled (PoseidonSLAM);
-6. experience map ``on_odo`` then the action; 7. relaxation while a loop closure has not settled.
+6. experience map ``on_odo`` then the action;
+7. a bounded share of graph relaxation (at most ``exp_loops`` iterations over at most
+   ``exp_relax_batch`` experiences waiting for it; see :mod:`core.relaxation`).
+   :meth:`Engine.settle` (end of a log) moves the map to the fixed point of full relaxation.
 
 Everything is numpy and deterministic: the same frames give the same state, bit for bit.
 """
@@ -116,8 +119,7 @@ class Engine:
             loop_closure = self.map.create_link(self.map.current, target, relative_rad, LinkKind.LOOP)
             self.map.set_experience(target, relative_rad)
             self.loop_closures += int(loop_closure)
-        if self.map.relax_pending:
-            self.map.relax()
+        self.map.relax_step()
         self.frames += 1
         self.last_stamp = stamp
         return StepResult(
@@ -130,7 +132,12 @@ class Engine:
         Create an experience when the template has none; otherwise, when the packet
         moved more than ``exp_delta_pc_threshold`` cells from the current experience
         or the template changed, link to the closest other experience of this
-        template if it is within the threshold, else create one.
+        template if it is within the threshold (strictly), else create one. The
+        distances are wrapped lattice distances with the heading corrected by the
+        view's offset (``PoseCellNetwork.delta_to``). OpenRatSLAM's extra branch —
+        "matched experience is the current one and the template is unchanged: create"
+        — cannot fire there (the current experience is skipped in the search), so the
+        no-match case covers it; SET_NODE never arises either.
         """
         em = self.map
         candidates = em.experiences_of_template(template)
@@ -169,11 +176,14 @@ class Engine:
         return self.graph().shortest_path(source, target, weight)
 
     def settle(self, max_iterations: int = 100_000) -> int:
-        """Relax until the map settles (largest correction below ``exp_relax_tolerance``)."""
-        total = 0
-        while self.map.relax_pending and total < max_iterations:
-            total += self.map.relax()
-        return total
+        """Move the map to the fixed point of full relaxation (see :meth:`ExperienceMap.settle`).
+
+        Run it at the end of a log: afterwards every experience's relaxation
+        correction is at most ``exp_relax_tolerance`` and the poses equal those that
+        iterating full relaxation to convergence would give. Returns the number of
+        checking iterations that were needed (normally 0).
+        """
+        return self.map.settle(max_iterations)
 
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:

@@ -9,7 +9,25 @@ the rotation ``yaw`` about z (roll and pitch are not represented).
 A link holds the pose of its ``to`` experience in the frame of its ``from``
 experience: translation (dx, dy, dz) and heading change dyaw — OpenRatSLAM's
 ``d``, ``heading_rad``, ``facing_rad`` written as a transform — plus Δt and the
-Euclidean distance.
+Euclidean distance. Relaxation (its maths, fixed point, anchors and per-frame
+budget) lives in :mod:`core.relaxation`.
+
+Deliberate deviations from OpenRatSLAM:
+
+* odometry arrives as the exact body-frame displacement of each frame
+  (``Motion``), which is rotated by the accumulated facing before the facing
+  advances; OpenRatSLAM integrates ``v·dt`` along the *new* facing;
+* Δt of a link is the time since the current experience was set (OpenRatSLAM's
+  ``accum_delta_time_s`` is never reset, so its links carry time since start);
+* when relaxation turns the current experience, the odometry accumulated since
+  it turns with it, so every link holds the odometry actually measured
+  (OpenRatSLAM re-reads the experience's heading when the link is made, so a
+  relaxation in between rotates the link);
+* each connected part of the graph has an anchor, its lowest-id experience,
+  that relaxation never moves (OpenRatSLAM lets the whole map drift; the
+  relative geometry is the same). The first experience therefore stays where it
+  was created: at the odometry accumulated before it (the origin when it is
+  created on the first frame), facing ``exp_initial_em_deg``.
 """
 
 from __future__ import annotations
@@ -21,9 +39,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from core._buffers import GrowBuffer
 from core.lattice import wrap_angle, wrap_scalar
+from core.relaxation import Incidence, Worklist, residuals, roots, solve, solve_block
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -58,12 +78,16 @@ class ExperienceMap:
         self._kind = GrowBuffer((), np.int8)
         self._pairs: set[tuple[int, int]] = set()
         self._exps_of_template: list[list[int]] = []
+        self._incidence = Incidence()
+        self._parent = GrowBuffer((), np.int64)  # union-find over links; a root is its component's anchor
+        self._work = Worklist()
+        self._operator: sp.csr_matrix | None = None
         self.current = -1
         self.previous = -1
         # dx, dy, dz (map frame), facing (rad), dt (s), distance (m) since the current experience
         self.accum = np.array([0.0, 0.0, 0.0, math.radians(params.exp_initial_em_deg), 0.0, 0.0])
-        self.relax_pending = False
-        self._operator: sp.csr_matrix | None = None
+        #: experience updates made by relaxation in the last :meth:`relax_step` (bounded per frame)
+        self.last_relax_updates = 0
 
     # ------------------------------------------------------------- accessors
     @property
@@ -98,6 +122,27 @@ class ExperienceMap:
             self._from.view, self._to.view, self._transform.view, self._dt.view, self._distance.view, self._kind.view
         )
 
+    @property
+    def relax_pending(self) -> bool:
+        """Return whether some experience's relaxation correction may still exceed ``exp_relax_tolerance``."""
+        return len(self._work) > 0
+
+    @relax_pending.setter
+    def relax_pending(self, pending: bool) -> None:
+        """Schedule every experience for relaxation (True) or drop the pending work (False)."""
+        self._work.clear()
+        if pending:
+            self._work.push(np.flatnonzero(self._incidence.degree > 0))
+
+    @property
+    def relax_queue(self) -> np.ndarray:
+        """Return the experiences waiting for relaxation, in order (a copy)."""
+        return self._work.items()
+
+    def anchors(self) -> np.ndarray:
+        """Return a boolean mask (E,) of the experiences relaxation never moves (one per connected part)."""
+        return roots(self._parent.view) == np.arange(self.count)
+
     def experiences_of_template(self, template: int) -> list[int]:
         """Return the experiences created with ``template`` (OpenRatSLAM ``PosecellVisualTemplate.exps``)."""
         if 0 <= template < len(self._exps_of_template):
@@ -124,12 +169,14 @@ class ExperienceMap:
     def create_experience(self, template: int, lattice: np.ndarray, stamp: float, origin: int) -> int:
         """Create an experience at the current one plus the accumulated odometry; link and select it.
 
-        Menezes et al. Eq. 7 / OpenRatSLAM2 Eq. 7: p_j = p_i + Δp_ij. The first
-        experience sits at the origin with the initial heading ``exp_initial_em_deg``.
+        Menezes et al. Eq. 7 / OpenRatSLAM2 Eq. 7: p_j = p_i + Δp_ij, facing the
+        accumulated facing. The first experience sits at the odometry accumulated so
+        far (the origin when it is created on the first frame) with the initial
+        heading ``exp_initial_em_deg`` plus any turn since.
         """
         a = self.accum
         if self.current < 0:
-            pose = np.array([0.0, 0.0, 0.0, a[3]])
+            pose = np.array([a[0], a[1], a[2], a[3]])
         else:
             base = self._pose.view[self.current]
             pose = np.array([base[0] + a[0], base[1] + a[1], base[2] + a[2], a[3]])
@@ -138,6 +185,10 @@ class ExperienceMap:
         self._template.append(template)
         self._stamp.append(stamp)
         self._origin.append(origin)
+        self._incidence.add_nodes(1)
+        self._parent.append(new_id)
+        self._work.reserve(new_id + 1)
+        self._operator = None
         while len(self._exps_of_template) <= template:
             self._exps_of_template.append([])
         self._exps_of_template[template].append(new_id)
@@ -147,45 +198,149 @@ class ExperienceMap:
         return new_id
 
     def create_link(self, source: int, target: int, relative_rad: float, kind: LinkKind) -> bool:
-        """Link ``source`` → ``target`` with the accumulated odometry; False if that link exists.
+        """Link ``source`` → ``target`` with the accumulated odometry; False if they are linked already.
 
-        OpenRatSLAM ``on_create_link``: the translation is expressed in the source's
-        frame and the heading change includes the view's ``relative_rad``. A link to
-        anything but a brand-new experience closes a loop: relaxation is scheduled.
+        OpenRatSLAM ``on_create_link``: no link is added when one exists in either
+        direction; the translation is expressed in the source's frame and the
+        heading change includes the view's ``relative_rad``. Both ends of a link to
+        anything but a brand-new experience (a loop closure) enter the relaxation
+        worklist.
         """
-        if (source, target) in self._pairs or source == target:
+        if source == target or (source, target) in self._pairs or (target, source) in self._pairs:
             return False
         a = self.accum
         yaw = self._pose.view[source, 3]
         c, s = math.cos(yaw), math.sin(yaw)
         transform = (c * a[0] + s * a[1], -s * a[0] + c * a[1], a[2], wrap_scalar(a[3] + relative_rad - yaw))
         self._append_link(source, target, transform, a[4], math.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2), kind)
-        if kind != LinkKind.ODOMETRY and self.link_residual(self.link_count - 1) >= self.params.exp_relax_tolerance:
-            self.relax_pending = True  # a consistent closure needs no relaxation
+        if kind != LinkKind.ODOMETRY:
+            self._work.push(np.array([source, target], dtype=np.int64))
+        return True
+
+    def add_link_raw(
+        self, source: int, target: int, transform: np.ndarray, dt: float, distance: float, kind: LinkKind
+    ) -> bool:
+        """Add a link with an explicit transform (merges, manual links); both ends enter the relaxation worklist."""
+        if (source, target) in self._pairs or source == target:
+            return False
+        self._append_link(source, target, np.asarray(transform, dtype=np.float64), dt, distance, int(kind))
+        self._work.push(np.array([source, target], dtype=np.int64))
         return True
 
     def _append_link(
         self, source: int, target: int, transform: tuple[float, ...] | np.ndarray, dt: float, distance: float, kind: int
     ) -> None:
-        self._from.append(source)
+        link = self._from.append(source)
         self._to.append(target)
         self._transform.append(transform)
         self._dt.append(dt)
         self._distance.append(distance)
         self._kind.append(kind)
         self._pairs.add((source, target))
+        self._incidence.add_link(source, target, link)
+        self._union(source, target)
         self._operator = None
 
+    def _find(self, node: int) -> int:
+        parent = self._parent.view
+        while parent[node] != node:
+            parent[node] = parent[parent[node]]
+            node = int(parent[node])
+        return node
+
+    def _union(self, a: int, b: int) -> None:
+        """Join the components of ``a`` and ``b``; the higher anchor stops being one and is scheduled."""
+        ra, rb = self._find(a), self._find(b)
+        if ra != rb:
+            low, high = min(ra, rb), max(ra, rb)
+            self._parent.view[high] = low
+            self._work.push(np.array([high], dtype=np.int64))
+
     def set_experience(self, experience: int, relative_rad: float) -> None:
-        """Make ``experience`` current and restart the accumulators (OpenRatSLAM ``on_set_experience``)."""
+        """Make ``experience`` current and restart the accumulators (OpenRatSLAM ``on_set_experience``).
+
+        Setting the experience that is already current changes nothing, as in OpenRatSLAM.
+        """
+        if experience == self.current:
+            return
         self.previous = self.current
         self.current = experience
         self.accum[:] = 0.0
         self.accum[3] = wrap_scalar(float(self._pose.view[experience, 3]) + relative_rad)
 
+    def _turn_accumulator(self, turn: float) -> None:
+        """Rotate the odometry accumulated since the current experience by ``turn`` (the experience turned)."""
+        if turn == 0.0:
+            return
+        a = self.accum
+        c, s = math.cos(turn), math.sin(turn)
+        a[0], a[1] = c * a[0] - s * a[1], s * a[0] + c * a[1]
+        a[3] = wrap_scalar(a[3] + turn)
+
     # ------------------------------------------------------------ relaxation
+    def relax_step(self) -> int:
+        """Run this frame's bounded share of relaxation; return the number of experiences updated.
+
+        Takes at most ``exp_relax_batch`` experiences from the front of the worklist —
+        widened, when fewer are waiting, by the experiences created just before and
+        after each (trajectory neighbours) up to ``exp_relax_batch`` — and moves them
+        towards the fixed point of relaxation with every other
+        experience held where it is (:func:`core.relaxation.solve_block`: what
+        iterating the relaxation over just those experiences converges to), by the
+        fraction ``min(1, 2·exp_correction)`` of the way (0.5 — OpenRatSLAM's value,
+        which fully corrects each link it visits — goes all the way), shortened
+        uniformly so that no experience moves by more than ``max_correction_step`` or
+        ``max_correction_norm`` in this frame. Experiences that move by more than
+        ``exp_relax_tolerance`` put their neighbours outside the batch back on the
+        worklist (and themselves, after a shortened step). The work is one dense
+        solve of at most ``exp_relax_batch`` unknowns, whatever the map size.
+        """
+        p = self.params
+        self.last_relax_updates = 0
+        if p.exp_loops <= 0 or len(self._work) == 0:
+            return 0
+        ids = self._work.pop(p.exp_relax_batch)
+        if ids.size < p.exp_relax_batch:  # widen the block along the trajectory: consecutive ids are neighbours
+            reach = (p.exp_relax_batch // ids.size - 1) // 2
+            if reach > 0:
+                ids = np.unique((ids[:, None] + np.arange(-reach, reach + 1)[None, :]).ravel())
+                ids = ids[(ids >= 0) & (ids < self.count)]
+        ids = ids[(self._incidence.degree[ids] > 0) & (self._parent.view[ids] != ids)]  # anchors never move
+        if ids.size == 0:
+            return 0
+        links, owner = self._incidence.gather(ids)
+        src = self._from.view[links]
+        dst = self._to.view[links]
+        pose = self._pose.view
+        target, winding_changed = solve_block(pose, ids, owner, src, dst, self._transform.view[links])
+        step = target - pose[ids]
+        step[:, 3] = np.remainder(step[:, 3] + math.pi, 2.0 * math.pi) - math.pi
+        fraction = min(1.0, 2.0 * p.exp_correction)
+        largest = float(np.sqrt(np.einsum("ij,ij->i", step[:, :3], step[:, :3])).max()) * fraction
+        for cap in (p.max_correction_step, p.max_correction_norm):
+            if cap > 0 and largest > cap:
+                fraction *= cap / largest
+                largest = cap
+        step *= fraction
+        moved = np.abs(step).max(axis=1) > p.exp_relax_tolerance
+        self.last_relax_updates = int(ids.size)
+        if not moved.any():
+            return self.last_relax_updates
+        pose[ids[moved]] += step[moved]
+        pose[ids[moved], 3] = wrap_angle(pose[ids[moved], 3])
+        where_current = np.flatnonzero(ids[moved] == self.current)
+        if where_current.size:
+            self._turn_accumulator(float(step[moved][where_current[0], 3]))
+        is_source = src == ids[owner]
+        neighbours = np.where(is_source, dst, src)[moved[owner]]
+        if fraction < 1.0 or winding_changed:
+            self._work.push(np.concatenate([ids[moved], neighbours]))
+        else:  # the batch sits at its own fixed point: only the neighbours outside it may have to follow
+            self._work.push(neighbours[~np.isin(neighbours, ids)])
+        return self.last_relax_updates
+
     def _relaxation_operator(self) -> sp.csr_matrix:
-        """Return the (E, K) sparse map from link residuals to experience corrections, scaled by c/degree."""
+        """Return the (E, K) sparse map from link residuals to corrections, c/degree, anchors' rows zero."""
         if self._operator is None:
             n = self.count
             k = self.link_count
@@ -193,94 +348,83 @@ class ExperienceMap:
             cols = np.concatenate([np.arange(k), np.arange(k)])
             degree = np.bincount(rows, minlength=n).astype(np.float64)
             degree[degree == 0] = 1.0
-            vals = np.concatenate([np.ones(k), -np.ones(k)]) * (self.params.exp_correction / degree[rows])
+            free = ~self.anchors()
+            vals = np.concatenate([np.ones(k), -np.ones(k)]) * (self.params.exp_correction / degree[rows]) * free[rows]
             self._operator = sp.csr_matrix((vals, (rows, cols)), shape=(n, k))
         return self._operator
 
-    def relax(self, iterations: int | None = None) -> int:
-        """Relax the graph; return the number of iterations run.
+    def full_corrections(self) -> np.ndarray:
+        """Return every experience's relaxation correction (E, 4) under the current poses (no clamps)."""
+        src, dst, transform = self._from.view, self._to.view, self._transform.view
+        return self._relaxation_operator() @ residuals(self._pose.view, src, dst, transform)
 
-        Eq. 8 of Menezes et al. (with the corrected incoming-link sign of thesis
-        Eq. 4.21), in 3-D plus heading, applied simultaneously to every experience:
-        for each link the residual r = p_to − (p_from + R(yaw_from)·t) moves the
-        source by +c·r and the target by −c·r (c = ``exp_correction``), and the
-        heading residual likewise. Each experience's summed correction is divided by
-        its number of links, which keeps c = 0.5 stable at any degree (the printed
-        sum is unstable for degree > 2 when applied simultaneously). Optional clamps
-        (thesis §4.2.4): ``max_correction_step`` caps each experience's per-iteration
-        correction norm and ``max_correction_norm`` its total correction in this call.
-        Iteration stops early once the largest correction (metres or radians) is
-        below ``exp_relax_tolerance``; then ``relax_pending`` is cleared.
+    def relax(self, iterations: int | None = None) -> int:
+        """Relax the whole graph: full simultaneous iterations over every link; return the number run.
+
+        Each iteration moves every experience by its correction (Menezes et al.
+        Eq. 8 with the corrected incoming-link sign of thesis Eq. 4.21, in 3-D plus
+        heading; see :mod:`core.relaxation`), anchors excepted. ``max_correction_step``
+        caps each experience's translation per iteration and ``max_correction_norm``
+        its total translation in this call (thesis §4.2.4). Runs ``iterations``
+        (default ``exp_loops``) iterations, stopping early once the largest
+        correction is at most ``exp_relax_tolerance``; the worklist is then emptied,
+        otherwise every linked experience is put on it.
         """
         p = self.params
         loops = p.exp_loops if iterations is None else iterations
         if self.link_count == 0 or loops <= 0:
-            self.relax_pending = False
             return 0
         operator = self._relaxation_operator()
-        src = self._from.view
-        dst = self._to.view
-        tx, ty, tz, tyaw = (np.ascontiguousarray(self._transform.view[:, i]) for i in range(4))
+        src, dst, transform = self._from.view, self._to.view, self._transform.view
         pose = self._pose.view
-        step_cap = p.max_correction_step
-        norm_cap = p.max_correction_norm
-        total = np.zeros((self.count, 3)) if norm_cap > 0 else None
-        tol = p.exp_relax_tolerance
-        residual = np.empty((src.shape[0], 4))
+        total = np.zeros((self.count, 3)) if p.max_correction_norm > 0 else None
+        start_yaw = float(pose[self.current, 3]) if self.current >= 0 else 0.0
         run = 0
+        converged = False
         for _ in range(loops):
             run += 1
-            source = pose[src]
-            target = pose[dst]
-            cos_y = np.cos(source[:, 3])
-            sin_y = np.sin(source[:, 3])
-            residual[:, 0] = target[:, 0] - source[:, 0] - cos_y * tx + sin_y * ty
-            residual[:, 1] = target[:, 1] - source[:, 1] - sin_y * tx - cos_y * ty
-            residual[:, 2] = target[:, 2] - source[:, 2] - tz
-            residual[:, 3] = np.remainder(target[:, 3] - source[:, 3] - tyaw + math.pi, 2.0 * math.pi) - math.pi
-            correction = operator @ residual
-            if step_cap > 0:
-                norms = np.sqrt(np.einsum("ij,ij->i", correction[:, :3], correction[:, :3]))
-                scale = np.minimum(1.0, step_cap / np.maximum(norms, 1e-300))
-                correction[:, :3] *= scale[:, None]
-            if total is not None:
-                proposed = total + correction[:, :3]
-                norms = np.linalg.norm(proposed, axis=1)
-                over = norms > norm_cap
-                if np.any(over):
-                    proposed[over] *= (norm_cap / norms[over])[:, None]
-                    correction[:, :3] = proposed - total
-                total = proposed
-            pose += correction
-            largest = float(np.abs(correction).max())
-            if largest < tol:
-                self.relax_pending = False
+            correction = operator @ residuals(pose, src, dst, transform)
+            _clamp(correction, p.max_correction_step, p.max_correction_norm, total)
+            if float(np.abs(correction).max()) <= p.exp_relax_tolerance:
+                converged = True
                 break
+            pose += correction
         pose[:, 3] = wrap_angle(pose[:, 3])
+        if self.current >= 0:
+            self._turn_accumulator(wrap_scalar(float(pose[self.current, 3]) - start_yaw))
+        self.relax_pending = not converged
+        return run
+
+    def settle(self, max_iterations: int = 100_000) -> int:
+        """Move every experience to the fixed point of full relaxation; return the check iterations run.
+
+        The fixed point is computed directly (:func:`core.relaxation.solve`: one
+        sparse factorisation of the link graph), which equals iterating :meth:`relax`
+        until it converges — ignoring the clamps, which only limit how fast the map
+        moves, not where it settles. Then the corrections are checked once; should
+        any still exceed ``exp_relax_tolerance`` (a heading winding that changed),
+        :meth:`relax` runs until they do not, at most ``max_iterations`` iterations.
+        ``exp_loops = 0`` switches relaxation off: nothing moves.
+        """
+        self._work.clear()
+        if self.link_count == 0 or self.params.exp_loops <= 0:
+            return 0
+        pose = self._pose.view
+        start_yaw = float(pose[self.current, 3]) if self.current >= 0 else 0.0
+        pose[:] = solve(pose, self._from.view, self._to.view, self._transform.view, self.anchors())
+        if self.current >= 0:
+            self._turn_accumulator(wrap_scalar(float(pose[self.current, 3]) - start_yaw))
+        run = 0
+        while run < max_iterations and float(np.abs(self.full_corrections()).max()) > self.params.exp_relax_tolerance:
+            run += self.relax(min(1000, max_iterations - run))
+        self._work.clear()
         return run
 
     def link_residual(self, link: int) -> float:
         """Return the largest absolute residual (m or rad) of one link under the current poses."""
-        source = self._pose.view[self._from.view[link]]
-        target = self._pose.view[self._to.view[link]]
-        t = self._transform.view[link]
-        c, s = math.cos(source[3]), math.sin(source[3])
-        return max(
-            abs(target[0] - source[0] - c * t[0] + s * t[1]),
-            abs(target[1] - source[1] - s * t[0] - c * t[1]),
-            abs(target[2] - source[2] - t[2]),
-            abs(wrap_scalar(target[3] - source[3] - t[3])),
-        )
-
-    def add_link_raw(
-        self, source: int, target: int, transform: np.ndarray, dt: float, distance: float, kind: LinkKind
-    ) -> bool:
-        """Add a link with an explicit transform (merges, manual links); schedules relaxation."""
-        if (source, target) in self._pairs or source == target:
-            return False
-        self._append_link(source, target, np.asarray(transform, dtype=np.float64), dt, distance, int(kind))
-        self.relax_pending = True
-        return True
+        index = np.array([link])
+        res = residuals(self._pose.view, self._from.view[index], self._to.view[index], self._transform.view[index])
+        return float(np.abs(res).max())
 
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:
@@ -301,11 +445,16 @@ class ExperienceMap:
             "em_previous": np.asarray(self.previous, dtype=np.int64),
             "em_accum": self.accum.copy(),
             "em_relax_pending": np.asarray(self.relax_pending, dtype=bool),
+            "em_relax_queue": self._work.items(),
         }
 
     @classmethod
     def restore(cls, params: Params, lattice_rank: int, state: Mapping[str, np.ndarray]) -> ExperienceMap:
-        """Rebuild a map from :meth:`snapshot` arrays, exactly."""
+        """Rebuild a map from :meth:`snapshot` arrays, exactly.
+
+        ``em_relax_queue`` is optional: without it a pending relaxation
+        (``em_relax_pending``) schedules every linked experience.
+        """
         em = cls(params, lattice_rank)
         em._pose = GrowBuffer.from_array(np.asarray(state["em_pose"]).reshape(-1, 4), np.float64)
         em._pc = GrowBuffer.from_array(np.asarray(state["em_pc"]).reshape(-1, lattice_rank), np.float64)
@@ -318,7 +467,12 @@ class ExperienceMap:
         em._dt = GrowBuffer.from_array(state["em_link_dt"], np.float64)
         em._distance = GrowBuffer.from_array(state["em_link_distance"], np.float64)
         em._kind = GrowBuffer.from_array(state["em_link_kind"], np.int8)
-        em._pairs = set(zip(em._from.view.tolist(), em._to.view.tolist(), strict=True))
+        src, dst = em._from.view, em._to.view
+        em._pairs = set(zip(src.tolist(), dst.tolist(), strict=True))
+        n = em.count
+        em._incidence = Incidence.from_links(n, src, dst)
+        em._parent = GrowBuffer.from_array(_component_minimum(n, src, dst), np.int64)
+        em._work.reserve(n)
         templates = em._template.view
         n_templates = int(templates.max()) + 1 if templates.size else 0
         em._exps_of_template = [[] for _ in range(n_templates)]
@@ -327,5 +481,36 @@ class ExperienceMap:
         em.current = int(state["em_current"])
         em.previous = int(state["em_previous"])
         em.accum = np.asarray(state["em_accum"], dtype=np.float64).copy()
-        em.relax_pending = bool(state["em_relax_pending"])
+        if "em_relax_queue" in state:
+            em._work.extend_ordered(np.asarray(state["em_relax_queue"], dtype=np.int64))
+        elif bool(state["em_relax_pending"]):
+            em.relax_pending = True
         return em
+
+
+def _clamp(correction: np.ndarray, step_cap: float, norm_cap: float, total: np.ndarray | None) -> None:
+    """Apply the thesis clamps in place: per-iteration translation ≤ ``step_cap``, running total ≤ ``norm_cap``."""
+    if step_cap > 0:
+        norms = np.sqrt(np.einsum("ij,ij->i", correction[:, :3], correction[:, :3]))
+        over = norms > step_cap
+        if over.any():
+            correction[over, :3] *= (step_cap / norms[over])[:, None]
+    if total is not None:
+        proposed = total + correction[:, :3]
+        norms = np.sqrt(np.einsum("ij,ij->i", proposed, proposed))
+        over = norms > norm_cap
+        if over.any():
+            proposed[over] *= (norm_cap / norms[over])[:, None]
+            correction[:, :3] = proposed - total
+        total[:] = proposed
+
+
+def _component_minimum(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Return, for every experience, the lowest id of its connected component (a flat union-find parent)."""
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    graph = sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    first = np.full(int(labels.max()) + 1, n, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
+    return first[labels]

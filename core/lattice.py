@@ -54,20 +54,17 @@ def gaussian_kernel_1d(size: int, var: float) -> np.ndarray:
     return k / k.sum()
 
 
-def periodic_kernel_spectrum(shape: tuple[int, ...], sizes: tuple[int, ...], var: float) -> np.ndarray:
-    """Return ``rfftn`` of the separable Gaussian kernel wrapped onto a lattice of ``shape``.
+def circulant_kernel(dim: int, size: int, var: float) -> np.ndarray:
+    """Return the (dim, dim) matrix of a circular convolution with the 1-D Gaussian of ``size`` cells.
 
-    The kernel's centre sits at index 0 and offsets wrap modulo each axis, so a
-    product in the frequency domain is exactly the circular convolution of
-    Multisession RatSLAM Eq. 3 (connections wrap across every face).
+    ``C[i, j] = k[(i − j) mod dim]``: the kernel's centre sits on the diagonal and
+    offsets wrap modulo ``dim`` (a kernel wider than the lattice folds onto itself),
+    so ``C @ a`` along one axis is the wrapped spread of Multisession RatSLAM Eq. 3.
+    OpenRatSLAM's ``size``-cube of weights is the outer product of these kernels, so
+    applying ``C`` along every axis in turn equals its cell-by-cell spread.
     """
-    kernel = np.ones(shape, dtype=np.float64)
-    for axis, (dim, size) in enumerate(zip(shape, sizes, strict=True)):
-        k1 = gaussian_kernel_1d(size, var)
-        wrapped = np.zeros(dim, dtype=np.float64)
-        centre = size // 2
-        np.add.at(wrapped, (np.arange(size) - centre) % dim, k1)
-        view_shape = [1] * len(shape)
-        view_shape[axis] = dim
-        kernel = kernel * wrapped.reshape(view_shape)
-    return np.fft.rfftn(kernel)
+    k1 = gaussian_kernel_1d(size, var)
+    wrapped = np.zeros(dim, dtype=np.float64)
+    np.add.at(wrapped, (np.arange(size) - size // 2) % dim, k1)
+    index = np.arange(dim)
+    return wrapped[(index[:, None] - index[None, :]) % dim]

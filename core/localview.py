@@ -4,8 +4,24 @@ Template construction (anchors §1.1): crop, greyscale (mean of the channels),
 block-average into ``template_x_size × template_y_size`` cells (integer block
 sizes; pixels past the last full block are ignored), values divided by 255,
 optional global normalisation and patch normalisation. Matching compares the
-current view with every stored template at once (vectorised over templates, a
-loop only over the column offsets), after the template-mean prefilter.
+current view with every stored template at once (vectorised over templates),
+after the template-mean prefilter.
+
+Speed without changing the result: when a caller only needs to know whether
+some template is within a limit (``process`` asks for ``vt_match_threshold``),
+each (template, offset) pair is first bounded from below by its column sums,
+``Σ_x |Σ_y v − Σ_y t| ≤ Σ_x Σ_y |v − t|`` (triangle inequality), and only pairs
+whose bound is within the limit get the full comparison. OpenRatSLAM's early
+break inside the difference loop plays the same role there.
+
+Deliberate deviations from OpenRatSLAM (documented, not accidental):
+
+* patch normalisation of a cell whose patch has σ = 0 gives 0.5 (OpenRatSLAM
+  divides 0 by 0 and its clamp turns the NaN into 1.0);
+* ``vt_shift_match`` larger than the template is narrowed to ``(tx − 1)//2``
+  (OpenRatSLAM reads past the template);
+* templates are stored as float32 (OpenRatSLAM: double); the mean is taken
+  from the stored values so the prefilter sees what is stored.
 """
 
 from __future__ import annotations
@@ -15,9 +31,10 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import uniform_filter
 
-from core._buffers import GrowBuffer
+from core._buffers import GrowBuffer, Scratch
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -59,15 +76,14 @@ def block_average(region: np.ndarray, ty: int, tx: int) -> np.ndarray:
 def patch_normalise(values: np.ndarray, radius: int, min_std: float) -> np.ndarray:
     """Patch normalisation: ``clip(((v − μ)/σ + 3)/6, 0, 1)`` over the (2r+1)² neighbourhood.
 
-    μ and σ are the mean and population standard deviation of the cells within the
-    window clipped at the template border (the window shrinks at the edges, as
-    OpenRatSLAM's loop bounds do); cells with σ < ``min_std`` (or σ = 0) become 0.5.
+    As OpenRatSLAM's ``convert_view_to_view_template``: positions outside the
+    template are clamped to the nearest border cell (the border is replicated), so
+    every patch has (2r+1)² samples; μ and σ are their mean and population standard
+    deviation. Cells with σ < ``min_std`` (or σ = 0) become 0.5.
     """
     size = 2 * radius + 1
-    ones = np.ones_like(values)
-    count = uniform_filter(ones, size=size, mode="constant", cval=0.0)
-    mean = uniform_filter(values, size=size, mode="constant", cval=0.0) / count
-    mean_sq = uniform_filter(values * values, size=size, mode="constant", cval=0.0) / count
+    mean = uniform_filter(values, size=size, mode="nearest")
+    mean_sq = uniform_filter(values * values, size=size, mode="nearest")
     std = np.sqrt(np.maximum(mean_sq - mean * mean, 0.0))
     out = np.full_like(values, 0.5)
     ok = (std > 0) & (std >= min_std)
@@ -82,6 +98,8 @@ class LocalViewCells:
         self.params = params
         self._templates = GrowBuffer((params.template_y_size, params.template_x_size), np.float32)
         self._means = GrowBuffer((), np.float64)
+        self._colsums = GrowBuffer((params.template_x_size,), np.float64)  # Σ_y per column (match bound)
+        self._scratch = Scratch()
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
@@ -107,8 +125,10 @@ class LocalViewCells:
 
     def add_templates(self, templates: np.ndarray, means: np.ndarray) -> None:
         """Append templates in bulk (merge, restore, benchmarks)."""
-        self._templates.extend(np.asarray(templates, dtype=np.float32))
+        stored = np.asarray(templates, dtype=np.float32)
+        self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
+        self._colsums.extend(stored.sum(axis=1, dtype=np.float64))
 
     # ------------------------------------------------------------- templates
     def make_template(self, image: np.ndarray) -> tuple[np.ndarray, float]:
@@ -130,7 +150,7 @@ class LocalViewCells:
         template = values.astype(np.float32)
         return template, float(template.mean(dtype=np.float64))
 
-    def match(self, template: np.ndarray, mean: float) -> tuple[int, float, float]:
+    def match(self, template: np.ndarray, mean: float, limit: float | None = None) -> tuple[int, float, float]:
         """Return (best template id or −1, error, relative_rad) without creating a template.
 
         OpenRatSLAM ``compare``: templates whose mean differs by more than
@@ -138,52 +158,141 @@ class LocalViewCells:
         for offsets 0..2·shift (step ``vt_step_match``) the mean absolute difference
         between the view's columns [shift, X−shift) and the template's columns
         [offset, offset + X − 2·shift); relative_rad = 0. Panoramic: every circular
-        column offset, error over the whole template, relative_rad = offset/X·2π
-        wrapped to (−π, π] (the view is the template rotated by −offset columns).
-        Ties go to the lowest template id, then the lowest offset.
+        column offset (step ``vt_step_match``), error over the whole template,
+        relative_rad = offset/X·2π wrapped to (−π, π] (the view is the template
+        rotated by −offset columns). Ties go to the lowest template id, then the
+        lowest offset.
+
+        Args:
+            template: the view's template (ty, tx).
+            mean: its mean.
+            limit: when given, only errors ≤ ``limit`` matter: pairs whose column-sum
+                lower bound exceeds it are skipped, and (−1, inf, 0) means no template
+                is within ``limit``. The answer is then the same as without ``limit``
+                whenever the best error is ≤ ``limit``.
         """
         p = self.params
-        n = self.count
-        if n == 0:
+        if self.count == 0:
             return -1, math.inf, 0.0
-        limit = p.vt_match_threshold + p.vt_mean_prefilter_epsilon
-        candidates = np.flatnonzero(np.abs(self._means.view - mean) <= limit)
+        prefilter = p.vt_match_threshold + p.vt_mean_prefilter_epsilon
+        candidates = np.flatnonzero(np.abs(self._means.view - mean) <= prefilter)
         if candidates.size == 0:
             return -1, math.inf, 0.0
-        stored = self._templates.view[candidates]
         view = np.asarray(template, dtype=np.float32)
         ty, tx = view.shape
+        step = max(p.vt_step_match, 1)
         if p.vt_panoramic:
-            offsets = np.arange(0, tx, max(p.vt_step_match, 1))
-            errors = np.empty((candidates.size, offsets.size), dtype=np.float64)
-            for j, offset in enumerate(offsets.tolist()):
-                rolled = np.roll(stored, -offset, axis=2)
-                errors[:, j] = np.abs(rolled - view).sum(axis=(1, 2), dtype=np.float64)
-            errors /= tx * ty
+            offsets = np.arange(0, tx, step)
+            width, start = tx, 0
         else:
             shift = min(p.vt_shift_match, (tx - 1) // 2)
-            width = tx - 2 * shift
-            offsets = np.arange(0, 2 * shift + 1, max(p.vt_step_match, 1))
-            window = view[:, shift : shift + width]
-            errors = np.empty((candidates.size, offsets.size), dtype=np.float64)
-            for j, offset in enumerate(offsets.tolist()):
-                errors[:, j] = np.abs(stored[:, :, offset : offset + width] - window).sum(axis=(1, 2), dtype=np.float64)
-            errors /= ty * width
-        flat = int(np.argmin(errors))  # first minimum: lowest candidate (= lowest id), then lowest offset
+            offsets = np.arange(0, 2 * shift + 1, step)
+            width, start = tx - 2 * shift, shift
+        norm = float(ty * width)
+        if limit is None:
+            rows = candidates
+            keep = np.ones((rows.size, offsets.size), dtype=bool)
+            limit_sum = math.inf
+        else:
+            limit_sum = limit * norm
+            limit_sum += 1e-5 * (1.0 + limit_sum)  # float32 sums: never drop a pair that could be within the limit
+            keep = self._bounded_pairs(view, candidates, offsets, width, start, limit_sum)
+            kept_rows = keep.any(axis=1)
+            rows = candidates[kept_rows]
+            keep = keep[kept_rows]
+            if rows.size == 0:
+                return -1, math.inf, 0.0
+        errors = self._errors(view, rows, keep, offsets, width, start, limit_sum) / norm  # (rows, offsets)
+        flat = int(np.argmin(errors))  # row-major (id, offset) order: the first minimum wins ties
         row, col = divmod(flat, offsets.size)
-        best = int(candidates[row])
         error = float(errors[row, col])
+        if limit is not None and error > limit:
+            return -1, math.inf, 0.0
         relative = 0.0
         if p.vt_panoramic:
             relative = float(offsets[col]) / tx * 2.0 * math.pi
             if relative > math.pi:
                 relative -= 2.0 * math.pi
-        return best, error, relative
+        return int(rows[row]), error, relative
+
+    def _bounded_pairs(
+        self, view: np.ndarray, candidates: np.ndarray, offsets: np.ndarray, width: int, start: int, limit_sum: float
+    ) -> np.ndarray:
+        """Return the (candidates, offsets) mask of pairs whose column-sum bound is ≤ ``limit_sum``.
+
+        The bound ``Σ_x |Σ_y v − Σ_y t|`` never exceeds the summed absolute difference.
+        """
+        n, tx = candidates.size, self.params.template_x_size
+        view_cols = view.sum(axis=0, dtype=np.float64)[start : start + width]
+        span = tx + width - 1 if self.params.vt_panoramic else tx
+        sums = self._scratch.get("colsums", (n, span), np.float64)
+        sums[:, :tx] = self._colsums.view[candidates]
+        if self.params.vt_panoramic:
+            sums[:, tx:] = sums[:, : width - 1]
+        first, last = int(offsets[0]), int(offsets[-1]) + 1
+        stride = int(offsets[1] - offsets[0]) if offsets.size > 1 else 1
+        windows = sliding_window_view(sums, width, axis=1)[:, first:last:stride, :]  # (n, offsets, width) view
+        diff = self._scratch.get("coldiff", (n, offsets.size, width), np.float64)
+        np.subtract(windows, view_cols, out=diff)
+        np.abs(diff, out=diff)
+        bound = self._scratch.get("colbound", (n, offsets.size), np.float64)
+        np.sum(diff, axis=2, out=bound)
+        return bound <= limit_sum
+
+    def _errors(
+        self,
+        view: np.ndarray,
+        rows: np.ndarray,
+        keep: np.ndarray,
+        offsets: np.ndarray,
+        width: int,
+        start: int,
+        limit_sum: float,
+    ) -> np.ndarray:
+        """Return Σ|view − template| (len(rows), len(offsets)) for the ``keep`` pairs; inf for the others.
+
+        With a finite ``limit_sum`` the rows are compared in two bands: a pair whose
+        first-band sum already exceeds the limit is dropped (its error is inf), the
+        vectorised counterpart of OpenRatSLAM's early break.
+        """
+        ty, tx = view.shape
+        panoramic = self.params.vt_panoramic
+        span = tx + width - 1 if panoramic else tx
+        split = ty // 2 if math.isfinite(limit_sum) and ty >= 2 else ty
+        bands = [(0, split), (split, ty)] if split < ty else [(0, ty)]
+        total = np.zeros(keep.shape, dtype=np.float64)
+        alive = keep.copy()
+        active = np.arange(rows.size)
+        first, last = int(offsets[0]), int(offsets[-1]) + 1
+        stride = int(offsets[1] - offsets[0]) if offsets.size > 1 else 1
+        for y0, y1 in bands:
+            h = y1 - y0
+            chunk = max(1, (1 << 19) // (h * offsets.size * width))  # ≤ 2 MB of differences at a time
+            for lo in range(0, active.size, chunk):
+                part = active[lo : lo + chunk]
+                n = part.size
+                stored = self._scratch.get("templates", (n, h, span), np.float32)
+                stored[:, :, :tx] = self._templates.view[rows[part], y0:y1, :]
+                if panoramic:
+                    stored[:, :, tx:] = stored[:, :, : width - 1]
+                # every offset at once: a (n, h, offsets, width) view of sliding windows, no copy
+                windows = sliding_window_view(stored, width, axis=2)[:, :, first:last:stride, :]
+                diff = self._scratch.get("diff", (n, h, offsets.size, width), np.float32)
+                np.subtract(windows, view[y0:y1, None, start : start + width], out=diff)
+                np.abs(diff, out=diff)
+                row_sums = self._scratch.get("rowsums", (n, h, offsets.size), np.float32)
+                np.sum(diff, axis=3, out=row_sums)
+                total[part] += row_sums.sum(axis=1, dtype=np.float64)
+            alive[active] &= total[active] <= limit_sum
+            active = active[alive[active].any(axis=1)]
+            if active.size == 0:
+                break
+        return np.where(alive, total, math.inf)
 
     def process(self, image: np.ndarray) -> tuple[int, float, bool]:
         """Match ``image`` or store it as a new template; return (id, relative_rad, created)."""
         template, mean = self.make_template(image)
-        best, error, relative = self.match(template, mean)
+        best, error, relative = self.match(template, mean, limit=self.params.vt_match_threshold)
         self.last_view, self.last_mean, self.last_error = template, mean, error
         self.previous = self.current
         if best >= 0 and error <= self.params.vt_match_threshold:
@@ -192,6 +301,7 @@ class LocalViewCells:
             return best, relative, False
         self._templates.append(template)
         self._means.append(mean)
+        self._colsums.append(template.sum(axis=0, dtype=np.float64))
         self.current = self.count - 1
         self.relative_rad = 0.0
         return self.current, 0.0, True

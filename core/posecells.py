@@ -10,6 +10,26 @@ the RatSLAM notation of Menezes et al. (2023) §2.1–2.2, generalised to the 4-
   saturation ``δ/30·(30 − e^{1.2·decay})`` (Eq. 5).
 
 Array layout is ``activity[x, y, (z,) th]``. Coordinates are in cells.
+
+Checked against OpenRatSLAM's code: update order, circulant excite/inhibit with
+σ = ``pc_w_*_var``, global inhibition floored at 0, normalisation, per-layer
+translation (layer k heads k·2π/n_θ) then the θ shift with floor/ceil weights,
+the first-maximum peak in θ-outermost scan order, ±3-cell population-vector
+decoding (its (i+1)-based lookups and "− 1" cancel), links created once per new
+template at the packet centre with decay ``vt_active_decay``, injection at the
+truncated link cell, and ``vt_delta_pc_th`` updated only when energy is injected.
+
+Deliberate deviations:
+
+* translations of more than one cell per frame are exact (OpenRatSLAM's
+  four-neighbour weights turn negative there);
+* with fewer than ``vt_min_inject_age`` (10) templates nothing injects: the rule
+  ``template < count − 10`` is applied as written (OpenRatSLAM's unsigned
+  ``size() − 10`` wraps around for fewer than 10 templates and lets every
+  known template inject);
+* the decoding window is narrowed on axes shorter than 2·``pc_cells_to_avg`` + 1
+  (OpenRatSLAM would count cells twice); a fully inhibited network restarts at
+  the last decoded centre (OpenRatSLAM asserts).
 """
 
 from __future__ import annotations
@@ -21,7 +41,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from core._buffers import GrowBuffer
-from core.lattice import periodic_kernel_spectrum, wrapped_distance
+from core.lattice import circulant_kernel, wrapped_distance
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -56,43 +76,54 @@ class PoseCellNetwork:
     # ------------------------------------------------------------------ setup
     def _build_operators(self) -> None:
         p = self.params
-        rank = self.rank
-        excite = periodic_kernel_spectrum(self.shape, (p.pc_w_e_dim,) * rank, p.pc_w_e_var)
-        inhibit = periodic_kernel_spectrum(self.shape, (p.pc_w_i_dim,) * rank, p.pc_w_i_var)
-        # excite (P ⊛ W_E) then inhibit (P' − P' ⊛ W_I) is one linear operator:
-        # F⁻¹(F(P)·Ŵ_E·(1 − Ŵ_I)).
-        self._dynamics_spectrum = excite * (1.0 - inhibit)
-        self._axis_index = [np.arange(d) for d in self.shape]
-        self._all_axes = tuple(range(self.rank))
+        # Excitation then inhibition, each a separable wrapped Gaussian: one circulant matrix per axis.
+        self._excite = [circulant_kernel(d, p.pc_w_e_dim, p.pc_w_e_var) for d in self.shape]
+        self._inhibit = [circulant_kernel(d, p.pc_w_i_dim, p.pc_w_i_var) for d in self.shape]
         th_dim = self.shape[-1]
         angles = np.arange(th_dim, dtype=np.float64) * (2.0 * math.pi / th_dim)
         # exact zeros on the axis-aligned layers, so integer moves stay integer
         self._layer_cos = np.where(np.abs(np.cos(angles)) < 1e-12, 0.0, np.cos(angles))
         self._layer_sin = np.where(np.abs(np.sin(angles)) < 1e-12, 0.0, np.sin(angles))
-        # Population-vector decoding lookups (OpenRatSLAM find_best).
+        # Population-vector decoding lookups (OpenRatSLAM find_best; its (i+1)-based tables and the
+        # final "− 1" cancel, so cell i sits at angle i·2π/n here).
         self._sin_lookup = [np.sin(np.arange(d) * 2.0 * math.pi / d) for d in self.shape]
         self._cos_lookup = [np.cos(np.arange(d) * 2.0 * math.pi / d) for d in self.shape]
         radius = int(p.pc_cells_to_avg)
         self._window_offsets = [np.arange(-min(radius, (d - 1) // 2), min(radius, (d - 1) // 2) + 1)
                                 for d in self.shape]
+        self._marginal_axes = [tuple(a for a in range(self.rank) if a != axis) for axis in range(self.rank)]
+        # Scratch arrays reused every frame: large lattices (the 4-DoF one is 216 kB) would otherwise pay
+        # for fresh pages on every temporary. ``activity`` is always a separate array or one of the pool.
+        heading_first = (th_dim, *self.shape[:-1])
+        self._pool = [np.empty(self.shape, dtype=np.float64) for _ in range(5)]
+        self._pool_th = [np.empty(heading_first, dtype=np.float64) for _ in range(3)]
+
+    def _scratch(self, count: int) -> list[np.ndarray]:
+        """Return ``count`` pool arrays that are not the current activity."""
+        return [buf for buf in self._pool if buf is not self.activity][:count]
 
     # ------------------------------------------------------------- dynamics
     def step_attractor(self) -> None:
         """Run excite, inhibit, global inhibition and normalisation (OpenRatSLAM ``on_odo`` steps 1–4).
 
         Eq. 3 of Menezes et al.: ΔP = Σ P·ε − φ, then P is clipped at 0 and
-        normalised to total activity 1. The wrapped convolutions are evaluated in
-        the frequency domain, which equals the cell-by-cell sum up to rounding.
+        normalised to total activity 1. Excitation spreads every cell through the
+        ``pc_w_e_dim``-cube Gaussian (σ = ``pc_w_e_var``), wrapping across every face;
+        inhibition subtracts the ``pc_w_i_dim``-cube spread of the excited activity.
+        Both cubes are separable, so each is applied as one small circulant matrix
+        product per axis (equal to OpenRatSLAM's cell-by-cell spread up to rounding).
         """
         p = self.params
-        spectrum = np.fft.rfftn(self.activity)
-        cells = np.fft.irfftn(spectrum * self._dynamics_spectrum, s=self.shape, axes=self._all_axes)
+        w0, w1, w2, w3 = self._scratch(4)
+        excited = _separable(self.activity, self._excite, w0, w1)
+        inhibited = _separable(excited, self._inhibit, w2, w3)
+        cells = np.subtract(excited, inhibited, out=excited)
         cells -= p.pc_global_inhib
         np.maximum(cells, 0.0, out=cells)
         total = cells.sum()
         if total > 0.0:
             cells /= total
-        else:  # everything inhibited: restart from the decoded packet centre
+        else:  # everything inhibited (OpenRatSLAM asserts): restart from the decoded packet centre
             cells[...] = 0.0
             cells[tuple(int(b) % d for b, d in zip(self.best, self.shape, strict=True))] = 1.0
         self.activity = cells
@@ -101,71 +132,58 @@ class PoseCellNetwork:
         """Shift the packet by odometry (OpenRatSLAM ``path_integration``).
 
         Each heading layer θ_k = k·2π/n_θ is translated by ``forward/pc_cell_x_size``
-        cells along (cos θ_k, sin θ_k) with bilinear weights (the four-neighbour
-        weights of OpenRatSLAM, generalised to shifts of more than one cell);
-        z is shifted by ``dz/pc_cell_z_size`` cells and θ by ``dyaw/(2π/n_θ)`` cells,
-        both with linear interpolation between the two nearest integer shifts.
-        Every shift wraps across the lattice faces.
+        cells along (cos θ_k, sin θ_k) with bilinear weights: x then y, each split
+        between the two nearest integer shifts. For moves under one cell these are
+        OpenRatSLAM's four-neighbour weights (sw, se, nw, ne); larger moves, which
+        OpenRatSLAM does not support (its weights turn negative), stay exact here.
+        A negative forward motion moves against the layer heading (OpenRatSLAM adds π).
+        Then z is shifted by ``dz/pc_cell_z_size`` cells and θ by ``dyaw/(2π/n_θ)``
+        cells, each with linear weights between the floor and ceiling shifts (as
+        OpenRatSLAM's θ shift). Every shift wraps across the lattice faces.
         """
         p = self.params
-        cells = self.activity
         v = forward_m / p.pc_cell_x_size
-        if v != 0.0:
-            sx = v * self._layer_cos
-            sy = v * self._layer_sin
-            cells = self._shift_layers(cells, sx, axis=0)
-            cells = self._shift_layers(cells, sy, axis=1)
-        if self.rank == 4 and dz_m != 0.0:
-            cells = _shift_axis(cells, dz_m / p.pc_cell_z_size, axis=2)
+        moved_z = self.rank == 4 and dz_m != 0.0
+        if v == 0.0 and dyaw_rad == 0.0 and not moved_z:
+            return
         th_dim = self.shape[-1]
-        if dyaw_rad != 0.0:
-            cells = _shift_axis(cells, dyaw_rad / (2.0 * math.pi / th_dim), axis=self.rank - 1)
-        self.activity = cells
-
-    def _shift_layers(self, cells: np.ndarray, shifts: np.ndarray, axis: int) -> np.ndarray:
-        """Shift every θ layer along ``axis`` by its own fractional amount ``shifts[k]`` (cells)."""
-        dim = self.shape[axis]
-        whole = np.floor(shifts)
-        frac = shifts - whole
-        idx = self._axis_index[axis]
-        src0 = (idx[:, None] - whole[None, :].astype(np.int64)) % dim  # (dim, n_th)
-        src1 = (src0 - 1) % dim
-        th = self._axis_index[-1]
-        # Gather cells[src, ..., k] for every layer k with broadcasting.
-        index0: list[np.ndarray] = []
-        index1: list[np.ndarray] = []
-        for a in range(self.rank):
-            shape = [1] * self.rank
-            if a == axis:
-                shape[a] = dim
-                shape[-1] = self.shape[-1]
-                index0.append(src0.reshape(shape))
-                index1.append(src1.reshape(shape))
-            elif a == self.rank - 1:
-                shape[a] = self.shape[a]
-                index0.append(th.reshape(shape))
-                index1.append(th.reshape(shape))
+        # Work heading-first, (θ, x, y, [z]): per-layer shifts become batched matrix products.
+        a, b, c = self._pool_th
+        np.copyto(a, np.moveaxis(self.activity, -1, 0))
+        if v != 0.0:
+            dim_x, dim_y = self.shape[0], self.shape[1]
+            shift_x = _shift_matrices(v * self._layer_cos, dim_x)  # (θ, X, X)
+            shift_y = _shift_matrices(v * self._layer_sin, dim_y)  # (θ, Y, Y)
+            if self.rank == 3:
+                np.matmul(shift_x, a, out=b)
+                np.matmul(b, shift_y.transpose(0, 2, 1), out=a)
             else:
-                shape[a] = self.shape[a]
-                index0.append(self._axis_index[a].reshape(shape))
-                index1.append(self._axis_index[a].reshape(shape))
-        w1 = frac.reshape([1] * (self.rank - 1) + [self.shape[-1]])
-        return (1.0 - w1) * cells[tuple(index0)] + w1 * cells[tuple(index1)]
+                np.matmul(shift_x, a.reshape(th_dim, dim_x, -1), out=b.reshape(th_dim, dim_x, -1))
+                np.matmul(shift_y[:, None], b, out=a)
+        if moved_z:
+            a, b = _shift_axis(a, dz_m / p.pc_cell_z_size, 3, b, c), a
+        if dyaw_rad != 0.0:
+            a, b = _shift_axis(a, dyaw_rad / (2.0 * math.pi / th_dim), 0, b, c), a
+        out = self._scratch(1)[0]
+        np.copyto(out, np.moveaxis(a, 0, -1))
+        self.activity = out
 
     def decode(self) -> np.ndarray:
         """Return the packet centre by population vector around the peak (OpenRatSLAM ``find_best``).
 
-        The argmax cell's ±``pc_cells_to_avg`` wrapped window is summed per axis and
-        each axis decoded as the circular mean ``atan2(Σ s·sin, Σ s·cos)·n/(2π)``.
+        The peak is the first maximum in OpenRatSLAM's scan order (θ outermost, x
+        innermost). Its ±``pc_cells_to_avg`` wrapped window (narrowed on axes too
+        short for it, so no cell counts twice) is summed per axis and each axis
+        decoded as the circular mean ``atan2(Σ s·sin, Σ s·cos)·n/(2π)`` in [0, n).
         """
         cells = self.activity
-        peak = np.unravel_index(int(np.argmax(cells)), self.shape)
+        flat = int(np.argmax(cells.T))  # reversed axes: (θ, [z,] y, x) scan order
+        peak = np.unravel_index(flat, self.shape[::-1])[::-1]
         windows = [(int(c) + off) % d for c, off, d in zip(peak, self._window_offsets, self.shape, strict=True)]
         box = cells[np.ix_(*windows)]
         best = np.empty(self.rank, dtype=np.float64)
-        all_axes = tuple(range(self.rank))
         for axis in range(self.rank):
-            marginal = box.sum(axis=tuple(a for a in all_axes if a != axis))
+            marginal = box.sum(axis=self._marginal_axes[axis])
             idx = windows[axis]
             s = float(np.dot(marginal, self._sin_lookup[axis][idx]))
             c = float(np.dot(marginal, self._cos_lookup[axis][idx]))
@@ -215,29 +233,34 @@ class PoseCellNetwork:
     def on_view_template(self, template: int, relative_rad: float, template_count: int, created: bool) -> None:
         """Handle the view-template stream (OpenRatSLAM ``on_view_template``).
 
-        A new template is linked to the current packet centre. A known template
-        older than ``vt_min_inject_age`` creations injects, through each of its
-        links, ``pc_vt_inject_energy·strength/30·(30 − e^{1.2·decay})`` at the link
-        cell with θ offset by the view's ``relative_rad``; seeing the same template
-        again raises its decay by ``vt_active_decay`` (saturation). Every link's
-        decay then relaxes by ``pc_vt_restore`` down to ``vt_active_decay``.
+        A new template is linked to the current packet centre (decay
+        ``vt_active_decay``). A known template older than ``vt_min_inject_age``
+        creations (``template < template_count − vt_min_inject_age``) injects, through
+        each of its links, ``pc_vt_inject_energy·strength/30·(30 − e^{1.2·decay})`` at
+        the link cell truncated to integers, θ offset by the view's ``relative_rad``;
+        seeing the same template again first raises its decay by ``vt_active_decay``
+        (saturation). When energy is injected the heading offset
+        ``vt_delta_th = relative_rad/(2π)·n_θ`` used by :meth:`delta_to` is updated (it
+        keeps its last value otherwise, as in OpenRatSLAM). Every link's decay then
+        relaxes by ``pc_vt_restore`` down to ``vt_active_decay``.
         """
         p = self.params
         th_dim = self.shape[-1]
-        self.vt_delta_th = relative_rad / (2.0 * math.pi) * th_dim
         if created:
             self.add_link(template, self.best.copy())
         elif template < template_count - p.vt_min_inject_age:
             decay = self._links_decay.view
             coords_all = self._links_coords.view
             strength = self._links_strength.view
+            offset = relative_rad / (2.0 * math.pi) * th_dim
             for link in self.links_of(template):
                 if template == self.current_vt:
                     decay[link] += p.vt_active_decay
                 energy = p.pc_vt_inject_energy * strength[link] / 30.0 * (30.0 - math.exp(1.2 * decay[link]))
                 if energy > 0.0:
+                    self.vt_delta_th = offset
                     coords = coords_all[link].copy()
-                    coords[-1] = (coords[-1] + self.vt_delta_th) % th_dim
+                    coords[-1] = (coords[-1] + offset) % th_dim
                     self.inject(coords, energy)
         if len(self._links_decay):
             decay = self._links_decay.view
@@ -299,11 +322,71 @@ class PoseCellNetwork:
         return net
 
 
-def _shift_axis(cells: np.ndarray, shift: float, axis: int) -> np.ndarray:
-    """Shift ``cells`` along ``axis`` by a fractional number of cells, wrapping, with linear weights."""
+def _separable(cells: np.ndarray, matrices: list[np.ndarray], even: np.ndarray, odd: np.ndarray) -> np.ndarray:
+    """Apply one (d, d) matrix along every axis of ``cells`` in turn (a separable wrapped convolution).
+
+    The passes write alternately into ``even`` and ``odd`` (same shape as ``cells``);
+    the one holding the result is returned.
+    """
+    shape = cells.shape
+    last = len(shape) - 1
+    src = cells
+    for axis, matrix in enumerate(matrices):
+        dst = even if axis % 2 == 0 else odd
+        if axis == last:
+            np.matmul(src.reshape(-1, shape[axis]), matrix.T, out=dst.reshape(-1, shape[axis]))
+        else:
+            lead = math.prod(shape[:axis])
+            np.matmul(matrix, src.reshape(lead, shape[axis], -1), out=dst.reshape(lead, shape[axis], -1))
+        src = dst
+    return src
+
+
+def _shift_matrices(shifts: np.ndarray, dim: int) -> np.ndarray:
+    """Return (n, dim, dim) matrices moving a wrapped axis by ``shifts[k]`` cells with linear weights.
+
+    Matrix k sends cell i to ``i + ⌊s_k⌋`` with weight ``1 − frac(s_k)`` and to
+    ``i + ⌊s_k⌋ + 1`` with weight ``frac(s_k)``, modulo ``dim``.
+    """
+    n = shifts.shape[0]
+    whole = np.floor(shifts)
+    frac = shifts - whole
+    columns = np.arange(dim)
+    base = (np.arange(n) * (dim * dim))[:, None] + columns[None, :]
+    rows0 = (columns[None, :] + whole.astype(np.int64)[:, None]) % dim
+    rows1 = (rows0 + 1) % dim
+    matrices = np.zeros(n * dim * dim, dtype=np.float64)
+    matrices[base + rows0 * dim] = (1.0 - frac)[:, None]
+    matrices[base + rows1 * dim] = frac[:, None]
+    return matrices.reshape(n, dim, dim)
+
+
+def _roll_into(src: np.ndarray, shift: int, axis: int, out: np.ndarray) -> np.ndarray:
+    """Write ``np.roll(src, shift, axis)`` into ``out`` without a temporary."""
+    n = src.shape[axis]
+    k = shift % n
+    lead = (slice(None),) * axis
+    if k == 0:
+        np.copyto(out, src)
+    else:
+        out[(*lead, slice(k, None))] = src[(*lead, slice(0, n - k))]
+        out[(*lead, slice(0, k))] = src[(*lead, slice(n - k, None))]
+    return out
+
+
+def _shift_axis(cells: np.ndarray, shift: float, axis: int, out: np.ndarray, spare: np.ndarray) -> np.ndarray:
+    """Shift ``cells`` along ``axis`` by a fractional number of cells, wrapping, with linear weights.
+
+    The result is written into ``out`` (``spare`` is scratch); both differ from ``cells``.
+    OpenRatSLAM's θ shift: ``(1 − w)·P[k − ⌊s⌋] + w·P[k − ⌊s⌋ − 1]`` with w = frac(s).
+    """
     whole = math.floor(shift)
     frac = shift - whole
-    shifted = np.roll(cells, whole, axis=axis)
+    _roll_into(cells, whole, axis, out)
     if frac == 0.0:
-        return shifted
-    return (1.0 - frac) * shifted + frac * np.roll(shifted, 1, axis=axis)
+        return out
+    _roll_into(cells, whole + 1, axis, spare)
+    out *= 1.0 - frac
+    spare *= frac
+    out += spare
+    return out

@@ -2,13 +2,18 @@
 
 Each frame's crop windows (``vtrans_image_*`` and ``vrot_image_*``) are reduced to
 column-intensity profiles (mean of each column / 255). The current profile is
-compared with the previous one at every column shift up to a quarter of the
-width, by mean absolute difference over the overlap. The best shift of the
-rotation profile gives the yaw rate ``shift · fov/width · rate``; the smallest
-difference of the translation profile gives the speed ``min_diff · vtrans_scaling``
-capped at ``vtrans_max``. ``rate`` is ``1/dt`` when the frame interval is known, so
-the estimate does not depend on the playback rate (OpenRatSLAM uses ``camera_hz``,
-which is the fallback here).
+compared with the previous one at every column shift s with |s| < 40 pixels
+(OpenRatSLAM's fixed search range, narrowed for profiles shorter than that), by
+the mean absolute difference over the overlap. The best shift of the rotation
+profile gives the yaw rate ``s · camera_fov_deg/image_width · rate`` (degrees per
+pixel of the whole image, as OpenRatSLAM); the smallest difference of the
+translation profile gives the speed ``min_diff · vtrans_scaling`` capped at
+``vtrans_max``.
+
+Deliberate deviations from OpenRatSLAM: ``rate`` is ``1/dt`` when the frame
+interval is known, so the estimate does not depend on the playback rate
+(OpenRatSLAM uses ``camera_hz``, the fallback here); the first frame gives zero
+motion (OpenRatSLAM compares it with an all-zero profile).
 """
 
 from __future__ import annotations
@@ -30,22 +35,28 @@ def column_profile(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: 
     return crop(grey, x_min, x_max, y_min, y_max).mean(axis=0) / 255.0
 
 
-def best_shift(current: np.ndarray, previous: np.ndarray, max_shift: int) -> tuple[int, float]:
-    """Return (shift, mean abs difference) minimising |current[k+s] − previous[k]| over the overlap.
+MAX_SHIFT = 40  #: OpenRatSLAM ``visual_odo``: offsets 0..39 pixels each way
 
-    Positive shifts mean the scene moved towards higher columns (to the right).
-    Ties go to the smallest |shift|, then the negative one.
+
+def best_shift(current: np.ndarray, previous: np.ndarray, max_shift: int = MAX_SHIFT) -> tuple[int, float]:
+    """Return (shift, mean abs difference) minimising the mean |current[k+s] − previous[k]| over the overlap.
+
+    Shifts −s compare ``current[k]`` with ``previous[k+s]``. Positive shifts mean the
+    scene moved towards higher columns. Shifts are tried in OpenRatSLAM's order —
+    0, −1, …, −(n−1), then 1, …, n−1 with n = min(``max_shift``, width) — and a
+    later one wins only when strictly better.
     """
     width = current.shape[0]
     best = (0, math.inf)
-    for magnitude in range(max_shift + 1):
-        for shift in ((0,) if magnitude == 0 else (-magnitude, magnitude)):
-            if shift >= 0:
-                diff = np.abs(current[shift:] - previous[: width - shift]).mean()
-            else:
-                diff = np.abs(current[: width + shift] - previous[-shift:]).mean()
-            if diff < best[1]:
-                best = (shift, float(diff))
+    limit = min(max_shift, width)
+    for offset in range(limit):  # current[k] against previous[k + offset]: shift −offset
+        diff = float(np.abs(current[: width - offset] - previous[offset:]).mean())
+        if diff < best[1]:
+            best = (-offset, diff)
+    for offset in range(limit):  # current[k + offset] against previous[k]: shift +offset
+        diff = float(np.abs(current[offset:] - previous[: width - offset]).mean())
+        if diff < best[1]:
+            best = (offset, diff)
     return best
 
 
@@ -70,9 +81,9 @@ class VisualOdometry:
         vtrans = vrot = 0.0
         if self.prev_vtrans.shape == vtrans_profile.shape and self.prev_vrot.shape == vrot_profile.shape:
             rate = 1.0 / dt if dt > 0 else p.camera_hz
-            shift, _ = best_shift(vrot_profile, self.prev_vrot, max(1, vrot_profile.shape[0] // 4))
-            vrot = shift * math.radians(p.camera_fov_deg) / vrot_profile.shape[0] * rate
-            _, diff = best_shift(vtrans_profile, self.prev_vtrans, max(1, vtrans_profile.shape[0] // 4))
+            shift, _ = best_shift(vrot_profile, self.prev_vrot)
+            vrot = shift * math.radians(p.camera_fov_deg) / grey.shape[1] * rate
+            _, diff = best_shift(vtrans_profile, self.prev_vtrans)
             vtrans = min(diff * p.vtrans_scaling, p.vtrans_max)
         self.prev_vtrans = vtrans_profile
         self.prev_vrot = vrot_profile

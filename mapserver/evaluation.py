@@ -5,6 +5,8 @@ Everything here is a re-implementation on numpy/scipy (no evo, which is GPL):
 * **APE** (absolute pose error, translation part): associate estimate and reference poses by time, align
   the estimate rigidly to the reference by least squares (Umeyama 1991), then take the RMSE of the remaining
   position differences.
+* **Place recognition** (:func:`place_recognition`): from the map's per-frame template record, the share
+  of revisiting frames that recognised the place from an earlier visit, and the share of false matches.
 * **Hausdorff distance** (OpenRatSLAM2 Eq. 9): ``d_H(A, B) = max(sup_a inf_b d(a, b), sup_b inf_a d(a, b))``
   between the aligned experience positions and the ground-truth positions. It needs no association, so it
   suits maps whose node count the algorithm chooses, but it ignores timing.
@@ -29,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import directed_hausdorff
 
 from mapserver.errors import InputError
@@ -332,6 +335,8 @@ class _MapEvaluation:
     odo_stamps: FloatArray | None
     odo_aligned: FloatArray | None
     odo_ape: APEResult | None
+    z_rmse: float | None
+    odo_z_rmse: float | None
 
 
 def _lift(R: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -386,6 +391,7 @@ def _evaluate(
     ape = ape_positions(gt_at[mask][:, :dims], xyz[mask][:, :dims])
     R3, t3 = _lift(ape.R, ape.t)
     aligned = xyz @ R3.T + t3
+    z_rmse = _z_rmse(gt_at[mask], aligned[mask]) if dims == 3 else None
     dist = hausdorff(aligned[:, :dims], gt_xyz[:, :dims])
 
     index = {eid: i for i, eid in enumerate(exp_ids)}
@@ -399,6 +405,7 @@ def _evaluate(
         odometry = odometry_trajectory(doc)
     odo_stamps = odo_aligned = None
     odo_ape = None
+    odo_z_rmse = None
     if odometry is not None and len(odometry) > 0:
         odo = odometry.sorted()
         odo_xyz = odo.positions_xyz.copy()
@@ -411,6 +418,8 @@ def _evaluate(
             oR, ot = _lift(odo_ape.R, odo_ape.t)
             odo_stamps = odo.stamps_s
             odo_aligned = odo_xyz @ oR.T + ot
+            if dims == 3:
+                odo_z_rmse = _z_rmse(gt_at_odo[omask], odo_aligned[omask])
 
     return _MapEvaluation(
         dims=dims,
@@ -428,7 +437,15 @@ def _evaluate(
         odo_stamps=odo_stamps,
         odo_aligned=odo_aligned,
         odo_ape=odo_ape,
+        z_rmse=z_rmse,
+        odo_z_rmse=odo_z_rmse,
     )
+
+
+def _z_rmse(ref: FloatArray, aligned: FloatArray) -> float:
+    """RMSE of the height component of already aligned position pairs."""
+    dz = ref[:, 2] - aligned[:, 2]
+    return float(np.sqrt(np.mean(dz * dz)))
 
 
 def evaluate_map(
@@ -461,7 +478,8 @@ def evaluate_map(
     Returns:
         ``{"ape_rmse", "odometry_ape_rmse" (None without odometry), "hausdorff", "experiences" (count),
         "aligned" (experiences with ground truth), "ape_mean", "ape_max", "odometry_aligned", "dims",
-        "session", "alignment": {"rotation", "translation"}}``, plain Python values.
+        "session", "ape_z_rmse", "odometry_ape_z_rmse" (height part of the aligned errors; None for planar
+        maps), "alignment": {"rotation", "translation"}}``, plain Python values.
 
     Raises:
         InputError: the map has no experience (of ``session``), or no experience stamp meets the ground truth.
@@ -479,7 +497,111 @@ def evaluate_map(
         "odometry_aligned": ev.odo_ape.n if ev.odo_ape is not None else 0,
         "dims": ev.dims,
         "session": ev.session,
+        "ape_z_rmse": ev.z_rmse,
+        "odometry_ape_z_rmse": ev.odo_z_rmse,
         "alignment": {"rotation": ev.R3.tolist(), "translation": ev.t3.tolist()},
+    }
+
+
+@dataclass(frozen=True)
+class RecognitionSettings:
+    """Radii and gap of the place-recognition rates (defaults suit metre-scale ground robots).
+
+    Attributes:
+        revisit_radius: R: a frame revisits a place when it is within R metres of an earlier frame.
+        revisit_gap_s: T: that earlier frame must be more than T seconds earlier.
+        match_radius: R′: a revisit frame is recognised when its template was created within R′ metres.
+        false_radius: a matched frame is a false match when its template was created more than this far.
+
+    """
+
+    revisit_radius: float = 1.0
+    revisit_gap_s: float = 20.0
+    match_radius: float = 3.0
+    false_radius: float = 5.0
+
+
+def place_recognition(
+    rows: npt.ArrayLike,
+    ground_truth: Trajectory,
+    settings: RecognitionSettings | None = None,
+    *,
+    max_diff_s: float = 0.05,
+) -> dict[str, Any]:
+    """Place-recognition rates of a processed log from its per-frame template record (map JSON ``frames``).
+
+    Every frame gets its ground-truth position p (interpolated at its stamp t; frames outside the ground
+    truth's span are left out), and every template the frame c that created it. With the settings' R, T,
+    R′ and the false-match radius F:
+
+    * **revisit frames**: frames i with an earlier frame j, ``t_j < t_i − T``, at ``‖p_j − p_i‖ ≤ R``;
+    * **revisit_match_rate**: the fraction of revisit frames that matched (did not create) a template whose
+      creating frame c is earlier than ``t_i − T`` and within ``‖p_c − p_i‖ ≤ R′``: the place was
+      recognised from an earlier visit (for ``loop``: second-lap frames matched to first-lap templates);
+    * **false_match_rate**: among all frames that matched an existing template, the fraction whose
+      template was created more than F metres away.
+
+    Args:
+        rows: (N, 3) ``[stamp, template, created]`` per frame, in processing order.
+        ground_truth: reference trajectory (3-D positions; planar ground truth has z = 0 or constant).
+        settings: R, T, R′, F (defaults: 1 m, 20 s, 3 m, 5 m).
+        max_diff_s: tolerance for stamps just outside the ground truth's span.
+
+    Returns:
+        ``{"revisit_frames", "revisit_matched", "revisit_match_rate" (None without revisits),
+        "matched_frames", "false_matches", "false_match_rate" (None without matches), "frames_evaluated",
+        "settings": {...}}``.
+
+    """
+    s = settings or RecognitionSettings()
+    table = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+    stamps = table[:, 0]
+    templates = table[:, 1].astype(np.int64)
+    created = table[:, 2] != 0
+    positions = interpolate_poses(ground_truth, stamps, max_diff_s=max_diff_s)
+    known = ~np.isnan(positions[:, 0])
+    # creating frame of every template (first created row)
+    creator: dict[int, int] = {}
+    for index in np.flatnonzero(created).tolist():
+        creator.setdefault(int(templates[index]), index)
+    idx = np.flatnonzero(known)
+    revisit = np.zeros(stamps.shape[0], dtype=bool)
+    if idx.size:
+        tree = cKDTree(positions[idx])
+        for k, neighbours in enumerate(tree.query_ball_point(positions[idx], r=s.revisit_radius)):
+            i = idx[k]
+            if neighbours and float(np.min(stamps[idx[neighbours]])) < stamps[i] - s.revisit_gap_s:
+                revisit[i] = True
+    recognised = 0
+    matched = 0
+    false = 0
+    for i in idx.tolist():
+        if created[i]:
+            continue
+        c = creator.get(int(templates[i]))
+        if c is None or not known[c]:
+            continue
+        matched += 1
+        distance = float(np.linalg.norm(positions[c] - positions[i]))
+        if distance > s.false_radius:
+            false += 1
+        if revisit[i] and stamps[c] < stamps[i] - s.revisit_gap_s and distance <= s.match_radius:
+            recognised += 1
+    n_revisit = int(revisit.sum())
+    return {
+        "revisit_frames": n_revisit,
+        "revisit_matched": recognised,
+        "revisit_match_rate": recognised / n_revisit if n_revisit else None,
+        "matched_frames": matched,
+        "false_matches": false,
+        "false_match_rate": false / matched if matched else None,
+        "frames_evaluated": int(idx.size),
+        "settings": {
+            "revisit_radius": s.revisit_radius,
+            "revisit_gap_s": s.revisit_gap_s,
+            "match_radius": s.match_radius,
+            "false_radius": s.false_radius,
+        },
     }
 
 

@@ -7,7 +7,9 @@ parameters, the sessions, the template count, the experiences (SE(3) pose as pos
 Extensions written here (consumers must ignore keys they do not know): every link also carries
 ``"transform": [dx, dy, dz, dyaw]`` (pose of ``to`` in the frame of ``from``), and a map may carry
 ``"odometry": [[stamp, x, y, z], ...]``, the raw dead-reckoning position of every processed frame, which
-:mod:`mapserver.evaluation` uses for the odometry baseline.
+:mod:`mapserver.evaluation` uses for the odometry baseline, and ``"frames": [[stamp, template, created],
+...]``, per processed frame its stamp (s), the id of the template it matched or created, and 1 when the
+template was created at that frame (else 0), which the evaluation uses for place-recognition rates.
 
 Every writer is atomic: it writes a temporary file in the destination's directory and ``os.replace``-s it.
 """
@@ -164,6 +166,7 @@ def map_json(
     sessions: Sequence[SessionInfo],
     session_name_by_origin: Mapping[int, str],
     odometry: npt.ArrayLike | None = None,
+    frames: Sequence[Sequence[float]] | None = None,
 ) -> dict[str, Any]:
     """Build the contract's map JSON document from an engine snapshot.
 
@@ -179,12 +182,15 @@ def map_json(
             ``"session": null``.
         odometry: optional (N, 4) ``[stamp, x, y, z]`` raw dead-reckoning positions per frame; written as
             the ``"odometry"`` extension key when given.
+        frames: optional ``(stamp, template, created)`` per processed frame; written as the ``"frames"``
+            extension key when given (``created`` as 0/1).
 
     Returns:
-        ``{"format", "params", "sessions", "templates", "experiences", "links"}`` (+ ``"odometry"``).
+        ``{"format", "params", "sessions", "templates", "experiences", "links"}`` (+ ``"odometry"``,
+        ``"frames"``).
 
     Raises:
-        ValueError: a link kind code is unknown or ``odometry`` has the wrong shape.
+        ValueError: a link kind code is unknown, or ``odometry`` or ``frames`` has the wrong shape.
 
     """
     pose = np.asarray(snapshot["em_pose"], dtype=np.float64).reshape(-1, 4)
@@ -258,6 +264,14 @@ def map_json(
             msg = f"odometry must have shape (N, 4) [stamp, x, y, z], got {odo.shape!r}"
             raise ValueError(msg)
         doc["odometry"] = odo.tolist()
+    if frames is not None:
+        rows = []
+        for row in frames:
+            if len(row) != 3:
+                msg = f"frames rows must be (stamp, template, created), got {row!r}"
+                raise ValueError(msg)
+            rows.append([float(row[0]), int(row[1]), 1 if row[2] else 0])
+        doc["frames"] = rows
     return doc
 
 
@@ -393,6 +407,14 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
         )
         if not ok:
             msg = f"map file {name!r}: 'odometry' is not a list of [stamp, x, y, z]"
+            raise InputError(msg)
+    if "frames" in doc:
+        rows = doc["frames"]
+        ok = isinstance(rows, list) and all(
+            isinstance(row, list) and len(row) == 3 and all(_is_number(v) for v in row) for row in rows
+        )
+        if not ok:
+            msg = f"map file {name!r}: 'frames' is not a list of [stamp, template, created]"
             raise InputError(msg)
     return doc
 

@@ -54,6 +54,7 @@ class Params:
     exp_loops: int = 10
     exp_initial_em_deg: float = 90.0
     exp_relax_tolerance: float = 1e-4
+    exp_relax_batch: int = 64
     max_correction_norm: float = 0.0
     max_correction_step: float = 0.0
     # visual odometry
@@ -157,7 +158,7 @@ def _validate(p: Params) -> None:
         msg = f"parameter {key!r} = {getattr(p, key)!r}: {why}"
         raise ConfigError(msg)
 
-    for key in ("template_x_size", "template_y_size", "vt_step_match", "pc_dim_z", "exp_loops"):
+    for key in ("template_x_size", "template_y_size", "vt_step_match", "pc_dim_z", "exp_loops", "exp_relax_batch"):
         if getattr(p, key) < (0 if key == "exp_loops" else 1):
             fail(key, "must be at least 1" if key != "exp_loops" else "must be ≥ 0")
     if p.pc_dim_xy < 3:

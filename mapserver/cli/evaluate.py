@@ -9,7 +9,7 @@ from typing import Any
 
 from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
-from mapserver.evaluation import evaluate_map, plot_map_vs_ground_truth
+from mapserver.evaluation import RecognitionSettings, evaluate_map, place_recognition, plot_map_vs_ground_truth
 from mapserver.formats import read_map_json, read_tum
 
 
@@ -21,7 +21,11 @@ def register(subparsers: Any) -> None:
         description=(
             "Align the map's experiences rigidly to the ground truth (Umeyama 1991; planar maps in xy) and "
             "report the APE RMSE of their positions, the same for the raw odometry when known, and the "
-            "symmetric Hausdorff distance between the aligned experiences and the ground truth."
+            "symmetric Hausdorff distance between the aligned experiences and the ground truth. Maps written "
+            "by 'process --out' also record each frame's template; from it come the place-recognition rates: "
+            "revisit_frames (frames within R m of a frame more than T s earlier), revisit_match_rate (the "
+            "share of those whose template was created more than T s earlier within R' m) and "
+            "false_match_rate (the share of matching frames whose template was created more than F m away)."
         ),
     )
     parser.add_argument(
@@ -40,12 +44,28 @@ def register(subparsers: Any) -> None:
         help="accept stamps up to S seconds outside the ground truth's time span (default 0.05)",
     )
     parser.add_argument("--session", metavar="NAME", help="evaluate only this session's experiences")
+    defaults = RecognitionSettings()
+    parser.add_argument("--revisit-radius", type=float, default=defaults.revisit_radius, metavar="R",
+                        help=f"revisit: within R m of an earlier frame (default {defaults.revisit_radius})")
+    parser.add_argument("--revisit-gap", type=float, default=defaults.revisit_gap_s, metavar="T",
+                        help=f"revisit: that frame more than T s earlier (default {defaults.revisit_gap_s})")
+    parser.add_argument("--match-radius", type=float, default=defaults.match_radius, metavar="R2",
+                        help=f"recognised: template created within R2 m (default {defaults.match_radius})")
+    parser.add_argument("--false-radius", type=float, default=defaults.false_radius, metavar="F",
+                        help=f"false match: template created more than F m away (default {defaults.false_radius})")
     parser.add_argument(
         "--odometry",
         metavar="ODOM.tum",
         help="raw odometry trajectory (TUM) for the baseline; default: the map's 'odometry' key if any",
     )
     parser.set_defaults(func=run)
+
+
+def _positive(value: float, flag: str) -> float:
+    if not math.isfinite(value) or value < 0.0:
+        msg = f"{flag} must be a non-negative number, got {value!r}"
+        raise InputError(msg)
+    return float(value)
 
 
 def _fmt(value: float | None) -> str:
@@ -66,7 +86,17 @@ def run(args: argparse.Namespace) -> int:
         if not plot_dir.is_dir():
             msg = f"directory of --plot does not exist: {str(plot_dir)!r}"
             raise InputError(msg)
+    settings = RecognitionSettings(
+        revisit_radius=_positive(args.revisit_radius, "--revisit-radius"),
+        revisit_gap_s=_positive(args.revisit_gap, "--revisit-gap"),
+        match_radius=_positive(args.match_radius, "--match-radius"),
+        false_radius=_positive(args.false_radius, "--false-radius"),
+    )
     result = evaluate_map(doc, gt, odometry=odometry, max_diff_s=max_diff, session=args.session)
+    if doc.get("frames") and (args.session is None or len(doc.get("sessions", [])) <= 1):
+        recognition = place_recognition(doc["frames"], gt, settings, max_diff_s=max_diff)
+        result.update({k: v for k, v in recognition.items() if k != "settings"})
+        result["recognition_settings"] = recognition["settings"]
     info(
         f"{args.map}: {result['experiences']} experiences, {result['aligned']} with ground truth "
         f"({len(gt)} poses), evaluated in {result['dims']}-D"
@@ -77,6 +107,20 @@ def run(args: argparse.Namespace) -> int:
     )
     info(f"  APE RMSE (odometry):    {_fmt(result['odometry_ape_rmse'])}")
     info(f"  Hausdorff:              {_fmt(result['hausdorff'])}")
+    if result.get("ape_z_rmse") is not None:
+        info(
+            f"  z RMSE (experiences):   {_fmt(result['ape_z_rmse'])}  (odometry "
+            f"{_fmt(result['odometry_ape_z_rmse'])})"
+        )
+    if "revisit_frames" in result:
+        rate = result["revisit_match_rate"]
+        false = result["false_match_rate"]
+        info(
+            f"  revisits: {result['revisit_frames']} frames, {result['revisit_matched']} recognised "
+            f"({'n/a' if rate is None else f'{100 * rate:.1f} %'}); false matches "
+            f"{result['false_matches']}/{result['matched_frames']} "
+            f"({'n/a' if false is None else f'{100 * false:.1f} %'})"
+        )
     if args.plot:
         plot_map_vs_ground_truth(
             doc, gt, args.plot, odometry=odometry, max_diff_s=max_diff, session=args.session

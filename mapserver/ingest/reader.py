@@ -5,24 +5,27 @@ mapping (rule in :mod:`mapserver.ingest.topics`) and checks, before returning, t
 exists and that its first image decodes. Every failure (missing path, not a bag, truncated or corrupt
 data, no camera, unsupported encoding) is one :class:`~mapserver.errors.IngestError` line naming the path.
 
-Stamps: images, odometry and ground truth are stamped with their message header stamp; a zero header stamp
-falls back to the bag's receive time. Frames are produced in bag (receive-time) order of the image topic;
-odometry is read as a second, independent stream in bag order and integrated up to each image's header
-stamp (the integration cursor never goes back: an image stamped before the previous one gets a zero
-motion). Odometry messages whose header stamp goes backwards are dropped. Since everything depends only on
-the message contents and their order within each topic, a ``.bag``, ``.db3`` and ``.mcap`` of the same
-data give identical frames.
+Stamps and order: images, odometry and ground truth are stamped with their message header stamp; a zero
+header stamp falls back to the bag's receive time. Every stream is read in **header-stamp order** (equal
+stamps in receive order), re-sequenced from the bag's receive order with bounded memory
+(:mod:`mapserver.ingest.ordering`), so the result does not depend on how the log was recorded or played
+back: a log recorded with other receive times, or with messages arriving out of order, gives the same
+frames. Each frame's motion is the odometry integrated from the previous frame's stamp up to its own (the
+odometry being a second, independent stamp-ordered stream). Since everything depends only on the message
+contents and stamps, a ``.bag``, ``.db3`` and ``.mcap`` of the same data give identical frames.
 
 Odometry mode (twist integration or pose differencing, see :mod:`mapserver.ingest.odometry`), decided per
-log on first use unless given to :func:`open_log`: the odometry topic is scanned from its start until the
+log on first use unless given to :func:`open_log`: the odometry topic is scanned in stamp order until the
 first informative message: one with a non-zero twist means **twist**; a pose that moved (more than 1e-9 m
 or rad from the first message) while every twist so far was exactly zero means **pose**; a log that never
 moves is treated as twist (both give zero motion).
 
 Each streaming call (:meth:`MissionLog.frames`, :meth:`MissionLog.ground_truth`) opens its own readers,
 so several streams of one log may be consumed interleaved (rosbags readers share file positions).
-Memory is bounded regardless of log size: messages are streamed, never loaded all at once; the odometry
-buffer holds only the messages between two frames.
+Memory is bounded regardless of log size: messages are streamed, never loaded all at once; per topic a
+stamp index of 8 bytes per message is kept, re-sequencing holds at most
+:data:`~mapserver.ingest.ordering.REORDER_LIMIT` messages, and the odometry buffer holds only the
+messages between two frames.
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
+import numpy as np
+import numpy.typing as npt
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
@@ -50,6 +55,7 @@ from mapserver.ingest.odometry import (
     state_from_message,
     twist_is_zero,
 )
+from mapserver.ingest.ordering import raw_header_stamp, stamp_ordered
 from mapserver.ingest.topics import TopicInfo, TopicMapping, map_topics
 
 LOG_SUFFIXES = (".bag", ".db3", ".mcap")
@@ -123,6 +129,7 @@ class MissionLog:
         self.end_ns = int(reader.end_time) if reader.message_count else 0
         self._odometry_mode = odometry_mode
         self._sha256: str | None = None
+        self._stamp_indices: dict[str, npt.NDArray[np.int64]] = {}
 
     # -- lifecycle -------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -183,7 +190,7 @@ class MissionLog:
         reader = self._require_open()
         assert self.mapping.odometry is not None
         first: OdometryState | None = None
-        for conn, receive_ns, raw in self._messages(reader, self.mapping.odometry):
+        for conn, receive_ns, raw in self._ordered(reader, self.mapping.odometry):
             msg = self._deserialize(reader, raw, conn)
             if not twist_is_zero(msg):
                 return "twist"
@@ -214,6 +221,30 @@ class MissionLog:
                 raise IngestError(msg) from err
             yield item
 
+    def _stamp_index(self, reader: AnyReader, topic: str) -> npt.NDArray[np.int64]:
+        """Return the header stamps (receive time when zero) of a topic's messages in receive order (cached)."""
+        cached = self._stamp_indices.get(topic)
+        if cached is not None:
+            return cached
+        stamps: list[int] = []
+        for conn, receive_ns, raw in self._messages(reader, topic):
+            stamp = raw_header_stamp(raw, bool(reader.is2))
+            if stamp is None:
+                stamp = _header_stamp(self._deserialize(reader, raw, conn), receive_ns)
+            stamps.append(stamp if stamp != 0 else int(receive_ns))
+        index = np.asarray(stamps, dtype=np.int64)
+        self._stamp_indices[topic] = index
+        return index
+
+    def _ordered(self, reader: AnyReader, topic: str) -> Iterator[tuple[Connection, int, bytes]]:
+        """Yield ``(connection, receive_ns, raw)`` of one topic in header-stamp order (see the module docstring)."""
+        stamps = self._stamp_index(self._require_open(), topic)
+        try:
+            yield from stamp_ordered(stamps, lambda: self._messages(reader, topic))
+        except ValueError as err:
+            msg = f"corrupt log {str(self.path)!r} while reading {topic}: {err}"
+            raise IngestError(msg) from err
+
     def _deserialize(self, reader: AnyReader, raw: bytes, conn: Connection) -> Any:
         try:
             return reader.deserialize(raw, conn.msgtype)
@@ -223,7 +254,7 @@ class MissionLog:
 
     def _odometry_states(self, reader: AnyReader) -> Iterator[OdometryState]:
         assert self.mapping.odometry is not None
-        for conn, receive_ns, raw in self._messages(reader, self.mapping.odometry):
+        for conn, receive_ns, raw in self._ordered(reader, self.mapping.odometry):
             msg = self._deserialize(reader, raw, conn)
             yield state_from_message(msg, _header_stamp(msg, receive_ns))
 
@@ -235,7 +266,7 @@ class MissionLog:
         return None
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[Frame]:
-        """Yield camera frames in bag order with the motion since the previous frame.
+        """Yield camera frames in stamp order with the motion since the previous frame.
 
         Args:
             start: index of the first frame to yield. Earlier frames are read (not decoded) so that the
@@ -265,7 +296,7 @@ class MissionLog:
                 states = self._odometry_states(odom_reader)
                 track = OdometryTrack(mode)
             cursor: int | None = None
-            for index, (conn, receive_ns, raw) in enumerate(self._messages(reader, topic)):
+            for index, (conn, receive_ns, raw) in enumerate(self._ordered(reader, topic)):
                 if stop is not None and index >= stop:
                     return
                 msg = self._deserialize(reader, raw, conn)
@@ -287,7 +318,7 @@ class MissionLog:
                     yield Frame(stamp_ns=stamp, image=decode_image(msg, topic), motion=motion)
 
     def ground_truth(self) -> Iterator[PoseSample]:
-        """Yield the ground-truth poses in bag order (nothing when the log has no ground-truth topic).
+        """Yield the ground-truth poses in stamp order (nothing when the log has no ground-truth topic).
 
         ``Odometry`` and ``PoseWithCovarianceStamped`` give ``msg.pose.pose``, ``PoseStamped`` ``msg.pose``;
         stamps are header stamps (receive time when zero).
@@ -303,7 +334,7 @@ class MissionLog:
             reader.close()
 
     def _ground_truth(self, reader: AnyReader, topic: str) -> Iterator[PoseSample]:
-        for conn, receive_ns, raw in self._messages(reader, topic):
+        for conn, receive_ns, raw in self._ordered(reader, topic):
             msg = self._deserialize(reader, raw, conn)
             pose = msg.pose if conn.msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
             yield PoseSample(

@@ -124,3 +124,58 @@ def test_shortest_path_through_the_engine(strip_world: StripWorld) -> None:
     assert result.nodes[0] == 0 and result.nodes[-1] == n - 1
     assert result.cost == pytest.approx(float(np.sum(engine.map.links[4][: n - 1])), rel=1e-9)
     assert math.isfinite(engine.shortest_path(0, n - 1, "time").cost)
+
+
+def _engine_with_experiences(coords: list[list[float]], templates: list[int]) -> Engine:
+    """An engine whose map holds experiences at lattice ``coords`` (x, y, th) created with ``templates``."""
+    engine = Engine(_params(exp_delta_pc_threshold=2.0))
+    for coord, template in zip(coords, templates, strict=True):
+        engine.map.create_experience(template, np.asarray(coord, dtype=float), 0.0, 0)
+    return engine
+
+
+def _action(engine: Engine, template: int, best: list[float], prev_vt: int) -> tuple[Action, int]:
+    engine.pose_cells.best = np.asarray(best, dtype=float)
+    engine.pose_cells.prev_vt = prev_vt
+    return engine._get_action(template)
+
+
+def test_get_action_follows_openratslam() -> None:
+    """OpenRatSLAM PosecellNetwork::get_action, case by case (threshold 2 cells, wrapped distances)."""
+    # experiences 0 (template 0) and 1 (template 1, current)
+    engine = _engine_with_experiences([[5.0, 5.0, 5.0], [10.0, 10.0, 10.0]], [0, 1])
+    assert engine.map.current == 1
+    # a template without experiences: create one
+    assert _action(engine, 2, [10.0, 10.0, 10.0], prev_vt=1) == (Action.CREATE_NODE, -1)
+    # same template, packet within the threshold of the current experience: nothing
+    assert _action(engine, 1, [11.0, 11.0, 10.0], prev_vt=1) == (Action.NONE, -1)
+    # same template, packet moved away, no other experience of it: a new experience
+    assert _action(engine, 1, [13.0, 10.0, 10.0], prev_vt=1) == (Action.CREATE_NODE, -1)
+    # template changed to one whose experience is close (across the x face: 20 → 0 is 1 cell): a link
+    engine_wrap = _engine_with_experiences([[0.5, 5.0, 5.0], [10.0, 10.0, 10.0]], [0, 1])
+    assert _action(engine_wrap, 0, [20.0, 5.0, 5.0], prev_vt=1) == (Action.CREATE_EDGE, 0)
+    # template changed, its experience too far (3 cells): a new experience
+    assert _action(engine, 0, [8.0, 5.0, 5.0], prev_vt=1) == (Action.CREATE_NODE, -1)
+    # the current experience is never the link target, even if it is the closest
+    engine_two = _engine_with_experiences([[5.0, 5.0, 5.0], [6.0, 5.0, 5.0]], [0, 0])
+    assert engine_two.map.current == 1
+    assert _action(engine_two, 0, [6.0, 5.0, 5.0], prev_vt=1) == (Action.CREATE_EDGE, 0)
+
+
+def test_poseidon_state_restores_bit_for_bit() -> None:
+    """4-DoF lattice, VPR Guard, motion gate and clamps: processing 1..N equals 1..k, snapshot, restore, k+1..N."""
+    params = _params(pc_dim_xy=9, pc_dim_z=5, pc_dim_th=8, pc_cell_x_size=0.5, pc_cell_z_size=0.5,
+                     vpr_guard=True, vpr_window=6, vpr_min_rep=2, vpr_leak_rate=4, motion_gate=True,
+                     max_correction_step=0.05, max_correction_norm=1.0, exp_relax_batch=3)
+    world = StripWorld(perimeter_m=30.0, seed=5)
+    frames = []
+    for i, (image, motion, stamp) in enumerate(world.drive(laps=2.2, yaw_bias=0.03)):
+        frames.append((image, Motion(motion.dx, motion.dy, 0.02 * math.sin(i / 5), motion.dyaw, motion.dt), stamp))
+    whole = Engine(params)
+    _run(whole, frames)
+    assert whole.experience_count > 3
+    first = Engine(params)
+    _run(first, frames[:70])
+    resumed = Engine.restore(params, first.snapshot())
+    _run(resumed, frames[70:])
+    _assert_same_state(whole.snapshot(), resumed.snapshot())

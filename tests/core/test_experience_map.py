@@ -50,14 +50,19 @@ def test_link_transform_is_in_the_source_frame() -> None:
     assert em.links[2][0] == pytest.approx([2.0, 0.0, 0.0, 0.0])  # 2 m ahead of the source
 
 
-def test_duplicate_links_are_not_added() -> None:
+def test_duplicate_links_are_not_added_in_either_direction() -> None:
+    """OpenRatSLAM ``on_create_link``: no second link between two experiences, whatever its direction."""
     em = _em()
     em.create_experience(0, np.zeros(3), 0.0, 0)
     em.on_odo(Motion(1.0, 0.0, 0.0, 0.0, 1.0))
-    em.create_experience(1, np.zeros(3), 1.0, 0)
-    assert em.create_link(1, 0, 0.0, LinkKind.LOOP) is True
-    assert em.create_link(1, 0, 0.0, LinkKind.LOOP) is False
-    assert em.link_count == 2
+    em.create_experience(1, np.zeros(3), 1.0, 0)  # odometry link 0 → 1
+    em.on_odo(Motion(1.0, 0.0, 0.0, 0.0, 1.0))
+    em.create_experience(2, np.zeros(3), 2.0, 0)  # odometry link 1 → 2
+    assert em.create_link(1, 0, 0.0, LinkKind.LOOP) is False  # reverse of 0 → 1
+    assert em.create_link(2, 0, 0.0, LinkKind.LOOP) is True
+    assert em.create_link(2, 0, 0.0, LinkKind.LOOP) is False
+    assert em.create_link(0, 2, 0.0, LinkKind.LOOP) is False
+    assert em.link_count == 3
 
 
 def test_relaxation_closes_a_square_loop_with_known_odometry_error() -> None:

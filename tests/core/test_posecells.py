@@ -218,3 +218,65 @@ def test_integer_translation_is_invertible(shift: int, seed: int) -> None:
     for layer, axis, sign in [(0, 0, 1), (3, 1, 1), (6, 0, -1), (9, 1, -1)]:
         assert np.array_equal(moved[:, :, layer], np.roll(before[:, :, layer], sign * shift, axis=axis))
         assert np.array_equal(net.activity[:, :, layer], before[:, :, layer])
+
+
+@pytest.mark.parametrize(
+    ("axis", "layer", "start", "expected"),
+    [(0, 0, 13, 1), (0, 4, 1, 13), (1, 2, 14, 2), (1, 6, 0, 12)],  # 8 heading layers: 0°, 180°, 90°, 270°
+)
+def test_4dof_packet_crosses_every_horizontal_face(axis: int, layer: int, start: int, expected: int) -> None:
+    """On the (x, y, z, ψ) lattice the packet moves v·dt/pc_cell_x_size = 3 cells along its layer's heading."""
+    net = _net(pc_dim_xy=15, pc_dim_z=15, pc_dim_th=8, pc_cell_x_size=0.1, pc_cell_z_size=0.1)
+    cell = [7, 7, 5, layer]
+    cell[axis] = start
+    _single(net, tuple(cell))
+    speed, dt = 0.6, 0.5  # 0.3 m = 3 cells
+    net.path_integrate(forward_m=speed * dt, dyaw_rad=0.0)
+    want = list(cell)
+    want[axis] = expected
+    assert net.activity[tuple(want)] == pytest.approx(1.0)
+
+
+def test_on_odo_decodes_the_packet_v_dt_over_cell_size_further() -> None:
+    """The whole on_odo update (attractor step, path integration, decoding) on a one-cell packet.
+
+    A narrow excitation (σ = 0.1 cell) leaves the packet in one cell (its neighbours are inhibited
+    to zero), so its decoded centre moves exactly v·dt/pc_cell_x_size cells.
+    """
+    net = _net(pc_dim_xy=21, pc_dim_th=36, pc_cell_x_size=0.05, pc_w_e_var=0.1)
+    _single(net, (19, 10, 9))  # layer 9 = 90°: moves along +y
+    best = net.on_odo(forward_m=0.3 * 0.5, dyaw_rad=0.0)  # v = 0.3 m/s for dt = 0.5 s: 0.15 m = 3 cells
+    assert best == pytest.approx([19.0, 13.0, 9.0], abs=1e-9)
+    best = net.on_odo(forward_m=0.0, dyaw_rad=-10 * 2 * math.pi / 36)  # −10 heading cells: 9 → 35
+    assert best == pytest.approx([19.0, 13.0, 35.0], abs=1e-9)
+
+
+def test_decode_takes_the_first_peak_in_openratslam_scan_order() -> None:
+    """Two equal maxima far apart: OpenRatSLAM scans θ outermost, so the lower θ wins, not the lower x."""
+    net = _net(pc_dim_xy=21, pc_dim_th=36)
+    net.activity[...] = 0.0
+    net.activity[8, 5, 3] = 0.5
+    net.activity[1, 5, 20] = 0.5
+    assert net.decode() == pytest.approx([8.0, 5.0, 3.0], abs=1e-9)
+
+
+def test_heading_offset_is_kept_until_the_next_injection() -> None:
+    """OpenRatSLAM sets vt_delta_pc_th only when a template injects energy."""
+    th = 36
+    net = _net(pc_dim_xy=11, pc_dim_th=th, vt_min_inject_age=0, pc_vt_restore=0.0)
+    net.add_link(0, np.array([3.0, 4.0, 5.0]))
+    net.add_link(1, np.array([6.0, 6.0, 6.0]))
+    rad = 3 * 2 * math.pi / th
+    net.on_view_template(0, rad, template_count=2, created=False)  # injects: offset = 3 cells
+    assert net.vt_delta_th == pytest.approx(3.0)
+    net.on_view_template(0, rad, template_count=2, created=False)  # repeat: decay 2.0, e^{2.4} < 30, injects
+    assert net.vt_delta_th == pytest.approx(3.0)
+    net.on_view_template(0, -rad, template_count=2, created=False)  # decay 3.0: e^{3.6} > 30, nothing injected
+    assert net.activity.sum() > 0 and net.vt_delta_th == pytest.approx(3.0)  # the offset stays
+    net.on_view_template(2, -rad, template_count=3, created=True)  # a new template injects nothing
+    assert net.vt_delta_th == pytest.approx(3.0)
+    net.on_view_template(1, -rad, template_count=3, created=False)
+    assert net.vt_delta_th == pytest.approx(-3.0)
+    # delta_to corrects the decoded heading by the offset before the wrapped distance
+    net.best = np.array([6.0, 6.0, 2.0])
+    assert float(net.delta_to(np.array([6.0, 6.0, 5.0]))) == pytest.approx(0.0)

@@ -15,12 +15,14 @@ from scipy.spatial.distance import cdist
 from mapserver.cli import main
 from mapserver.errors import InputError
 from mapserver.evaluation import (
+    RecognitionSettings,
     ape_positions,
     ape_rmse,
     associate,
     evaluate_map,
     hausdorff,
     interpolate_poses,
+    place_recognition,
     plot_map_vs_ground_truth,
     umeyama_alignment,
 )
@@ -449,3 +451,70 @@ def test_cli_evaluate_malformed_tum_exits_2(tmp_path: Path, capsys: pytest.Captu
     gt_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     assert main(["evaluate", str(map_path), "--ground-truth", str(gt_path)]) == 2
     assert ":4:" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------- place recognition
+
+
+def _out_and_back() -> tuple[Trajectory, list[list[float]]]:
+    """x = t out to 30 m, then back to 0 at 1 m/s; frames every 5 s with a hand-made template record."""
+    t = np.linspace(0.0, 60.0, 601)
+    x = np.where(t <= 30.0, t, 60.0 - t)
+    gt = _traj(t, np.column_stack([x, np.zeros_like(t), np.zeros_like(t)]))
+    # frames at t = 0, 5, ..., 60 (x = 0..30..0); t <= 30 create templates 0..6 (template k at x = 5k)
+    rows = [[5.0 * k, k, 1] for k in range(7)]
+    rows += [
+        [35.0, 5, 0],  # x = 25 matches the template made at x = 25 (10 s earlier: not a revisit)
+        [40.0, 7, 1],  # x = 20 creates a template (its twin at t = 20 is exactly 20 s earlier: not a revisit)
+        [45.0, 3, 0],  # x = 15: template from x = 15, 30 s earlier: recognised
+        [50.0, 1, 0],  # x = 10: template from x = 5 (5 m > R' = 3): not recognised, not false (5 m is not > 5)
+        [55.0, 0, 0],  # x = 5: template from x = 0 (5 m): not recognised
+        [60.0, 6, 0],  # x = 0: template from x = 30 (30 m): false match
+    ]
+    return gt, rows
+
+
+def test_place_recognition_hand_computed() -> None:
+    gt, rows = _out_and_back()
+    result = place_recognition(rows, gt, RecognitionSettings(1.0, 20.0, 3.0, 5.0))
+    assert result["revisit_frames"] == 4  # t = 45, 50, 55, 60
+    assert result["revisit_matched"] == 1
+    assert result["revisit_match_rate"] == pytest.approx(0.25)
+    assert result["matched_frames"] == 5
+    assert result["false_matches"] == 1
+    assert result["false_match_rate"] == pytest.approx(0.2)
+    assert result["frames_evaluated"] == 13
+    looser = place_recognition(rows, gt, RecognitionSettings(1.0, 20.0, 5.0, 40.0))
+    assert looser["revisit_matched"] == 3 and looser["false_matches"] == 0
+
+
+def test_place_recognition_skips_frames_outside_the_ground_truth() -> None:
+    gt, rows = _out_and_back()
+    result = place_recognition([*rows, [99.0, 2, 0]], gt)
+    assert result["frames_evaluated"] == 13
+    none = place_recognition([[0.0, 0, 1], [1.0, 0, 0]], gt)
+    assert none["revisit_frames"] == 0 and none["revisit_match_rate"] is None
+    assert none["matched_frames"] == 1 and none["false_match_rate"] == 0.0
+
+
+def test_cli_evaluate_reports_recognition_and_height(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    gt, rows = _out_and_back()
+    stamps = np.array([0.0, 20.0, 40.0, 60.0])
+    positions = interpolate_poses(gt, stamps) + np.array([0.0, 0.0, 0.1])  # z = 0.1 everywhere: a 3-D map
+    doc = _map_from_positions(stamps, positions)
+    doc["frames"] = rows
+    map_path, gt_path = tmp_path / "m.json", tmp_path / "gt.tum"
+    write_map_json(map_path, doc)
+    write_tum(gt_path, gt.stamps_s, gt.positions_xyz, gt.quat_xyzw)
+    code = main(["evaluate", str(map_path), "--ground-truth", str(gt_path), "--json", "--match-radius", "5",
+                 "--false-radius", "40"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    result = json.loads(captured.out.strip().splitlines()[-1])
+    assert result["revisit_frames"] == 4 and result["revisit_match_rate"] == pytest.approx(0.75)
+    assert result["false_match_rate"] == 0.0
+    assert result["recognition_settings"]["match_radius"] == 5.0
+    assert result["dims"] == 3 and result["ape_z_rmse"] == pytest.approx(0.0, abs=1e-9)  # z offset aligned away
+    assert "revisits: 4 frames, 3 recognised (75.0 %)" in captured.err
+    code = main(["evaluate", str(map_path), "--ground-truth", str(gt_path), "--revisit-gap", "-1"])
+    assert code == 2 and "--revisit-gap" in capsys.readouterr().err

@@ -239,6 +239,19 @@ def test_map_json_unknown_origin_and_odometry_extension() -> None:
     _assert_plain(doc)
 
 
+def test_map_json_frames_extension_round_trip(tmp_path: Path) -> None:
+    doc = map_json(
+        params={}, snapshot=_tiny_snapshot(), sessions=[], session_name_by_origin={},
+        frames=[(10.0, 0, True), (10.5, 0, False), (11.0, np.int64(1), np.bool_(True))],
+    )
+    assert doc["frames"] == [[10.0, 0, 1], [10.5, 0, 0], [11.0, 1, 1]]
+    _assert_plain(doc)
+    write_map_json(tmp_path / "m.json", doc)
+    assert read_map_json(tmp_path / "m.json")["frames"] == doc["frames"]
+    with pytest.raises(ValueError, match="frames rows"):
+        map_json(params={}, snapshot=_tiny_snapshot(), sessions=[], session_name_by_origin={}, frames=[(1.0, 2)])
+
+
 def test_map_json_rejects_unknown_link_kind() -> None:
     snap = _tiny_snapshot()
     snap["em_link_kind"] = np.array([9], dtype=np.int8)
@@ -291,6 +304,8 @@ def test_write_map_json_rejects_nan(tmp_path: Path) -> None:
         (lambda d: d["experiences"][0].update(x="1"), r"experiences\[0\]\.x is not a number"),
         (lambda d: d["links"][0].update(to=42), r"links\[0\]\.to = 42 is not an experience id"),
         (lambda d: d.update(experiences={}), "'experiences' is not a list"),
+        (lambda d: d.update(frames=[[0.0, 1]]), "'frames' is not a list of \\[stamp, template, created\\]"),
+        (lambda d: d.update(frames=[[0.0, "1", 0]]), "'frames' is not a list"),
     ],
 )
 def test_read_map_json_validation(tmp_path: Path, mutate: Any, reason: str) -> None:

@@ -1,0 +1,193 @@
+"""Merge time: a partial map merged into a large stored map (mapserver.merge, online path).
+
+Usage: python bench/merge.py [--preset circle] [--experiences 100000] [--templates 20000]
+       [--links 200000] [--partial-experiences 10000] [--partial-templates 2000] [--repeat 3]
+
+Builds two synthetic engine snapshots (vectorised, seeded): a stored map with the given
+numbers of experiences, templates (one pose-cell link each) and experience links (an
+odometry chain plus loop closures), and a partial map; then times, on one core, the steps
+the online driver runs when a merge is confirmed:
+
+* ``merge_states`` on the snapshots (operations i–iv, the whole algorithm);
+* ``restore_merged``: ``Engine.restore`` of the merged snapshot (the engine the session
+  continues in), relaxation scheduled at the merge links;
+* the first frame's bounded share of relaxation after it (``relax_step``);
+* ``merge_engine`` end to end (partial ``snapshot()`` + ``merge_states`` + ``restore_merged``).
+
+Figures are the best of ``--repeat`` runs. The last line of stdout is one JSON object:
+{"preset", "stored_experiences", "stored_templates", "stored_links", "partial_experiences",
+ "merge_states_s", "restore_s", "relax_step_s", "merge_engine_s", "target_s", "within_target"}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections.abc import Callable
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import numpy as np
+
+from core import Engine, Params, preset
+from mapserver.merge import Match, StoredMap, merge_engine, merge_states, restore_merged
+from mapserver.merge.lattice import splat
+from mapserver.merge.se3 import relative
+
+TARGET_S = 1.0
+
+
+def synthetic_state(
+    params: Params, experiences: int, templates: int, links: int, origin: int, seed: int
+) -> dict[str, np.ndarray]:
+    """Return a consistent snapshot: a random-walk route, templates in creation order, loops closed."""
+    rng = np.random.default_rng(seed)
+    dims = np.asarray(params.lattice_shape, dtype=np.float64)
+    rank = dims.size
+    steps = np.column_stack(
+        [rng.uniform(0.5, 1.5, experiences), rng.normal(0, 0.05, experiences), rng.normal(0, 0.02, experiences),
+         rng.normal(0, 0.1, experiences)]
+    )
+    yaw = np.cumsum(steps[:, 3])
+    pose = np.column_stack(
+        [np.cumsum(steps[:, 0] * np.cos(yaw)), np.cumsum(steps[:, 0] * np.sin(yaw)), np.cumsum(steps[:, 2]),
+         np.mod(yaw + np.pi, 2 * np.pi) - np.pi]
+    )
+    exp_template = (np.arange(experiences) * templates) // experiences
+    pcs = rng.uniform(0, 1, size=(experiences, rank)) * dims
+    first_of_template = np.searchsorted(exp_template, np.arange(templates))
+    ty, tx = params.template_y_size, params.template_x_size
+    views = rng.uniform(0, 1, size=(templates, ty, tx)).astype(np.float32)
+    chain = np.arange(experiences - 1)
+    loops = links - chain.size
+    loop_from = rng.integers(0, experiences, loops)
+    loop_to = np.clip(loop_from + rng.integers(2, 50, loops), 0, experiences - 1)
+    src = np.concatenate([chain, loop_from])
+    dst = np.concatenate([chain + 1, loop_to])
+    transform = relative(pose[src], pose[dst])
+    kind = np.concatenate([np.zeros(chain.size, dtype=np.int8), np.ones(loops, dtype=np.int8)])
+    accum = np.zeros(6)
+    accum[3] = pose[-1, 3]
+    history = np.full(params.vpr_window, -1, dtype=np.int64)
+    return {
+        "lv_templates": views,
+        "lv_means": views.reshape(templates, -1).mean(axis=1).astype(np.float64),
+        "lv_origin": np.full(templates, origin, dtype=np.int64),
+        "lv_current": np.asarray(templates - 1, dtype=np.int64),
+        "lv_previous": np.asarray(templates - 2, dtype=np.int64),
+        "lv_relative_rad": np.asarray(0.0),
+        "vo_prev_vtrans": np.zeros(0),
+        "vo_prev_vrot": np.zeros(0),
+        "pc_activity": splat(tuple(int(d) for d in dims), pcs[-1]),
+        "pc_best": pcs[-1].copy(),
+        "pc_link_template": np.arange(templates, dtype=np.int64),
+        "pc_link_coords": pcs[first_of_template].copy(),
+        "pc_link_strength": np.ones(templates),
+        "pc_link_decay": np.full(templates, params.vt_active_decay),
+        "pc_current_vt": np.asarray(templates - 1, dtype=np.int64),
+        "pc_prev_vt": np.asarray(templates - 2, dtype=np.int64),
+        "pc_vt_delta_th": np.asarray(0.0),
+        "em_pose": pose,
+        "em_pc": pcs,
+        "em_template": exp_template.astype(np.int64),
+        "em_stamp": np.arange(experiences, dtype=np.float64),
+        "em_origin": np.full(experiences, origin, dtype=np.int64),
+        "em_link_from": src.astype(np.int64),
+        "em_link_to": dst.astype(np.int64),
+        "em_link_transform": transform,
+        "em_link_dt": np.ones(src.size),
+        "em_link_distance": np.linalg.norm(transform[:, :3], axis=1),
+        "em_link_kind": kind,
+        "em_current": np.asarray(experiences - 1, dtype=np.int64),
+        "em_previous": np.asarray(experiences - 2, dtype=np.int64),
+        "em_accum": accum,
+        "em_relax_pending": np.asarray(False),
+        "gate_history": history,
+        "gate_state": np.zeros(3),
+        "eng_frames": np.asarray(experiences * 2, dtype=np.int64),
+        "eng_last_stamp": np.asarray(float(experiences)),
+    }
+
+
+def best_of(repeat: int, fn: Callable[[], object]) -> float:
+    """Return the shortest wall time of ``repeat`` calls of ``fn``."""
+    best = float("inf")
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="circle")
+    parser.add_argument("--experiences", type=int, default=100_000)
+    parser.add_argument("--templates", type=int, default=20_000)
+    parser.add_argument("--links", type=int, default=200_000)
+    parser.add_argument("--partial-experiences", type=int, default=10_000)
+    parser.add_argument("--partial-templates", type=int, default=2_000)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    params = preset(args.preset)
+    loaded = synthetic_state(params, args.experiences, args.templates, args.links, origin=1, seed=1)
+    partial_links = max(args.partial_experiences - 1, int(1.5 * args.partial_experiences))
+    partial = synthetic_state(
+        params, args.partial_experiences, args.partial_templates, partial_links, origin=2, seed=2
+    )
+    e_u = args.experiences // 2
+    u = int(loaded["em_template"][e_u])
+    last = args.partial_experiences - 1
+    z = int(partial["em_template"][last])
+    pairs = ((z, u), (z - 1, u - 1), (z - 2, u - 2))
+    match = Match.at_experience(partial, last, u, e_u, confirmations=3, pairs=pairs)
+    partial_engine = Engine.restore(params, partial, origin=2)
+    stored = StoredMap(1, params, loaded)
+
+    state, record = merge_states(loaded, partial, match)
+    t_states = best_of(args.repeat, lambda: merge_states(loaded, partial, match))
+    t_restore = best_of(args.repeat, lambda: restore_merged(params, state, record, origin=2))
+    engine = restore_merged(params, state, record, origin=2)
+    assert engine.experience_count == record.experiences
+
+    def relax_step() -> float:
+        e = restore_merged(params, state, record, origin=2)
+        start = time.perf_counter()
+        e.map.relax_step()
+        return time.perf_counter() - start
+
+    t_relax = min(relax_step() for _ in range(args.repeat))
+    t_engine = best_of(args.repeat, lambda: merge_engine(stored, partial_engine, match))
+    print(
+        f"{args.preset}: stored {args.experiences} experiences / {args.templates} templates / {args.links} links, "
+        f"partial {args.partial_experiences} experiences / {args.partial_templates} templates"
+    )
+    print(f"merge_states    {t_states:.3f} s")
+    print(f"restore_merged  {t_restore:.3f} s")
+    print(f"relax_step      {t_relax:.4f} s (first frame's relaxation, ≤ {params.exp_relax_batch} experiences)")
+    print(f"merge_engine    {t_engine:.3f} s (snapshot + merge_states + restore_merged)")
+    print(
+        json.dumps(
+            {
+                "preset": args.preset,
+                "stored_experiences": args.experiences,
+                "stored_templates": args.templates,
+                "stored_links": args.links,
+                "partial_experiences": args.partial_experiences,
+                "merge_states_s": round(t_states, 4),
+                "restore_s": round(t_restore, 4),
+                "relax_step_s": round(t_relax, 4),
+                "merge_engine_s": round(t_engine, 4),
+                "target_s": TARGET_S,
+                "within_target": t_engine <= TARGET_S,
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""The FastAPI application factory: ``create_app(settings)`` (no work at import time)."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.routing import APIRoute
+from starlette.concurrency import run_in_threadpool
+
+from mapserver import __version__
+from mapserver.api.errors import install_error_handlers
+from mapserver.api.routes import health, jobs, maps, sessions
+from mapserver.api.services import Services
+from mapserver.api.settings import Settings
+
+DESCRIPTION = """\
+Multisession RatSLAM map server. Upload mission logs (ROS 1/ROS 2 bags), follow their processing
+jobs, list maps and ask for shortest paths between experiences. Writes need a bearer token with
+scope `write`; reads need a `read` or `write` token unless the server allows anonymous reads.
+Errors are `{"detail": "..."}`.
+"""
+
+
+def _operation_id(route: APIRoute) -> str:
+    """Return the route's explicit operation id (every route sets one; the name is the fallback)."""
+    return route.operation_id or route.name
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Return the REST API application; the database and job engine start with its lifespan.
+
+    Args:
+        settings: server settings (default: :meth:`Settings.from_env`).
+
+    Returns:
+        The application (run it with uvicorn, or wrap it in ``fastapi.testclient.TestClient``).
+    """
+    chosen = settings if settings is not None else Settings.from_env()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services = await run_in_threadpool(Services.start, chosen)
+        app.state.services = services
+        try:
+            yield
+        finally:
+            await run_in_threadpool(services.close)
+
+    app = FastAPI(
+        title="mapserver",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        generate_unique_id_function=_operation_id,
+    )
+    app.state.settings = chosen
+    install_error_handlers(app)
+    for module in (health, sessions, jobs, maps):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,187 @@
+"""From a received upload to a checked mission log in the upload directory, ready to be queued.
+
+A ``.bag``/``.db3``/``.mcap`` file is kept as it is; a ``.zip``/``.tar`` archive is unpacked safely
+(:mod:`mapserver.api.archives`) and must hold one ROS 2 bag directory (``metadata.yaml``) or one log
+file. The log is then opened with :func:`mapserver.ingest.open_log` — exactly the check ``process``
+makes — so a file that is not a bag, a truncated bag or a log without a usable camera topic is
+refused with 400 and the reason before any job exists.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import shutil
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mapserver.api.archives import ARCHIVE_SUFFIXES, archive_suffix, extract_archive
+from mapserver.api.uploads import ReceivedUpload
+from mapserver.errors import InputError
+from mapserver.ingest import LOG_SUFFIXES, open_log, parse_topics_arg
+from mapserver.params import DEFAULT_PRESET, resolve_params
+
+logger = logging.getLogger(__name__)
+
+MAP_NAME_LIMIT = 200
+KNOWN_FIELDS = ("preset", "map", "topics", "merge")
+
+
+@dataclass(frozen=True, slots=True)
+class UploadOptions:
+    """The form fields of an upload, checked.
+
+    Attributes:
+        preset: engine preset (default ``circle``).
+        map_name: name for a new map, None for the default (the log's name).
+        topics: topic overrides (``image``, ``odometry``, ``ground_truth``), or None.
+        merge: merge the session into stored maps it connects to (``process`` without ``--no-merge``).
+    """
+
+    preset: str
+    map_name: str | None
+    topics: dict[str, str] | None
+    merge: bool
+
+
+def parse_options(fields: Mapping[str, str]) -> UploadOptions:
+    """Check the text fields of an upload.
+
+    ``topics`` is ``image=/cam,odometry=/odom`` (the CLI syntax) or a JSON object; ``merge`` is
+    ``true``/``false``.
+
+    Raises:
+        InputError: unknown field, unknown preset, bad map name, bad topics or merge flag.
+    """
+    unknown = sorted(set(fields) - set(KNOWN_FIELDS))
+    if unknown:
+        msg = f"unknown form field(s) {', '.join(map(repr, unknown))}; expected file, {', '.join(KNOWN_FIELDS)}"
+        raise InputError(msg)
+    preset = (fields.get("preset") or "").strip() or DEFAULT_PRESET
+    resolve_params(preset)  # ConfigError (400) names the valid presets
+    map_name = fields.get("map")
+    if map_name is not None:
+        map_name = map_name.strip()
+        if not map_name or len(map_name) > MAP_NAME_LIMIT or not map_name.isprintable():
+            msg = f"map name must be 1..{MAP_NAME_LIMIT} printable characters, got {fields.get('map')!r}"
+            raise InputError(msg)
+    topics = _topics(fields.get("topics"))
+    merge_text = (fields.get("merge") or "true").strip().lower()
+    if merge_text not in ("true", "false", "1", "0", "yes", "no"):
+        msg = f"merge must be true or false, got {fields.get('merge')!r}"
+        raise InputError(msg)
+    return UploadOptions(preset, map_name, topics, merge_text in ("true", "1", "yes"))
+
+
+def _topics(text: str | None) -> dict[str, str] | None:
+    if text is None or not text.strip():
+        return None
+    stripped = text.strip()
+    if stripped.startswith("{"):
+        try:
+            value: Any = json.loads(stripped)
+        except ValueError as err:
+            msg = f"topics is not valid JSON: {err}"
+            raise InputError(msg) from err
+        if not isinstance(value, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in value.items()):
+            msg = 'topics must be a JSON object of strings, e.g. {"image": "/camera/image"}'
+            raise InputError(msg)
+        return dict(value)
+    return parse_topics_arg(stripped)
+
+
+@dataclass(frozen=True, slots=True)
+class StoredLog:
+    """A checked log in the upload directory.
+
+    Attributes:
+        path: the log (file or ROS 2 bag directory) to process.
+        folder: the upload's own folder (holds ``path``; delete it to drop the upload).
+        name: the log's name (the default session and map name).
+        frames: camera frames in the log.
+        mapping: the topic mapping that processing will use.
+    """
+
+    path: Path
+    folder: Path
+    name: str
+    frames: int
+    mapping: dict[str, Any]
+
+    def discard(self) -> None:
+        """Delete the upload's folder."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _log_root(root: Path) -> Path:
+    if (root / "metadata.yaml").is_file():
+        return root
+    bag_dirs = sorted(p.parent for p in root.rglob("metadata.yaml") if p.is_file())
+    if len(bag_dirs) == 1:
+        return bag_dirs[0]
+    if len(bag_dirs) > 1:
+        msg = f"the archive holds {len(bag_dirs)} ROS 2 bag directories; upload one log at a time"
+        raise InputError(msg)
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in LOG_SUFFIXES)
+    if len(files) == 1:
+        return files[0]
+    msg = (
+        "the archive holds no ROS 2 bag directory (metadata.yaml) and no single .bag/.db3/.mcap file"
+        if not files
+        else f"the archive holds {len(files)} log files; upload one log at a time"
+    )
+    raise InputError(msg)
+
+
+def store_log(
+    upload: ReceivedUpload,
+    *,
+    uploads_dir: Path,
+    topics: Mapping[str, str] | None,
+    max_unpacked_bytes: int,
+    max_archive_members: int,
+) -> StoredLog:
+    """Move (or unpack) a staged upload into its own folder and check that it is a usable log.
+
+    Raises:
+        InputError: unsupported file type, unsafe or unreadable archive, not a bag, truncated or
+            corrupt bag, no usable camera topic, bad topic override. Nothing is kept then.
+    """
+    folder = uploads_dir / secrets.token_hex(8)
+    folder.mkdir(parents=True, exist_ok=False)
+    try:
+        kind = archive_suffix(upload.filename)
+        suffix = Path(upload.filename).suffix.lower()
+        if kind is not None:
+            stem = upload.filename[: -len(kind)] or "log"
+            extract_archive(upload.path, folder / stem, kind=kind, max_bytes=max_unpacked_bytes,
+                            max_members=max_archive_members)  # fmt: skip
+            upload.discard()
+            path = _log_root(folder / stem)
+        elif suffix in LOG_SUFFIXES:
+            path = folder / upload.filename
+            upload.path.replace(path)
+        else:
+            msg = (
+                f"unsupported upload {upload.filename!r}: send a {', '.join(LOG_SUFFIXES)} file or a ROS 2 bag "
+                f"directory as {', '.join(ARCHIVE_SUFFIXES)}"
+            )
+            raise InputError(msg)
+        try:
+            with open_log(path, topics) as log:
+                frames = log.count_frames()
+                mapping = log.mapping.as_dict()
+        except InputError as err:  # the message names the server's path: show the upload's name instead
+            msg = str(err).replace(str(path), upload.filename).replace(str(folder), "")
+            raise type(err)(msg) from err
+        if frames == 0:
+            msg = f"{upload.filename!r}: the camera topic has no frames"
+            raise InputError(msg)
+    except BaseException:
+        upload.discard()
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return StoredLog(path=path, folder=folder, name=path.name.split(".")[0] or "log", frames=frames, mapping=mapping)

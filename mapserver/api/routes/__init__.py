@@ -1,0 +1,1 @@
+"""One router per resource: health, sessions (uploads), jobs, maps."""

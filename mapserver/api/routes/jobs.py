@@ -1,0 +1,58 @@
+"""``GET /v1/jobs/{job}``: the state of a processing job."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Annotated
+
+from fastapi import APIRouter, Path
+from sqlalchemy import Connection
+
+from mapserver.api.deps import ReadAccess, ServicesDep
+from mapserver.api.schemas import ErrorPublic, JobPublic
+from mapserver.errors import NotFoundError
+from mapserver.store import get_map_by_id, get_session
+from mapserver.store.jobs import JobRecord, get_job
+from mapserver.store.sessions import SessionRecord
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+ERRORS = {401: {"model": ErrorPublic}, 403: {"model": ErrorPublic}, 404: {"model": ErrorPublic}}
+MAX_ID = 2**62
+
+
+def job_public(conn: Connection, job: JobRecord) -> JobPublic:
+    """Return the public view of a job (session and map by name)."""
+    session: SessionRecord | None = None
+    if job.session_id is not None:
+        try:
+            session = get_session(conn=conn, session_id=job.session_id)
+        except NotFoundError:
+            session = None
+    map_name = job.map_name
+    map_id = job.map_id if job.map_id is not None else (session.map_id if session is not None else None)
+    if session is not None and session.map_id is not None:
+        map_id = session.map_id  # the session's map now (a later merge may have joined it into another)
+    if map_id is not None:
+        with contextlib.suppress(NotFoundError):
+            map_name = get_map_by_id(conn=conn, map_id=map_id).name
+    return JobPublic(
+        job=job.id,
+        status=job.status,  # type: ignore[arg-type]
+        progress=job.progress,
+        error=job.error,
+        session=None if session is None else session.name,
+        map=map_name,
+        upload=job.upload_name,
+        preset=job.preset,
+        created_at=job.created_at,
+        started_at=job.started_at,
+        finished_at=job.finished_at,
+    )
+
+
+@router.get("/{job}", operation_id="get_job", response_model=JobPublic, responses=ERRORS)
+def read_job(job: Annotated[int, Path(ge=1, le=MAX_ID)], services: ServicesDep, _token: ReadAccess) -> JobPublic:
+    """Return a job's status, progress (fraction of frames done), error, session and map."""
+    with services.db.read() as conn:
+        return job_public(conn, get_job(conn=conn, job_id=job))

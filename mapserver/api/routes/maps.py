@@ -1,0 +1,182 @@
+"""``/v1/maps``: list, one map, paged experiences, shortest paths, export."""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+from pathlib import Path as FilePath
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Path, Query
+from fastapi.responses import Response
+
+from mapserver.api.deps import ReadAccess, ServicesDep
+from mapserver.api.schemas import (
+    ErrorPublic,
+    ExperiencePublic,
+    ExperiencesPublic,
+    MapPublic,
+    MapsPublic,
+    MapSummaryPublic,
+    MergeEventPublic,
+    PathPublic,
+    PosePublic,
+    SessionPublic,
+)
+from mapserver.store import get_map, list_maps, sessions_of_map
+from mapserver.store.export import export_map
+from mapserver.store.merge_events import list_merge_events
+from mapserver.store.queries import MAX_PAGE, page_experiences
+from mapserver.store.sessions import get_sessions
+
+router = APIRouter(prefix="/v1/maps", tags=["maps"])
+
+AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorPublic}, 403: {"model": ErrorPublic}}
+MAP_ERRORS: dict[int | str, dict[str, Any]] = {**AUTH_ERRORS, 404: {"model": ErrorPublic}}
+MAX_ID = 2**62
+MapName = Annotated[str, Path(min_length=1, max_length=200, description="the map's name")]
+_EXPORT_LOCK = threading.Lock()  # matplotlib's pyplot (PNG export) is not thread-safe
+EXPORT_TYPES = {"json": "application/json", "tum": "text/plain; charset=utf-8", "png": "image/png"}
+
+
+@router.get("", operation_id="list_maps", response_model=MapsPublic, responses=AUTH_ERRORS)
+def read_maps(services: ServicesDep, _token: ReadAccess) -> MapsPublic:
+    """List the stored maps with their session, template, experience and link counts."""
+    with services.db.read() as conn:
+        maps = list_maps(conn=conn)
+    return MapsPublic(maps=[MapSummaryPublic(**m.as_dict()) for m in maps])
+
+
+@router.get("/{name}", operation_id="get_map", response_model=MapPublic, responses=MAP_ERRORS)
+def read_map(name: MapName, services: ServicesDep, _token: ReadAccess) -> MapPublic:
+    """Return one map: counts, effective parameters, its sessions and the merge events that built it."""
+    with services.db.read() as conn:
+        record = get_map(conn=conn, name=name)
+        summary = next(m for m in list_maps(conn=conn) if m.name == record.name)
+        sessions = sessions_of_map(conn=conn, map_id=record.id)
+        events = list_merge_events(conn=conn, map_id=record.id)
+        involved = sorted({s for e in events for s in e.sessions})
+        names = {s.id: s.name for s in get_sessions(conn=conn, session_ids=involved)} if involved else {}
+    return MapPublic(
+        name=record.name,
+        version=record.version,
+        templates=summary.templates,
+        experiences=summary.experiences,
+        links=summary.links,
+        created_at=record.created_at,
+        updated_at=record.updated_at,
+        params=record.params,
+        sessions=[
+            SessionPublic(
+                name=s.name, log_name=s.log_name, log_sha256=s.log_sha256, source=s.source, status=s.status,
+                frames=s.frames_processed, frames_total=s.frames_total, first_stamp=s.first_stamp,
+                last_stamp=s.last_stamp, started_at=s.started_at, finished_at=s.finished_at,
+            )
+            for s in sessions
+        ],
+        merge_events=[
+            MergeEventPublic(
+                id=e.id, mode=e.mode, status=e.status, confirmations=e.confirmations, created_at=e.created_at,
+                undone_at=e.undone_at, sessions={names.get(s, str(s)): role for s, role in e.sessions.items()},
+                transform=list(e.transform), yaw=e.yaw,
+            )
+            for e in events
+        ],
+    )
+
+
+@router.get(
+    "/{name}/experiences", operation_id="list_experiences", response_model=ExperiencesPublic, responses=MAP_ERRORS
+)
+def read_experiences(
+    name: MapName,
+    services: ServicesDep,
+    _token: ReadAccess,
+    offset: Annotated[int, Query(ge=0, le=MAX_ID, description="first experience (by id)")] = 0,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description="page size")] = 100,
+) -> ExperiencesPublic:
+    """Return one page of a map's experiences, by id, and their total."""
+    with services.db.read() as conn:
+        record = get_map(conn=conn, name=name)
+        items, total = page_experiences(conn=conn, map_id=record.id, offset=offset, limit=limit)
+    return ExperiencesPublic(
+        experiences=[
+            ExperiencePublic(
+                id=i["id"], x=i["x"], y=i["y"], z=i["z"], yaw=i["yaw"], template=i["template"], session=i["session"],
+                stamp=i["stamp"],
+            )
+            for i in items
+        ],
+        total=total,
+        offset=offset,
+        limit=limit,
+    )
+
+
+@router.get(
+    "/{name}/path",
+    operation_id="find_path",
+    response_model=PathPublic,
+    responses={**MAP_ERRORS, 409: {"model": ErrorPublic}},
+)
+def read_path(
+    name: MapName,
+    services: ServicesDep,
+    _token: ReadAccess,
+    source: Annotated[int, Query(alias="from", ge=0, le=MAX_ID, description="start experience id")],
+    target: Annotated[int, Query(alias="to", ge=0, le=MAX_ID, description="goal experience id")],
+    weight: Annotated[Literal["time", "distance"], Query(description="minimise travel time or distance")] = "time",
+) -> PathPublic:
+    """Return the shortest path between two experiences over the map's experience graph.
+
+    404 when the map or an experience does not exist, 409 when the two are not connected.
+    """
+    result = services.graphs.shortest_path(name, source, target, weight)
+    poses = result.poses.tolist()
+    return PathPublic(
+        nodes=result.nodes,
+        poses=[PosePublic(x=p[0], y=p[1], z=p[2], yaw=p[3]) for p in poses],
+        cost=result.cost,
+        weight=result.weight,
+    )
+
+
+@router.get(
+    "/{name}/export",
+    operation_id="export_map",
+    responses={
+        **MAP_ERRORS,
+        200: {
+            "content": {"application/json": {}, "text/plain": {}, "image/png": {}},
+            "description": "the map as map JSON (mapserver-map/1), TUM experience poses, or a PNG plot",
+        },
+    },
+    response_class=Response,
+)
+def read_export(
+    name: MapName,
+    services: ServicesDep,
+    _token: ReadAccess,
+    format: Annotated[Literal["json", "tum", "png"], Query(description="json, tum or png")] = "json",
+) -> Response:
+    """Return a stored map as map JSON, TUM experience poses (stamp order) or a PNG plot of its graph."""
+    with tempfile.TemporaryDirectory(prefix="mapserver-export-") as folder:
+        target = FilePath(folder) / f"map.{format}"
+        if format == "png":
+            with _EXPORT_LOCK:
+                export_map(services.db, name=name, fmt=format, out=target)
+        else:
+            export_map(services.db, name=name, fmt=format, out=target)
+        content = target.read_bytes()
+    filename = f"{name}.{'txt' if format == 'tum' else format}"
+    return Response(
+        content,
+        media_type=EXPORT_TYPES[format],
+        headers={"Content-Disposition": f"inline; filename*=UTF-8''{_quote(filename)}"},
+    )
+
+
+def _quote(text: str) -> str:
+    from urllib.parse import quote
+
+    return quote(text, safe="")

@@ -1,0 +1,104 @@
+"""``POST /v1/sessions``: upload a mission log; it is checked, stored and queued for processing."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+
+from mapserver.api.deps import ServicesDep, WriteAccess
+from mapserver.api.intake import StoredLog, parse_options, store_log
+from mapserver.api.schemas import ErrorPublic, UploadAccepted
+from mapserver.api.uploads import FILE_FIELD, receive_upload
+from mapserver.store import get_session
+from mapserver.store.jobs import JobRecord
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+
+UPLOAD_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": [FILE_FIELD],
+                    "properties": {
+                        FILE_FIELD: {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "a .bag, .db3 or .mcap file, or a ROS 2 bag directory as .zip/.tar(.gz)",
+                        },
+                        "preset": {"type": "string", "description": "engine preset (default circle)"},
+                        "map": {"type": "string", "description": "name of the new map if it joins none"},
+                        "topics": {"type": "string", "description": "topic overrides: image=/cam,odometry=/odom"},
+                        "merge": {"type": "string", "enum": ["true", "false"], "description": "default true"},
+                    },
+                }
+            }
+        },
+    }
+}
+ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorPublic} for code in (400, 401, 403, 413, 415, 422)
+}
+
+
+def _session_name(services: ServicesDep, job: JobRecord) -> str | None:
+    if job.session_id is None:
+        return None
+    with services.db.read() as conn:
+        return get_session(conn=conn, session_id=job.session_id).name
+
+
+@router.post(
+    "",
+    operation_id="upload_session",
+    status_code=202,
+    response_model=UploadAccepted,
+    responses=ERRORS,
+    openapi_extra=UPLOAD_BODY,
+)
+async def upload_session(request: Request, services: ServicesDep, _token: WriteAccess) -> JSONResponse:
+    """Store an uploaded log and queue its processing; answer 202 with the job.
+
+    The upload is streamed to disk and hashed; the same log uploaded again with the same request is
+    answered with the earlier job (``duplicate: true``) instead of being queued twice.
+    """
+    settings = services.settings
+    staging = settings.uploads / ".incoming"
+    received = await receive_upload(request, staging=staging, max_bytes=settings.max_upload_bytes)
+    stored: StoredLog | None = None
+    try:
+        options = parse_options(received.fields)
+        job = await run_in_threadpool(services.find_duplicate, received, options)
+        duplicate = job is not None
+        if job is None:
+            stored = await run_in_threadpool(
+                store_log, received, uploads_dir=settings.uploads, topics=options.topics,
+                max_unpacked_bytes=settings.max_unpacked_bytes, max_archive_members=settings.max_archive_members,
+            )  # fmt: skip
+            job, duplicate = await run_in_threadpool(services.queue_job, received, stored, options)
+    except BaseException:
+        received.discard()
+        if stored is not None:
+            stored.discard()
+        raise
+    received.discard()
+    if duplicate and stored is not None:
+        stored.discard()
+    if not duplicate:
+        services.jobs.notify()
+    session = await run_in_threadpool(_session_name, services, job)
+    body = UploadAccepted(
+        job=job.id,
+        session=session,
+        status=job.status,  # type: ignore[arg-type]
+        duplicate=duplicate,
+        sha256=received.sha256,
+        frames=(job.options or {}).get("frames"),
+        map=job.map_name,
+    )
+    return JSONResponse(body.model_dump(mode="json"), status_code=202)

@@ -1,0 +1,155 @@
+"""Pydantic schemas of the REST API (one family per resource); the contract is ``interfaces.md``."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+JobStatus = Literal["queued", "running", "done", "failed"]
+
+
+class ErrorPublic(BaseModel):
+    """Every error: one line saying what went wrong."""
+
+    detail: str
+
+
+class HealthPublic(BaseModel):
+    """``GET /healthz``."""
+
+    status: Literal["ok"] = "ok"
+
+
+class UploadAccepted(BaseModel):
+    """``POST /v1/sessions``: the job that processes the upload.
+
+    ``session`` is the stored session's name once known (a re-upload of a processed log), else null
+    until the job is done (``GET /v1/jobs/{job}`` gives it then).
+    """
+
+    job: int
+    session: str | None
+    status: JobStatus
+    duplicate: bool = Field(description="true when the same log was uploaded before: nothing new was queued")
+    sha256: str = Field(description="SHA-256 of the uploaded bytes")
+    frames: int | None = Field(None, description="camera frames in the log")
+    map: str | None = Field(None, description="the map the job stores the session in")
+
+
+class JobPublic(BaseModel):
+    """``GET /v1/jobs/{job}``."""
+
+    job: int
+    status: JobStatus
+    progress: float = Field(ge=0.0, le=1.0, description="fraction of the log's frames processed")
+    error: str | None
+    session: str | None
+    map: str | None
+    upload: str | None
+    preset: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class MapSummaryPublic(BaseModel):
+    """One map in ``GET /v1/maps``."""
+
+    name: str
+    sessions: int
+    templates: int
+    experiences: int
+    links: int
+
+
+class MapsPublic(BaseModel):
+    """``GET /v1/maps``."""
+
+    maps: list[MapSummaryPublic]
+
+
+class SessionPublic(BaseModel):
+    """A session of a map."""
+
+    name: str
+    log_name: str
+    log_sha256: str
+    source: str
+    status: str
+    frames: int
+    frames_total: int | None
+    first_stamp: float | None
+    last_stamp: float | None
+    started_at: datetime
+    finished_at: datetime | None
+
+
+class MergeEventPublic(BaseModel):
+    """A merge that produced (part of) a map."""
+
+    id: int
+    mode: str
+    status: str
+    confirmations: int
+    created_at: datetime
+    undone_at: datetime | None
+    sessions: dict[str, str] = Field(description="session name → role (target or source)")
+    transform: list[float] = Field(description="tx, ty, tz, qx, qy, qz, qw applied to the source")
+    yaw: float
+
+
+class MapPublic(BaseModel):
+    """``GET /v1/maps/{name}``: one map with its sessions and merge events."""
+
+    name: str
+    version: int = Field(description="write counter: increases with every change of the map")
+    templates: int
+    experiences: int
+    links: int
+    created_at: datetime
+    updated_at: datetime
+    params: dict[str, Any] = Field(description="the map's effective engine parameters")
+    sessions: list[SessionPublic]
+    merge_events: list[MergeEventPublic]
+
+
+class ExperiencePublic(BaseModel):
+    """An experience (pose in the map frame, metres and radians)."""
+
+    id: int
+    x: float
+    y: float
+    z: float
+    yaw: float
+    template: int
+    session: str
+    stamp: float
+
+
+class ExperiencesPublic(BaseModel):
+    """``GET /v1/maps/{name}/experiences``: one page."""
+
+    experiences: list[ExperiencePublic]
+    total: int
+    offset: int
+    limit: int
+
+
+class PosePublic(BaseModel):
+    """A pose on a path."""
+
+    x: float
+    y: float
+    z: float
+    yaw: float
+
+
+class PathPublic(BaseModel):
+    """``GET /v1/maps/{name}/path``."""
+
+    nodes: list[int]
+    poses: list[PosePublic]
+    cost: float
+    weight: Literal["time", "distance"]

@@ -1,0 +1,121 @@
+"""What the running server holds: settings, the database, the job engine, the graph cache.
+
+Created by the application's lifespan (:func:`mapserver.api.app.create_app`), never at import time.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+from mapserver.api.graphs import GraphCache
+from mapserver.api.intake import StoredLog, UploadOptions
+from mapserver.api.jobengine import EmbeddedJobEngine, JobEngine
+from mapserver.api.settings import Settings
+from mapserver.api.uploads import ReceivedUpload
+from mapserver.errors import MapServerError
+from mapserver.store import Database, open_database
+from mapserver.store.jobs import JobRecord, create_job, find_upload_job, lock_upload
+from mapserver.store.tokens import LAST_USED_RESOLUTION_S, mark_token_used
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class Services:
+    """The server's long-lived objects (one per application)."""
+
+    settings: Settings
+    db: Database
+    jobs: JobEngine
+    graphs: GraphCache
+    _touch: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="token-touch"))
+    _touched: dict[int, float] = field(default_factory=dict)
+    _touch_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @classmethod
+    def start(cls, settings: Settings) -> Services:
+        """Open the database (an empty one gets the schema), start the job engine, return the services.
+
+        Raises:
+            StoreError: the database is unreachable or at another schema revision.
+        """
+        db = open_database(settings.db_url)
+        try:
+            settings.uploads.mkdir(parents=True, exist_ok=True)
+            engine = EmbeddedJobEngine(
+                db, db_url=settings.db_url, workers=settings.workers,
+                progress_interval_s=settings.progress_interval_s, max_attempts=settings.max_job_attempts,
+            )  # fmt: skip
+            engine.start()
+        except BaseException:
+            db.dispose()
+            raise
+        return cls(settings=settings, db=db, jobs=engine, graphs=GraphCache(db, settings.graph_cache_maps))
+
+    def close(self) -> None:
+        """Stop the job engine (running jobs are queued again) and close the database."""
+        self.jobs.stop()
+        self._touch.shutdown(wait=True)
+        self.db.dispose()
+
+    # -- uploads ---------------------------------------------------------------------------------------
+    @staticmethod
+    def job_options(options: UploadOptions) -> dict[str, object]:
+        """Return the ``jobs.options`` of an upload (what, besides bytes, topics and preset, makes it distinct)."""
+        return {"merge": options.merge, "map_given": options.map_name is not None, "requested_map": options.map_name}
+
+    def find_duplicate(self, upload: ReceivedUpload, options: UploadOptions) -> JobRecord | None:
+        """Return the job of an earlier identical upload (same bytes and request), unless it failed."""
+        with self.db.read() as conn:
+            return find_upload_job(
+                conn=conn, upload_sha256=upload.sha256, topics=options.topics, preset=options.preset,
+                options=self.job_options(options),
+            )  # fmt: skip
+
+    def queue_job(self, upload: ReceivedUpload, log: StoredLog, options: UploadOptions) -> tuple[JobRecord, bool]:
+        """Queue a job for a stored log, or return the job of an identical upload queued meanwhile.
+
+        Returns:
+            (the job, True when it is an earlier upload's job).
+        """
+        with self.db.write() as conn:
+            lock_upload(conn=conn, upload_sha256=upload.sha256)
+            existing = find_upload_job(
+                conn=conn, upload_sha256=upload.sha256, topics=options.topics, preset=options.preset,
+                options=self.job_options(options),
+            )  # fmt: skip
+            if existing is not None:
+                return existing, True
+            job = create_job(
+                conn=conn,
+                upload_path=str(log.path.resolve()),
+                upload_name=upload.filename,
+                upload_sha256=upload.sha256,
+                map_name=options.map_name or log.name,
+                preset=options.preset,
+                topics=options.topics,
+                options={**self.job_options(options), "frames": log.frames, "attempts": 0},
+            )
+        return job, False
+
+    # -- tokens ----------------------------------------------------------------------------------------
+    def touch_token(self, token_id: int, last_used: float | None) -> None:
+        """Record a token's use in the background, at most every few minutes per token."""
+        now = time.time()
+        with self._touch_lock:
+            previous = self._touched.get(token_id, last_used or 0.0)
+            if now - previous < LAST_USED_RESOLUTION_S:
+                return
+            self._touched[token_id] = now
+        self._touch.submit(self._mark_used, token_id)
+
+    def _mark_used(self, token_id: int) -> None:
+        try:
+            with self.db.write() as conn:
+                mark_token_used(conn=conn, token_id=token_id)
+        except MapServerError as err:  # bookkeeping only: never fail a request for it
+            logger.warning("cannot record the use of token %d: %s", token_id, err)

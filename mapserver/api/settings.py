@@ -1,0 +1,108 @@
+"""Typed settings of the REST API server (``mapserver serve``), read from arguments or the environment."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from mapserver.errors import ConfigError
+from mapserver.store import DEFAULT_DB_URL
+
+ENV_PREFIX = "MAPSERVER_"
+GIB = 1 << 30
+
+
+@dataclass(frozen=True, slots=True)
+class Settings:
+    """Everything the API server needs to know; immutable, validated on construction.
+
+    Attributes:
+        db_url: SQLAlchemy URL of the map store (an empty database gets the schema on start).
+        upload_dir: where uploaded logs are kept (None: ``uploads/`` beside a SQLite file, else ``./var/uploads``).
+        max_upload_bytes: largest accepted upload (the request body's file part); larger → 413.
+        max_unpacked_bytes: largest total size of the files unpacked from one archive upload.
+        max_archive_members: most entries one archive upload may hold.
+        workers: worker threads of the embedded job engine (different maps run in parallel).
+        allow_anonymous_reads: GET endpoints need no token.
+        host: interface ``serve`` binds to.
+        port: TCP port ``serve`` listens on.
+        progress_interval_s: a job writes its progress to the database at most this often.
+        max_job_attempts: a job interrupted by a server stop this many times is failed instead of rerun.
+        graph_cache_maps: how many maps' path graphs are kept in memory.
+    """
+
+    db_url: str = DEFAULT_DB_URL
+    upload_dir: Path | None = None
+    max_upload_bytes: int = 4 * GIB
+    max_unpacked_bytes: int = 16 * GIB
+    max_archive_members: int = 100_000
+    workers: int = 2
+    allow_anonymous_reads: bool = False
+    host: str = "127.0.0.1"
+    port: int = 8000
+    progress_interval_s: float = 0.5
+    max_job_attempts: int = 3
+    graph_cache_maps: int = 8
+
+    def __post_init__(self) -> None:
+        checks = {
+            "max_upload_bytes": self.max_upload_bytes >= 1,
+            "max_unpacked_bytes": self.max_unpacked_bytes >= 1,
+            "max_archive_members": self.max_archive_members >= 1,
+            "workers": 1 <= self.workers <= 64,
+            "port": 0 <= self.port <= 65535,
+            "progress_interval_s": self.progress_interval_s >= 0,
+            "max_job_attempts": self.max_job_attempts >= 1,
+            "graph_cache_maps": self.graph_cache_maps >= 1,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                msg = f"invalid server setting {name}={getattr(self, name)!r}"
+                raise ConfigError(msg)
+
+    @property
+    def uploads(self) -> Path:
+        """Return the upload directory (see ``upload_dir``)."""
+        if self.upload_dir is not None:
+            return Path(self.upload_dir)
+        if self.db_url.startswith("sqlite:///") and ":memory:" not in self.db_url:
+            database = Path(self.db_url.removeprefix("sqlite:///").split("?", 1)[0])
+            return database.parent / "uploads"
+        return Path("var") / "uploads"
+
+    def with_overrides(self, **values: object) -> Settings:
+        """Return a copy with the non-None ``values`` replaced."""
+        chosen = {k: v for k, v in values.items() if v is not None}
+        return replace(self, **chosen)  # type: ignore[arg-type]
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> Settings:
+        """Return the defaults overridden by ``MAPSERVER_*`` environment variables.
+
+        Variables: ``MAPSERVER_DB``, ``MAPSERVER_UPLOAD_DIR``, ``MAPSERVER_MAX_UPLOAD_BYTES``,
+        ``MAPSERVER_MAX_UNPACKED_BYTES``, ``MAPSERVER_WORKERS``, ``MAPSERVER_ALLOW_ANONYMOUS_READS``
+        (1/true/yes), ``MAPSERVER_HOST``, ``MAPSERVER_PORT``.
+
+        Raises:
+            ConfigError: a variable does not parse.
+        """
+        env = os.environ if environ is None else environ
+        values: dict[str, object] = {}
+        text = {"DB": "db_url", "UPLOAD_DIR": "upload_dir", "HOST": "host"}
+        numbers = {"MAX_UPLOAD_BYTES": "max_upload_bytes", "MAX_UNPACKED_BYTES": "max_unpacked_bytes",
+                   "WORKERS": "workers", "PORT": "port"}  # fmt: skip
+        for key, field in text.items():
+            if (value := env.get(ENV_PREFIX + key)) is not None:
+                values[field] = Path(value) if field == "upload_dir" else value
+        for key, field in numbers.items():
+            if (value := env.get(ENV_PREFIX + key)) is not None:
+                try:
+                    values[field] = int(value)
+                except ValueError as err:
+                    msg = f"{ENV_PREFIX}{key} must be an integer, got {value!r}"
+                    raise ConfigError(msg) from err
+        if (flag := env.get(ENV_PREFIX + "ALLOW_ANONYMOUS_READS")) is not None:
+            values["allow_anonymous_reads"] = flag.strip().lower() in ("1", "true", "yes", "on")
+        return cls().with_overrides(**values)

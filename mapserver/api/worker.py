@@ -1,0 +1,130 @@
+"""Running one job: the uploaded log through :func:`mapserver.pipeline.process_into_store`.
+
+This is the whole unit of work a job engine executes (the embedded thread pool today, a distributed
+worker later): given the job's record it resolves the parameters, picks the map name, runs the
+pipeline with a throttled progress reporter, and returns the outcome. The pipeline writes the
+session, map state and any merge in one transaction, so an interrupted job leaves nothing behind and
+can simply be run again from the start.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from mapserver import pipeline
+from mapserver.errors import MapServerError
+from mapserver.ingest import open_log
+from mapserver.params import resolve_params
+from mapserver.store import Database, find_map, find_session
+from mapserver.store.jobs import JobRecord, set_job_progress
+
+logger = logging.getLogger(__name__)
+
+
+class JobInterrupted(Exception):  # noqa: N818 - a control-flow signal, not an error
+    """Raised inside a running job when the engine stops; the job is queued again."""
+
+
+@dataclass(frozen=True, slots=True)
+class JobOutcome:
+    """What a finished job produced: the session and map ids, or the one-line error."""
+
+    session_id: int | None = None
+    map_id: int | None = None
+    error: str | None = None
+
+
+class ProgressReporter:
+    """``progress(done, total)`` for the pipeline: writes the fraction of frames done, throttled.
+
+    A write happens when ``interval_s`` has passed since the last one (and for the last frame), so a
+    long log costs a handful of small transactions, not one per frame. ``should_stop()`` is checked on
+    every frame; when it returns True the job is interrupted (:class:`JobInterrupted`).
+    """
+
+    def __init__(
+        self, db: Database, job_id: int, *, interval_s: float, should_stop: Callable[[], bool] | None = None
+    ) -> None:
+        self.db = db
+        self.job_id = job_id
+        self.interval_s = interval_s
+        self.should_stop = should_stop
+        self._last_write = time.monotonic()
+        self.writes = 0
+
+    def __call__(self, done: int, total: int) -> None:
+        """Record that ``done`` of ``total`` frames are processed (throttled)."""
+        if self.should_stop is not None and self.should_stop():
+            raise JobInterrupted
+        now = time.monotonic()
+        if total <= 0 or (done < total and now - self._last_write < self.interval_s):
+            return
+        fraction = min(done / total, 1.0)
+        if done >= total:
+            fraction = min(fraction, 0.999)  # "done" (1.0) is set when the result is stored
+        with self.db.write() as conn:
+            set_job_progress(conn=conn, job_id=self.job_id, progress=fraction)
+        self._last_write = now
+        self.writes += 1
+
+
+def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
+    """Return the map name to pass to the pipeline.
+
+    An explicit ``map`` is passed as given. Without one, the log's name is used, made unique
+    (``name-2``, ...) when another log already has a map of that name — unless this log is stored
+    already (then the pipeline continues or answers with its session and needs no name).
+    """
+    options = job.options or {}
+    if options.get("map_given"):
+        return job.map_name
+    base = job.map_name or log_path.name.split(".")[0] or "map"
+    with open_log(log_path, job.topics) as log:
+        sha256, mapping = log.sha256, log.mapping.as_dict()
+    with db.read() as conn:
+        if find_session(conn=conn, log_sha256=sha256, topics=mapping) is not None:
+            return None
+        name, k = base, 2
+        while find_map(conn=conn, name=name) is not None:
+            name, k = f"{base}-{k}", k + 1
+    return name
+
+
+def execute_job(
+    job: JobRecord, *, db: Database, db_url: str, interval_s: float, should_stop: Callable[[], bool] | None = None
+) -> JobOutcome:
+    """Process a job's log into the store; return the outcome (errors become ``JobOutcome.error``).
+
+    Raises:
+        JobInterrupted: ``should_stop`` turned True while the log was being processed (nothing stored).
+    """
+    log_path = Path(job.upload_path)
+    reporter = ProgressReporter(db, job.id, interval_s=interval_s, should_stop=should_stop)
+    try:
+        if not log_path.exists():
+            msg = f"the uploaded log is gone from the server ({log_path.name!r}); upload it again"
+            return JobOutcome(error=msg)
+        params = resolve_params(job.preset)
+        result = pipeline.process_into_store(
+            log_path,
+            params,
+            db_url=db_url,
+            map_name=_map_name(db, job, log_path),
+            topics=job.topics,
+            merge=bool((job.options or {}).get("merge", True)),
+            progress=reporter,
+        )
+    except JobInterrupted:
+        raise
+    except MapServerError as err:
+        return JobOutcome(error=str(err).replace(str(log_path.parent) + "/", ""))
+    except Exception as err:
+        logger.exception("job %d failed unexpectedly", job.id)
+        return JobOutcome(error=f"internal error ({type(err).__name__}): {err}")
+    with db.read() as conn:
+        record = find_map(conn=conn, name=result.map_name)
+    return JobOutcome(session_id=result.session_id, map_id=None if record is None else record.id)

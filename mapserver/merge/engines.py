@@ -1,0 +1,126 @@
+"""Merging at the engine level: snapshot, ``merge_states``, restore, relax."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from core import Engine, LinkKind
+from mapserver.errors import MergeError
+from mapserver.merge.record import Match, MergeRecord
+from mapserver.merge.snapshot import params_incompatibility
+from mapserver.merge.states import merge_states
+
+if TYPE_CHECKING:
+    from core import Params
+
+
+@dataclass(frozen=True, eq=False)
+class StoredMap:
+    """A map of the atlas as the merge sees it: an opaque key, its parameters and its engine snapshot.
+
+    Attributes:
+        key: the store's id for the map (reported back in merge events).
+        params: the parameters the map was built with.
+        state: ``Engine.snapshot()`` arrays of the map.
+    """
+
+    key: object
+    params: Params
+    state: Mapping[str, np.ndarray]
+
+
+def restore_merged(
+    params: Params, state: Mapping[str, np.ndarray], record: MergeRecord, origin: int = 0
+) -> Engine:
+    """Return the engine of a merged snapshot with relaxation scheduled where the merge changed the graph.
+
+    The snapshot is restored without its merge links (they are its last links) and with no
+    pending relaxation; the merge links are then added with ``add_link_raw``, which puts
+    their ends on the engine's relaxation worklist (and unanchors the joined part), so the
+    engine's bounded per-frame relaxation starts where the two graphs meet instead of
+    revisiting every experience. The result has the same arrays as the snapshot.
+    """
+    links = record.links
+    tail = int(record.merge_links.size)
+    if tail and not np.array_equal(record.merge_links, np.arange(links - tail, links)):
+        msg = "merge links must be the last links of the merged snapshot"
+        raise MergeError(msg)
+    head = dict(state)
+    for key in ("em_link_from", "em_link_to", "em_link_transform", "em_link_dt", "em_link_distance", "em_link_kind"):
+        head[key] = np.asarray(state[key])[: links - tail]
+    head["em_relax_pending"] = np.asarray(False)
+    engine = Engine.restore(params, head, origin=origin)
+    for link in range(links - tail, links):
+        engine.map.add_link_raw(
+            int(state["em_link_from"][link]),
+            int(state["em_link_to"][link]),
+            np.asarray(state["em_link_transform"][link], dtype=np.float64),
+            float(state["em_link_dt"][link]),
+            float(state["em_link_distance"][link]),
+            LinkKind(int(state["em_link_kind"][link])),
+        )
+    return engine
+
+
+def merge_engine(
+    stored: StoredMap,
+    engine: Engine,
+    match: Match,
+    *,
+    shift_lattice: bool = True,
+    identify_within: float | None = None,
+) -> tuple[Engine, MergeRecord]:
+    """Merge a running engine (the partial map) into a stored map and return the engine to continue in.
+
+    The merged engine keeps the running engine's parameters and origin tag; its loop-closure
+    count carries over. Relaxation starts at the merge links (:func:`restore_merged`) and
+    proceeds with the engine's per-frame relaxation; the partial's own pending relaxation
+    work, if any, is not carried (its ids changed).
+
+    Raises:
+        MergeError: the two maps cannot be merged (parameters or shapes differ, bad ids).
+    """
+    reason = params_incompatibility(stored.params, engine.params)
+    if reason:
+        msg = f"cannot merge into map {stored.key!r}: {reason}"
+        raise MergeError(msg)
+    state, record = merge_states(
+        stored.state, engine.snapshot(), match, shift_lattice=shift_lattice, identify_within=identify_within
+    )
+    merged = restore_merged(engine.params, state, record, origin=engine.origin)
+    merged.loop_closures = engine.loop_closures
+    return merged, record
+
+
+def merge_snapshots(
+    loaded: StoredMap,
+    partial: StoredMap,
+    match: Match,
+    *,
+    shift_lattice: bool = True,
+    identify_within: float | None = None,
+    settle: bool = True,
+) -> tuple[Engine, MergeRecord]:
+    """Merge stored map ``partial`` into stored map ``loaded`` (offline); return the merged engine and record.
+
+    The merged map keeps ``loaded``'s parameters. With ``settle`` the merged graph is moved to
+    the fixed point of relaxation (``Engine.settle``), as a finished session's map is.
+
+    Raises:
+        MergeError: the two maps cannot be merged.
+    """
+    reason = params_incompatibility(loaded.params, partial.params)
+    if reason:
+        msg = f"cannot merge map {partial.key!r} into {loaded.key!r}: {reason}"
+        raise MergeError(msg)
+    state, record = merge_states(
+        loaded.state, partial.state, match, shift_lattice=shift_lattice, identify_within=identify_within
+    )
+    merged = restore_merged(loaded.params, state, record)
+    if settle:
+        merged.settle()
+    return merged, record

@@ -1,0 +1,167 @@
+"""Offline merge of two stored maps (``mapserver merge --map A --into B``).
+
+Map A's templates, taken in creation order (which follows A's trajectory), are matched
+against map B's with B's matcher and threshold (``LocalViewCells.match``, vectorised over
+B's templates). A run of consecutive matching A templates is confirmed by the same rule
+as online (:mod:`mapserver.merge.confirm`), A's experience poses standing in for the
+odometry: the matched B experiences must advance as A's experiences do, under one rigid
+alignment. The best-supported run is the one with the most agreeing templates (then the
+lowest mean error); it must hold K of them (K from ``--confirm`` or A's
+``Params.merge_confirm``) and two distinct B templates when K ≥ 2. A is then merged into B
+anchored at the run's best-matching template, every pair of the run identified.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from core import Engine
+from core.localview import LocalViewCells
+from mapserver.errors import MergeError
+from mapserver.merge.confirm import Observation, Streak
+from mapserver.merge.engines import StoredMap, merge_snapshots
+from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance
+from mapserver.merge.record import Match, MergeRecord
+from mapserver.merge.se3 import compose
+from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
+
+logger = logging.getLogger(__name__)
+
+
+def _experience_for(order: np.ndarray, starts: np.ndarray, template: int) -> np.ndarray:
+    return order[starts[template] : starts[template + 1]]
+
+
+def find_match(
+    partial: StoredMap,
+    loaded: StoredMap,
+    *,
+    confirm: int | None = None,
+    position_tolerance: float | None = None,
+    yaw_tolerance: float = DEFAULT_YAW_TOLERANCE,
+) -> Match:
+    """Return the best-supported confirmed match of map ``partial``'s templates in map ``loaded``.
+
+    Args:
+        partial: map A (merged into ``loaded``).
+        loaded: map B.
+        confirm: K, agreeing templates needed; None → A's ``Params.merge_confirm``.
+        position_tolerance: metres; None → :func:`default_position_tolerance` of B.
+        yaw_tolerance: radians.
+
+    Raises:
+        MergeError: the maps cannot be merged, or no run of K agreeing matching templates exists
+            (the message says how many the best run had).
+    """
+    reason = params_incompatibility(loaded.params, partial.params)
+    if reason:
+        msg = f"cannot merge map {partial.key!r} into {loaded.key!r}: {reason}"
+        raise MergeError(msg)
+    needed = confirm if confirm is not None else partial.params.merge_confirm
+    if needed < 1:
+        msg = f"--confirm must be at least 1, got {needed!r}"
+        raise MergeError(msg)
+    tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
+    a, b = partial.state, loaded.state
+    n_a, n_b = int(np.shape(a["lv_means"])[0]), int(np.shape(b["lv_means"])[0])
+    if n_a == 0 or n_b == 0:
+        empty = partial.key if n_a == 0 else loaded.key
+        msg = f"map {empty!r} has no templates to match"
+        raise MergeError(msg)
+    cells = LocalViewCells.restore(loaded.params, b)
+    threshold = loaded.params.vt_match_threshold
+    a_templates = np.asarray(a["lv_templates"], dtype=np.float32)
+    a_means = np.asarray(a["lv_means"], dtype=np.float64)
+    a_order, a_starts = experiences_by_template(np.asarray(a["em_template"]), n_a)
+    b_order, b_starts = experiences_by_template(np.asarray(b["em_template"]), n_b)
+    a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
+    a_pc = np.asarray(a["em_pc"], dtype=np.float64).reshape(a_pose.shape[0], -1)
+    b_pose = np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4)
+
+    streak = Streak(needed, tolerance, yaw_tolerance)
+    best: list[Observation] = []
+    best_pairs: tuple[tuple[int, int], ...] = ()
+    matched = longest = 0
+
+    def score(entries: list[Observation]) -> tuple[int, float]:
+        return (len(entries), -float(np.mean([e.error for e in entries])) if entries else 0.0)
+
+    for i in range(n_a):
+        u, error, relative = cells.match(a_templates[i], float(a_means[i]))
+        if u < 0 or error > threshold:
+            streak.reset()
+            continue
+        matched += 1
+        mine = _experience_for(a_order, a_starts, i)
+        theirs = _experience_for(b_order, b_starts, u)
+        exp_a = int(mine[0]) if mine.size else -1
+        exp_b = -1
+        if theirs.size and exp_a >= 0:
+            predicted = streak.predict(a_pose[exp_a])
+            if predicted is None or theirs.size == 1:
+                exp_b = int(theirs[0])
+            else:
+                exp_b = int(theirs[int(np.argmin(np.linalg.norm(b_pose[theirs, :3] - predicted[:3], axis=1)))])
+        seen = compose(b_pose[exp_b], np.array([0.0, 0.0, 0.0, relative])) if exp_b >= 0 else np.zeros(4)
+        observation = Observation(
+            frame=i,
+            stored_template=u,
+            stored_experience=exp_b,
+            error=float(error),
+            relative_rad=float(relative),
+            partial_template=i,
+            odometry=a_pose[exp_a] if exp_a >= 0 else np.zeros(4),
+            packet=a_pc[exp_a] if exp_a >= 0 else np.zeros(a_pc.shape[1]),
+            seen=seen,
+        )
+        streak.add(observation)
+        longest = max(longest, len(streak.entries))
+        if streak.confirmed and score(streak.entries) > score(best):
+            best = list(streak.entries)
+            best_pairs = streak.pairs()
+    if not best:
+        if matched == 0:
+            msg = f"no template of map {partial.key!r} matches map {loaded.key!r} (threshold {threshold!r})"
+        else:
+            msg = (
+                f"no confirmed match of map {partial.key!r} in map {loaded.key!r}: {matched} templates match but "
+                f"the longest agreeing run has {longest} (needs {needed}, along two distinct stored templates)"
+            )
+        raise MergeError(msg)
+    anchor = min(reversed(best), key=lambda e: e.error)
+    exp_a = int(_experience_for(a_order, a_starts, anchor.partial_template)[0])
+    return Match.at_experience(
+        a,
+        exp_a,
+        anchor.stored_template,
+        anchor.stored_experience,
+        relative_rad=anchor.relative_rad,
+        confirmations=len(best),
+        pairs=best_pairs,
+    )
+
+
+def merge_maps(
+    partial: StoredMap,
+    loaded: StoredMap,
+    *,
+    confirm: int | None = None,
+    shift_lattice: bool = True,
+    position_tolerance: float | None = None,
+    yaw_tolerance: float = DEFAULT_YAW_TOLERANCE,
+) -> tuple[Engine, MergeRecord]:
+    """Merge stored map ``partial`` (A) into stored map ``loaded`` (B); return the merged engine and record.
+
+    Raises:
+        MergeError: incompatible maps or no confirmed match (see :func:`find_match`).
+    """
+    match = find_match(
+        partial, loaded, confirm=confirm, position_tolerance=position_tolerance, yaw_tolerance=yaw_tolerance
+    )
+    logger.info(
+        "merging map %r into %r at template %d ↔ %d (%d confirmations)",
+        partial.key, loaded.key, match.partial_template, match.stored_template, match.confirmations,
+    )
+    return merge_snapshots(loaded, partial, match, shift_lattice=shift_lattice)

@@ -1,0 +1,84 @@
+"""Reading engine snapshots (docs/architecture.md schema) and checking that two can be merged."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mapserver.errors import MergeError
+
+if TYPE_CHECKING:
+    from core import Params
+
+State = Mapping[str, np.ndarray]
+
+# The documented keys a merge reads and writes (docs/architecture.md, "Engine state snapshot").
+SNAPSHOT_KEYS: tuple[str, ...] = (
+    "lv_templates", "lv_means", "lv_origin", "lv_current", "lv_previous", "lv_relative_rad",
+    "vo_prev_vtrans", "vo_prev_vrot",
+    "pc_activity", "pc_best", "pc_link_template", "pc_link_coords", "pc_link_strength", "pc_link_decay",
+    "pc_current_vt", "pc_prev_vt", "pc_vt_delta_th",
+    "em_pose", "em_pc", "em_template", "em_stamp", "em_origin",
+    "em_link_from", "em_link_to", "em_link_transform", "em_link_dt", "em_link_distance", "em_link_kind",
+    "em_current", "em_previous", "em_accum", "em_relax_pending",
+    "gate_history", "gate_state", "eng_frames", "eng_last_stamp",
+)
+
+
+def check_state(state: State, name: str) -> None:
+    """Raise MergeError when a documented snapshot key is missing."""
+    missing = [key for key in SNAPSHOT_KEYS if key not in state]
+    if missing:
+        msg = f"{name} map snapshot lacks {', '.join(missing)}"
+        raise MergeError(msg)
+
+
+def lattice_shape(state: State) -> tuple[int, ...]:
+    """Return the pose-cell lattice shape of a snapshot."""
+    return tuple(int(d) for d in np.shape(state["pc_activity"]))
+
+
+def template_shape(state: State) -> tuple[int, ...] | None:
+    """Return the (ty, tx) template shape of a snapshot, None when it holds no template."""
+    templates = np.asarray(state["lv_templates"])
+    if templates.ndim != 3 or templates.shape[0] == 0:
+        return None
+    return (int(templates.shape[1]), int(templates.shape[2]))
+
+
+def incompatibility(loaded: State, partial: State) -> str | None:
+    """Return why two snapshots cannot be merged (lattice or template shapes differ), None if they can."""
+    a, b = lattice_shape(loaded), lattice_shape(partial)
+    if a != b:
+        return f"pose-cell lattices differ: {a!r} and {b!r}"
+    ta, tb = template_shape(loaded), template_shape(partial)
+    if ta is not None and tb is not None and ta != tb:
+        return f"template sizes differ: {ta!r} and {tb!r}"
+    return None
+
+
+def params_incompatibility(loaded: Params, partial: Params) -> str | None:
+    """Return why maps built with these parameters cannot be merged, None if they can.
+
+    The lattice shape, the template size and the matcher's geometry (panoramic or not)
+    must agree; the rest (thresholds, energies) may differ between sessions.
+    """
+    if loaded.lattice_shape != partial.lattice_shape:
+        return f"pose-cell lattices differ: {loaded.lattice_shape!r} and {partial.lattice_shape!r}"
+    a = (loaded.template_y_size, loaded.template_x_size)
+    b = (partial.template_y_size, partial.template_x_size)
+    if a != b:
+        return f"template sizes differ: {a!r} and {b!r}"
+    if loaded.vt_panoramic != partial.vt_panoramic:
+        return "one map uses panoramic template matching and the other does not"
+    return None
+
+
+def experiences_by_template(templates: np.ndarray, n_templates: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return (order, starts): experiences of template t are ``order[starts[t]:starts[t + 1]]``, ascending ids."""
+    t = np.asarray(templates, dtype=np.int64)
+    order = np.argsort(t, kind="stable")
+    starts = np.searchsorted(t[order], np.arange(n_templates + 1))
+    return order, starts

@@ -1,0 +1,369 @@
+"""Merging a partial map's engine state into a loaded map's: Menezes et al. (2023) Algorithm 1, corrected.
+
+``merge_states`` works on snapshot arrays (docs/architecture.md) and returns the merged
+snapshot, built from the documented keys only, that ``core.Engine.restore`` continues from.
+Loaded ids are kept; partial templates, links and experiences are appended after them.
+Every step is vectorised over templates, links and experiences.
+
+Operations (Algorithm 1):
+
+* (i) templates, Eq. 9: the partial templates are appended except those identified with a
+  loaded template (the matched one, and the pairs seen while confirming the match), whose
+  ids are remapped to the loaded id everywhere (pose-cell links, experiences, the gate window).
+* (ii) pose-cell activation: the partial packet centre is carried through the lattice
+  transform f (below) and the activity restarts there as a unit packet. When the robot is
+  where its matched template was learnt this is the loaded template's cell, heading
+  corrected by the view's relative_rad (the paper's P_u^lm).
+* (iii) LVC→pose-cell links, Eqs. 10–12: every partial link (and experience lattice
+  coordinate) is carried through f: the offset is loaded − partial (the printed Eq. 10 adds
+  them), and the (x, y) displacement from the matched cell is rotated by the heading offset
+  before wrapping (the paper only translates, wrong when the sessions' lattice headings differ).
+  ``shift_lattice=False`` skips this operation (debug: Fig. 12 of the paper).
+* (iv) experience maps, Eqs. 13–17: every partial experience pose is mapped by the 4-DoF
+  rigid transform T = T_loaded ⊕ T_partial⁻¹ of the matched pair; ids are renumbered, links
+  (relative transforms) are kept; the matched partial experience is not inserted (its links
+  are redirected to the loaded one, kind ``merge`` for those that join the two graphs: Eq. 17).
+  The merge links come last in the link arrays. Relaxation is scheduled (``em_relax_pending``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from core import LinkKind
+from mapserver.errors import MergeError
+from mapserver.merge.lattice import LatticeTransform, splat
+from mapserver.merge.record import Match, MergeRecord
+from mapserver.merge.se3 import alignment, compose, relative, wrap_angle
+from mapserver.merge.snapshot import (
+    State,
+    check_state,
+    experiences_by_template,
+    incompatibility,
+    lattice_shape,
+)
+
+
+def _heading(rad: float) -> np.ndarray:
+    return np.array([0.0, 0.0, 0.0, rad])
+
+
+def _check_id(value: int, count: int, what: str, allow_none: bool = False) -> None:
+    low = -1 if allow_none else 0
+    if not low <= value < count:
+        msg = f"{what} {value!r} is out of range (the map has {count})"
+        raise MergeError(msg)
+
+
+def _template_map(match: Match, n_loaded: int, n_partial: int) -> np.ndarray:
+    """Return (P,) merged template ids: identified ones → loaded ids, the rest appended in order."""
+    identified: dict[int, int] = {match.partial_template: match.stored_template}
+    for z, u in match.pairs:
+        _check_id(z, n_partial, "partial template")
+        _check_id(u, n_loaded, "stored template")
+        identified.setdefault(int(z), int(u))
+    tmap = np.full(n_partial, -1, dtype=np.int64)
+    keys = np.fromiter(identified.keys(), dtype=np.int64, count=len(identified))
+    tmap[keys] = np.fromiter(identified.values(), dtype=np.int64, count=len(identified))
+    kept = tmap < 0
+    tmap[kept] = n_loaded + np.arange(int(kept.sum()), dtype=np.int64)
+    return tmap
+
+
+def _remap(ids: np.ndarray, mapping: np.ndarray) -> np.ndarray:
+    """Map ids ≥ 0 through ``mapping``; −1 (none) stays −1."""
+    ids = np.asarray(ids, dtype=np.int64)
+    out = np.full(ids.shape, -1, dtype=np.int64)
+    valid = ids >= 0
+    out[valid] = mapping[ids[valid]]
+    return out
+
+
+def default_identify_within(loaded: State) -> float:
+    """Return half the median odometry-link length of the loaded map, metres (∞ when it has no link).
+
+    How close, after T, a partial experience must lie to a loaded experience of the same view
+    to be identified with it.
+    """
+    kind = np.asarray(loaded["em_link_kind"])
+    distance = np.asarray(loaded["em_link_distance"], dtype=np.float64)[kind == int(LinkKind.ODOMETRY)]
+    distance = distance[distance > 0]
+    return 0.5 * float(np.median(distance)) if distance.size else math.inf
+
+
+def _identify_experiences(
+    loaded: State,
+    partial: State,
+    tmap: np.ndarray,
+    n_loaded_templates: int,
+    emap: np.ndarray,
+    T: np.ndarray,
+    within: float,
+) -> None:
+    """Identify partial experiences of identified templates with the nearest loaded experience of that template.
+
+    Only when that experience lies within ``within`` metres after T: a view matches its template
+    over a stretch of road, so a pair of matched views does not make two experiences one place.
+    Only experiences of identified templates are visited (the confirmation window), so the
+    Python loop is bounded by the window, not by the map size.
+    """
+    p_templates = np.asarray(partial["em_template"], dtype=np.int64)
+    identified_t = tmap < n_loaded_templates
+    candidates = np.flatnonzero(identified_t[p_templates] & (emap < 0))
+    if candidates.size == 0:
+        return
+    order, starts = experiences_by_template(np.asarray(loaded["em_template"]), n_loaded_templates)
+    poses = compose(T, np.asarray(partial["em_pose"])[candidates])
+    loaded_pose = np.asarray(loaded["em_pose"])
+    for k, exp in enumerate(candidates.tolist()):
+        u = int(tmap[p_templates[exp]])
+        mine = order[starts[u] : starts[u + 1]]
+        if mine.size:
+            gap = np.linalg.norm(loaded_pose[mine, :3] - poses[k, :3], axis=1)
+            nearest = int(np.argmin(gap))
+            if gap[nearest] <= within:
+                emap[exp] = int(mine[nearest])
+
+
+def _links(
+    loaded: State, partial: State, emap: np.ndarray, kept_e: np.ndarray, n_total: int
+) -> tuple[np.ndarray, ...]:
+    """Return the partial links remapped: (keep mask, from, to, kind, joins), self-loops and duplicates dropped.
+
+    ``joins`` marks the links that now join a kept partial experience to a loaded one (kind ``merge``).
+    """
+    pf = np.asarray(partial["em_link_from"], dtype=np.int64)
+    pt = np.asarray(partial["em_link_to"], dtype=np.int64)
+    nf, nt = emap[pf], emap[pt]
+    keep = nf != nt
+    code = nf * n_total + nt
+    # only a link between two identified (now loaded) experiences can repeat a loaded link
+    both = np.flatnonzero(~kept_e[pf] & ~kept_e[pt])
+    if both.size:
+        lf = np.asarray(loaded["em_link_from"], dtype=np.int64)
+        lt = np.asarray(loaded["em_link_to"], dtype=np.int64)
+        ends = np.unique(np.concatenate([nf[both], nt[both]]))
+        near = np.isin(lf, ends) & np.isin(lt, ends)  # loaded links among those experiences only
+        keep[both] &= ~np.isin(code[both], lf[near] * n_total + lt[near])
+    _, first = np.unique(code, return_index=True)
+    unique = np.zeros(code.shape, dtype=bool)
+    unique[first] = True
+    keep &= unique
+    kind = np.asarray(partial["em_link_kind"], dtype=np.int8).copy()
+    joins = kept_e[pf] != kept_e[pt]  # one end kept in the partial, the other now a loaded experience
+    kind[joins] = int(LinkKind.MERGE)
+    return keep, nf, nt, kind, joins
+
+
+def merge_states(
+    loaded: State,
+    partial: State,
+    match: Match,
+    *,
+    shift_lattice: bool = True,
+    identify_within: float | None = None,
+) -> tuple[dict[str, np.ndarray], MergeRecord]:
+    """Merge the partial map's state into the loaded map's (Menezes et al. Algorithm 1, corrected).
+
+    Args:
+        loaded: snapshot of the loaded (stored) map; its ids are kept.
+        partial: snapshot of the partial map (the session being mapped, or the map merged offline);
+            its robot state (current experience, odometry since, packet) continues in the merged map.
+        match: the confirmed correspondence (:class:`Match`).
+        shift_lattice: False skips operation (iii): the partial links and experience lattice
+            coordinates keep the partial lattice's frame (debug; the paper's Fig. 12).
+        identify_within: metres; a partial experience of an identified template is identified with
+            (not inserted, links redirected to) the nearest loaded experience of that template when
+            they lie this close after T. None → :func:`default_identify_within`.
+
+    Returns:
+        The merged snapshot (documented keys only; ``Engine.restore`` continues from it) and
+        the :class:`MergeRecord`.
+
+    Raises:
+        MergeError: the snapshots cannot be merged (different lattice or template shapes, a
+            documented key missing, an id out of range).
+    """
+    check_state(loaded, "loaded")
+    check_state(partial, "partial")
+    reason = incompatibility(loaded, partial)
+    if reason:
+        raise MergeError(reason)
+    dims = lattice_shape(loaded)
+    rank, n_th = len(dims), dims[-1]
+    n_lt, n_pt = int(np.shape(loaded["lv_means"])[0]), int(np.shape(partial["lv_means"])[0])
+    l_pose = np.asarray(loaded["em_pose"], dtype=np.float64).reshape(-1, 4)
+    p_pose = np.asarray(partial["em_pose"], dtype=np.float64).reshape(-1, 4)
+    n_le, n_pe = l_pose.shape[0], p_pose.shape[0]
+    n_ll = int(np.shape(loaded["em_link_from"])[0])
+    u, e_u, z = match.stored_template, match.stored_experience, match.partial_template
+    _check_id(u, n_lt, "stored template")
+    _check_id(e_u, n_le, "stored experience")
+    _check_id(z, n_pt, "partial template")
+    if len(match.partial_packet) != rank or len(match.partial_pose) != 4:
+        msg = f"partial anchor must be a pose (4,) and a packet ({rank},), got {match.partial_pose!r}, " \
+              f"{match.partial_packet!r}"
+        raise MergeError(msg)
+
+    # (i) templates, Eq. 9
+    tmap = _template_map(match, n_lt, n_pt)
+    kept_t = tmap >= n_lt
+    shape = np.shape(loaded["lv_templates"])[1:] if n_lt else np.shape(partial["lv_templates"])[1:]
+    templates = np.concatenate(
+        [
+            np.asarray(loaded["lv_templates"], dtype=np.float32).reshape(-1, *shape),
+            np.asarray(partial["lv_templates"], dtype=np.float32).reshape(-1, *shape)[kept_t],
+        ]
+    )
+
+    # (ii)/(iii) the lattice transform f between the matched packets: offset loaded − partial (corrected
+    # Eq. 10), (x, y) rotated by the heading offset. The loaded packet is the matched experience's lattice
+    # coordinates (the packet after its frame's path integration; a link holds the packet of the frame
+    # before, and a session's first template the initial one), heading corrected by the view's offset.
+    l_pc = np.asarray(loaded["em_pc"], dtype=np.float64).reshape(-1, rank)
+    p_pc = np.asarray(partial["em_pc"], dtype=np.float64).reshape(-1, rank)
+    delta_u = match.relative_rad / (2.0 * math.pi) * n_th
+    target = l_pc[e_u].copy()
+    target[-1] += delta_u
+    f = LatticeTransform.between(dims, np.asarray(match.partial_packet, dtype=np.float64), target)
+
+    def lattice(coords: np.ndarray) -> np.ndarray:
+        return f.apply(coords) if shift_lattice else np.asarray(coords, dtype=np.float64).copy()
+
+    l_links = np.asarray(loaded["pc_link_template"], dtype=np.int64)
+    p_links = np.asarray(partial["pc_link_template"], dtype=np.int64)
+    l_coords = np.asarray(loaded["pc_link_coords"], dtype=np.float64).reshape(-1, rank)
+    p_coords = np.asarray(partial["pc_link_coords"], dtype=np.float64).reshape(-1, rank)
+    keep_link = kept_t[p_links]  # links of identified templates: the loaded template's links stand
+
+    # (iv) experiences: T = T_loaded ⊕ T_partial⁻¹ (Eqs. 13–14 generalised to x, y, z, yaw)
+    anchor_loaded = compose(l_pose[e_u], _heading(match.relative_rad))
+    pose_p = np.asarray(match.partial_pose, dtype=np.float64)
+    T = alignment(anchor_loaded, pose_p)
+    emap = np.full(n_pe, -1, dtype=np.int64)
+    within = default_identify_within(loaded) if identify_within is None else identify_within
+    _identify_experiences(loaded, partial, tmap, n_lt, emap, T, within)
+    kept_e = emap < 0
+    emap[kept_e] = n_le + np.arange(int(kept_e.sum()), dtype=np.int64)
+    n_total = n_le + int(kept_e.sum())
+
+    keep_l, nf, nt, kind, joins = _links(loaded, partial, emap, kept_e, n_total)
+    p_transform = np.asarray(partial["em_link_transform"], dtype=np.float64).reshape(-1, 4)
+    # kept partial links in their order, those joining the two graphs (the merge links) last
+    kept_links = np.flatnonzero(keep_l)
+    keep_l = np.concatenate([kept_links[~joins[kept_links]], kept_links[joins[kept_links]]])
+    new_from, new_to = [nf[keep_l]], [nt[keep_l]]
+    new_tf, new_kind = [p_transform[keep_l]], [kind[keep_l]]
+    new_dt = [np.asarray(partial["em_link_dt"], dtype=np.float64)[keep_l]]
+    new_dist = [np.asarray(partial["em_link_distance"], dtype=np.float64)[keep_l]]
+    new_joins = [joins[keep_l]]
+
+    accum = np.asarray(partial["em_accum"], dtype=np.float64).copy()
+    current = int(partial["em_current"])
+    if current >= 0 and n_le and kept_e.any() and not new_joins[0].any():
+        # nothing identified joins the graphs (e.g. no partial experience of an identified template):
+        # Eq. 17 as a link from the partial's current experience to e_u, at their relative pose under T
+        src = int(emap[current])
+        link = relative(compose(T, p_pose[current]), l_pose[e_u])
+        new_from.append(np.array([src], dtype=np.int64))
+        new_to.append(np.array([e_u], dtype=np.int64))
+        new_tf.append(link[None, :])
+        new_kind.append(np.array([int(LinkKind.MERGE)], dtype=np.int8))
+        new_dt.append(np.array([float(accum[4])]))
+        new_dist.append(np.array([float(np.linalg.norm(link[:3]))]))
+        new_joins.append(np.array([True]))
+    link_kind = np.concatenate([np.asarray(loaded["em_link_kind"], dtype=np.int8), *new_kind]).astype(np.int8)
+    merge_links = n_ll + np.flatnonzero(np.concatenate(new_joins))
+
+    # the robot continues in the merged map: same experience, odometry since it rotated by T
+    if current >= 0:
+        em_current = int(emap[current])
+        previous = int(partial["em_previous"])
+        em_previous = int(emap[previous]) if previous >= 0 else -1
+        c, s = math.cos(float(T[3])), math.sin(float(T[3]))
+        accum[0], accum[1] = c * accum[0] - s * accum[1], s * accum[0] + c * accum[1]
+        accum[3] = float(wrap_angle(accum[3] + float(T[3])))
+    else:  # no partial experience yet: the robot is at e_u (set_experience(e_u, relative_rad))
+        em_current, em_previous = e_u, -1
+        accum = np.array([0.0, 0.0, 0.0, float(anchor_loaded[3]), 0.0, 0.0])
+
+    best = f.apply(np.asarray(partial["pc_best"], dtype=np.float64))
+    lv_current = int(partial["lv_current"])
+    pc_current = int(partial["pc_current_vt"])
+
+    def cat(key: str, dtype: type, mask: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.asarray(loaded[key], dtype=dtype), np.asarray(partial[key], dtype=dtype)[mask]])
+
+    def scalar(value: int) -> np.ndarray:
+        return np.asarray(_remap(np.asarray(value), tmap), dtype=np.int64)
+
+    state: dict[str, np.ndarray] = {
+        "lv_templates": templates,
+        "lv_means": cat("lv_means", np.float64, kept_t),
+        "lv_origin": cat("lv_origin", np.int64, kept_t),
+        "lv_current": scalar(lv_current),
+        "lv_previous": scalar(int(partial["lv_previous"])),
+        "lv_relative_rad": np.asarray(
+            match.relative_rad if lv_current == z else float(partial["lv_relative_rad"]), dtype=np.float64
+        ),
+        "vo_prev_vtrans": np.asarray(partial["vo_prev_vtrans"], dtype=np.float64).copy(),
+        "vo_prev_vrot": np.asarray(partial["vo_prev_vrot"], dtype=np.float64).copy(),
+        "pc_activity": splat(dims, best),
+        "pc_best": best,
+        "pc_link_template": np.concatenate([l_links, tmap[p_links[keep_link]]]),
+        "pc_link_coords": np.concatenate([l_coords, lattice(p_coords[keep_link]).reshape(-1, rank)]),
+        "pc_link_strength": cat("pc_link_strength", np.float64, keep_link),
+        "pc_link_decay": cat("pc_link_decay", np.float64, keep_link),
+        "pc_current_vt": scalar(pc_current),
+        "pc_prev_vt": scalar(int(partial["pc_prev_vt"])),
+        "pc_vt_delta_th": np.asarray(delta_u if pc_current == z else float(partial["pc_vt_delta_th"])),
+        "em_pose": np.concatenate([l_pose, compose(T, p_pose[kept_e])]),
+        "em_pc": np.concatenate([l_pc, lattice(p_pc[kept_e]).reshape(-1, rank)]),
+        "em_template": np.concatenate(
+            [np.asarray(loaded["em_template"], dtype=np.int64), tmap[np.asarray(partial["em_template"])[kept_e]]]
+        ),
+        "em_stamp": cat("em_stamp", np.float64, kept_e),
+        "em_origin": cat("em_origin", np.int64, kept_e),
+        "em_link_from": np.concatenate([np.asarray(loaded["em_link_from"], dtype=np.int64), *new_from]),
+        "em_link_to": np.concatenate([np.asarray(loaded["em_link_to"], dtype=np.int64), *new_to]),
+        "em_link_transform": np.concatenate(
+            [np.asarray(loaded["em_link_transform"], dtype=np.float64).reshape(-1, 4), *new_tf]
+        ),
+        "em_link_dt": np.concatenate([np.asarray(loaded["em_link_dt"], dtype=np.float64), *new_dt]),
+        "em_link_distance": np.concatenate([np.asarray(loaded["em_link_distance"], dtype=np.float64), *new_dist]),
+        "em_link_kind": link_kind,
+        "em_current": np.asarray(em_current, dtype=np.int64),
+        "em_previous": np.asarray(em_previous, dtype=np.int64),
+        "em_accum": accum,
+        "em_relax_pending": np.asarray(True),
+        "gate_history": _remap(np.asarray(partial["gate_history"]), tmap),
+        "gate_state": np.asarray(partial["gate_state"], dtype=np.float64).copy(),
+        "eng_frames": np.asarray(int(partial["eng_frames"]), dtype=np.int64),
+        "eng_last_stamp": np.asarray(float(partial["eng_last_stamp"]), dtype=np.float64),
+    }
+    record = MergeRecord(
+        stored_template=u,
+        stored_experience=e_u,
+        partial_template=z,
+        partial_pose=(float(pose_p[0]), float(pose_p[1]), float(pose_p[2]), float(pose_p[3])),
+        relative_rad=float(match.relative_rad),
+        confirmations=int(match.confirmations),
+        lattice_source=f.source,
+        lattice_target=f.target,
+        lattice_offset=tuple(f.offset.tolist()),
+        heading_offset_rad=f.heading_rad,
+        lattice_shifted=shift_lattice,
+        transform=(float(T[0]), float(T[1]), float(T[2]), float(T[3])),
+        template_offset=n_lt,
+        experience_offset=n_le,
+        link_offset=n_ll,
+        template_map=tmap,
+        experience_map=emap,
+        merge_links=merge_links.astype(np.int64),
+        templates=int(state["lv_means"].shape[0]),
+        experiences=int(state["em_pose"].shape[0]),
+        links=int(state["em_link_from"].shape[0]),
+    )
+    return state, record

@@ -1,0 +1,302 @@
+"""Archived map states: freeze a map's state (before a merge) and restore it exactly (unmerge, redo).
+
+An archive row (``map_archives``) holds one compressed npz: the full engine snapshot (origins as
+session ids), the stable identities of its templates and experiences, and the map's session ids.
+Template pixels are *not* copied when the template is already stored as a ``templates`` row with the
+same identity, shape and mean (templates are immutable): the archive keeps a reference and the row's
+blob is reused on restore. Template rows are never deleted while their session exists, so references
+stay valid.
+
+Unmerge recipe (what ``mapserver unmerge`` does, issue 5)::
+
+    with db.write() as conn:
+        event = get_merge_event(conn=conn, event_id=...)
+        restore_map_states(conn=conn, archive_ids=event.archive_ids)   # every map as it was
+        set_merge_status(conn=conn, event_id=event.id, status="undone")
+
+Restoring several archives in one call is order-independent: every map named by an archive is emptied
+first, so identities the merged map held are free again when the pre-merge maps are written back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from sqlalchemy import Connection, insert, select
+
+from mapserver.errors import NotFoundError, StoreError
+from mapserver.store.arrays import pack_npz, unpack_npz
+from mapserver.store.bulk import fetch_tuples
+from mapserver.store.maps import clear_map, create_map, find_map, get_map_by_id
+from mapserver.store.models import MapArchive, Template
+from mapserver.store.state import WriteResult, plain_params, read_map_state, write_map_state
+
+_META = "__archive__."
+_TEMPLATE_REF = _META + "template_ref"
+_TEMPLATE_INLINE = _META + "template_inline"
+_TEMPLATE_SHAPE = _META + "template_shape"
+_IDENTITIES = ("template_session", "template_index", "experience_session", "experience_index")
+
+
+@dataclass(frozen=True)
+class ArchivedState:
+    """A map state read back from an archive (``load_archive``)."""
+
+    id: int
+    event_id: int | None
+    role: str | None
+    map_id: int | None
+    map_name: str
+    map_version: int | None
+    params: dict[str, Any]
+    session_ids: tuple[int, ...]
+    snapshot: dict[str, np.ndarray]
+    template_session: npt.NDArray[np.int64]
+    template_index: npt.NDArray[np.int64]
+    experience_session: npt.NDArray[np.int64]
+    experience_index: npt.NDArray[np.int64]
+    created_at: datetime
+
+
+def _template_refs(
+    conn: Connection, sessions: np.ndarray, indices: np.ndarray, means: np.ndarray, shape: tuple[int, int]
+) -> np.ndarray:
+    """Return a bool mask: True where the template is stored as a row with the same identity, shape and mean."""
+    n = sessions.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    rows = conn.execute(
+        select(Template.session_id, Template.origin_index, Template.height, Template.width, Template.mean).where(
+            Template.session_id.in_(np.unique(sessions).tolist())
+        )
+    ).all()
+    stored = {(int(r[0]), int(r[1])): (int(r[2]), int(r[3]), float(r[4])) for r in rows}
+    mask = np.zeros(n, dtype=bool)
+    for i, (s, k, m) in enumerate(zip(sessions.tolist(), indices.tolist(), means.tolist(), strict=True)):
+        hit = stored.get((s, k))
+        mask[i] = hit is not None and hit[0] == shape[0] and hit[1] == shape[1] and hit[2] == m
+    return mask
+
+
+def archive_state(
+    *,
+    conn: Connection,
+    map_name: str,
+    params: Any,
+    snapshot: Mapping[str, npt.ArrayLike],
+    session_ids: Sequence[int],
+    template_session: npt.ArrayLike,
+    template_index: npt.ArrayLike,
+    experience_session: npt.ArrayLike,
+    experience_index: npt.ArrayLike,
+    map_id: int | None = None,
+    map_version: int | None = None,
+    event_id: int | None = None,
+    role: str | None = None,
+) -> int:
+    """Archive an in-memory map state (e.g. a new session's partial map at the moment it merges).
+
+    Args:
+        conn: a connection in a write transaction.
+        map_name: the name the state is restored under.
+        params: the engine parameters (``core.Params`` or its dict).
+        snapshot: the engine snapshot; ``lv_origin``/``em_origin`` must be session ids.
+        session_ids: the state's sessions.
+        template_session: (N,) origin session of each template.
+        template_index: (N,) index of each template within its session.
+        experience_session: (E,) origin session of each experience.
+        experience_index: (E,) index of each experience within its session.
+        map_id: the map the state belonged to, if stored.
+        map_version: that map's version when archived.
+        event_id: the merge event the archive belongs to.
+        role: its role in that event (``target`` or ``source``).
+
+    Returns:
+        The archive id.
+
+    Raises:
+        StoreError: the identities do not match the snapshot's sizes.
+    """
+    arrays = {key: np.asarray(value) for key, value in snapshot.items()}
+    templates = arrays.get("lv_templates")
+    if templates is None or templates.ndim != 3:
+        msg = "the snapshot to archive lacks float32 (N, ty, tx) lv_templates"
+        raise StoreError(msg)
+    ids = {
+        "template_session": np.asarray(template_session, dtype=np.int64).reshape(-1),
+        "template_index": np.asarray(template_index, dtype=np.int64).reshape(-1),
+        "experience_session": np.asarray(experience_session, dtype=np.int64).reshape(-1),
+        "experience_index": np.asarray(experience_index, dtype=np.int64).reshape(-1),
+    }
+    n = templates.shape[0]
+    e = np.asarray(arrays.get("em_pose", np.zeros((0, 4)))).reshape(-1, 4).shape[0]
+    for key, value in ids.items():
+        if value.shape[0] != (n if key.startswith("template") else e):
+            msg = f"{key} has {value.shape[0]} entries for {n} templates and {e} experiences"
+            raise StoreError(msg)
+    means = np.asarray(arrays.get("lv_means", np.zeros(n)), dtype=np.float64).reshape(-1)
+    referenced = _template_refs(conn, ids["template_session"], ids["template_index"], means, templates.shape[1:])
+    content = {k: v for k, v in arrays.items() if k != "lv_templates"}
+    content[_META + "keys"] = np.asarray(list(arrays), dtype=str)
+    content["__lv_templates_inline"] = np.ascontiguousarray(templates[~referenced])
+    content[_TEMPLATE_INLINE] = ~referenced
+    content[_TEMPLATE_SHAPE] = np.asarray(templates.shape, dtype=np.int64)
+    content[_META + "template_dtype"] = np.asarray(templates.dtype.str)
+    for key, value in ids.items():
+        content[_META + key] = value
+    row = {
+        "event_id": event_id,
+        "role": role,
+        "map_id": map_id,
+        "map_name": map_name,
+        "map_version": map_version,
+        "params": plain_params(params),
+        "session_ids": [int(s) for s in session_ids],
+        "n_templates": int(n),
+        "n_experiences": int(e),
+        "n_links": int(np.asarray(arrays.get("em_link_from", np.zeros(0))).reshape(-1).shape[0]),
+        "state": pack_npz(content),
+    }
+    return int(conn.execute(insert(MapArchive).values(**row).returning(MapArchive.id)).scalar_one())
+
+
+def archive_map_state(
+    *, conn: Connection, map_id: int, event_id: int | None = None, role: str | None = None
+) -> int:
+    """Archive a stored map's current state (call it before a merge changes or drops the map).
+
+    Returns:
+        The archive id.
+    """
+    content = read_map_state(conn=conn, map_id=map_id)
+    meta = content.meta
+    return archive_state(
+        conn=conn,
+        map_name=meta.map.name,
+        params=content.params,
+        snapshot=content.snapshot,
+        session_ids=[s.id for s in meta.sessions],
+        template_session=meta.template_session,
+        template_index=meta.template_index,
+        experience_session=meta.experience_session,
+        experience_index=meta.experience_index,
+        map_id=map_id,
+        map_version=meta.map.version,
+        event_id=event_id,
+        role=role,
+    )
+
+
+def load_archive(*, conn: Connection, archive_id: int) -> ArchivedState:
+    """Read an archived state back, templates included (referenced ones from their rows), exactly.
+
+    Raises:
+        NotFoundError: no such archive.
+        StoreError: a referenced template row is missing.
+    """
+    row = conn.execute(
+        select(
+            MapArchive.event_id, MapArchive.role, MapArchive.map_id, MapArchive.map_name, MapArchive.map_version,
+            MapArchive.params, MapArchive.session_ids, MapArchive.state, MapArchive.created_at,
+        ).where(MapArchive.id == archive_id)
+    ).first()  # fmt: skip
+    if row is None:
+        msg = f"no archived map state with id {archive_id!r}"
+        raise NotFoundError(msg)
+    content = unpack_npz(row[7])
+    keys = [str(k) for k in content.pop(_META + "keys")]
+    ids = {key: content.pop(_META + key).astype(np.int64) for key in _IDENTITIES}
+    inline_mask = content.pop(_TEMPLATE_INLINE).astype(bool)
+    shape = tuple(int(v) for v in content.pop(_TEMPLATE_SHAPE))
+    dtype = np.dtype(str(content.pop(_META + "template_dtype")))
+    inline = content.pop("__lv_templates_inline")
+    templates = np.empty(shape, dtype=dtype)
+    templates[inline_mask] = inline
+    wanted = np.flatnonzero(~inline_mask)
+    if wanted.size:
+        sessions = ids["template_session"][wanted]
+        indices = ids["template_index"][wanted]
+        stored = {}
+        for s in np.unique(sessions).tolist():
+            rows = fetch_tuples(
+                conn,
+                select(Template.origin_index, Template.data).where(Template.session_id == s),
+            )
+            stored.update({(s, int(k)): data for k, data in rows})
+        for j, (s, k) in zip(wanted.tolist(), zip(sessions.tolist(), indices.tolist(), strict=True), strict=True):
+            data = stored.get((s, k))
+            if data is None:
+                msg = f"archive {archive_id}: template (session {s}, index {k}) is no longer stored"
+                raise StoreError(msg)
+            templates[j] = np.frombuffer(data, dtype="<f4").reshape(shape[1:]).astype(dtype)
+    content["lv_templates"] = templates
+    snapshot = {key: content[key] for key in keys}
+    return ArchivedState(
+        id=archive_id,
+        event_id=row[0],
+        role=row[1],
+        map_id=row[2],
+        map_name=str(row[3]),
+        map_version=row[4],
+        params=dict(row[5]),
+        session_ids=tuple(int(s) for s in row[6]),
+        snapshot=snapshot,
+        created_at=row[8],
+        **ids,
+    )
+
+
+def archives_of_event(*, conn: Connection, event_id: int) -> list[int]:
+    """Return the ids of a merge event's archives, in creation order."""
+    return [
+        int(v)
+        for v in conn.execute(
+            select(MapArchive.id).where(MapArchive.event_id == event_id).order_by(MapArchive.id)
+        ).scalars()
+    ]
+
+
+def restore_map_states(*, conn: Connection, archive_ids: Sequence[int]) -> list[WriteResult]:
+    """Write archived states back as stored maps, each under its archived name, in one transaction.
+
+    Every map named by an archive is emptied first (created if it no longer exists), then each state is
+    written with its archived sessions and identities; the maps' versions are bumped. Maps not named by
+    an archive are not touched, so an identity still held by one of them is an ``OwnershipError``.
+
+    Returns:
+        One write result per archive, in the given order.
+
+    Raises:
+        NotFoundError: an archive id is unknown.
+        OwnershipError: another map still holds a template or experience of an archived state.
+    """
+    states = [load_archive(conn=conn, archive_id=a) for a in archive_ids]
+    targets: list[tuple[int, int]] = []
+    for archived in states:
+        record = find_map(conn=conn, name=archived.map_name)
+        if record is None:
+            record = create_map(conn=conn, name=archived.map_name, params=archived.params)
+        else:
+            clear_map(conn=conn, map_id=record.id)
+        targets.append((record.id, record.version))
+    results = []
+    for archived, (map_id, _version) in zip(states, targets, strict=True):
+        version = get_map_by_id(conn=conn, map_id=map_id).version
+        results.append(
+            write_map_state(
+                conn=conn,
+                map_id=map_id,
+                expected_version=version,
+                params=archived.params,
+                snapshot=archived.snapshot,
+                session_ids=list(archived.session_ids),
+                template_index=archived.template_index,
+                experience_index=archived.experience_index,
+            )
+        )
+    return results

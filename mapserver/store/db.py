@@ -1,0 +1,233 @@
+"""Database engine and transactions: SQLite by default (WAL, foreign keys, busy timeout), any SQLAlchemy URL.
+
+:func:`open_database` returns a :class:`Database`; every unit of work is one transaction taken from it:
+
+* :meth:`Database.write` — one write transaction. On SQLite it starts with ``BEGIN IMMEDIATE`` (the
+  write lock is taken at once, so two writers queue on the busy timeout instead of failing on a lock
+  upgrade); on PostgreSQL it is a READ COMMITTED transaction whose first statement on a map row locks it
+  (see :func:`mapserver.store.maps.claim_map`).
+* :meth:`Database.read` — a consistent snapshot: a deferred SQLite transaction (WAL readers see the
+  state as of their first read, never a half-committed write) or a REPEATABLE READ PostgreSQL one.
+
+Driver errors leave as :class:`~mapserver.errors.StoreError` (a lock that outlasted the busy timeout,
+a lost connection) or :class:`~mapserver.errors.ConflictError` (a constraint a concurrent writer won).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Connection, Engine, create_engine, event
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import ArgumentError, DBAPIError, IntegrityError
+
+from mapserver.errors import ConflictError, InputError, MapServerError, StoreError
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_DB_URL = "sqlite:///./var/mapserver.db"
+"""The contract's default database: a SQLite file under ``./var/`` (created on first use)."""
+
+SQLITE_BUSY_TIMEOUT_S = 60.0
+"""How long a SQLite writer waits for another writer's transaction before giving up."""
+
+SQLITE_CACHE_KIB = 65536
+"""Page cache per SQLite connection (64 MiB): bulk index inserts of large maps stay in memory."""
+
+_WRITE_OPTION = "mapserver_write"
+
+
+def parse_url(url: str | URL | None) -> URL:
+    """Return the SQLAlchemy URL for ``url`` (None → :data:`DEFAULT_DB_URL`).
+
+    Raises:
+        InputError: the URL cannot be parsed.
+    """
+    try:
+        return make_url(url if url is not None else DEFAULT_DB_URL)
+    except (ArgumentError, ValueError) as err:
+        msg = f"invalid database URL {str(url)!r}: {err}"
+        raise InputError(msg) from err
+
+
+def _sqlite_file(url: URL) -> Path | None:
+    """Return the database file of a SQLite URL (None for in-memory or URI-style databases)."""
+    database = url.database
+    if not database or database == ":memory:" or database.startswith("file:") or url.query.get("uri"):
+        return None
+    return Path(database)
+
+
+def create_db_engine(url: str | URL | None = None, **kwargs: Any) -> Engine:
+    """Create a SQLAlchemy engine configured for the map store.
+
+    SQLite: the file's directory is created; every connection runs ``PRAGMA foreign_keys=ON``,
+    ``journal_mode=WAL``, ``synchronous=NORMAL`` and ``busy_timeout``; transactions are begun by us
+    (``BEGIN`` or ``BEGIN IMMEDIATE``), not by the driver. Other databases: ``pool_pre_ping``.
+
+    Args:
+        url: any SQLAlchemy URL (None → :data:`DEFAULT_DB_URL`).
+        **kwargs: passed to :func:`sqlalchemy.create_engine`.
+
+    Returns:
+        The engine.
+
+    Raises:
+        InputError: the URL is invalid or names an unknown driver.
+        StoreError: the SQLite directory cannot be created.
+    """
+    parsed = parse_url(url)
+    sqlite = parsed.get_backend_name() == "sqlite"
+    if sqlite:
+        path = _sqlite_file(parsed)
+        if path is not None:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as err:
+                msg = f"cannot create the database directory {str(path.parent)!r}: {err.strerror or err}"
+                raise StoreError(msg) from err
+        kwargs.setdefault("connect_args", {}).setdefault("timeout", SQLITE_BUSY_TIMEOUT_S)
+    else:
+        kwargs.setdefault("pool_pre_ping", True)
+    try:
+        engine = create_engine(parsed, **kwargs)
+    except (ArgumentError, ImportError) as err:
+        msg = f"cannot use database URL {parsed.render_as_string(hide_password=True)!r}: {err}"
+        raise InputError(msg) from err
+    if sqlite:
+        _configure_sqlite(engine)
+    return engine
+
+
+def _configure_sqlite(engine: Engine) -> None:
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection: Any, _record: Any) -> None:
+        dbapi_connection.isolation_level = None  # we issue BEGIN ourselves (see _on_begin)
+        cursor = dbapi_connection.cursor()
+        try:
+            cursor.execute("PRAGMA foreign_keys=ON")
+            cursor.execute(f"PRAGMA busy_timeout={int(SQLITE_BUSY_TIMEOUT_S * 1000)}")
+            cursor.execute("PRAGMA journal_mode=WAL")
+            cursor.execute("PRAGMA synchronous=NORMAL")
+            cursor.execute(f"PRAGMA cache_size=-{SQLITE_CACHE_KIB}")
+        finally:
+            cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn: Connection) -> None:
+        write = bool(conn.get_execution_options().get(_WRITE_OPTION))
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if write else "BEGIN")
+
+
+def _describe(err: BaseException) -> str:
+    orig = getattr(err, "orig", None)
+    text = " ".join(str(orig if orig is not None else err).split()) or type(err).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+class Database:
+    """A map-store database: an engine plus transaction helpers (a context manager that disposes it).
+
+    Args:
+        engine: the SQLAlchemy engine (see :func:`create_db_engine`).
+    """
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+
+    @property
+    def url(self) -> URL:
+        """Return the engine's URL."""
+        return self.engine.url
+
+    @property
+    def dialect(self) -> str:
+        """Return the backend name: ``sqlite``, ``postgresql``, ..."""
+        return self.engine.dialect.name
+
+    def display_url(self) -> str:
+        """Return the URL with any password hidden."""
+        return self.engine.url.render_as_string(hide_password=True)
+
+    @contextmanager
+    def write(self) -> Iterator[Connection]:
+        """Yield a connection inside one write transaction, committed on success, rolled back on error.
+
+        Raises:
+            StoreError: the database failed (locked past the busy timeout, connection lost, ...).
+            ConflictError: a uniqueness or foreign-key constraint was violated (a concurrent writer won).
+        """
+        with self._translate(), self.engine.connect() as conn:
+            if self.dialect == "sqlite":
+                conn.execution_options(**{_WRITE_OPTION: True})
+            with conn.begin():
+                yield conn
+
+    @contextmanager
+    def read(self) -> Iterator[Connection]:
+        """Yield a connection inside one read transaction that sees a single consistent snapshot.
+
+        Raises:
+            StoreError: the database failed.
+        """
+        with self._translate(), self.engine.connect() as conn:
+            if self.dialect == "postgresql":
+                conn.execution_options(isolation_level="REPEATABLE READ")
+            with conn.begin():
+                yield conn
+
+    @contextmanager
+    def _translate(self) -> Iterator[None]:
+        try:
+            yield
+        except MapServerError:
+            raise
+        except IntegrityError as err:
+            msg = f"the database refused a conflicting write: {_describe(err)}"
+            raise ConflictError(msg) from err
+        except DBAPIError as err:
+            msg = f"database error on {self.display_url()}: {_describe(err)}"
+            raise StoreError(msg) from err
+
+    def dispose(self) -> None:
+        """Close every pooled connection."""
+        self.engine.dispose()
+
+    def __enter__(self) -> Database:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.dispose()
+
+
+def open_database(url: str | URL | None = None, *, upgrade: bool = True, **kwargs: Any) -> Database:
+    """Open the map store at ``url``; with ``upgrade``, an empty database gets the schema first.
+
+    A database at an older schema revision is not upgraded silently: that is ``mapserver db upgrade``'s
+    job, and the error says so.
+
+    Args:
+        url: any SQLAlchemy URL (None → :data:`DEFAULT_DB_URL`).
+        upgrade: create the schema when the database is empty (the CLI and the server do).
+        **kwargs: passed to :func:`sqlalchemy.create_engine`.
+
+    Returns:
+        The database (dispose it, or use it as a context manager).
+
+    Raises:
+        InputError: invalid URL.
+        StoreError: unreachable database or a schema revision other than the code's.
+    """
+    from mapserver.store.migrate import ensure_schema  # migrate imports this module
+
+    db = Database(create_db_engine(url, **kwargs))
+    try:
+        ensure_schema(db, upgrade_empty=upgrade)
+    except BaseException:
+        db.dispose()
+        raise
+    return db

@@ -1,0 +1,182 @@
+"""Maps: create, find, list with counts, claim for writing (optimistic version check), drop."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import Connection, func, insert, select, update
+
+from mapserver.store.errors import MapExistsError, StaleMapError, UnknownMapError
+from mapserver.store.models import Experience, Link, Map, MapState, PoseCellLink, Session, Template, utcnow
+
+
+@dataclass(frozen=True, slots=True)
+class MapRecord:
+    """A stored map's row.
+
+    Attributes:
+        id: database id.
+        name: unique name.
+        version: write counter (incremented by every state write).
+        params: the map's effective engine parameters (``Params.to_dict()``).
+        created_at: creation time (UTC).
+        updated_at: last state write (UTC).
+    """
+
+    id: int
+    name: str
+    version: int
+    params: dict[str, Any]
+    created_at: datetime
+    updated_at: datetime
+
+
+@dataclass(frozen=True, slots=True)
+class MapSummary:
+    """One line of the contract's ``maps`` listing."""
+
+    name: str
+    sessions: int
+    templates: int
+    experiences: int
+    links: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """Return ``{"name", "sessions", "templates", "experiences", "links"}``."""
+        return {
+            "name": self.name,
+            "sessions": self.sessions,
+            "templates": self.templates,
+            "experiences": self.experiences,
+            "links": self.links,
+        }
+
+
+_COLUMNS = (Map.id, Map.name, Map.version, Map.params, Map.created_at, Map.updated_at)
+
+
+def _record(row: Any) -> MapRecord:
+    return MapRecord(int(row[0]), str(row[1]), int(row[2]), dict(row[3]), row[4], row[5])
+
+
+def find_map(*, conn: Connection, name: str) -> MapRecord | None:
+    """Return the map called ``name`` or None."""
+    row = conn.execute(select(*_COLUMNS).where(Map.name == name)).first()
+    return None if row is None else _record(row)
+
+
+def get_map(*, conn: Connection, name: str) -> MapRecord:
+    """Return the map called ``name``.
+
+    Raises:
+        UnknownMapError: no such map (the message lists the stored names when there are few).
+    """
+    record = find_map(conn=conn, name=name)
+    if record is None:
+        names = conn.execute(select(Map.name).order_by(Map.name).limit(11)).scalars().all()
+        known = ", ".join(repr(n) for n in names[:10]) + (", ..." if len(names) > 10 else "")
+        msg = f"no map named {name!r} in this database" + (f" (maps: {known})" if names else " (it holds no map)")
+        raise UnknownMapError(msg)
+    return record
+
+
+def get_map_by_id(*, conn: Connection, map_id: int) -> MapRecord:
+    """Return the map with database id ``map_id``.
+
+    Raises:
+        UnknownMapError: no such map.
+    """
+    row = conn.execute(select(*_COLUMNS).where(Map.id == map_id)).first()
+    if row is None:
+        msg = f"no map with id {map_id!r}"
+        raise UnknownMapError(msg)
+    return _record(row)
+
+
+def create_map(*, conn: Connection, name: str, params: Mapping[str, Any]) -> MapRecord:
+    """Create an empty map (version 0; its state is written by :func:`~mapserver.store.state.write_map_state`).
+
+    Raises:
+        MapExistsError: the name is taken.
+    """
+    if find_map(conn=conn, name=name) is not None:
+        msg = f"a map named {name!r} already exists"
+        raise MapExistsError(msg)
+    now = utcnow()
+    map_id = conn.execute(
+        insert(Map).values(name=name, version=0, params=dict(params), created_at=now, updated_at=now).returning(Map.id)
+    ).scalar_one()
+    return MapRecord(int(map_id), name, 0, dict(params), now, now)
+
+
+def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
+    """Bump the map's version if it is still ``expected_version``; return the new version.
+
+    Call it first in a write transaction: on PostgreSQL the UPDATE locks the map row until commit (a
+    concurrent writer blocks, then sees the new version and fails); on SQLite the transaction already
+    holds the database write lock.
+
+    Raises:
+        StaleMapError: another writer changed the map since it was read.
+        UnknownMapError: the map no longer exists.
+    """
+    result = conn.execute(
+        update(Map)
+        .where(Map.id == map_id, Map.version == expected_version)
+        .values(version=Map.version + 1, updated_at=utcnow())
+    )
+    if result.rowcount == 1:
+        return expected_version + 1
+    row = conn.execute(select(Map.name, Map.version).where(Map.id == map_id)).first()
+    if row is None:
+        msg = f"map id {map_id!r} was deleted by another writer"
+        raise UnknownMapError(msg)
+    msg = (
+        f"map {row[0]!r} was changed by another writer (version {row[1]}, expected {expected_version}); "
+        "nothing was written"
+    )
+    raise StaleMapError(msg)
+
+
+def list_maps(*, conn: Connection) -> list[MapSummary]:
+    """Return every map with its session, template, experience and link counts, by name."""
+    sessions = (
+        select(Session.map_id, func.count().label("n")).where(Session.map_id.is_not(None)).group_by(Session.map_id)
+    ).subquery()
+    rows = conn.execute(
+        select(
+            Map.name,
+            func.coalesce(sessions.c.n, 0),
+            func.coalesce(MapState.n_templates, 0),
+            func.coalesce(MapState.n_experiences, 0),
+            func.coalesce(MapState.n_links, 0),
+        )
+        .outerjoin(sessions, sessions.c.map_id == Map.id)
+        .outerjoin(MapState, MapState.map_id == Map.id)
+        .order_by(Map.name)
+    ).all()
+    return [MapSummary(str(r[0]), int(r[1]), int(r[2]), int(r[3]), int(r[4])) for r in rows]
+
+
+def clear_map(*, conn: Connection, map_id: int) -> None:
+    """Empty a map's content (experiences, links, pose-cell links, state) and detach its templates.
+
+    The map row, its version and its sessions stay; template rows stay too, detached (``map_id`` NULL),
+    because archived map states refer to them.
+    """
+    for table in (Link, PoseCellLink, Experience, MapState):
+        conn.execute(table.__table__.delete().where(table.map_id == map_id))
+    conn.execute(update(Template).where(Template.map_id == map_id).values(map_id=None, local_id=None))
+
+
+def drop_map(*, conn: Connection, map_id: int) -> None:
+    """Delete a map: its content goes (see :func:`clear_map`), its sessions are detached (``map_id`` NULL).
+
+    Use it when a merge joins this map into another one, after archiving it.
+    """
+    clear_map(conn=conn, map_id=map_id)
+    conn.execute(update(Session).where(Session.map_id == map_id).values(map_id=None))
+    conn.execute(Map.__table__.delete().where(Map.id == map_id))

@@ -1,0 +1,90 @@
+"""Read-only queries for the API (issue 6) that need no full map state: paged experiences, the graph."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from sqlalchemy import Connection, case, func, select
+
+from mapserver.errors import InputError
+from mapserver.store.bulk import fetch_tuples
+from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Session
+
+MAX_PAGE = 10_000
+
+
+def page_experiences(
+    *, conn: Connection, map_id: int, offset: int = 0, limit: int = 100
+) -> tuple[list[dict[str, Any]], int]:
+    """Return one page of a map's experiences by id, and the total count.
+
+    Each item is ``{"id", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw", "template", "stamp", "session"}``
+    (``session`` is the session name), served by the experiences primary key (map_id, local_id).
+
+    Raises:
+        InputError: negative offset, or limit outside 1..MAX_PAGE.
+    """
+    if offset < 0 or not 1 <= limit <= MAX_PAGE:
+        msg = f"offset must be ≥ 0 and limit in 1..{MAX_PAGE}, got offset={offset!r} limit={limit!r}"
+        raise InputError(msg)
+    count = select(func.count()).select_from(Experience).where(Experience.map_id == map_id)
+    total = int(conn.execute(count).scalar_one())
+    rows = conn.execute(
+        select(
+            Experience.local_id, Experience.x, Experience.y, Experience.z, Experience.qx, Experience.qy,
+            Experience.qz, Experience.qw, Experience.yaw, Experience.template, Experience.stamp, Session.name,
+        )
+        .join(Session, Session.id == Experience.session_id)
+        .where(Experience.map_id == map_id)
+        .order_by(Experience.local_id)
+        .offset(offset)
+        .limit(limit)
+    ).all()  # fmt: skip
+    keys = ("id", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw", "template", "stamp", "session")
+    return [dict(zip(keys, row, strict=True)) for row in rows], total
+
+
+@dataclass(frozen=True)
+class Graph:
+    """A map's experience graph: poses (E, 4) x, y, z, yaw and links (K,) from, to, dt, distance, kind."""
+
+    poses: npt.NDArray[np.float64]
+    link_from: npt.NDArray[np.int64]
+    link_to: npt.NDArray[np.int64]
+    link_dt: npt.NDArray[np.float64]
+    link_distance: npt.NDArray[np.float64]
+    link_kind: npt.NDArray[np.int64]
+
+
+def load_graph(*, conn: Connection, map_id: int) -> Graph:
+    """Return a map's experience graph without reading templates or engine state (path queries)."""
+    poses = np.array(
+        fetch_tuples(
+            conn,
+            select(Experience.x, Experience.y, Experience.z, Experience.yaw)
+            .where(Experience.map_id == map_id)
+            .order_by(Experience.local_id),
+        ),
+        dtype=np.float64,
+    ).reshape(-1, 4)
+    kind_code = case({name: code for code, name in enumerate(LINK_KIND_NAMES)}, value=Link.kind, else_=-1)
+    links = np.array(
+        fetch_tuples(
+            conn,
+            select(Link.from_id, Link.to_id, Link.dt, Link.distance, kind_code)
+            .where(Link.map_id == map_id)
+            .order_by(Link.seq),
+        ),
+        dtype=np.float64,
+    ).reshape(-1, 5)
+    return Graph(
+        poses=poses,
+        link_from=links[:, 0].astype(np.int64),
+        link_to=links[:, 1].astype(np.int64),
+        link_dt=links[:, 2].copy(),
+        link_distance=links[:, 3].copy(),
+        link_kind=links[:, 4].astype(np.int64),
+    )

@@ -1,0 +1,248 @@
+"""Local view templates (OpenRatSLAM convert_view_to_view_template / compare), hand-computed expectations."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core.config import Params
+from core.localview import LocalViewCells, patch_normalise
+
+# grey levels of a 4 × 6 test image; the RGB version is (g − 9, g, g + 9), whose channel mean is g
+GREY = np.array(
+    [
+        [10, 20, 30, 40, 50, 60],
+        [70, 80, 90, 100, 110, 120],
+        [130, 140, 150, 160, 170, 180],
+        [190, 200, 210, 220, 230, 240],
+    ],
+    dtype=np.int64,
+)
+RGB = np.stack([GREY - 9, GREY, GREY + 9], axis=2).astype(np.uint8)
+
+
+def _cells(**changes: object) -> LocalViewCells:
+    return LocalViewCells(Params().replace(**changes))
+
+
+def test_crop_greyscale_block_average() -> None:
+    """Crop x 1..5 (4 columns), 2 × 2 blocks of 2 × 2 pixels, channel mean, /255."""
+    cells = _cells(image_crop_x_min=1, image_crop_x_max=5, template_x_size=2, template_y_size=2)
+    template, mean = cells.make_template(RGB)
+    expected = np.array([[20 + 30 + 80 + 90, 40 + 50 + 100 + 110], [140 + 150 + 200 + 210, 160 + 170 + 220 + 230]])
+    expected = expected / 4 / 255  # [[55, 75], [175, 195]] / 255
+    assert template.dtype == np.float32
+    assert template == pytest.approx(expected, abs=1e-7)
+    assert mean == pytest.approx(125 / 255, abs=1e-7)
+
+
+def test_leftover_pixels_past_the_last_block_are_dropped() -> None:
+    """6 columns into 4 cells: block width 6 // 4 = 1, columns 4 and 5 unused (OpenRatSLAM integer blocks)."""
+    cells = _cells(template_x_size=4, template_y_size=4)
+    template, _ = cells.make_template(GREY.astype(np.uint8))
+    assert template == pytest.approx(GREY[:, :4] / 255, abs=1e-7)
+
+
+def test_global_normalisation_scales_to_the_target_mean_and_clips() -> None:
+    cells = _cells(image_crop_x_min=1, image_crop_x_max=5, template_x_size=2, template_y_size=2, vt_normalisation=0.5)
+    template, mean = cells.make_template(RGB)
+    # v · 0.5 / mean with mean = 125/255: 55/250, 75/250, 175/250, 195/250
+    assert template == pytest.approx(np.array([[0.22, 0.30], [0.70, 0.78]]), abs=1e-6)
+    assert mean == pytest.approx(0.5, abs=1e-6)
+    clipped = _cells(image_crop_x_min=1, image_crop_x_max=5, template_x_size=2, template_y_size=2, vt_normalisation=0.9)
+    values, _ = clipped.make_template(RGB)
+    assert values[1, 1] == pytest.approx(1.0)  # 195/125 · 0.9 = 1.404 → clipped to 1
+    assert values[0, 0] == pytest.approx(55 / 125 * 0.9, abs=1e-6)
+
+
+def test_patch_normalisation_replicates_the_border() -> None:
+    """A single bright cell, radius 1: every patch has 9 samples, border cells repeated (OpenRatSLAM clamps)."""
+    values = np.zeros((3, 3))
+    values[1, 1] = 1.0
+    out = patch_normalise(values, radius=1, min_std=0.0)
+    # each 3 × 3 clamped patch holds exactly one sample of the bright cell: μ = 1/9, σ = √8/9
+    centre = (3.0 + 2.0 * math.sqrt(2.0)) / 6.0  # ((1 − 1/9)/σ + 3)/6
+    other = (3.0 - 1.0 / math.sqrt(8.0)) / 6.0  # ((0 − 1/9)/σ + 3)/6
+    expected = np.full((3, 3), other)
+    expected[1, 1] = centre
+    assert out == pytest.approx(expected, abs=1e-12)
+
+
+def test_patch_normalisation_flat_and_low_std_patches_are_one_half() -> None:
+    flat = patch_normalise(np.full((4, 5), 0.3), radius=2, min_std=0.0)
+    assert np.all(flat == 0.5)
+    rng = np.random.default_rng(0)
+    noisy = rng.random((4, 6))
+    assert np.all(patch_normalise(noisy, radius=1, min_std=10.0) == 0.5)
+
+
+def _patch_reference(values: np.ndarray, radius: int, min_std: float) -> np.ndarray:
+    """Independent loop version of OpenRatSLAM's patch normalisation (clamped coordinates, (2r+1)² samples)."""
+    h, w = values.shape
+    out = np.empty_like(values)
+    for y in range(h):
+        for x in range(w):
+            samples = [
+                values[min(max(py, 0), h - 1), min(max(px, 0), w - 1)]
+                for py in range(y - radius, y + radius + 1)
+                for px in range(x - radius, x + radius + 1)
+            ]
+            mu = sum(samples) / len(samples)
+            sigma = math.sqrt(sum((s - mu) ** 2 for s in samples) / len(samples))
+            if sigma < min_std or sigma == 0.0:
+                out[y, x] = 0.5
+            else:
+                out[y, x] = min(1.0, max(0.0, ((values[y, x] - mu) / sigma + 3.0) / 6.0))
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), radius=st.integers(1, 3), h=st.integers(1, 6), w=st.integers(1, 7))
+def test_patch_normalisation_matches_the_loop_reference(seed: int, radius: int, h: int, w: int) -> None:
+    values = np.random.default_rng(seed).random((h, w))
+    assert patch_normalise(values, radius, 0.01) == pytest.approx(_patch_reference(values, radius, 0.01), abs=1e-9)
+
+
+def _store(cells: LocalViewCells, templates: list[np.ndarray]) -> None:
+    stack = np.stack(templates).astype(np.float32)
+    cells.add_templates(stack, stack.reshape(len(templates), -1).mean(axis=1))
+
+
+def test_template_matched_at_a_known_shift() -> None:
+    """Shift 3: the view's columns [3, 9) are compared with the template's [o, o + 6) for o = 0..6."""
+    rng = np.random.default_rng(1)
+    stored = rng.uniform(0.2, 0.8, (3, 12)).astype(np.float32)
+    cells = _cells(template_x_size=12, template_y_size=3, vt_shift_match=3, vt_step_match=1, vt_match_threshold=0.05)
+    decoy = np.clip(stored + 0.3, 0, 1)
+    _store(cells, [decoy, stored])
+    for d in (-3, -1, 0, 2, 3):
+        view = rng.uniform(0.2, 0.8, (3, 12)).astype(np.float32)
+        view[:, 3:9] = stored[:, 3 + d : 9 + d]  # the scene moved by d columns
+        view[:, 3:9] += 0.01  # and got a little brighter: error = mean |0.01| over the window
+        best, error, rad = cells.match(view, float(stored.mean()))
+        assert best == 1
+        assert error == pytest.approx(0.01, abs=1e-6)
+        assert rad == 0.0  # relative_rad is only measured for panoramic views
+
+
+def test_a_shift_beyond_the_search_does_not_match() -> None:
+    rng = np.random.default_rng(2)
+    stored = rng.uniform(0.1, 0.9, (3, 12)).astype(np.float32)
+    cells = _cells(template_x_size=12, template_y_size=3, vt_shift_match=2, vt_step_match=1, vt_match_threshold=0.03)
+    _store(cells, [stored])
+    view = np.roll(stored, 3, axis=1)  # 3 columns, the search covers ±2
+    best, error, _ = cells.match(view, float(view.mean()))
+    assert best == 0 and error > 0.03
+    assert cells.match(view, float(view.mean()), limit=0.03) == (-1, math.inf, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("offset", "expected_rad"), [(0, 0.0), (3, 3 / 8 * 2 * math.pi), (4, math.pi), (6, -math.pi / 2)]
+)
+def test_panoramic_relative_rad_at_a_known_circular_offset(offset: int, expected_rad: float) -> None:
+    """The view is the template rotated by −offset columns: relative_rad = offset/X·2π wrapped to (−π, π]."""
+    rng = np.random.default_rng(3)
+    stored = rng.uniform(0.1, 0.9, (2, 8)).astype(np.float32)
+    cells = _cells(template_x_size=8, template_y_size=2, vt_panoramic=True, vt_step_match=1, vt_match_threshold=0.03)
+    _store(cells, [stored])
+    view = np.roll(stored, -offset, axis=1)  # view column c shows template column c + offset
+    best, error, rad = cells.match(view, float(view.mean()), limit=0.03)
+    assert best == 0
+    assert error == pytest.approx(0.0, abs=1e-7)
+    assert rad == pytest.approx(expected_rad, abs=1e-12)
+
+
+def test_template_mean_prefilter_skips_templates_whose_mean_is_too_far() -> None:
+    """The window matches exactly, but the unseen border columns move the template mean."""
+    stored = np.tile(np.linspace(0.3, 0.6, 10, dtype=np.float32), (2, 1))
+    params = {"template_x_size": 10, "template_y_size": 2, "vt_shift_match": 2, "vt_step_match": 1,
+              "vt_match_threshold": 0.03}
+    for delta, matches in [(0.085, True), (0.09, False)]:
+        view = stored.copy()
+        view[:, [0, 1, 8, 9]] += delta  # mean moves by 4·δ/10: 0.034 ≤ 0.03 + 0.005, 0.036 > it
+        cells = _cells(**params)
+        _store(cells, [stored])
+        best, error, _ = cells.match(view, float(view.mean(dtype=np.float64)), limit=0.03)
+        assert (best == 0) is matches
+        if matches:
+            assert error == pytest.approx(0.0, abs=1e-7)
+    wide = _cells(**params, vt_mean_prefilter_epsilon=0.1)  # the same view passes a wider prefilter
+    _store(wide, [stored])
+    view = stored.copy()
+    view[:, [0, 1, 8, 9]] += 0.09
+    assert wide.match(view, float(view.mean(dtype=np.float64)))[0] == 0
+
+
+def _compare_reference(cells: LocalViewCells, view: np.ndarray, mean: float) -> tuple[int, float, float]:
+    """Independent loop version of OpenRatSLAM ``compare`` (first strict minimum over templates, then offsets)."""
+    p = cells.params
+    ty, tx = view.shape
+    best, best_err, best_offset = -1, math.inf, 0
+    for index in range(cells.count):
+        template = cells.templates[index].astype(np.float64)
+        if abs(mean - float(cells.means[index])) > p.vt_match_threshold + p.vt_mean_prefilter_epsilon:
+            continue
+        if p.vt_panoramic:
+            for offset in range(0, tx, p.vt_step_match):
+                total = sum(
+                    abs(float(view[y, c]) - template[y, (c + offset) % tx]) for y in range(ty) for c in range(tx)
+                )
+                if total / (tx * ty) < best_err:
+                    best, best_err, best_offset = index, total / (tx * ty), offset
+        else:
+            shift = p.vt_shift_match
+            width = tx - 2 * shift
+            for offset in range(0, 2 * shift + 1, p.vt_step_match):
+                total = sum(
+                    abs(float(view[y, shift + c]) - template[y, offset + c]) for y in range(ty) for c in range(width)
+                )
+                if total / (ty * width) < best_err:
+                    best, best_err, best_offset = index, total / (ty * width), offset
+    rad = 0.0
+    if p.vt_panoramic and best >= 0:
+        rad = best_offset / tx * 2 * math.pi
+        rad = rad - 2 * math.pi if rad > math.pi else rad
+    return best, best_err, rad
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 100_000), panoramic=st.booleans(), step=st.integers(1, 2))
+def test_vectorised_match_equals_the_loop_reference(seed: int, panoramic: bool, step: int) -> None:
+    rng = np.random.default_rng(seed)
+    ty, tx, n = 3, 10, 12
+    cells = _cells(template_x_size=tx, template_y_size=ty, vt_shift_match=2, vt_step_match=step,
+                   vt_panoramic=panoramic, vt_match_threshold=0.06)
+    base = rng.uniform(0.2, 0.8, (n, ty, tx))
+    base[: n // 2] = base[0] + rng.normal(0, 0.05, (n // 2, ty, tx))  # several near-duplicates: ties and near-ties
+    _store(cells, list(np.clip(base, 0, 1)))
+    source = cells.templates[int(rng.integers(n))].astype(np.float64)
+    view = np.roll(source, int(rng.integers(-3, 4)), axis=1) + rng.normal(0, 0.03, (ty, tx))
+    view = np.clip(view, 0, 1).astype(np.float32)
+    mean = float(view.mean(dtype=np.float64))
+    want = _compare_reference(cells, view, mean)
+    got = cells.match(view, mean)
+    assert got[0] == want[0]
+    assert got[1] == pytest.approx(want[1], rel=1e-6)
+    assert got[2] == pytest.approx(want[2])
+    limited = cells.match(view, mean, limit=0.06)
+    if want[1] <= 0.06 - 1e-6:
+        assert limited[0] == want[0] and limited[1] == pytest.approx(want[1], rel=1e-6)
+        assert limited[2] == pytest.approx(want[2])
+    elif want[1] > 0.06 + 1e-6:
+        assert limited == (-1, math.inf, 0.0)
+
+
+def test_process_matches_or_creates() -> None:
+    cells = _cells(template_x_size=6, template_y_size=4, vt_shift_match=1, vt_step_match=1, vt_match_threshold=0.02)
+    image = GREY.astype(np.uint8)
+    assert cells.process(image) == (0, 0.0, True)
+    assert cells.process(image) == (0, 0.0, False)  # identical view: error 0
+    other = (255 - GREY).astype(np.uint8)
+    assert cells.process(other) == (1, 0.0, True)
+    assert cells.count == 2 and (cells.current, cells.previous) == (1, 0)
+    back = LocalViewCells.restore(cells.params, cells.snapshot())
+    assert back.process(other) == (1, 0.0, False)  # the restored store (and its match bound) matches as before

@@ -1,0 +1,238 @@
+"""Relaxation: bounded per-frame work, and the settled map equal to full relaxation (stated tolerance).
+
+Stated tolerance: after ``settle()`` every experience is within 1e-6 (metres, radians) of the
+fixed point of full relaxation — every link, iterated until the largest correction is below
+1e-13 — and of the independent dense least-squares solution of the same normal equations.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+
+from core import Engine
+from core.config import Params
+from core.experience_map import ExperienceMap, LinkKind
+from core.motion import Motion
+from tests.core.conftest import StripWorld
+
+TOLERANCE = 1e-6
+
+
+def _params(**changes: object) -> Params:
+    return Params().replace(**{"exp_initial_em_deg": 0.0, "exp_loops": 10, **changes})
+
+
+def _square_laps(params: Params, laps: int = 3, relax_every_frame: bool = True) -> ExperienceMap:
+    """Three laps of an 8 m square with biased odometry (scale, yaw, climb); lap 2 and 3 corners close loops.
+
+    Every lap-1 corner is revisited: the robot links to it and continues from it (the engine's CREATE_EDGE
+    then set), so each later lap adds four loop closures with a misclosure that grows along the lap.
+    """
+    em = ExperienceMap(params, 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    corners: dict[int, int] = {0: 0}
+    stamp = 0.0
+    for lap in range(laps):
+        for side in range(4):
+            for step in range(8):
+                turn = math.pi / 2 + 0.03 if step == 7 else 0.004  # biased heading
+                em.on_odo(Motion(1.03, 0.01, 0.02, turn, 1.0))  # 3 % long, drifting left and up
+                stamp += 1.0
+                index = side * 8 + step + 1
+                corner = index % 8 == 0
+                if lap > 0 and corner:
+                    target = corners[index % 32]
+                    assert em.create_link(em.current, target, 0.0, LinkKind.LOOP)
+                    em.set_experience(target, 0.0)
+                else:
+                    new = em.create_experience(1, np.zeros(3), stamp, 0)
+                    if lap == 0 and corner and index < 32:
+                        corners[index] = new
+                if relax_every_frame:
+                    em.relax_step()
+    return em
+
+
+def _least_squares(em: ExperienceMap, start: np.ndarray) -> np.ndarray:
+    """Independent dense solution: headings, then positions, by numpy lstsq with experience 0 fixed."""
+    src, dst, t, _, _, _ = em.links
+    n = em.count
+    a = np.zeros((src.size, n))
+    a[np.arange(src.size), dst] = 1.0
+    a[np.arange(src.size), src] = -1.0
+    winding = np.round((start[dst, 3] - start[src, 3] - t[:, 3]) / (2 * math.pi))
+    yaw_meas = t[:, 3] + 2 * math.pi * winding - a[:, 0] * start[0, 3]
+    yaw = np.empty(n)
+    yaw[0] = start[0, 3]
+    yaw[1:] = np.linalg.lstsq(a[:, 1:], yaw_meas, rcond=None)[0]
+    c, s = np.cos(yaw[src]), np.sin(yaw[src])
+    meas = np.stack([c * t[:, 0] - s * t[:, 1], s * t[:, 0] + c * t[:, 1], t[:, 2]], axis=1)
+    out = np.empty((n, 4))
+    out[0] = start[0]
+    out[1:, :3] = np.linalg.lstsq(a[:, 1:], meas - a[:, :1] * start[0, :3], rcond=None)[0]
+    out[:, 3] = np.remainder(yaw + math.pi, 2 * math.pi) - math.pi
+    return out
+
+
+def _pose_error(a: np.ndarray, b: np.ndarray) -> float:
+    diff = a - b
+    diff[:, 3] = np.remainder(diff[:, 3] + math.pi, 2 * math.pi) - math.pi
+    return float(np.abs(diff).max())
+
+
+def test_settled_map_equals_full_relaxation_and_least_squares() -> None:
+    dead_reckoned = _square_laps(_params(), relax_every_frame=False)
+    assert float(np.abs(dead_reckoned.full_corrections()).max()) > 0.05  # the laps really disagree
+    em = _square_laps(_params(exp_relax_batch=2))  # a small per-frame budget leaves work for settle()
+    assert int(np.sum(em.links[5] == LinkKind.LOOP)) == 8
+    before = em.snapshot()
+    assert em.relax_pending
+    em.settle()
+    # reference 1: full relaxation (all links, simultaneous Jacobi) iterated to convergence from the same state
+    full = ExperienceMap.restore(_params(exp_relax_tolerance=1e-13), 3, before)
+    iterations = full.relax(iterations=200_000)
+    assert iterations < 200_000
+    assert _pose_error(em.poses, full.poses) <= TOLERANCE
+    # reference 2: dense least squares of the normal equations
+    assert _pose_error(em.poses, _least_squares(em, before["em_pose"].reshape(-1, 4))) <= TOLERANCE
+    assert float(np.abs(em.full_corrections()).max()) <= em.params.exp_relax_tolerance
+    assert em.poses[0] == pytest.approx(before["em_pose"].reshape(-1, 4)[0])  # the anchor did not move
+
+
+def test_the_settled_map_does_not_depend_on_the_per_frame_budget() -> None:
+    """Links hold the odometry as measured, so only the path to the fixed point depends on the budget."""
+    maps = {batch: _square_laps(_params(exp_relax_batch=batch)) for batch in (1, 3, 16, 4096)}
+    maps[0] = _square_laps(_params(), relax_every_frame=False)
+    for em in maps.values():
+        em.settle()
+    reference = maps[4096]
+    for em in maps.values():
+        assert _pose_error(em.poses, reference.poses) <= 1e-9
+        assert np.allclose(em.links[2], reference.links[2], atol=1e-12)
+
+
+def test_per_frame_work_is_bounded_by_the_batch_whatever_the_map_size() -> None:
+    for n in (300, 3000):
+        em = ExperienceMap(_params(exp_relax_batch=32), 3)
+        em.create_experience(0, np.zeros(3), 0.0, 0)
+        for i in range(1, n):
+            em.on_odo(Motion(1.0, 0.0, 0.0, 2 * math.pi / n, 1.0))
+            em.create_experience(i, np.zeros(3), float(i), 0)
+        em.on_odo(Motion(1.5, 0.0, 0.3, 2 * math.pi / n, 1.0))  # 0.5 m long and 0.3 m high at the closure
+        em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
+        counts = [em.relax_step() for _ in range(200)]
+        assert max(counts) <= 32
+        assert sum(counts) > 0
+
+
+def test_an_empty_worklist_means_every_correction_is_within_the_tolerance() -> None:
+    em = ExperienceMap(_params(exp_relax_batch=24, exp_relax_tolerance=1e-3), 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    for i in range(1, 120):
+        em.on_odo(Motion(1.0, 0.0, 0.0, 2 * math.pi / 120, 1.0))
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    em.on_odo(Motion(1.4, 0.0, 0.1, 2 * math.pi / 120 + 0.02, 1.0))
+    em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
+    frames = 0
+    while em.relax_pending and frames < 20_000:
+        em.relax_step()
+        frames += 1
+    assert not em.relax_pending
+    assert float(np.abs(em.full_corrections()).max()) <= 1e-3
+
+
+def test_engine_run_settles_to_full_relaxation(strip_world: StripWorld) -> None:
+    params = _params(
+        template_x_size=32, template_y_size=12, vt_shift_match=2, vt_step_match=1, vt_match_threshold=0.03,
+        pc_dim_xy=21, pc_dim_th=36, exp_delta_pc_threshold=2.0, vt_min_inject_age=5, exp_relax_batch=4,
+    )
+    engine = Engine(params)
+    for image, motion, stamp in strip_world.drive(laps=2.5, yaw_bias=0.02):
+        engine.step(image, motion, stamp)
+    assert engine.loop_closures >= 1
+    before = engine.snapshot()
+    engine.settle()
+    full = ExperienceMap.restore(params.replace(exp_relax_tolerance=1e-13), 3, before)
+    full.relax(iterations=200_000)
+    assert _pose_error(engine.map.poses, full.poses) <= TOLERANCE
+    assert not engine.map.relax_pending
+
+
+def test_anchor_per_component_and_joining_components() -> None:
+    em = ExperienceMap(_params(), 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    em.on_odo(Motion(2.0, 0.0, 0.0, 0.0, 1.0))
+    em.create_experience(1, np.zeros(3), 1.0, 0)
+    # a second, unlinked part of the map (as a merge may append): experiences 2 and 3
+    state = em.snapshot()
+    state["em_pose"] = np.vstack([state["em_pose"], [[10.0, 0.0, 0.0, 0.0], [12.5, 0.0, 0.0, 0.0]]])
+    state["em_pc"] = np.vstack([state["em_pc"], np.zeros((2, 3))])
+    for key, extra in (("em_template", [2, 3]), ("em_origin", [1, 1])):
+        state[key] = np.concatenate([state[key], extra])
+    state["em_stamp"] = np.concatenate([state["em_stamp"], [0.0, 1.0]])
+    for key, extra in (("em_link_from", [2]), ("em_link_to", [3]), ("em_link_kind", [0])):
+        state[key] = np.concatenate([state[key], np.asarray(extra, dtype=state[key].dtype)])
+    state["em_link_transform"] = np.vstack([state["em_link_transform"], [[2.0, 0.0, 0.0, 0.0]]])
+    state["em_link_dt"] = np.concatenate([state["em_link_dt"], [1.0]])
+    state["em_link_distance"] = np.concatenate([state["em_link_distance"], [2.0]])
+    joined = ExperienceMap.restore(em.params, 3, state)
+    assert joined.anchors().tolist() == [True, False, True, False]
+    joined.settle()  # each part settles against its own anchor: 3 moves to 12.0, 2 stays
+    assert joined.poses[2, 0] == pytest.approx(10.0) and joined.poses[3, 0] == pytest.approx(12.0)
+    assert joined.add_link_raw(1, 2, np.array([7.0, 0.0, 0.0, 0.0]), 1.0, 7.0, LinkKind.MERGE)
+    assert joined.anchors().tolist() == [True, False, False, False]
+    assert joined.relax_pending
+    joined.settle()
+    # one chain 0 → 1 → 2 → 3 measured 2, 7, 2 m: consistent, so it is laid out exactly from the anchor
+    assert joined.poses[:, 0] == pytest.approx([0.0, 2.0, 9.0, 11.0], abs=1e-9)
+
+
+def test_clamps_limit_how_far_a_frame_moves_an_experience() -> None:
+    em = ExperienceMap(_params(max_correction_step=0.05, exp_relax_batch=64), 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    for i in range(1, 10):
+        em.on_odo(Motion(1.0, 0.0, 0.0, 0.0, 1.0))
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    em.add_link_raw(9, 0, np.array([-8.0, 0.0, 0.0, 0.0]), 1.0, 8.0, LinkKind.MANUAL)  # 1 m inconsistent
+    for _ in range(5):
+        before = em.poses.copy()
+        em.relax_step()
+        moved = np.linalg.norm(em.poses[:, :3] - before[:, :3], axis=1)
+        assert moved.max() <= 0.05 + 1e-12
+    assert moved.max() == pytest.approx(0.05)
+    em.settle()  # the clamps limit the speed, not the destination
+    assert em.poses[9, 0] == pytest.approx(9.0 - 9 * 1.0 / 10, abs=1e-9)  # 1 m spread over 10 links
+
+
+def test_exp_loops_zero_switches_relaxation_off() -> None:
+    em = _square_laps(_params(exp_loops=0))
+    before = em.poses.copy()
+    assert em.relax_step() == 0
+    assert em.settle() == 0
+    assert np.array_equal(em.poses, before)
+
+
+def test_worklist_survives_a_snapshot_and_the_key_is_optional() -> None:
+    params = _params(exp_relax_batch=2)
+    em = _square_laps(params)
+    assert em.relax_pending
+    state = em.snapshot()
+    buffer = io.BytesIO()
+    np.savez(buffer, **state)
+    buffer.seek(0)
+    with np.load(buffer) as data:
+        back = ExperienceMap.restore(params, 3, {key: data[key] for key in data.files})
+    assert np.array_equal(back.relax_queue, em.relax_queue)
+    for _ in range(20):
+        em.relax_step()
+        back.relax_step()
+    assert np.array_equal(back.poses, em.poses)
+    legacy = {key: value for key, value in state.items() if key != "em_relax_queue"}
+    scheduled = ExperienceMap.restore(params, 3, legacy)
+    assert scheduled.relax_queue.tolist() == list(range(em.count))  # pending without a queue: everyone
+    legacy["em_relax_pending"] = np.asarray(False)
+    assert not ExperienceMap.restore(params, 3, legacy).relax_pending

@@ -1,0 +1,76 @@
+"""Tiny mission logs for the API tests: a textured strip seen from a vehicle driving a circle.
+
+Views of one place are the same on every lap and different places differ, so a log of more than
+one lap closes loops. Everything is generated (seeded) in tmp_path; nothing binary is committed.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import tarfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from mapserver.ingest.writer import OdomSample, write_log
+
+T0_NS = 1_700_000_000_000_000_000
+PERIMETER_M = 24.0
+PX_PER_M = 8.0
+
+
+def _texture(seed: int, height: int = 20, columns: int = int(PERIMETER_M * PX_PER_M)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    base = rng.random((height, columns))
+    kernel = np.ones(5) / 5.0
+    smooth = np.stack([np.convolve(np.concatenate([r[-2:], r, r[:2]]), kernel, "valid") for r in base])
+    return (40 + 180 * smooth).astype(np.uint8)
+
+
+def write_strip_log(path: Path, *, laps: float = 1.3, seed: int = 3, rate_hz: float = 2.0, fmt: str = "bag",
+                    width: int = 64, t0_ns: int = T0_NS, directory: bool = False) -> Path:  # fmt: skip
+    """Write a log of the strip world driven ``laps`` times around (images at ``rate_hz``, odometry 10 Hz)."""
+    texture = _texture(seed)
+    columns = texture.shape[1]
+    speed = 1.0
+    radius = PERIMETER_M / (2 * math.pi)
+    wz = speed / radius
+    duration = laps * PERIMETER_M / speed
+    count = int(duration * rate_hz)
+    images = []
+    for i in range(count):
+        start = round(speed * i / rate_hz * PX_PER_M) % columns
+        images.append((t0_ns + round(i / rate_hz * 1e9), texture[:, (start + np.arange(width)) % columns]))
+    odometry = []
+    for j in range(int(duration * 10) + 2):
+        t = j / 10
+        yaw = wz * t
+        odometry.append(OdomSample(t0_ns + round(t * 1e9), radius * math.sin(yaw), radius * (1 - math.cos(yaw)),
+                                   0.0, yaw, speed, 0.0, 0.0, wz))  # fmt: skip
+    return write_log(path, fmt, images, odometry, directory=directory)  # type: ignore[arg-type]
+
+
+def zip_directory(directory: Path, out: Path, *, prefix: str | None = None) -> Path:
+    """Zip a directory (entries under ``prefix``/, default the directory's name); ``out`` must lie outside it."""
+    assert directory.resolve() not in out.resolve().parents, "the archive would contain itself"
+    root = directory.name if prefix is None else prefix
+    with zipfile.ZipFile(out, "w") as zf:
+        for file in sorted(directory.rglob("*")):
+            if file.is_file():
+                zf.write(file, f"{root}/{file.relative_to(directory).as_posix()}" if root else file.name)
+    return out
+
+
+def tar_bytes(members: list[tuple[tarfile.TarInfo, bytes | None]]) -> bytes:
+    """Return a tar archive holding ``members`` (data for regular files, None otherwise)."""
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w") as tf:
+        for info, data in members:
+            if data is not None:
+                info.size = len(data)
+                tf.addfile(info, io.BytesIO(data))
+            else:
+                tf.addfile(info)
+    return buffer.getvalue()

@@ -1,0 +1,48 @@
+"""Property-based run of every endpoint against the OpenAPI schema (schemathesis): never a 5xx."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import schemathesis
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, given, settings
+
+from mapserver.api import create_app
+from tests.mapserver.api.conftest import api_settings, bearer, make_token
+from tests.mapserver.api.graphmaps import store_graph_map
+
+EXAMPLES = 40
+
+
+def _exercise(operation: Any, headers: dict[str, str], seen: set[int]) -> None:
+    @given(case=operation.as_strategy())
+    @settings(max_examples=EXAMPLES, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+    def check(case: Any) -> None:
+        response = case.call(headers={**(case.headers or {}), **headers})
+        seen.add(response.status_code)
+        assert response.status_code < 500, (case.method, case.formatted_path, response.text)
+        if response.status_code >= 400:
+            assert isinstance(response.json()["detail"], str)
+
+    check()
+
+
+def test_no_server_errors(tmp_path: Path) -> None:
+    app_settings = api_settings(tmp_path, max_upload_bytes=200_000)
+    app = create_app(app_settings)
+    with TestClient(app):  # runs the lifespan: database, job engine
+        poses = np.column_stack([np.arange(20.0), np.zeros(20), np.zeros(20), np.zeros(20)])
+        store_graph_map(app_settings.db_url, "lab", poses, [(k, k + 1, 1.0, 1.0) for k in range(19)])
+        headers = bearer(make_token(app_settings.db_url, "write"))
+        schema = schemathesis.openapi.from_asgi("/openapi.json", app)
+        operations = [result.ok() for result in schema.get_all_operations()]
+        assert len(operations) == 8
+        statuses: dict[str, set[int]] = {}
+        for operation in operations:
+            _exercise(operation, headers, statuses.setdefault(operation.label, set()))
+    # every operation was exercised and answered (4xx for the client's mistakes, never 5xx)
+    assert all(statuses.values()), statuses
+    assert any(code == 200 for code in statuses["GET /v1/maps/{name}/path"] | statuses["GET /v1/maps"])

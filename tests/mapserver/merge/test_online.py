@@ -1,0 +1,191 @@
+"""The online driver end to end on synthetic loop sessions (engine + merge, no store)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from core import Engine, Params, preset
+from mapserver.merge import OnlineMerger, StoredMap
+from mapserver.merge.se3 import compose, wrap_angle
+from tests.mapserver.merge.sessions import PARAMS, map_stretch, run_session, true_alignment
+from tests.mapserver.merge.world import LoopWorld
+
+WORLD = LoopWorld(perimeter=40.0)
+
+
+@pytest.fixture(scope="module")
+def first_half() -> StoredMap:
+    """Session 1: half a lap, arcs 0–20 m of the 40 m loop."""
+    return map_stretch(WORLD, 0.0, 20.0, 1)
+
+
+def _transform_error(record_transform: tuple[float, ...], truth: np.ndarray) -> tuple[float, float]:
+    t = np.asarray(record_transform)
+    return float(np.linalg.norm(t[:3] - truth[:3])), abs(float(wrap_angle(t[3] - truth[3])))
+
+
+def _nn_rmse(a: np.ndarray, b: np.ndarray) -> float:
+    """RMSE of each point of ``a`` to its nearest point of ``b`` (the paper's ICP comparison, aligned already)."""
+    d = np.linalg.norm(a[:, None, :2] - b[None, :, :2], axis=2).min(axis=1)
+    return float(np.sqrt(np.mean(d * d)))
+
+
+def test_second_session_merges_once_and_maps_on_in_the_stored_map(first_half: StoredMap) -> None:
+    run = run_session(WORLD, 24.0, 100.0, [first_half])
+    assert len(run.events) == 1
+    event = run.events[0]
+    assert event.key == 1 and event.absorbed == ()
+    assert event.record.confirmations >= PARAMS.merge_confirm
+    # the transform between the sessions' frames is recovered (216° apart: a rotated session)
+    truth = true_alignment(WORLD, 0.0, 24.0)
+    gap, turn = _transform_error(event.record.transform, truth)
+    assert gap < 0.3 and turn < 0.05
+    # after the merge, ground mapped before (by session 1 or by session 2's partial map) is re-used
+    frames, created = run.new_on_mapped_ground([(0.0, 20.0)])
+    assert frames > 120 and created <= 0.05 * frames
+    # the merged map is like the map of one session that drove the same route
+    single = Engine(PARAMS)
+    for image, motion, stamp in WORLD.drive(24.0, 100.0):
+        single.step(image, motion, stamp)
+    assert abs(run.engine.experience_count - single.experience_count) <= 0.1 * single.experience_count
+    merged_world = compose(WORLD.pose(0.0), run.engine.map.poses)  # loaded frame → world
+    single_world = compose(WORLD.pose(24.0), single.map.poses)
+    extent = float(np.ptp(single_world[:, :2], axis=0).max())
+    assert _nn_rmse(merged_world, single_world) <= 0.05 * extent
+    origins = np.asarray(run.engine.map.snapshot()["em_origin"])
+    assert set(np.unique(origins).tolist()) == {1, 9}
+
+
+def test_without_the_lattice_shift_mapped_ground_gets_new_experiences(first_half: StoredMap) -> None:
+    """Operation (iii) disabled: the partial map's places are not found again (the paper's Fig. 12)."""
+    shifted = run_session(WORLD, 24.0, 100.0, [first_half])
+    unshifted = run_session(WORLD, 24.0, 100.0, [first_half], shift_lattice=False)
+    assert len(unshifted.events) == 1 and not unshifted.events[0].record.lattice_shifted
+    _, with_shift = shifted.new_on_mapped_ground([(0.0, 20.0)])
+    frames, without_shift = unshifted.new_on_mapped_ground([(0.0, 20.0)])
+    assert without_shift >= 6 and without_shift >= 3 * max(with_shift, 1)
+    assert without_shift > 0.05 * frames
+
+
+def test_a_session_started_at_90_degrees_still_merges_and_relocalises(first_half: StoredMap) -> None:
+    run = run_session(WORLD, 30.0, 100.0, [first_half])  # 3/4 of a lap from session 1: frames 90° apart
+    assert len(run.events) == 1
+    record = run.events[0].record
+    truth = true_alignment(WORLD, 0.0, 30.0)
+    assert truth[3] == pytest.approx(-math.pi / 2)
+    gap, turn = _transform_error(record.transform, truth)
+    assert gap < 0.3 and turn < 0.05
+    assert record.heading_offset_rad == pytest.approx(-math.pi / 2, abs=0.15)  # 36 heading cells: ±1.5 cells
+    frames, created = run.new_on_mapped_ground([(0.0, 20.0)])
+    assert created <= 0.05 * frames
+
+
+def test_known_start_activates_the_stored_experience(first_half: StoredMap) -> None:
+    """Scenario (i): a session starting on mapped ground joins the stored map with no partial map left."""
+    stored_count = int(np.shape(first_half.state["em_pose"])[0])
+    run = run_session(WORLD, 5.0, 30.0, [first_half])
+    assert len(run.events) == 1 and run.merged_frames[0] <= PARAMS.merge_confirm + 1
+    record = run.events[0].record
+    assert record.experiences == stored_count  # everything the session had made was identified
+    assert np.all(record.experience_map < stored_count)
+    assert np.all(record.template_map < record.template_offset)
+    frames, created = run.new_on_mapped_ground([(0.0, 20.0)])
+    assert created <= 0.05 * frames
+    assert run.engine.experience_count > stored_count  # and it mapped on beyond the stored stretch
+
+
+def test_confirmation_rejects_a_look_alike_place() -> None:
+    """A short look-alike stretch: K = 1 merges there by mistake (the paper's trigger); the default K does not."""
+    world = LoopWorld(perimeter=40.0, alias=(2.0, 25.0, 5.5))  # arcs 25–30.5 look like arcs 2–7.5
+    stored = map_stretch(world, 0.0, 20.0, 1)
+    truth = true_alignment(world, 0.0, 22.0)
+    eager = run_session(world, 22.0, 25.0, [stored], confirm=1)
+    assert eager.events and eager.arcs[eager.merged_frames[0]] < 30.0  # merged inside the look-alike stretch
+    gap, _ = _transform_error(eager.events[0].record.transform, truth)
+    assert gap > 5.0
+    careful = run_session(world, 22.0, 25.0, [stored])
+    assert len(careful.events) == 1 and careful.arcs[careful.merged_frames[0]] < 5.0  # at the real overlap
+    gap, turn = _transform_error(careful.events[0].record.transform, truth)
+    assert gap < 0.3 and turn < 0.05
+
+
+def test_a_session_bridging_two_maps_joins_them() -> None:
+    """New College case: one session merges into map A, then the merged engine into map B."""
+    a = map_stretch(WORLD, 0.0, 12.0, 1)
+    b = map_stretch(WORLD, 22.0, 12.0, 2)
+    run = run_session(WORLD, 0.0, 38.0, [a, b], origin=3)
+    assert [e.key for e in run.events] == [1, 2]
+    assert run.events[1].absorbed == (1,)
+    engine = run.engine
+    origins = np.asarray(engine.map.snapshot()["em_origin"])
+    assert set(np.unique(origins).tolist()) == {1, 2, 3}
+    # the last merge keeps B's ids first; A and the session follow, all in B's frame
+    second = run.events[1].record
+    assert second.experience_offset == int(np.shape(b.state["em_pose"])[0])
+    from_a, from_b = int(np.flatnonzero(origins == 1)[0]), int(np.flatnonzero(origins == 2)[-1])
+    path = engine.shortest_path(from_a, from_b, "distance")
+    assert path.nodes[0] == from_a and path.nodes[-1] == from_b
+    # A's first place and B's last are 6.4 m apart on the loop... as the world says (B's frame = world at 22 m)
+    truth = np.linalg.norm(WORLD.pose(0.0)[:2] - WORLD.pose(33.5)[:2])
+    place_a = compose(WORLD.pose(22.0), engine.map.poses[from_a])
+    assert float(np.linalg.norm(place_a[:2] - WORLD.pose(0.0)[:2])) < 0.5
+    assert float(np.linalg.norm(engine.map.poses[from_a, :2] - engine.map.poses[from_b, :2])) == pytest.approx(
+        truth, abs=0.5
+    )
+
+
+def test_incompatible_stored_maps_are_skipped(first_half: StoredMap) -> None:
+    other = StoredMap("big", PARAMS.replace(pc_dim_xy=51), first_half.state)
+    driver = OnlineMerger([other, first_half])
+    engine = Engine(PARAMS, origin=9)
+    for image, motion, stamp in WORLD.drive(24.0, 2.0):
+        driver.observe(engine, engine.step(image, motion, stamp))
+    assert "lattices differ" in driver.skipped["big"]
+    assert driver.candidates == [1]
+
+
+def test_confirmation_default_comes_from_the_parameters(first_half: StoredMap) -> None:
+    params: Params = PARAMS.replace(merge_confirm=1)
+    run = run_session(WORLD, 24.0, 20.0, [StoredMap(1, params, first_half.state)], params=params)
+    assert run.events and run.events[0].record.confirmations == 1
+
+
+@pytest.mark.slow
+def test_4dof_session_merges_with_depth() -> None:
+    """PoseidonSLAM lattice (x, y, z, θ) and 4-DoF experiences on a loop that goes up and down."""
+    params = preset("poseidon")
+    world = LoopWorld(perimeter=4.0, px_per_m=80.0, height=24, width=64, depth=0.3, seed=4)
+    step = 0.025
+    stored = map_stretch(world, 0.0, 3.0, 1, params=params, step=step)
+    run = run_session(world, 3.3, 8.0, [stored], params=params, step=step)
+    assert len(run.events) == 1
+    record = run.events[0].record
+    truth = true_alignment(world, 0.0, 3.3)
+    assert abs(record.transform[2] - truth[2]) < 0.05  # the depth offset between the sessions' frames
+    gap, turn = _transform_error(record.transform, truth)
+    assert gap < 0.1 and turn < 0.15
+    assert len(record.lattice_offset) == 4
+    # merged depths agree with ground truth as well as a single session's do
+    def depth_rmse(engine: Engine, starts: dict[int, tuple[float, float]], frame: float) -> float:
+        """Experience z against the true z of its place (arc from its origin's start and stamp)."""
+        snap = engine.map.snapshot()
+        errors = []
+        for origin, (start, t0) in starts.items():
+            mine = snap["em_origin"] == origin
+            arcs = start + (snap["em_stamp"][mine] - t0) / 0.5 * step
+            true_z = np.array([world.pose(a)[2] for a in arcs]) - world.pose(frame)[2]
+            errors.append(snap["em_pose"][mine, 2] - true_z)
+        e = np.concatenate(errors)
+        return float(np.sqrt(np.mean(e * e)))
+
+    single = Engine(params, origin=9)
+    for image, motion, stamp in world.drive(3.3, 8.0, step=step, t0=1000.0):
+        single.step(image, motion, stamp)
+    merged_rmse = depth_rmse(run.engine, {1: (0.0, 0.0), 9: (3.3, 1000.0)}, 0.0)
+    single_rmse = depth_rmse(single, {9: (3.3, 1000.0)}, 3.3)
+    assert merged_rmse <= max(1.5 * single_rmse, 0.02)
+    frames, created = run.new_on_mapped_ground([(0.0, 3.0)])
+    assert created <= 0.1 * frames

@@ -1,0 +1,53 @@
+"""API tables (issue 6): hashed tokens and the job queue."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+import sqlalchemy as sa
+
+from mapserver.errors import InputError, NotFoundError
+from mapserver.store import Database
+from mapserver.store.jobs import claim_next_job, create_job, fail_job, finish_job, get_job, set_job_progress
+from mapserver.store.models import ApiToken
+from mapserver.store.tokens import create_token, revoke_token, verify_token
+
+
+def test_tokens_are_stored_hashed_and_can_be_revoked(db: Database) -> None:
+    with db.write() as conn:
+        token, record = create_token(conn=conn, scope="write", label="ci")
+    with db.read() as conn:
+        stored = conn.execute(sa.select(ApiToken.token_sha256, ApiToken.prefix)).all()
+        assert stored == [(hashlib.sha256(token.encode()).hexdigest(), token[:12])]
+        assert verify_token(conn=conn, token=token) == record
+        assert verify_token(conn=conn, token=token + "x") is None
+    with db.write() as conn:
+        revoke_token(conn=conn, token_id=record.id)
+        with pytest.raises(NotFoundError):
+            revoke_token(conn=conn, token_id=record.id + 1)
+        with pytest.raises(InputError, match="scope"):
+            create_token(conn=conn, scope="admin")
+    with db.read() as conn:
+        assert verify_token(conn=conn, token=token) is None
+
+
+def test_jobs_are_claimed_once_in_order_and_finish(db: Database) -> None:
+    with db.write() as conn:
+        first = create_job(conn=conn, upload_path="/up/1.bag", upload_sha256="1" * 64, map_name="lab")
+        second = create_job(conn=conn, upload_path="/up/2.bag")
+    with db.write() as conn:
+        claimed = claim_next_job(conn=conn)
+        assert claimed is not None and claimed.id == first.id and claimed.status == "running"
+        set_job_progress(conn=conn, job_id=first.id, progress=1.7)
+        assert get_job(conn=conn, job_id=first.id).progress == 1.0
+        assert claim_next_job(conn=conn).id == second.id  # type: ignore[union-attr]
+        assert claim_next_job(conn=conn) is None
+        finish_job(conn=conn, job_id=first.id, session_id=None, map_id=None)
+        fail_job(conn=conn, job_id=second.id, error="bad\nbag:  corrupt")
+    with db.read() as conn:
+        assert get_job(conn=conn, job_id=first.id).status == "done"
+        failed = get_job(conn=conn, job_id=second.id)
+        assert (failed.status, failed.error) == ("failed", "bad bag: corrupt")
+        with pytest.raises(NotFoundError):
+            get_job(conn=conn, job_id=999)

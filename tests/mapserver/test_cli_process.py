@@ -1,0 +1,138 @@
+"""``mapserver process`` end to end: summary, map JSON with the per-frame record, and every bad-input case."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mapserver.cli import main
+from mapserver.formats import read_map_json
+from mapserver.ingest.writer import write_log
+from tests.mapserver.ingest.conftest import (
+    arc_odometry,
+    frame_images,
+    identity_gt,
+    image_msg,
+    test_image,
+    write_raw,
+)
+
+IMG = "sensor_msgs/msg/Image"
+SUMMARY_KEYS = {"frames", "templates", "experiences", "links", "loop_closures", "merges", "map", "seconds"}
+
+
+def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def small_log(tmp_path: Path) -> Path:
+    odometry = arc_odometry(61, 20.0, v=0.5, w=0.2)
+    images = [(stamp, test_image(i, False, (48, 128))) for i, (stamp, _) in enumerate(frame_images(30, 10.0, False))]
+    return write_log(tmp_path / "mission", "mcap", images, odometry, identity_gt(odometry))
+
+
+def test_process_json_summary_and_map_with_frame_record(
+    small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out_map = tmp_path / "map.json"
+    code, out, err = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(out_map), "--json")
+    assert code == 0
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert set(summary) >= SUMMARY_KEYS
+    assert summary["frames"] == 30 and summary["merges"] == [] and summary["map"] == "mission"
+    assert "30 frames" in err
+    doc = read_map_json(out_map)
+    rows = doc["frames"]
+    assert len(rows) == 30 and len(doc["odometry"]) == 30
+    assert rows[0][2] == 1  # the first frame always creates template 0
+    created = sorted({int(r[1]) for r in rows if r[2] == 1})
+    assert created == list(range(doc["templates"]))  # each template created exactly once, in id order
+    assert [r[0] for r in rows] == sorted(r[0] for r in rows)
+    assert summary["templates"] == doc["templates"] and summary["experiences"] == len(doc["experiences"])
+
+
+def _not_a_bag(tmp_path: Path) -> Path:
+    path = tmp_path / "notes.bag"
+    path.write_text("this is not a bag\n" * 50)
+    return path
+
+
+def _truncated(tmp_path: Path) -> Path:
+    odometry = arc_odometry(200, 20.0)
+    path = write_log(tmp_path / "full", "bag", frame_images(100, 10.0, True), odometry, image_encoding="rgb8")
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    path.unlink()
+    return cut
+
+
+def _corrupt_middle(tmp_path: Path) -> Path:
+    """A ROS 1 bag whose middle 4 kB are zeroed: opens fine, fails while streaming."""
+    odometry = arc_odometry(200, 20.0)
+    images = [(s, test_image(i, True, (48, 128))) for i, (s, _) in enumerate(frame_images(100, 10.0, True))]
+    path = write_log(tmp_path / "full", "bag", images, odometry, image_encoding="rgb8")
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 4000] = bytes(4000)
+    bad = tmp_path / "zeroed.bag"
+    bad.write_bytes(bytes(data))
+    path.unlink()
+    return bad
+
+
+def _no_camera(tmp_path: Path) -> Path:
+    return write_log(tmp_path / "odom_only", "db3", [], arc_odometry(20, 20.0))
+
+
+def _unsupported_encoding(tmp_path: Path) -> Path:
+    return write_raw(tmp_path / "yuv.bag", "bag", [("/cam/image", IMG, lambda ts, s: image_msg(ts, s, "yuv422"), 3)])
+
+
+def _missing(tmp_path: Path) -> Path:
+    return tmp_path / "nowhere.bag"
+
+
+@pytest.mark.parametrize(
+    ("make", "reason"),
+    [
+        (_not_a_bag, "not a readable bag"),
+        (_truncated, ""),
+        (_corrupt_middle, "corrupt log"),
+        (_no_camera, "no usable camera topic"),
+        (_unsupported_encoding, "unsupported image encoding 'yuv422'"),
+        (_missing, "not found"),
+    ],
+)
+def test_bad_logs_are_one_line_exit_2_and_write_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], make: object, reason: str
+) -> None:
+    log = make(tmp_path)  # type: ignore[operator]
+    out_map = tmp_path / "out" / "map.json"
+    out_map.parent.mkdir()
+    code, out, err = _run(capsys, "process", str(log), "--preset", "poseidon", "--out", str(out_map), "--json")
+    assert code == 2
+    assert out == ""
+    lines = err.strip().splitlines()
+    error_lines = [line for line in lines if line.startswith("ERROR:")]
+    assert len(error_lines) == 1 and reason in error_lines[0] and str(log) in error_lines[0]
+    assert list(out_map.parent.iterdir()) == []  # nothing written, no temporary left
+
+
+def test_images_too_small_for_the_preset_are_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = write_log(tmp_path / "tiny", "bag", frame_images(3, 10.0, False), arc_odometry(7, 20.0))
+    out_map = tmp_path / "map.json"
+    code, _, err = _run(capsys, "process", str(log), "--preset", "poseidon", "--out", str(out_map))
+    assert code == 2 and "smaller than the 64×24 template" in err and str(log) in err
+    assert not out_map.exists()
+
+
+def test_bad_preset_and_topics_are_exit_2(small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(capsys, "process", str(small_log), "--preset", "cirkle")
+    assert code == 2 and "unknown preset 'cirkle'" in err and "circle" in err
+    code, _, err = _run(capsys, "process", str(small_log), "--topics", "image=/nope")
+    assert code == 2 and "'/nope'" in err
