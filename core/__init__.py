@@ -11,6 +11,7 @@ Public surface::
 from core.config import ConfigError, Params, load_config, params_from_dict, preset
 from core.engine import Action, Engine, StepResult
 from core.experience_map import LinkKind
+from core.localview import ImageError
 from core.motion import Motion
 from core.paths import ExperienceGraph, NoPath, PathResult
 
@@ -19,6 +20,7 @@ __all__ = [
     "ConfigError",
     "Engine",
     "ExperienceGraph",
+    "ImageError",
     "LinkKind",
     "Motion",
     "NoPath",

@@ -40,6 +40,10 @@ if TYPE_CHECKING:
     from core.config import Params
 
 
+class ImageError(ValueError):
+    """An image cannot be turned into a template with these parameters (shape, crop or size)."""
+
+
 def greyscale(image: np.ndarray) -> np.ndarray:
     """Return float64 grey values 0..255: the mean of the colour channels (OpenRatSLAM, RGB averaged)."""
     pixels = np.asarray(image)
@@ -47,7 +51,7 @@ def greyscale(image: np.ndarray) -> np.ndarray:
         return pixels[..., :3].astype(np.float64).mean(axis=2)
     if pixels.ndim != 2:
         msg = f"image must be (H, W) or (H, W, 3), got shape {pixels.shape}"
-        raise ValueError(msg)
+        raise ImageError(msg)
     return pixels.astype(np.float64)
 
 
@@ -59,7 +63,7 @@ def crop(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np
     region = grey[min(y_min, h) : y1, min(x_min, w) : x1]
     if region.size == 0:
         msg = f"crop x {x_min}..{x_max}, y {y_min}..{y_max} leaves nothing of a {w}×{h} image"
-        raise ValueError(msg)
+        raise ImageError(msg)
     return region
 
 
@@ -69,7 +73,7 @@ def block_average(region: np.ndarray, ty: int, tx: int) -> np.ndarray:
     by, bx = h // ty, w // tx
     if by == 0 or bx == 0:
         msg = f"a {w}×{h} crop is smaller than the {tx}×{ty} template"
-        raise ValueError(msg)
+        raise ImageError(msg)
     return region[: by * ty, : bx * tx].reshape(ty, by, tx, bx).mean(axis=(1, 3))
 
 
