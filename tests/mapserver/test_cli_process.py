@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 from pathlib import Path
 
 import pytest
@@ -85,6 +87,43 @@ def _corrupt_middle(tmp_path: Path) -> Path:
     return bad
 
 
+def _corrupt_mcap_with_checksums(tmp_path: Path) -> Path:
+    """An MCAP log whose chunks carry CRC-32s (as the ``ros2 bag record`` writer stores them) and whose last
+    chunk then has one byte flipped.
+
+    rosbags' own writer stores CRC 0 ("not computed", allowed by the MCAP spec), and a chunk without a checksum
+    cannot be verified by anyone; the reader verifies every chunk that has one. The CRCs are patched in here by
+    walking the records: opcode (1 byte), length (uint64), then for a Chunk (0x06) start/end time, uncompressed
+    size (uint64 each), the CRC (uint32), the compression name and the uint64-sized records.
+    """
+    odometry = arc_odometry(200, 20.0)
+    images = [(s, test_image(i, True, (48, 128))) for i, (s, _) in enumerate(frame_images(100, 10.0, True))]
+    path = write_log(tmp_path / "full", "mcap", images, odometry, image_encoding="rgb8")
+    data = bytearray(path.read_bytes())
+    offset, chunks = 8, []  # after the magic
+    while offset < len(data) - 8:
+        opcode = data[offset]
+        (length,) = struct.unpack_from("<Q", data, offset + 1)
+        body = offset + 9
+        if opcode == 0x06:
+            (name_len,) = struct.unpack_from("<I", data, body + 28)
+            assert bytes(data[body + 32 : body + 32 + name_len]) == b""  # uncompressed chunks
+            records = body + 32 + name_len + 8
+            (records_len,) = struct.unpack_from("<Q", data, records - 8)
+            struct.pack_into("<I", data, body + 24, zlib.crc32(data[records : records + records_len]))
+            chunks.append((records, records_len))
+        elif opcode == 0x0F:  # footer
+            break
+        offset = body + length
+    assert len(chunks) >= 2
+    records, records_len = chunks[-1]
+    data[records + records_len // 2] ^= 0xFF
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(bytes(data))
+    path.unlink()
+    return bad
+
+
 def _no_camera(tmp_path: Path) -> Path:
     return write_log(tmp_path / "odom_only", "db3", [], arc_odometry(20, 20.0))
 
@@ -103,6 +142,7 @@ def _missing(tmp_path: Path) -> Path:
         (_not_a_bag, "not a readable bag"),
         (_truncated, ""),
         (_corrupt_middle, "corrupt log"),
+        (_corrupt_mcap_with_checksums, "checksum mismatch"),
         (_no_camera, "no usable camera topic"),
         (_unsupported_encoding, "unsupported image encoding 'yuv422'"),
         (_missing, "not found"),
