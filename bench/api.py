@@ -1,6 +1,6 @@
 """REST API latency: /path on a 100,000-experience map under 8 concurrent clients, and upload-to-done time.
 
-Usage: python bench/api.py [--experiences 100000] [--clients 8] [--requests 200] [--skip-upload]
+Usage: python bench/api.py [--experiences 100000] [--clients 8] [--requests 200] [--read-token] [--skip-upload]
 
 1. Builds a map directly through the store API (no frames processed): a city-block exploration of
    ``--experiences`` experiences on a grid of streets — the robot drives the rows in turn (odometry
@@ -9,6 +9,7 @@ Usage: python bench/api.py [--experiences 100000] [--clients 8] [--requests 200]
 2. Starts a real ``mapserver serve`` process on a free loopback port (anonymous reads), warms the
    graph cache with one query, then ``--clients`` threads each send ``--requests`` /path queries
    between random experiences (seeded) over keep-alive connections; prints p50/p90/p99/max latency.
+   ``--read-token`` sends a read token with every query (the server then looks it up each time).
 3. Simulates the ``loop`` scenario, uploads its log with a write token and polls the job until it is
    done: prints the end-to-end seconds (upload + queue + processing + store).
 
@@ -18,6 +19,7 @@ Last line: one JSON object with every figure. Target: p99 ≤ 50 ms.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import socket
@@ -111,7 +113,9 @@ def start_server(db_url: str, folder: Path) -> tuple[subprocess.Popen[bytes], st
     raise SystemExit("server did not start")
 
 
-def path_latency(url: str, experiences: int, clients: int, requests: int) -> dict[str, float]:
+def path_latency(
+    url: str, experiences: int, clients: int, requests: int, headers: dict[str, str] | None = None
+) -> dict[str, float]:
     """Return latency percentiles (ms) of /path under ``clients`` concurrent clients."""
     rng = np.random.default_rng(1)
     pairs = rng.integers(0, experiences, size=(clients, requests, 2))
@@ -121,7 +125,7 @@ def path_latency(url: str, experiences: int, clients: int, requests: int) -> dic
     barrier = threading.Barrier(clients)
 
     def client(k: int) -> None:
-        with httpx.Client(base_url=url, timeout=30) as http:
+        with httpx.Client(base_url=url, timeout=30, headers=headers) as http:
             barrier.wait()
             for a, b in pairs[k]:
                 start = time.perf_counter()
@@ -132,6 +136,10 @@ def path_latency(url: str, experiences: int, clients: int, requests: int) -> dic
                 elif k == 0:
                     lengths.append(len(response.json()["nodes"]))
 
+    # the clients' own full collections (this process holds the map builder's objects) would pause every
+    # client thread for tens of milliseconds and be counted as server latency: keep them out of the figures
+    gc.collect()
+    gc.freeze()
     threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
     started = time.perf_counter()
     for t in threads:
@@ -181,6 +189,7 @@ def main() -> None:
     parser.add_argument("--experiences", type=int, default=100_000)
     parser.add_argument("--clients", type=int, default=8)
     parser.add_argument("--requests", type=int, default=200, help="per client")
+    parser.add_argument("--read-token", action="store_true", help="send a read token with every /path query")
     parser.add_argument("--skip-upload", action="store_true", help="skip the loop upload-to-done measurement")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="mapserver-bench-api-") as tmp:
@@ -197,8 +206,13 @@ def main() -> None:
             warm = time.perf_counter() - start
             print(f"first /path (loads and caches the graph): {warm * 1000:.0f} ms")
             result: dict[str, object] = {"experiences": args.experiences, "links": links, "clients": args.clients,
-                                         "first_query_ms": round(warm * 1000, 1)}  # fmt: skip
-            latency = path_latency(url, args.experiences, args.clients, args.requests)
+                                         "read_token": args.read_token, "first_query_ms": round(warm * 1000, 1),
+                                         "load_average_1min": round(os.getloadavg()[0], 2)}  # fmt: skip
+            headers = None
+            if args.read_token:
+                with open_database(db_url) as db, db.write() as conn:
+                    headers = {"Authorization": f"Bearer {create_token(conn=conn, scope='read')[0]}"}
+            latency = path_latency(url, args.experiences, args.clients, args.requests, headers)
             print(f"/path under {args.clients} clients: p50 {latency['p50_ms']} ms, p90 {latency['p90_ms']} ms, "
                   f"p99 {latency['p99_ms']} ms, max {latency['max_ms']} ms ({latency['requests']} requests, "
                   f"{latency['throughput_rps']} req/s, mean path {latency['mean_path_nodes']} nodes); "

@@ -1,4 +1,9 @@
-"""Shortest paths over the experience graph (OpenRatSLAM ``dijkstra_distance_between_experiences``)."""
+"""Shortest paths over the experience graph (OpenRatSLAM ``dijkstra_distance_between_experiences``).
+
+The graph is contracted once (:mod:`core.contraction`: chains of degree-2 experiences between
+junctions), so that a query runs Dijkstra over the junctions only and still returns an exact
+shortest path of the whole graph.
+"""
 
 from __future__ import annotations
 
@@ -6,11 +11,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import dijkstra
+
+from core.contraction import Chains, ContractedGraph
 
 Weight = Literal["time", "distance"]
-_MIN_WEIGHT = 1e-9  # zero-length links stay edges (csgraph drops explicit zeros)
+_MIN_WEIGHT = 1e-9  # zero-length links stay edges of positive cost (so shortest paths stay simple)
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,9 +40,14 @@ class NoPath:
 class ExperienceGraph:
     """An undirected weighted view of the experience links, built once and queried many times.
 
-    Links are traversable in both directions, as OpenRatSLAM's path planner; edge
-    weight is the link's Δt (time-optimal, as OpenRatSLAM) or its length (metric).
-    Parallel links keep the cheapest.
+    Links are traversable in both directions, as OpenRatSLAM's path planner; edge weight is the link's
+    Δt (time-optimal, as OpenRatSLAM) or its length (metric), at least ``1e-9`` (a zero-length link is
+    still an edge). Parallel links keep the cheapest; self-links are ignored, and so is a link whose
+    cost is not finite (for that weight). Construction takes a few vectorised csgraph passes
+    (``O(L log L)`` for ``L`` links); a query one Dijkstra over the junctions (see :mod:`core.contraction`).
+
+    Raises:
+        ValueError: the link arrays differ in length or name an experience that does not exist.
     """
 
     def __init__(
@@ -51,13 +61,22 @@ class ExperienceGraph:
         self.poses = np.asarray(poses, dtype=np.float64)
         n = self.poses.shape[0]
         self.size = n
-        self._graphs = {
-            "time": _symmetric_min_graph(n, link_from, link_to, link_dt),
-            "distance": _symmetric_min_graph(n, link_from, link_to, link_distance),
-        }
+        lo, hi, costs = _simple_links(n, link_from, link_to, {"time": link_dt, "distance": link_distance})
+        self._graphs: dict[str, ContractedGraph] = {}
+        shared: tuple[np.ndarray, Chains] | None = None
+        for name, cost in costs.items():
+            usable = np.isfinite(cost)
+            if shared is None or not np.array_equal(shared[0], usable):
+                shared = (usable, Chains.build(n, lo[usable], hi[usable]))
+            self._graphs[name] = ContractedGraph(shared[1], lo[usable], hi[usable], cost[usable])
+
+    @property
+    def junction_count(self) -> int:
+        """Return the number of junctions of the time graph (experiences of degree ≠ 2, one per pure cycle)."""
+        return int(self._graphs["time"].chains.junctions.size)
 
     def shortest_path(self, source: int, target: int, weight: Weight = "time") -> PathResult | NoPath:
-        """Return the shortest path from ``source`` to ``target`` by Dijkstra.
+        """Return the shortest path from ``source`` to ``target`` (Dijkstra over the contracted graph).
 
         Raises:
             IndexError: an id is not an experience of this graph.
@@ -70,31 +89,35 @@ class ExperienceGraph:
             if not 0 <= node < self.size:
                 msg = f"experience {node} does not exist (map has {self.size})"
                 raise IndexError(msg)
-        if source == target:
-            return PathResult([source], self.poses[[source]].copy(), 0.0, weight)
-        dist, pred = dijkstra(self._graphs[weight], directed=False, indices=source, return_predecessors=True)
-        if not np.isfinite(dist[target]):
+        found = self._graphs[weight].search(int(source), int(target))
+        if found is None:
             return NoPath(source, target, weight)
-        nodes = [target]
-        while nodes[-1] != source:
-            nodes.append(int(pred[nodes[-1]]))
-        nodes.reverse()
-        return PathResult(nodes, self.poses[nodes].copy(), float(dist[target]), weight)
+        cost, nodes = found
+        return PathResult(nodes, self.poses[nodes], cost, weight)
 
 
-def _symmetric_min_graph(n: int, src: np.ndarray, dst: np.ndarray, weight: np.ndarray) -> sp.csr_matrix:
-    """Build an (n, n) CSR graph keeping the minimum weight of parallel links, stored once per pair."""
-    src = np.asarray(src, dtype=np.int64)
-    dst = np.asarray(dst, dtype=np.int64)
-    w = np.maximum(np.asarray(weight, dtype=np.float64), _MIN_WEIGHT)
-    lo = np.minimum(src, dst)
-    hi = np.maximum(src, dst)
-    keep = lo != hi
-    lo, hi, w = lo[keep], hi[keep], w[keep]
-    if lo.size == 0:
-        return sp.csr_matrix((n, n))
-    order = np.lexsort((w, hi, lo))
-    lo, hi, w = lo[order], hi[order], w[order]
+def _simple_links(
+    n: int, link_from: np.ndarray, link_to: np.ndarray, weights: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Return the distinct undirected links ``lo < hi`` and, per weight, the cheapest finite cost of each.
+
+    Costs are raised to at least ``1e-9``; a pair whose links all have a non-finite cost gets NaN or inf.
+    """
+    src = np.asarray(link_from, dtype=np.int64).ravel()
+    dst = np.asarray(link_to, dtype=np.int64).ravel()
+    costs = {k: np.maximum(np.asarray(w, dtype=np.float64).ravel(), _MIN_WEIGHT) for k, w in weights.items()}
+    if any(a.size != src.size for a in (dst, *costs.values())):
+        msg = "link arrays (from, to, dt, distance) must have the same length"
+        raise ValueError(msg)
+    if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= n):
+        msg = f"a link names an experience outside 0..{n - 1}"
+        raise ValueError(msg)
+    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
+    keep = np.flatnonzero(lo != hi)
+    keep = keep[np.lexsort((hi[keep], lo[keep]))]
+    lo, hi = lo[keep], hi[keep]
     first = np.ones(lo.size, dtype=bool)
     first[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
-    return sp.csr_matrix((w[first], (lo[first], hi[first])), shape=(n, n))
+    groups = np.flatnonzero(first)
+    cheapest = {k: np.fmin.reduceat(w[keep], groups) if groups.size else w[:0] for k, w in costs.items()}
+    return lo[first], hi[first], cheapest

@@ -45,3 +45,12 @@ class StoreError(MapServerError):
 
 class MergeError(ConflictError):
     """Two maps cannot be merged (no confirmed match)."""
+
+
+class NoConfirmedMatchError(MergeError):
+    """An offline merge found no confirmed template match: the maps do not connect (exit 2, HTTP 409).
+
+    The contract's ``mapserver merge`` exits 2 with the reason; other refused merges exit 1.
+    """
+
+    exit_code = 2

@@ -6,6 +6,7 @@ Both faces (``mapserver process`` and the REST API's jobs) call :func:`process_l
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -17,11 +18,11 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from core import ConfigError, Engine, ImageError, Params
+from core import ConfigError, Engine, ImageError, Params, StepResult
 from core.motion import Motion
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
-from mapserver.ingest import open_log
+from mapserver.ingest import MissionLog, open_log
 
 logger = logging.getLogger(__name__)
 
@@ -43,9 +44,15 @@ class ProcessResult:
     session_id: int | None = None
     engine: Engine | None = None
     document: dict[str, Any] | None = None
+    frames_run: int | None = None
 
     def summary(self) -> dict[str, Any]:
-        """Return the contract's ``process --json`` object."""
+        """Return the contract's ``process --json`` object.
+
+        ``frames`` counts the session's frames so far; ``frames_per_s`` is this run's rate (frames run
+        now, a resumed session's earlier frames not counted).
+        """
+        run = self.frames if self.frames_run is None else self.frames_run
         return {
             "frames": self.frames,
             "templates": self.templates,
@@ -55,7 +62,7 @@ class ProcessResult:
             "merges": self.merges,
             "map": self.map_name,
             "seconds": round(self.seconds, 3),
-            "frames_per_s": round(self.frames / self.seconds, 1) if self.seconds > 0 else None,
+            "frames_per_s": round(run / self.seconds, 1) if self.seconds > 0 else None,
         }
 
 
@@ -80,42 +87,61 @@ class DeadReckoning:
         return np.asarray(self.rows, dtype=np.float64).reshape(-1, 4)
 
 
+@dataclass
+class EngineRun:
+    """What :func:`run_engine` did: the engine the log ended in, frames run, dead reckoning, log identity."""
+
+    engine: Engine
+    frames: int
+    reckoning: DeadReckoning
+    info: dict[str, Any]
+
+
+StepHook = Callable[[Any, StepResult], "Engine | None"]
+"""``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
+
+
 def run_engine(
     engine: Engine,
-    log_path: str | Path,
+    log: str | Path | MissionLog,
     *,
     topics: Mapping[str, str] | None = None,
     start: int = 0,
     stop: int | None = None,
     progress: ProgressCallback | None = None,
-    on_step: Callable[[Any, Any], None] | None = None,
-) -> tuple[int, DeadReckoning, Any]:
-    """Feed frames ``[start, stop)`` of a log through ``engine``; return (frames, dead reckoning, log info).
+    on_step: StepHook | None = None,
+) -> EngineRun:
+    """Feed frames ``[start, stop)`` of a log through ``engine`` and return the run.
 
-    ``on_step(frame, result)`` is called after every frame (the merger and the evidence
-    collector hook in here).
+    ``log`` is a path (opened here) or a log opened by the caller (its SHA-256 is then computed at
+    most once, whoever asks first). ``on_step(frame, result)`` is called after every frame (the
+    merger and the evidence collector hook in here); when it returns an engine, the next frames go
+    to that one (an online merge replaced the map the session maps in).
     """
     # The engine's matrices are small: multi-threaded BLAS only adds contention (2-5x slower on a busy machine).
-    with threadpool_limits(limits=1, user_api="blas"), open_log(log_path, topics) as log:
-        total = log.count_frames()
+    with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
+        opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
+        total = opened.count_frames()
         end = total if stop is None else min(stop, total)
         reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
         count = 0
-        for frame in log.frames(start, end):
+        for frame in opened.frames(start, end):
             stamp = frame.stamp_ns * 1e-9
             try:
                 result = engine.step(frame.image, frame.motion, stamp)
             except ImageError as err:  # images smaller than the preset's template or crop
-                msg = f"{log_path}: frame {start + count} cannot be processed with these parameters: {err}"
+                msg = f"{opened.path}: frame {start + count} cannot be processed with these parameters: {err}"
                 raise InputError(msg) from err
             reckoning.add(stamp, result.motion)
             if on_step is not None:
-                on_step(frame, result)
+                swapped = on_step(frame, result)
+                if swapped is not None:
+                    engine = swapped
             count += 1
             if progress is not None:
                 progress(count, end - start)
-        info = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total_frames": total}
-    return count, reckoning, info
+        info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total}
+    return EngineRun(engine, count, reckoning, info)
 
 
 def process_log(
@@ -139,10 +165,11 @@ def process_log(
         raise InputError(str(err)) from err
     frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
 
-    def record(frame: Any, result: Any) -> None:
+    def record(frame: Any, result: StepResult) -> None:
         frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
 
-    frames, reckoning, info = run_engine(engine, log_path, topics=topics, progress=progress, on_step=record)
+    run = run_engine(engine, log_path, topics=topics, progress=progress, on_step=record)
+    frames, reckoning, info = run.frames, run.reckoning, run.info
     if frames == 0:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
@@ -169,32 +196,22 @@ def process_log(
         seconds=time.perf_counter() - started,
         engine=engine,
         document=document,
+        frames_run=frames,
     )
 
 
 # ----------------------------------------------------------------------------------------------- store
 
 NEW_SESSION_ORIGIN = 0
-"""Origin tag of a new session's templates and experiences until it has an id (stored ids start at 1)."""
+"""Origin tag of a new session's templates and experiences until it has an id (stored ids start at 1).
+
+The engine stamps rows with its origin tag (``Engine(params, origin=tag)``); a resumed session's engine
+runs with its session id. The store maps tag 0 to the new session's id when it saves (``origins``).
+"""
 
 
 def _log_stem(log_path: str | Path) -> str:
     return Path(log_path).name.split(".")[0] or "map"
-
-
-def _merge_candidates(db: Any, *, params: Params, session_map_id: int | None, enabled: bool) -> list[Any]:
-    """MERGE HOOK (issue 5): the stored maps this session may merge into online.
-
-    Online merging is not implemented here yet: this returns no candidate, so the session always
-    becomes (or continues) its own map and ``merges`` is ``[]``. The merger plugs in by returning
-    the candidate maps (loaded with ``mapserver.store.read_map_state``), feeding every frame to its
-    matcher in ``process_into_store``'s run (swapping the engine when a merge is confirmed), and, in
-    the write transaction, recording the event (``store.merge_events.record_merge_event``), archiving
-    the pre-merge states (``store.archive.archive_map_state`` / ``archive_state``), dropping maps that
-    were joined (``store.drop_map``) and writing the merged state with the renumbered identities.
-    """
-    del db, params, session_map_id, enabled
-    return []
 
 
 def _existing_result(db: Any, session: Any, map_id: int, started: float, out: str | Path | None) -> ProcessResult:
@@ -243,52 +260,59 @@ def process_into_store(
     stop_after: int | None = None,
     out: str | Path | None = None,
     progress: ProgressCallback | None = None,
+    confirm: int | None = None,
+    shift_lattice: bool = True,
 ) -> ProcessResult:
     """Run a log through the engine and store the session in a database, in one transaction.
 
-    A log is identified by its SHA-256 and topic mapping. A new log becomes a new session in a new map
-    called ``map_name`` (default: the log's name). A log stored partially (``stop_after``) continues from
-    its next frame in the same session and map, from the exact stored engine state, so processing
-    frames [0, k) then [k, N) gives the same map as [0, N) in one go. A complete log is answered with
-    the stored session (a warning says so). The map is relaxed to convergence (``settle``) only when the
-    session's last frame has been processed.
+    A log is identified by its SHA-256 and topic mapping. A new log becomes a new session. With
+    ``merge`` (the default) every frame is matched against the stored maps of the atlas that can
+    merge with it (:func:`mapserver.atlas.merge_candidates`); a confirmed match merges the session
+    into that map online and mapping continues in the merged map; the session may merge again into
+    another map (a session bridging two maps joins them). A session that connects to no map becomes a
+    new map called ``map_name`` (default: the log's name). A log stored partially (``stop_after``)
+    continues from its next frame in the same session and map, from the exact stored engine state (and
+    merge driver state), so processing frames [0, k) then [k, N) gives the same map as [0, N) in one go.
+    A complete log is answered with the stored session (a warning says so). The map is relaxed to
+    convergence (``settle``) only when the session's last frame has been processed.
 
     Args:
         log_path: the mission log.
         params: engine parameters (a continued session must use the ones it was stored with).
         db_url: SQLAlchemy URL (None: the default SQLite file); an empty database gets the schema.
-        map_name: name of the new map (an error if a map of that name exists and the log is not one of
-            its sessions).
+        map_name: name of the new map when the session connects to none (an error if a map of that name
+            exists and the log is not one of its sessions).
         topics: topic overrides.
-        merge: try online merging into stored maps (issue 5; see :func:`_merge_candidates`).
+        merge: merge online into the stored maps the session connects to; False keeps it a separate map.
         stop_after: stop when the session has processed this many frames in total (resume later).
         out: also write the map JSON here.
         progress: ``progress(done, total)`` callback.
+        confirm: K, consecutive matching frames that confirm a merge (None: ``params.merge_confirm``).
+        shift_lattice: False disables merge operation (iii), the lattice shift (debug, Fig. 12).
 
     Returns:
-        The summary (``frames`` counts the session's frames so far).
+        The summary (``frames`` counts the session's frames so far; ``merges`` one entry per merge).
 
     Raises:
-        InputError: unreadable log, no frames, invalid ``stop_after``, a map name taken, or parameters
-            that differ from the stored session's.
-        ConflictError: another process wrote the same map concurrently twice in a row.
+        InputError: unreadable log, no frames, invalid ``stop_after`` or ``confirm``, a map name taken, or
+            parameters that differ from the stored session's.
+        ConflictError: another process wrote a map this session reads concurrently twice in a row.
     """
     from mapserver.store import StaleMapError, open_database
 
     if stop_after is not None and stop_after < 1:
         msg = f"--stop-after must be at least 1, got {stop_after!r}"
         raise InputError(msg)
+    if confirm is not None and confirm < 1:
+        msg = f"--confirm must be at least 1, got {confirm!r}"
+        raise InputError(msg)
     started = time.perf_counter()
-    with open_log(log_path, topics) as log:
+    options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice)
+    with open_log(log_path, topics) as log, open_database(db_url) as db:
         identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
-    with open_database(db_url) as db:
         for attempt in (1, 2):
             try:
-                return _process_session(
-                    db, log_path, params, identity,
-                    map_name=map_name, topics=topics, merge=merge, stop_after=stop_after, out=out,
-                    progress=progress, started=started,
-                )  # fmt: skip
+                return _process_session(db, log_path, log, params, identity, options)
             except StaleMapError as err:
                 if attempt == 2:
                     raise
@@ -296,33 +320,54 @@ def process_into_store(
     raise AssertionError("unreachable")  # pragma: no cover
 
 
+@dataclass(frozen=True)
+class _Options:
+    map_name: str | None
+    merge: bool
+    stop_after: int | None
+    out: str | Path | None
+    progress: ProgressCallback | None
+    started: float
+    confirm: int | None
+    shift_lattice: bool
+
+
+@dataclass(eq=False)
+class _PendingMerge:
+    """An online merge made during the run, stored in the session's write transaction."""
+
+    event: Any  # mapserver.merge.MergeEvent
+    target: Any  # mapserver.atlas.AtlasMap
+    partial_ids: Any  # RowIdentities before the merge (tags)
+    partial_name: str
+    partial_map_id: int | None
+    partial_sessions: list[int]  # stored sessions in the partial besides the running one
+    frames_at: int
+    reckoning_pose: list[float]
+    host_id: int
+    host_name: str
+
+
 def _process_session(
-    db: Any,
-    log_path: str | Path,
-    params: Params,
-    identity: Mapping[str, Any],
-    *,
-    map_name: str | None,
-    topics: Mapping[str, str] | None,
-    merge: bool,
-    stop_after: int | None,
-    out: str | Path | None,
-    progress: ProgressCallback | None,
-    started: float,
+    db: Any, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
 ) -> ProcessResult:
-    """One attempt of :func:`process_into_store` (redone once when the map changed meanwhile)."""
-    from core import Action, params_from_dict
-    from mapserver.store import find_map, find_session, get_map_by_id, read_map_state
-    from mapserver.store.evidence import EvidenceCollector, save_evidence
-    from mapserver.store.maps import create_map
-    from mapserver.store.sessions import NewSession, create_session, get_reckoning, update_session
-    from mapserver.store.state import plain_params, write_map_state
+    """One attempt of :func:`process_into_store` (redone once when a map changed meanwhile)."""
+    from core import Action
+    from mapserver import atlas
+    from mapserver.merge import OnlineMerger
+    from mapserver.merge.identity import RowIdentities
+    from mapserver.store import find_map, find_session, get_map_by_id
+    from mapserver.store.evidence import EvidenceCollector
+    from mapserver.store.sessions import get_reckoning
+    from mapserver.store.state import plain_params
 
     wanted = plain_params(params)
-    name = map_name or _log_stem(log_path)
+    name = opts.map_name or _log_stem(log_path)
     total = int(identity["total"])
-    content = None
-    session = None
+    own = session = None
+    stored_rows, stored_pose = np.zeros((0, 4)), None
+    candidates: list[Any] = []
+    skipped: dict[str, str] = {}
     with db.read() as conn:
         session = find_session(conn=conn, log_sha256=identity["sha256"], topics=identity["mapping"])
         if session is not None:
@@ -337,129 +382,243 @@ def _process_session(
                 msg = f"session {session.name!r} belongs to no map at the moment (an unmerge in progress?)"
                 raise InputError(msg)
             record = get_map_by_id(conn=conn, map_id=session.map_id)
-            if map_name is not None and map_name != record.name:
+            if opts.map_name is not None and opts.map_name != record.name:
                 msg = (
                     f"{str(log_path)!r} is session {session.name!r} of map {record.name!r}; "
-                    f"it cannot be stored in map {map_name!r}"
+                    f"it cannot be stored in map {opts.map_name!r}"
                 )
                 raise InputError(msg)
             done = session.frames_processed
-            if session.complete or (stop_after is not None and done >= stop_after):
+            if session.complete or (opts.stop_after is not None and done >= opts.stop_after):
                 logger.warning(
                     "%s is stored already as session %r of map %r (%d of %d frames): answering with it",
                     log_path, session.name, record.name, done, total,
                 )  # fmt: skip
-                return _existing_result(db, session, record.id, started, out)
-            content = read_map_state(conn=conn, map_id=record.id)
+                return _existing_result(db, session, record.id, opts.started, opts.out)
+            own = atlas.read_atlas_map(conn, record.id)
             stored_rows, stored_pose = get_reckoning(conn=conn, session_id=session.id)
         elif find_map(conn=conn, name=name) is not None:
             msg = f"a map named {name!r} already exists and this log is not one of its sessions; choose --map NAME"
             raise InputError(msg)
+        if opts.merge:
+            candidates, skipped = atlas.merge_candidates(conn, params=params, exclude=None if own is None else own.id)
+    for other, reason in skipped.items():
+        logger.warning("map %r is not a merge candidate: %s", other, reason)
 
-    if content is not None and session is not None:
-        engine = Engine.restore(params_from_dict(content.params), content.snapshot, origin=session.id)
+    reckoning = DeadReckoning(math.radians(params.exp_initial_em_deg))
+    if own is not None and session is not None:
+        tag = session.id
+        engine = Engine.restore(own.params, own.snapshot, origin=tag)
+        ids = own.identities.copy()
         start = session.frames_processed
-        reckoning = DeadReckoning(math.radians(params.exp_initial_em_deg))
         if stored_pose is not None:
             reckoning.pose = np.asarray(stored_pose, dtype=np.float64)
+        resume = atlas.resume_merger_state(own, session.id, candidates)
     else:
+        tag = NEW_SESSION_ORIGIN
         try:
-            engine = Engine(params, origin=NEW_SESSION_ORIGIN)
+            engine = Engine(params, origin=tag)
         except ConfigError as err:
             raise InputError(str(err)) from err
+        ids = RowIdentities()
         start = 0
-        stored_rows = np.zeros((0, 4))
-        reckoning = DeadReckoning(math.radians(params.exp_initial_em_deg))
-    stop = total if stop_after is None else min(stop_after, total)
-    candidates = _merge_candidates(  # MERGE HOOK (issue 5)
-        db, params=params, session_map_id=None if session is None else session.map_id, enabled=merge
-    )
+        resume = None
+    stop = total if opts.stop_after is None else min(opts.stop_after, total)
+    merger = (
+        OnlineMerger([c.stored() for c in candidates], confirm=opts.confirm, shift_lattice=opts.shift_lattice,
+                     resume=resume)
+        if candidates else None
+    )  # fmt: skip
+    by_id = {c.id: c for c in candidates}
+    pending: list[_PendingMerge] = []
     collector = EvidenceCollector(params.sync_stale_sec)
     stamps: list[float] = []
+    # the map the partial map is at the moment: the session's own stored map, or (after merges) the oldest joined
+    holder: dict[str, Any] = {
+        "id": None if own is None else own.id,
+        "name": name if own is None else own.name,
+        "sessions": [] if own is None else [s for s in own.session_ids if s != tag],
+        "engine": engine,
+        "ids": ids,
+    }
 
-    def on_step(frame: Any, result: Any) -> None:
+    def on_step(frame: Any, result: StepResult) -> Engine | None:
+        current: Engine = holder["engine"]
+        rows: RowIdentities = holder["ids"]
+        rows.extend(current.template_count, current.experience_count, tag)
         stamp = frame.stamp_ns * 1e-9
         stamps.append(stamp)
         collector.observe(stamp, frame.image)
         if result.action == Action.CREATE_NODE:
-            collector.experience(result.experience, stamp)
+            collector.experience(int(rows.experience_arrays()[1][result.experience]), stamp)
         reckoning.add(stamp, result.motion)
+        if merger is None:
+            return None
+        event = merger.observe(current, result)
+        if event is None:
+            return None
+        target = by_id[int(event.key)]  # type: ignore[call-overload]
+        ids_before = rows.copy()
+        if holder["id"] is None or target.id < holder["id"]:
+            host_id, host_name = target.id, target.name
+        else:
+            host_id, host_name = holder["id"], holder["name"]
+        pending.append(
+            _PendingMerge(
+                event=event, target=target, partial_ids=ids_before, partial_name=holder["name"],
+                partial_map_id=holder["id"], partial_sessions=list(holder["sessions"]), frames_at=start + len(stamps),
+                reckoning_pose=[float(v) for v in reckoning.pose], host_id=host_id, host_name=host_name,
+            )
+        )  # fmt: skip
+        holder.update(
+            id=host_id, name=host_name, engine=event.engine,
+            sessions=sorted(set(holder["sessions"]) | set(target.session_ids)),
+            ids=RowIdentities.merged(target.identities, rows, event.record),
+        )  # fmt: skip
+        return event.engine
 
-    frames, _odometry, _info = run_engine(
-        engine, log_path, topics=topics, start=start, stop=stop, progress=progress, on_step=on_step
-    )
-    if frames == 0 and content is None:
+    run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=on_step)
+    engine, ids = run.engine, holder["ids"]
+    if run.frames == 0 and own is None:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
-    processed = start + frames
+    if merger is not None:
+        for other, reason in merger.skipped.items():
+            logger.warning("map %r is not a merge candidate: %s", other, reason)
+    processed = start + run.frames
     complete = processed >= total
     if complete:
         engine.settle()
+    ids.extend(engine.template_count, engine.experience_count, tag)
+    return _store_session(
+        db, log_path, params, identity, opts,
+        session=session, own=own, name=name, engine=engine, ids=ids, pending=pending,
+        merger=merger if not complete else None, candidates=candidates, processed=processed, total=total,
+        stamps=stamps, collector=collector, stored_rows=stored_rows, reckoning=reckoning, frames_run=run.frames,
+    )  # fmt: skip
+
+
+def _store_session(
+    db: Any,
+    log_path: str | Path,
+    params: Params,
+    identity: Mapping[str, Any],
+    opts: _Options,
+    *,
+    session: Any,
+    own: Any,
+    name: str,
+    engine: Engine,
+    ids: Any,
+    pending: list[_PendingMerge],
+    merger: Any,
+    candidates: list[Any],
+    processed: int,
+    total: int,
+    stamps: list[float],
+    collector: Any,
+    stored_rows: np.ndarray,
+    reckoning: DeadReckoning,
+    frames_run: int,
+) -> ProcessResult:
+    """Write the session, its map (merged or not), its merge events and evidence in one transaction."""
+    from mapserver import atlas
+    from mapserver.store import evidence as evidence_store
+    from mapserver.store import get_map_by_id
+    from mapserver.store.maps import create_map
+    from mapserver.store.sessions import NewSession, create_session, get_sessions, update_session
+    from mapserver.store.state import plain_params
+
     snapshot = engine.snapshot()
     images = collector.finish()
     rows = np.concatenate([stored_rows, reckoning.array()])
     pose = tuple(float(v) for v in reckoning.pose)
-    status = "complete" if complete else "partial"
-    del candidates
+    status = "complete" if processed >= total else "partial"
+    wanted = plain_params(params)
     with db.write() as conn:
-        if content is not None and session is not None:
-            map_id = content.meta.map.id
-            version = content.meta.map.version
-            session_ids = [s.id for s in content.meta.sessions]
-            origins = {s: s for s in session_ids}
+        if session is not None:
             session_id = session.id
             update_session(
                 conn=conn, session_id=session_id, status=status, frames_processed=processed,
                 last_stamp=stamps[-1] if stamps else session.last_stamp, reckoning=rows, reckoning_pose=pose,
             )  # fmt: skip
-            template_index, experience_index = content.meta.template_index, content.meta.experience_index
         else:
-            record = create_map(conn=conn, name=name, params=wanted)
-            map_id, version = record.id, record.version
             created = create_session(
                 conn=conn,
                 spec=NewSession(
-                    name=_log_stem(log_path),
-                    log_name=Path(log_path).name,
-                    log_sha256=identity["sha256"],
-                    topics=identity["mapping"],
-                    params=wanted,
-                    status=status,
-                    frames_processed=processed,
-                    frames_total=total,
-                    first_stamp=stamps[0] if stamps else None,
-                    last_stamp=stamps[-1] if stamps else None,
-                    origin=NEW_SESSION_ORIGIN,
-                    reckoning=rows,
+                    name=_log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity["sha256"],
+                    topics=identity["mapping"], params=wanted, status=status, frames_processed=processed,
+                    frames_total=total, first_stamp=stamps[0] if stamps else None,
+                    last_stamp=stamps[-1] if stamps else None, origin=NEW_SESSION_ORIGIN, reckoning=rows,
                     reckoning_pose=pose,  # type: ignore[arg-type]
                 ),
-            )
+            )  # fmt: skip
             session_id = created.id
-            session_ids = [session_id]
-            origins = {NEW_SESSION_ORIGIN: session_id}
-            template_index = experience_index = None
-        written = write_map_state(
-            conn=conn, map_id=map_id, expected_version=version, params=engine.params, snapshot=snapshot,
-            session_ids=session_ids, origins=origins, template_index=template_index,
-            experience_index=experience_index,
+        tags = {NEW_SESSION_ORIGIN: session_id} if session is None else {}
+        claimed: dict[int, int] = {} if own is None else {own.id: own.version}
+        claimed.update({m.target.id: m.target.version for m in pending})
+        if claimed:
+            host_id = min(claimed)
+        else:
+            host_id = create_map(conn=conn, name=name, params=wanted).id
+            claimed = {host_id: 0}
+        session_ids = sorted({session_id, *(own.session_ids if own is not None else [])}
+                             | {s for m in pending for s in m.target.session_ids})  # fmt: skip
+        extra: dict[str, np.ndarray] = {}
+        if merger is not None:
+            expected = claimed[host_id] + 1  # the version this write gives the map
+            extra = atlas.merger_keys(
+                merger.export_state(), session_id=session_id, map_version=expected, candidates=candidates
+            )
+        writes: list[Any] = []
+        all_ids = sorted(session_ids)
+        frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=all_ids)}
+        for m in pending:
+            ev = m.event
+            partial = atlas.PartialSide(
+                name=m.partial_name, map_id=m.partial_map_id, snapshot=ev.partial, identities=m.partial_ids,
+                params=params, session_ids=sorted({session_id, *m.partial_sessions}),
+            )  # fmt: skip
+            details = {
+                "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
+                "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
+                "match": atlas.match_to_dict(ev.match), "record": atlas.record_summary(ev.record),
+                "target": {"name": m.target.name, "map_id": m.target.id},
+                "source": {"name": m.partial_name, "map_id": m.partial_map_id},
+                "absorbed": [earlier.target.name for earlier in pending[: pending.index(m)]],
+                "session_frames": {str(k): int(v) for k, v in frames_now.items()},
+            }  # fmt: skip
+            writes.append(
+                atlas.MergeToWrite(
+                    mode="online", target=m.target, partial=partial, match=ev.match, record=ev.record,
+                    host_id=m.host_id, host_name=m.host_name, details=details,
+                )
+            )  # fmt: skip
+        written = atlas.write_merges(
+            conn, merges=writes, claimed=claimed, host_id=host_id, params=engine.params, snapshot=snapshot,
+            identities=ids, tags=tags, session_ids=session_ids, extra=extra,
         )  # fmt: skip
-        mine = written.experience_session == session_id
-        items = [(int(written.experience_index[img.experience]), img) for img in images if mine[img.experience]]
-        save_evidence(conn=conn, session_id=session_id, items=items)
-        map_record = get_map_by_id(conn=conn, map_id=map_id)
-        sessions_now = _sessions(conn, session_ids)
-    names = {s.id: s.name for s in sessions_now}
+        e_session, e_index = ids.retagged(tags).experience_arrays()
+        mine = set(e_index[e_session == session_id].tolist())
+        items = [(img.experience, img) for img in images if img.experience in mine]
+        evidence_store.save_evidence(conn=conn, session_id=session_id, items=items)
+        map_record = get_map_by_id(conn=conn, map_id=host_id)
+        sessions_now = get_sessions(conn=conn, session_ids=list(session_ids))
+    merges = [atlas.merge_summary(eid, w, w.host_name) for eid, w in zip(written.event_ids, writes, strict=True)]
+    for entry in merges:
+        logger.info("merged into map %r at frame %s (event %d)", entry["into"], entry["frame"], entry["event"])
     document = None
-    if out is not None:
-        stored_snapshot = {**snapshot, "lv_origin": written.template_session, "em_origin": written.experience_session}
+    if opts.out is not None:
+        result = written.result
+        stored_snapshot = {**snapshot, "lv_origin": result.template_session, "em_origin": result.experience_session}
         document = map_json(
             params=plain_params(engine.params),
             snapshot=stored_snapshot,
             sessions=[SessionInfo(s.name, s.log_sha256, s.frames_processed) for s in sessions_now],
-            session_name_by_origin=names,
+            session_name_by_origin={s.id: s.name for s in sessions_now},
             odometry=rows if len(sessions_now) == 1 else None,
         )
-        write_map_json(out, document)
+        write_map_json(opts.out, document)
     return ProcessResult(
         frames=processed,
         templates=engine.template_count,
@@ -467,14 +626,10 @@ def _process_session(
         links=int(snapshot["em_link_from"].shape[0]),
         loop_closures=engine.loop_closures,
         map_name=map_record.name,
-        seconds=time.perf_counter() - started,
+        seconds=time.perf_counter() - opts.started,
+        merges=merges,
         session_id=session_id,
         engine=engine,
         document=document,
+        frames_run=frames_run,
     )
-
-
-def _sessions(conn: Any, session_ids: list[int]) -> list[Any]:
-    from mapserver.store.sessions import get_sessions
-
-    return get_sessions(conn=conn, session_ids=session_ids)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -43,6 +44,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services = await run_in_threadpool(Services.start, chosen)
         app.state.services = services
+        # the long-lived startup objects (modules, routes, schemas) leave the collector's view: a full
+        # collection then scans only what requests leave behind, not ~150k objects (tens of ms: p99, issue 6)
+        gc.collect()
+        gc.freeze()
         try:
             yield
         finally:

@@ -1,10 +1,16 @@
 """Path queries from a per-map cache of :class:`core.paths.ExperienceGraph`, keyed by the map's version.
 
 Every write of a map's state increments ``maps.version`` (``store.claim_map``), so a cache entry
-``(map id, version)`` is exactly the stored graph of that version: a query reads the map's row (one
-indexed lookup), and only when the version changed is the graph loaded again — links and poses only
-(``store.queries.load_graph``), never templates or engine state — in the same read transaction, so
-graph and version always agree. Least recently used maps are evicted beyond ``capacity``.
+``(map id, version)`` is exactly the stored graph of that version. A query first asks the database
+for the map's ``(id, version)`` (:meth:`GraphCache.current`: one indexed lookup of two integers,
+``store.queries.map_version``); only when that is not the cached version is the graph loaded again
+(:meth:`GraphCache.get`) — links and poses only (``store.queries.load_graph``), never templates or engine
+state — in one read transaction with the map's row, so graph and version always agree. Least recently
+used maps are evicted beyond ``capacity``. The version check is not cached in memory: a write by
+another process (``mapserver process`` on the same database) is seen by the very next query.
+
+The API calls :meth:`current` and :meth:`path` on the event loop (both are short: an indexed lookup,
+and one Dijkstra over the contracted graph) and :meth:`get` in a worker thread (a load and a build).
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from dataclasses import dataclass
 from core.paths import ExperienceGraph, NoPath, PathResult, Weight
 from mapserver.errors import ConflictError, NotFoundError
 from mapserver.store import Database, MapRecord, get_map
-from mapserver.store.queries import load_graph
+from mapserver.store.queries import load_graph, map_version
 
 
 @dataclass(frozen=True, slots=True)
@@ -27,6 +33,26 @@ class CachedGraph:
     name: str
     version: int
     graph: ExperienceGraph
+
+    def path(self, source: int, target: int, weight: Weight) -> PathResult:
+        """Return the shortest path between two experiences of this map.
+
+        Raises:
+            NotFoundError: an experience id the map does not have (404).
+            ConflictError: the two experiences are not connected (409).
+        """
+        size = self.graph.size
+        for node in (source, target):
+            if not 0 <= node < size:
+                msg = f"map {self.name!r} has no experience {node} (ids are 0..{size - 1})"
+                if size == 0:
+                    msg = f"map {self.name!r} has no experience {node} (it has none)"
+                raise NotFoundError(msg)
+        result = self.graph.shortest_path(source, target, weight)
+        if isinstance(result, NoPath):
+            msg = f"no path from experience {source} to {target} in map {self.name!r}: they are not connected"
+            raise ConflictError(msg)
+        return result
 
 
 class GraphCache:
@@ -45,29 +71,36 @@ class GraphCache:
         self._build_lock = threading.Lock()
         self.builds = 0
 
-    def _lookup(self, record: MapRecord) -> CachedGraph | None:
+    def _lookup(self, map_id: int, version: int) -> CachedGraph | None:
         with self._lock:
-            entry = self._entries.get(record.id)
-            if entry is not None and entry.version == record.version:
-                self._entries.move_to_end(record.id)
+            entry = self._entries.get(map_id)
+            if entry is not None and entry.version == version:
+                self._entries.move_to_end(map_id)
                 return entry
             return None
 
+    def current(self, name: str) -> CachedGraph | None:
+        """Return the cached graph of map ``name`` if it is the stored version, else None (no such map included).
+
+        One indexed lookup of the map's id and version; nothing is loaded.
+        """
+        with self.db.read() as conn:
+            found = map_version(conn=conn, name=name)
+        return None if found is None else self._lookup(*found)
+
     def get(self, name: str) -> CachedGraph:
-        """Return the current graph of map ``name``, loading it when the map changed.
+        """Return the current graph of map ``name``, loading and building it when the map changed.
 
         Raises:
             UnknownMapError: no such map.
         """
-        with self.db.read() as conn:
-            record = get_map(conn=conn, name=name)
-        entry = self._lookup(record)
+        entry = self.current(name)
         if entry is not None:
             return entry
         with self._build_lock:  # one build at a time: concurrent first queries wait for it
             with self.db.read() as conn:
-                record = get_map(conn=conn, name=name)
-                entry = self._lookup(record)
+                record: MapRecord = get_map(conn=conn, name=name)
+                entry = self._lookup(record.id, record.version)
                 if entry is not None:
                     return entry
                 loaded = load_graph(conn=conn, map_id=record.id)
@@ -84,22 +117,11 @@ class GraphCache:
         return entry
 
     def shortest_path(self, name: str, source: int, target: int, weight: Weight) -> PathResult:
-        """Return the shortest path between two experiences of map ``name``.
+        """Return the shortest path between two experiences of map ``name`` (:meth:`get`, then the search).
 
         Raises:
             UnknownMapError: no such map (404).
             NotFoundError: an experience id the map does not have (404).
             ConflictError: the two experiences are not connected (409).
         """
-        entry = self.get(name)
-        for node in (source, target):
-            if not 0 <= node < entry.graph.size:
-                msg = f"map {name!r} has no experience {node} (ids are 0..{entry.graph.size - 1})"
-                if entry.graph.size == 0:
-                    msg = f"map {name!r} has no experience {node} (it has none)"
-                raise NotFoundError(msg)
-        result = entry.graph.shortest_path(source, target, weight)
-        if isinstance(result, NoPath):
-            msg = f"no path from experience {source} to {target} in map {name!r}: they are not connected"
-            raise ConflictError(msg)
-        return result
+        return self.get(name).path(source, target, weight)

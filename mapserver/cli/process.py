@@ -25,6 +25,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--db", help="store the session in this database (SQLAlchemy URL)")
     parser.add_argument("--map", dest="map_name", help="name of the new map when the session connects to none")
     parser.add_argument("--no-merge", action="store_true", help="always keep the session a separate map")
+    parser.add_argument(
+        "--confirm", type=int, metavar="K",
+        help="consecutive matching frames that confirm a merge (default: the parameters' merge_confirm; 1 = paper)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--merge-no-shift", action="store_true",
+        help="DEBUG: merge without operation (iii), the pose-cell lattice shift (Menezes et al. Fig. 12)",
+    )  # fmt: skip
     parser.add_argument("--stop-after", type=int, help="process only this many frames (resume later with --db)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line of stdout")
     parser.set_defaults(func=run)
@@ -54,10 +62,15 @@ def run(args: argparse.Namespace) -> int:
                 stop_after=args.stop_after,
                 out=args.out,
                 progress=update,
+                confirm=args.confirm,
+                shift_lattice=not args.merge_no_shift,
             )
         else:
             if args.stop_after is not None:
                 msg = "--stop-after needs --db (the stored state is what a later run resumes from)"
+                raise InputError(msg)
+            if args.confirm is not None or args.merge_no_shift:
+                msg = "--confirm and --merge-no-shift need --db (merging is into stored maps)"
                 raise InputError(msg)
             result = pipeline.process_log(log, params, topics=topics, out=args.out, progress=update)
     finally:
@@ -68,6 +81,11 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['links']} links, {summary['loop_closures']} loop closures, {len(summary['merges'])} merges "
         f"in {summary['seconds']:.2f} s (map {summary['map']!r})"
     )
+    for merge in summary["merges"]:
+        info(
+            f"merged into map {merge['into']!r} at frame {merge['frame']} (event {merge['event']}, "
+            f"{merge['confirmations']} confirmations, {merge['matched_templates']} templates matched)"
+        )
     if args.json:
         emit_json(summary)
     return 0

@@ -73,13 +73,15 @@ def merge_engine(
     *,
     shift_lattice: bool = True,
     identify_within: float | None = None,
+    partial: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[Engine, MergeRecord]:
     """Merge a running engine (the partial map) into a stored map and return the engine to continue in.
 
     The merged engine keeps the running engine's parameters and origin tag; its loop-closure
     count carries over. Relaxation starts at the merge links (:func:`restore_merged`) and
     proceeds with the engine's per-frame relaxation; the partial's own pending relaxation
-    work, if any, is not carried (its ids changed).
+    work, if any, is not carried (its ids changed). ``partial``: the engine's snapshot when
+    the caller has taken it already (it is not taken again).
 
     Raises:
         MergeError: the two maps cannot be merged (parameters or shapes differ, bad ids).
@@ -89,7 +91,11 @@ def merge_engine(
         msg = f"cannot merge into map {stored.key!r}: {reason}"
         raise MergeError(msg)
     state, record = merge_states(
-        stored.state, engine.snapshot(), match, shift_lattice=shift_lattice, identify_within=identify_within
+        stored.state,
+        engine.snapshot() if partial is None else partial,
+        match,
+        shift_lattice=shift_lattice,
+        identify_within=identify_within,
     )
     merged = restore_merged(engine.params, state, record, origin=engine.origin)
     merged.loop_closures = engine.loop_closures

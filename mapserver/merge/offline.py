@@ -19,7 +19,7 @@ import numpy as np
 
 from core import Engine
 from core.localview import LocalViewCells
-from mapserver.errors import MergeError
+from mapserver.errors import MergeError, NoConfirmedMatchError
 from mapserver.merge.confirm import Observation, Streak
 from mapserver.merge.engines import StoredMap, merge_snapshots
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance
@@ -52,8 +52,9 @@ def find_match(
         yaw_tolerance: radians.
 
     Raises:
-        MergeError: the maps cannot be merged, or no run of K agreeing matching templates exists
-            (the message says how many the best run had).
+        MergeError: the maps cannot be merged (parameters, empty map).
+        NoConfirmedMatchError: no run of K agreeing matching templates exists (the message says how
+            many the best run had; a :class:`MergeError` that exits 2).
     """
     reason = params_incompatibility(loaded.params, partial.params)
     if reason:
@@ -89,7 +90,7 @@ def find_match(
         return (len(entries), -float(np.mean([e.error for e in entries])) if entries else 0.0)
 
     for i in range(n_a):
-        u, error, relative = cells.match(a_templates[i], float(a_means[i]))
+        u, error, relative = cells.match(a_templates[i], float(a_means[i]), limit=threshold)
         if u < 0 or error > threshold:
             streak.reset()
             continue
@@ -129,7 +130,7 @@ def find_match(
                 f"no confirmed match of map {partial.key!r} in map {loaded.key!r}: {matched} templates match but "
                 f"the longest agreeing run has {longest} (needs {needed}, along two distinct stored templates)"
             )
-        raise MergeError(msg)
+        raise NoConfirmedMatchError(msg)
     anchor = min(reversed(best), key=lambda e: e.error)
     exp_a = int(_experience_for(a_order, a_starts, anchor.partial_template)[0])
     return Match.at_experience(

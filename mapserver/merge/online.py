@@ -3,7 +3,7 @@
 Usage (what ``pipeline.py`` does)::
 
     merger = OnlineMerger([StoredMap(key, params, state), ...])
-    engine = Engine(params, origin=session_id)
+    engine = Engine(params, origin=tag)   # the session's origin tag (the store: its id, or 0 until it has one)
     for image, motion, stamp in frames:
         result = engine.step(image, motion, stamp)
         event = merger.observe(engine, result)
@@ -12,7 +12,8 @@ Usage (what ``pipeline.py`` does)::
 
 After every frame the current view (``engine.local_view.last_view``) is matched against
 every candidate stored map's templates with the engine's own matcher
-(``LocalViewCells.match``: same thresholds, vectorised over templates). A merge needs the
+(``LocalViewCells.match`` with the match threshold as its limit, as the engine itself asks:
+same thresholds, vectorised over templates, pairs that cannot match pruned). A merge needs the
 confirmation of :mod:`mapserver.merge.confirm` (K consecutive agreeing frames, K from
 ``Params.merge_confirm`` unless given; K = 1 is the paper). Then the session's engine is
 merged into that map (:func:`mapserver.merge.engines.merge_engine`), mapping continues in the
@@ -25,12 +26,18 @@ its match within its first K frames; every template and experience it has made b
 lies inside the confirmation window and is identified with the stored one, so the merge
 leaves the stored map as it was, with the robot at the matched experience, and the session
 maps on from there: no separate partial map remains.
+
+Resume: :meth:`OnlineMerger.export_state` returns what the driver carries from frame to frame
+(the session's odometry, the maps absorbed, the running confirmation streaks) as a
+:class:`MergerState`; ``OnlineMerger(..., resume=state)`` continues from it, so a session
+stopped after frame k and continued gives the merges of one run (the caller drops the streaks
+of maps that changed in between: :meth:`MergerState.without`).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -61,6 +68,11 @@ class MergeEvent:
         stamp: its log time (s).
         absorbed: keys of stored maps already merged into the session before this merge
             (they are part of the partial map here).
+        match: the confirmed correspondence the merge applied (re-applying it to the same two
+            states gives the same merged state: redo).
+        partial: the session's engine snapshot right before the merge (the partial map; an
+            undo restores it).
+        odometry: (4,) the driver's odometry pose of the session at the frame (x, y, z, yaw).
     """
 
     key: object
@@ -69,6 +81,9 @@ class MergeEvent:
     frame: int
     stamp: float
     absorbed: tuple[object, ...] = ()
+    match: Match | None = None
+    partial: Mapping[str, np.ndarray] | None = field(default=None, repr=False)
+    odometry: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass(eq=False)
@@ -108,6 +123,8 @@ class OnlineMerger:
         shift_lattice: False disables operation (iii) (debug, the paper's Fig. 12).
         position_tolerance: metres; None → :func:`default_position_tolerance` per map.
         yaw_tolerance: radians (default :data:`DEFAULT_YAW_TOLERANCE`).
+        resume: the driver's state after an earlier part of the same session
+            (:meth:`export_state`); streaks of maps not among ``stored`` are ignored.
     """
 
     def __init__(
@@ -118,6 +135,7 @@ class OnlineMerger:
         shift_lattice: bool = True,
         position_tolerance: float | None = None,
         yaw_tolerance: float = DEFAULT_YAW_TOLERANCE,
+        resume: MergerState | None = None,
     ) -> None:
         self._stored = list(stored)
         self._confirm = confirm
@@ -129,6 +147,10 @@ class OnlineMerger:
         self.absorbed: list[object] = []
         self.events: list[MergeEvent] = []
         self._odometry = np.zeros(4)
+        self._resume: MergerState | None = resume
+        if resume is not None:
+            self._odometry = np.asarray(resume.odometry, dtype=np.float64).copy()
+            self.absorbed = list(resume.absorbed)
 
     @property
     def candidates(self) -> list[object]:
@@ -163,6 +185,13 @@ class OnlineMerger:
                     streak=Streak(needed, tolerance, self._yaw_tolerance),
                 )
             )
+        if self._resume is not None:
+            for candidate in candidates:
+                entries, neutral, matched = self._resume.streaks.get(candidate.stored.key, ((), (), 0))
+                candidate.streak.entries = list(entries)
+                candidate.streak.neutral = list(neutral)
+                candidate.matched_frames = matched
+            self._resume = None
         return candidates
 
     def observe(self, engine: Engine, result: StepResult) -> MergeEvent | None:
@@ -185,7 +214,7 @@ class OnlineMerger:
         threshold = engine.params.vt_match_threshold
         confirmed: list[_Candidate] = []
         for candidate in self._candidates:
-            u, error, relative = candidate.cells.match(view, engine.local_view.last_mean)
+            u, error, relative = candidate.cells.match(view, engine.local_view.last_mean, limit=threshold)
             if u < 0 or error > threshold:
                 candidate.streak.reset()
                 continue
@@ -251,7 +280,10 @@ class OnlineMerger:
             confirmations=len(streak.entries),
             pairs=streak.pairs(),
         )
-        merged, record = merge_engine(candidate.stored, engine, match, shift_lattice=self.shift_lattice)
+        partial = engine.snapshot()
+        merged, record = merge_engine(
+            candidate.stored, engine, match, shift_lattice=self.shift_lattice, partial=partial
+        )
         event = MergeEvent(
             key=candidate.stored.key,
             engine=merged,
@@ -259,6 +291,9 @@ class OnlineMerger:
             frame=result.frame,
             stamp=float(engine.last_stamp),
             absorbed=tuple(self.absorbed),
+            match=match,
+            partial=partial,
+            odometry=self._odometry.copy(),
         )
         logger.info(
             "merged into map %r at frame %d (%d confirmations, %d templates, %d experiences)",
@@ -270,3 +305,93 @@ class OnlineMerger:
         for other in self._candidates:  # their pairs and packets refer to the engine before the merge
             other.streak.reset()
         return event
+
+    # ------------------------------------------------------------------ resume
+    def export_state(self) -> MergerState:
+        """Return what the driver carries to the next frame (see the module docstring, "Resume")."""
+        streaks: dict[object, tuple[tuple[Observation, ...], tuple[Observation, ...], int]] = {}
+        if self._candidates is not None:
+            for c in self._candidates:
+                if c.streak.entries or c.streak.neutral or c.matched_frames:
+                    streaks[c.stored.key] = (tuple(c.streak.entries), tuple(c.streak.neutral), c.matched_frames)
+        elif self._resume is not None:
+            streaks = dict(self._resume.streaks)
+        return MergerState(self._odometry.copy(), tuple(self.absorbed), streaks)
+
+
+_FIXED_COLUMNS = 16  # key, kind, frame, template, experience, error, relative, partial template, odometry (4), seen (4)
+
+
+@dataclass(frozen=True, eq=False)
+class MergerState:
+    """The online driver's state between two frames, for resuming a session later.
+
+    Attributes:
+        odometry: (4,) the session's odometry pose so far (x, y, z, yaw).
+        absorbed: keys of the maps merged so far.
+        streaks: stored-map key → (streak entries, neutral observations, frames that matched the map).
+    """
+
+    odometry: np.ndarray
+    absorbed: tuple[object, ...] = ()
+    streaks: Mapping[object, tuple[tuple[Observation, ...], tuple[Observation, ...], int]] = field(
+        default_factory=dict
+    )
+
+    def without(self, keys: Sequence[object]) -> MergerState:
+        """Return the state with the streaks of these maps dropped (maps that changed since)."""
+        gone = set(keys)
+        return MergerState(self.odometry, self.absorbed, {k: v for k, v in self.streaks.items() if k not in gone})
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Return the state as plain arrays (map keys must be integers).
+
+        Keys: ``odometry``, ``absorbed``, ``matched``, ``streaks``.
+
+        ``streaks`` has one float64 row per observation: key, kind (0 entry, 1 neutral), frame,
+        stored template, stored experience, error, relative_rad, partial template, odometry (4),
+        seen (4), packet (D); ``matched`` is (Q, 2) int64: key, frames that matched that map.
+        """
+        rows: list[np.ndarray] = []
+        for key, (entries, neutral, _matched) in self.streaks.items():
+            for kind, group in ((0, entries), (1, neutral)):
+                for o in group:
+                    head = [float(int(key)), float(kind), float(o.frame), float(o.stored_template),  # type: ignore[call-overload]
+                            float(o.stored_experience), o.error, o.relative_rad, float(o.partial_template)]  # fmt: skip
+                    rows.append(np.concatenate([head, o.odometry, o.seen, o.packet]).astype(np.float64))
+        width = max((r.size for r in rows), default=_FIXED_COLUMNS)
+        return {
+            "odometry": np.asarray(self.odometry, dtype=np.float64).reshape(4).copy(),
+            "absorbed": np.asarray([int(k) for k in self.absorbed], dtype=np.int64),  # type: ignore[call-overload]
+            "matched": np.asarray(
+                [[int(k), int(v[2])] for k, v in self.streaks.items()], dtype=np.int64  # type: ignore[call-overload]
+            ).reshape(-1, 2),
+            "streaks": np.vstack(rows) if rows else np.zeros((0, width), dtype=np.float64),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> MergerState:
+        """Rebuild a state from :meth:`to_arrays` output."""
+        table = np.asarray(arrays["streaks"], dtype=np.float64)
+        matched = {int(k): int(v) for k, v in np.asarray(arrays["matched"], dtype=np.int64).reshape(-1, 2)}
+        groups: dict[int, tuple[list[Observation], list[Observation]]] = {}
+        for row in table:
+            key = int(row[0])
+            obs = Observation(
+                frame=int(row[2]),
+                stored_template=int(row[3]),
+                stored_experience=int(row[4]),
+                error=float(row[5]),
+                relative_rad=float(row[6]),
+                partial_template=int(row[7]),
+                odometry=row[8:12].copy(),
+                packet=row[_FIXED_COLUMNS:].copy(),
+                seen=row[12:16].copy(),
+            )
+            groups.setdefault(key, ([], []))[int(row[1])].append(obs)
+        keys = sorted(set(groups) | set(matched))
+        streaks = {
+            k: (tuple(groups.get(k, ([], []))[0]), tuple(groups.get(k, ([], []))[1]), matched.get(k, 0)) for k in keys
+        }
+        absorbed = tuple(int(k) for k in np.asarray(arrays["absorbed"], dtype=np.int64).reshape(-1))
+        return cls(np.asarray(arrays["odometry"], dtype=np.float64).reshape(4).copy(), absorbed, streaks)

@@ -147,6 +147,18 @@ def set_merge_status(*, conn: Connection, event_id: int, status: str) -> None:
         raise NotFoundError(msg)
 
 
+def update_merge_details(*, conn: Connection, event_id: int, details: Mapping[str, Any]) -> None:
+    """Replace a merge event's ``details`` JSON (unmerge and redo note what they did there).
+
+    Raises:
+        NotFoundError: no such event.
+    """
+    result = conn.execute(update(MergeEvent).where(MergeEvent.id == event_id).values(details=dict(details)))
+    if result.rowcount != 1:
+        msg = f"no merge event with id {event_id!r}"
+        raise NotFoundError(msg)
+
+
 def _events(conn: Connection, where: Any) -> list[MergeEventRecord]:
     query = select(MergeEvent.__table__).order_by(MergeEvent.id)
     if where is not None:

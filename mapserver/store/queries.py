@@ -7,13 +7,14 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import Connection, case, func, select
+from sqlalchemy import Connection, bindparam, case, func, select
 
 from mapserver.errors import InputError
 from mapserver.store.bulk import fetch_tuples
-from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Session
+from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Map, Session
 
 MAX_PAGE = 10_000
+_MAP_VERSION = select(Map.id, Map.version).where(Map.name == bindparam("name"))  # built once: a cached statement
 
 
 def page_experiences(
@@ -88,3 +89,9 @@ def load_graph(*, conn: Connection, map_id: int) -> Graph:
         link_distance=links[:, 3].copy(),
         link_kind=links[:, 4].astype(np.int64),
     )
+
+
+def map_version(*, conn: Connection, name: str) -> tuple[int, int] | None:
+    """Return ``(map id, version)`` of map ``name``, None when there is none: one indexed lookup, no JSON."""
+    row = conn.execute(_MAP_VERSION, {"name": name}).first()
+    return None if row is None else (int(row[0]), int(row[1]))

@@ -176,3 +176,27 @@ def test_bad_preset_and_topics_are_exit_2(small_log: Path, tmp_path: Path, capsy
     assert code == 2 and "unknown preset 'cirkle'" in err and "circle" in err
     code, _, err = _run(capsys, "process", str(small_log), "--topics", "image=/nope")
     assert code == 2 and "'/nope'" in err
+
+
+def test_merge_flags_need_a_database(capsys: pytest.CaptureFixture[str], small_log: Path) -> None:
+    for flag in (["--confirm", "1"], ["--merge-no-shift"]):
+        code, _out, err = _run(capsys, "process", str(small_log), *flag)
+        assert code == 2
+        expected = "ERROR: --confirm and --merge-no-shift need --db (merging is into stored maps)"
+        assert err.strip().splitlines()[-1] == expected
+    code, _out, err = _run(capsys, "process", str(small_log), "--db", "sqlite:///:memory:", "--confirm", "0")
+    assert code == 2 and err.strip().splitlines()[-1] == "ERROR: --confirm must be at least 1, got 0"
+
+
+def test_merge_no_shift_is_marked_as_a_debug_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["process", "--help"])
+    assert "DEBUG: merge without operation (iii)" in " ".join(capsys.readouterr().out.split())
+
+
+def test_the_rate_counts_the_frames_of_this_run() -> None:
+    from mapserver.pipeline import ProcessResult
+
+    resumed = ProcessResult(frames=100, templates=1, experiences=1, links=0, loop_closures=0, map_name="m",
+                            seconds=2.0, frames_run=10)  # fmt: skip
+    assert resumed.summary()["frames_per_s"] == 5.0

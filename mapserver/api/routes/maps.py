@@ -9,7 +9,10 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query
 from fastapi.responses import Response
+from pydantic_core import to_json
+from starlette.concurrency import run_in_threadpool
 
+from core.paths import PathResult
 from mapserver.api.deps import ReadAccess, ServicesDep
 from mapserver.api.schemas import (
     ErrorPublic,
@@ -20,7 +23,6 @@ from mapserver.api.schemas import (
     MapSummaryPublic,
     MergeEventPublic,
     PathPublic,
-    PosePublic,
     SessionPublic,
 )
 from mapserver.store import get_map, list_maps, sessions_of_map
@@ -119,26 +121,30 @@ def read_experiences(
     response_model=PathPublic,
     responses={**MAP_ERRORS, 409: {"model": ErrorPublic}},
 )
-def read_path(
+async def read_path(
     name: MapName,
     services: ServicesDep,
     _token: ReadAccess,
     source: Annotated[int, Query(alias="from", ge=0, le=MAX_ID, description="start experience id")],
     target: Annotated[int, Query(alias="to", ge=0, le=MAX_ID, description="goal experience id")],
     weight: Annotated[Literal["time", "distance"], Query(description="minimise travel time or distance")] = "time",
-) -> PathPublic:
+) -> Response:
     """Return the shortest path between two experiences over the map's experience graph.
 
     404 when the map or an experience does not exist, 409 when the two are not connected.
     """
-    result = services.graphs.shortest_path(name, source, target, weight)
-    poses = result.poses.tolist()
-    return PathPublic(
-        nodes=result.nodes,
-        poses=[PosePublic(x=p[0], y=p[1], z=p[2], yaw=p[3]) for p in poses],
-        cost=result.cost,
-        weight=result.weight,
-    )
+    # on the event loop: the version lookup and the search (each well under a millisecond on a cached
+    # map); a load and build of the graph goes to a worker thread
+    entry = services.graphs.current(name) or await run_in_threadpool(services.graphs.get, name)
+    result = entry.path(source, target, weight)
+    return Response(_path_json(result), media_type="application/json")
+
+
+def _path_json(result: PathResult) -> bytes:
+    """Return ``PathPublic`` as JSON, serialised in one call (non-finite numbers as null, as pydantic does)."""
+    poses = [{"x": x, "y": y, "z": z, "yaw": yaw} for x, y, z, yaw in result.poses.tolist()]
+    body = {"nodes": result.nodes, "poses": poses, "cost": result.cost, "weight": result.weight}
+    return to_json(body, inf_nan_mode="null")
 
 
 @router.get(

@@ -7,7 +7,7 @@ the world at the vehicle's pose. :func:`simulate` writes every session as a ``.b
 ``.mcap`` log plus a TUM ground-truth file and ``scenario.json``; everything is deterministic per seed.
 """
 
-from mapserver.ingest.simulator.drive import Drive, DriveSpec, Noise, Rates, simulate_drive
+from mapserver.ingest.simulator.drive import Drive, DriveSpec, Noise, Rates, VehicleErrors, simulate_drive
 from mapserver.ingest.simulator.output import SCENARIO_FILE, plan_scenario, render_frames, simulate, simulate_session
 from mapserver.ingest.simulator.render import Camera, expose, render
 from mapserver.ingest.simulator.scenarios import SCENARIOS, Plan, ScenarioDef, SessionPlan
@@ -24,6 +24,7 @@ __all__ = [
     "Rates",
     "ScenarioDef",
     "SessionPlan",
+    "VehicleErrors",
     "World",
     "WorldBuilder",
     "expose",

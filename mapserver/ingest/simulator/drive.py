@@ -12,10 +12,19 @@ Odometry (``nav_msgs/Odometry`` at ``odom_hz``). For each interval between two o
 body-frame twist is the constant (forward, lateral, vertical speed, yaw rate) whose exact arc integration
 (zero-order hold, as the log reader integrates) reproduces the true relative motion. The published twist
 is that twist corrupted as a wheel or DVL odometry would be: forward and lateral speed scaled by
-``1 + scale_error``, a constant yaw-rate bias, a constant vertical-speed bias, and white noise on every
-component; the published pose is the integral of the published twist from the origin (the usual odometry
-frame). So raw odometry drifts: after a lap the loop does not close. Ground truth is the true pose, in the
-world frame, at every odometry stamp.
+``1 + scale_error``, a yaw-rate bias, a constant vertical-speed bias, and white noise on every component;
+the published pose is the integral of the published twist from the origin (the usual odometry frame). So
+raw odometry drifts: after a lap the loop does not close. Ground truth is the true pose, in the world
+frame, at every odometry stamp.
+
+Error model: systematic odometry errors are properties of the *vehicle* (:class:`VehicleErrors`: the
+wheel-radius or DVL scale error, the repeatable yaw-rate bias of the gyro or of unequal wheel radii, the
+vertical-speed bias), shared by every session the vehicle drives; a scenario draws them once (its
+sessions are one robot's missions). Each session adds its own smaller random effects (Noise fields
+``session_*``): a scale change (tyre pressure, load, water properties), a turn-on yaw-rate bias offset,
+and an in-run yaw-rate bias random walk (gyro bias instability), plus the white noise. A drive simulated
+without a vehicle (``simulate_drive(..., vehicle=None)``) is its own vehicle, drawn from the session's
+generator.
 
 Camera stamps run at ``camera_hz`` from ``camera_offset_s`` after the first odometry stamp, so images and
 odometry are not simultaneous. Each frame carries the lighting gain of this visit (constant per session,
@@ -64,9 +73,12 @@ class Noise:
         lateral_m: standard deviation of the smooth lateral offset from the route (m).
         speed_variation: relative amplitude of the smooth speed variation.
         depth_m: standard deviation of the smooth depth wobble (m), underwater only.
-        scale_error: odometry speed scale error magnitude (fraction).
-        yaw_bias: odometry yaw-rate bias magnitude (rad/s).
-        vz_bias: odometry vertical-speed bias magnitude (m/s).
+        scale_error: the vehicle's odometry speed scale error magnitude (fraction).
+        yaw_bias: the vehicle's odometry yaw-rate bias magnitude (rad/s).
+        vz_bias: the vehicle's odometry vertical-speed bias magnitude (m/s).
+        session_scale_error: standard deviation of a session's own scale change (fraction).
+        session_yaw_bias: standard deviation of a session's turn-on yaw-rate bias offset (rad/s).
+        session_yaw_walk: intensity of a session's yaw-rate bias random walk (rad/s per √s).
         speed_noise: white noise on the forward speed (m/s, per message).
         yaw_noise: white noise on the yaw rate (rad/s, per message).
         vz_noise: white noise on the vertical speed (m/s, per message).
@@ -81,6 +93,9 @@ class Noise:
     scale_error: float = 0.025
     yaw_bias: float = 0.004
     vz_bias: float = 0.0
+    session_scale_error: float = 0.0
+    session_yaw_bias: float = 0.0
+    session_yaw_walk: float = 0.0
     speed_noise: float = 0.03
     yaw_noise: float = 0.02
     vz_noise: float = 0.0
@@ -96,11 +111,39 @@ class Noise:
             scale_error=self.scale_error,
             yaw_bias=self.yaw_bias,
             vz_bias=self.vz_bias * factor,
+            session_scale_error=self.session_scale_error,
+            session_yaw_bias=self.session_yaw_bias,
+            session_yaw_walk=self.session_yaw_walk,
             speed_noise=self.speed_noise * factor,
             yaw_noise=self.yaw_noise,
             vz_noise=self.vz_noise * factor,
             gain=self.gain,
             pixel_noise=self.pixel_noise,
+        )
+
+
+@dataclass(frozen=True)
+class VehicleErrors:
+    """The systematic odometry errors of one vehicle, shared by all the sessions it drives.
+
+    Attributes:
+        scale_error: speed scale error (fraction; wheel radius, DVL scale factor).
+        yaw_bias: repeatable yaw-rate bias (rad/s; gyro bias, unequal wheel radii at cruising speed).
+        vz_bias: vertical-speed bias (m/s).
+
+    """
+
+    scale_error: float = 0.0
+    yaw_bias: float = 0.0
+    vz_bias: float = 0.0
+
+    @classmethod
+    def draw(cls, noise: Noise, rng: np.random.Generator) -> VehicleErrors:
+        """Return a vehicle with the magnitudes of ``noise`` and random signs."""
+        return cls(
+            scale_error=_sign(rng) * noise.scale_error,
+            yaw_bias=_sign(rng) * noise.yaw_bias,
+            vz_bias=_sign(rng) * noise.vz_bias,
         )
 
 
@@ -214,7 +257,8 @@ class Drive:
         frame_gain: (F,) lighting gain of each frame.
         true_poses: (N, 4) true poses at the odometry stamps.
         odom_poses: (N, 4) published odometry poses (x, y, z, yaw) in the odometry frame.
-        errors: the drawn odometry errors (scale_error, yaw_bias, vz_bias) of this session.
+        errors: this session's odometry errors: scale_error and yaw_bias (the vehicle's plus the
+            session's own offsets; the yaw-rate bias random walk comes on top), vz_bias.
 
     """
 
@@ -280,7 +324,14 @@ def _sign(rng: np.random.Generator) -> float:
     return 1.0 if rng.random() < 0.5 else -1.0
 
 
-def simulate_drive(spec: DriveSpec, noise: Noise, rates: Rates, t0_ns: int, rng: np.random.Generator) -> Drive:
+def simulate_drive(
+    spec: DriveSpec,
+    noise: Noise,
+    rates: Rates,
+    t0_ns: int,
+    rng: np.random.Generator,
+    vehicle: VehicleErrors | None = None,
+) -> Drive:
     """Simulate one session (see the module docstring).
 
     Args:
@@ -288,7 +339,9 @@ def simulate_drive(spec: DriveSpec, noise: Noise, rates: Rates, t0_ns: int, rng:
         noise: variation and sensor noise.
         rates: camera and odometry rates.
         t0_ns: stamp of the first odometry message.
-        rng: the session's random generator (everything random is drawn from it).
+        rng: the session's random generator (everything random about the session is drawn from it).
+        vehicle: the vehicle's systematic odometry errors; None draws them from ``rng`` (a vehicle
+            of its own).
 
     Returns:
         The drive.
@@ -300,18 +353,22 @@ def simulate_drive(spec: DriveSpec, noise: Noise, rates: Rates, t0_ns: int, rng:
     t = np.arange(n) * dt
     true = traj.pose(t)
     twist = body_twist(true, dt)
-    errors = {
-        "scale_error": _sign(rng) * noise.scale_error,
-        "yaw_bias": _sign(rng) * noise.yaw_bias,
-        "vz_bias": _sign(rng) * noise.vz_bias,
-    }
+    if vehicle is None:
+        vehicle = VehicleErrors.draw(noise, rng)
     m = twist.shape[0]
+    session = rng.normal(0.0, 1.0, 2)  # the session's own scale change and turn-on yaw-rate bias offset
+    scale = vehicle.scale_error + noise.session_scale_error * float(session[0])
+    yaw_bias = vehicle.yaw_bias + noise.session_yaw_bias * float(session[1])
+    walk = np.zeros(m)  # the session's yaw-rate bias random walk, from 0 at the start
+    if m > 1:
+        walk[1:] = np.cumsum(rng.normal(0.0, noise.session_yaw_walk * math.sqrt(dt), m - 1))
+    errors = {"scale_error": scale, "yaw_bias": yaw_bias, "vz_bias": vehicle.vz_bias}
     moving = np.clip(np.abs(twist[:, 0]) / max(spec.speed, _SMALL), 0.0, 1.0)
     measured = np.empty_like(twist)
-    measured[:, 0] = twist[:, 0] * (1.0 + errors["scale_error"]) + moving * rng.normal(0.0, noise.speed_noise, m)
-    measured[:, 1] = twist[:, 1] * (1.0 + errors["scale_error"])
-    measured[:, 2] = twist[:, 2] + errors["vz_bias"] + rng.normal(0.0, 1.0, m) * noise.vz_noise
-    measured[:, 3] = twist[:, 3] + errors["yaw_bias"] + rng.normal(0.0, noise.yaw_noise, m)
+    measured[:, 0] = twist[:, 0] * (1.0 + scale) + moving * rng.normal(0.0, noise.speed_noise, m)
+    measured[:, 1] = twist[:, 1] * (1.0 + scale)
+    measured[:, 2] = twist[:, 2] + vehicle.vz_bias + rng.normal(0.0, 1.0, m) * noise.vz_noise
+    measured[:, 3] = twist[:, 3] + yaw_bias + walk + rng.normal(0.0, noise.yaw_noise, m)
     if spec.depth is None:
         measured[:, 2] = 0.0
     odom = integrate(measured, dt)

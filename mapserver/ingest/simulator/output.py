@@ -8,6 +8,7 @@ lazily while the log is written, so memory does not grow with the session length
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import shutil
@@ -21,7 +22,7 @@ import numpy.typing as npt
 
 from mapserver.errors import InputError
 from mapserver.formats import write_tum
-from mapserver.ingest.simulator.drive import Drive, simulate_drive
+from mapserver.ingest.simulator.drive import Drive, VehicleErrors, simulate_drive
 from mapserver.ingest.simulator.render import expose, render
 from mapserver.ingest.simulator.scenarios import SCENARIOS, Plan, SessionPlan
 from mapserver.ingest.writer import SUFFIXES, LogFormat, write_log
@@ -69,10 +70,15 @@ def plan_scenario(
     return definition.build(int(seed), float(scale), effective)
 
 
+def plan_vehicle(plan: Plan, seed: int) -> VehicleErrors:
+    """Return the systematic odometry errors of the scenario's vehicle (every session of a plan shares them)."""
+    return VehicleErrors.draw(plan.noise, np.random.default_rng([seed, 3000]))
+
+
 def simulate_session(plan: Plan, session: SessionPlan, index: int, seed: int) -> Drive:
     """Simulate one session of a plan (trajectory, odometry, ground truth, camera stamps)."""
     rng = np.random.default_rng([seed, 1000 + index])
-    return simulate_drive(session.spec, plan.noise, plan.rates, session.t0_ns, rng)
+    return simulate_drive(session.spec, plan.noise, plan.rates, session.t0_ns, rng, plan_vehicle(plan, seed))
 
 
 def render_frames(
@@ -204,6 +210,7 @@ def simulate(
                 "max_range_m": plan.camera.max_range, "rate_hz": plan.rates.camera_hz,
             },
             "odometry_hz": plan.rates.odom_hz,
+            "vehicle_odometry_errors": dataclasses.asdict(plan_vehicle(plan, seed)),
             **plan.info,
         }
         (temp / SCENARIO_FILE).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")

@@ -45,7 +45,10 @@ GROUND_CAMERA = Camera(
     width=256, height=64, hfov_deg=360.0, vfov_deg=30.0, mount_height=1.5, fog_length=25.0, max_range=12.0,
     fade=2.0, fog_level=0.6, blur_px=7.0, vblur_px=0.7,
 )
-GROUND_NOISE = Noise()
+GROUND_NOISE = Noise(session_scale_error=0.003, session_yaw_bias=0.0005, session_yaw_walk=2e-5)
+"""A wheeled robot: the vehicle's ±2.5 % scale error and ±0.004 rad/s yaw-rate bias are shared by all its
+sessions; each session adds a 0.3 % scale change, a 0.0005 rad/s turn-on bias offset and a 2e-5 rad/s/√s
+bias random walk (drive module docstring)."""
 CLEARANCE = 2.0
 WALL_DENSITY = 0.5
 WALL_LENGTH = (1.0, 4.0)
@@ -63,7 +66,10 @@ CAVE_CAMERA = Camera(
 CAVE_NOISE = Noise(
     lateral_m=0.03, speed_variation=0.08, depth_m=0.02, scale_error=0.03, yaw_bias=0.006, vz_bias=0.004,
     speed_noise=0.01, yaw_noise=0.02, vz_noise=0.005, gain=0.04, pixel_noise=2.0,
+    session_scale_error=0.003, session_yaw_bias=0.0005, session_yaw_walk=2e-5,
 )
+"""An underwater vehicle: DVL scale error, gyro yaw-rate bias and vertical-speed bias of the vehicle, the same
+per-session effects as on the ground."""
 
 
 @dataclass(frozen=True)

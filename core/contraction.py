@@ -1,0 +1,273 @@
+"""Chain contraction of an undirected graph, for many exact shortest-path queries on one graph.
+
+An experience graph is mostly long chains of degree-2 experiences (odometry links) joined at a few
+junctions (loop closures, merges, dead ends). :class:`Chains` (the topology) contracts it once:
+
+* **junctions** are the nodes whose degree (distinct neighbours) is not 2, plus the lowest id of every
+  pure cycle (a connected part in which every node has degree 2);
+* every other node lies on exactly one **chain**, a path of degree-2 nodes whose two end nodes are
+  linked to junctions ``a`` and ``b`` (``a == b`` for a loop that leaves and returns to one junction);
+  chains are contiguous slices of one array (``order``), each from its ``a`` end.
+
+:class:`ContractedGraph` adds one weight: the cost of every chain node from its chain's first node
+(``cum``, one multi-source Dijkstra along the chains) and the **contracted graph** over the junctions,
+with an edge per junction–junction link and per chain between two distinct junctions (cost
+``w(a, first) + cum[last] + w(last, b)``), the cheapest of parallel ones kept, and which chain (or
+direct link) each edge stands for.
+
+A query joins the source to its chain's junctions (the cost along the chain to each end) through a
+virtual node, runs one Dijkstra over the contracted graph, joins the target the same way, compares with
+the direct way when both lie on one chain, and expands the contracted path into node ids. Every
+candidate is a path of the original graph and every simple path is covered by one, so the cost is the
+exact optimum (to floating-point rounding). Build: a few vectorised csgraph passes, ``O(L log L)`` for
+``L`` links; query: ``O(E_J log J)`` for ``J`` junctions and ``E_J`` contracted edges, plus the path.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components, dijkstra
+
+_Way = tuple[int, float, int]  # (junction index, cost, side): side 0 at a junction, -1 via the a end, +1 via b
+
+
+@dataclass(frozen=True, slots=True)
+class Chains:
+    """The chain decomposition of a simple undirected graph on ``n`` nodes (see the module docstring).
+
+    ``chain[x]``: chain of node ``x`` (-1 for junctions); ``order``: chain nodes grouped by chain, each
+    chain from its ``a`` end; ``start[c]:start[c + 1]``: chain ``c``'s slice of ``order``; ``position[x]``:
+    index of ``x`` in ``order``; ``a``/``b``: junction nodes at each chain's ends; ``first_link``/``last_link``:
+    the links (indices into ``lo``/``hi``) joining them; ``inner_links``: links between two chain nodes;
+    ``junctions``: junction nodes in increasing order, ``junction_id[x]`` the index of junction ``x`` in it
+    (-1 for chain nodes); ``component[x]``: connected component of ``x`` in the whole graph.
+    """
+
+    n: int
+    chain: np.ndarray
+    order: np.ndarray
+    start: np.ndarray
+    position: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    first_link: np.ndarray
+    last_link: np.ndarray
+    inner_links: np.ndarray
+    junctions: np.ndarray
+    junction_id: np.ndarray
+    component: np.ndarray
+
+    @classmethod
+    def build(cls, n: int, lo: np.ndarray, hi: np.ndarray) -> Chains:
+        """Decompose the graph of links ``lo[k]``–``hi[k]`` (``lo < hi``, each pair once) into chains."""
+        degree = np.bincount(lo, minlength=n) + np.bincount(hi, minlength=n)
+        inner = degree == 2
+        labels, inner_links = _inner_components(n, lo, hi, inner)
+        members = np.flatnonzero(inner)
+        # a pure cycle has as many links as nodes: its lowest id becomes a junction
+        nodes_per = np.bincount(labels[members], minlength=n)
+        links_per = np.bincount(labels[lo[inner_links]], minlength=n)
+        cyclic = np.flatnonzero((nodes_per > 0) & (links_per == nodes_per))
+        if cyclic.size:
+            lowest = np.full(n, n, dtype=np.int64)
+            np.minimum.at(lowest, labels[members], members)
+            inner[lowest[cyclic]] = False
+            labels, inner_links = _inner_components(n, lo, hi, inner)
+            members = np.flatnonzero(inner)
+        _, chain_of = np.unique(labels[members], return_inverse=True)
+        count = int(chain_of.max()) + 1 if members.size else 0
+        chain = np.full(n, -1, dtype=np.int64)
+        chain[members] = chain_of
+        # one end of every chain (a chain node with < 2 chain neighbours) seeds the hop counts along it
+        inner_degree = np.bincount(lo[inner_links], minlength=n) + np.bincount(hi[inner_links], minlength=n)
+        ends = members[inner_degree[members] < 2]
+        _, first = np.unique(chain[ends], return_index=True)
+        hops = np.zeros(n)
+        if count:
+            hops = dijkstra(
+                _pattern(n, lo[inner_links], hi[inner_links]), directed=False, indices=ends[first],
+                unweighted=True, min_only=True,
+            )  # fmt: skip
+        order = members[np.lexsort((hops[members], chain_of))]
+        start = np.zeros(count + 1, dtype=np.int64)
+        start[1:] = np.cumsum(np.bincount(chain_of, minlength=count))
+        position = np.full(n, -1, dtype=np.int64)
+        position[order] = np.arange(order.size)
+        # every chain has exactly two links to junctions: the one at hop 0 joins a, the other one b
+        attach = np.flatnonzero(inner[lo] != inner[hi])
+        end_node = np.where(inner[lo[attach]], lo[attach], hi[attach])
+        junction_end = np.where(inner[lo[attach]], hi[attach], lo[attach])
+        ranked = np.lexsort((junction_end, hops[end_node], chain[end_node]))
+        attach, junction_end = attach[ranked], junction_end[ranked]
+        if not np.array_equal(chain[end_node[ranked]], np.repeat(np.arange(count), 2)):
+            msg = "internal error: a chain without exactly two links to junctions"
+            raise AssertionError(msg)
+        junctions = np.flatnonzero(~inner)
+        junction_id = np.full(n, -1, dtype=np.int64)
+        junction_id[junctions] = np.arange(junctions.size)
+        component = connected_components(_pattern(n, lo, hi), directed=False)[1]
+        return cls(
+            n=n, chain=chain, order=order, start=start, position=position, a=junction_end[0::2],
+            b=junction_end[1::2], first_link=attach[0::2], last_link=attach[1::2], inner_links=inner_links,
+            junctions=junctions, junction_id=junction_id, component=component,
+        )  # fmt: skip
+
+
+class ContractedGraph:
+    """Exact shortest paths on the graph of links ``lo``–``hi`` with costs ``weight`` (all > 0, finite).
+
+    Args:
+        chains: the graph's chain decomposition (:meth:`Chains.build` of the same ``lo``, ``hi``).
+        lo: first node of each link (``lo < hi``, each pair once).
+        hi: second node of each link.
+        weight: each link's cost.
+    """
+
+    def __init__(self, chains: Chains, lo: np.ndarray, hi: np.ndarray, weight: np.ndarray) -> None:
+        self.chains = c = chains
+        n, count = c.n, c.start.size - 1
+        cum = np.zeros(n)
+        if count:
+            links = c.inner_links
+            along = sp.csr_matrix((weight[links], (lo[links], hi[links])), shape=(n, n))
+            cum = dijkstra(along, directed=False, indices=c.order[c.start[:-1]], min_only=True)
+            cum[c.chain < 0] = 0.0
+        self.cum = cum
+        self.length = cum[c.order[c.start[1:] - 1]]  # first → last of each chain
+        self.to_a, self.to_b = weight[c.first_link], weight[c.last_link]
+        # contracted edges, both directions: junction–junction links, chains between distinct junctions
+        direct = np.flatnonzero((c.junction_id[lo] >= 0) & (c.junction_id[hi] >= 0))
+        crossing = np.flatnonzero(c.a != c.b)
+        u = np.concatenate([c.junction_id[lo[direct]], c.junction_id[c.a[crossing]]])
+        v = np.concatenate([c.junction_id[hi[direct]], c.junction_id[c.b[crossing]]])
+        w = np.concatenate([weight[direct], (self.to_a + self.length + self.to_b)[crossing]])
+        via = np.concatenate([np.full(direct.size, -1, dtype=np.int64), crossing])
+        u, v = np.concatenate([u, v]), np.concatenate([v, u])
+        w, via = np.concatenate([w, w]), np.concatenate([via, via])
+        ranked = np.lexsort((w, v, u))  # the cheapest of parallel edges comes first
+        u, v, w, via = u[ranked], v[ranked], w[ranked], via[ranked]
+        keep = np.ones(u.size, dtype=bool)
+        keep[1:] = (u[1:] != u[:-1]) | (v[1:] != v[:-1])
+        u, v, w, via = u[keep], v[keep], w[keep], via[keep]
+        m = c.junctions.size
+        # row m is the virtual source of a query that starts on a chain: its two entries are scratch
+        # space, rewritten by each such query under ``_lock`` (no per-query copy of the graph)
+        indptr = np.append(np.searchsorted(u, np.arange(m + 1)), u.size + 2).astype(np.int32)
+        indices = np.concatenate([v, [0, m]]).astype(np.int32)
+        data = np.concatenate([w, [np.inf, np.inf]])
+        self.matrix = sp.csr_matrix((data, indices, indptr), shape=(m + 1, m + 1))
+        self._scratch = u.size
+        self._lock = threading.Lock()
+        self.keys = u * m + v  # sorted: which entry joins two junctions, and ``via`` what
+        self.via = via
+
+    def search(self, source: int, target: int) -> tuple[float, list[int]] | None:
+        """Return (cost, node ids from ``source`` to ``target``) of a shortest path, None when there is none."""
+        c = self.chains
+        if source == target:
+            return 0.0, [source]
+        if c.component[source] != c.component[target]:
+            return None
+        best = np.inf
+        if c.chain[source] >= 0 and c.chain[source] == c.chain[target]:
+            best = abs(float(self.cum[target]) - float(self.cum[source]))
+        starts = self._ways(source, target)
+        ends = self._ways(target, source)
+        root = starts[0][0] if starts[0][2] == 0 else c.junctions.size
+        with self._lock:
+            if root == c.junctions.size:
+                self._set_source(starts)
+            dist, pred = dijkstra(self.matrix, directed=True, indices=root, return_predecessors=True)
+        end = min(ends, key=lambda e: dist[e[0]] + e[1])
+        via = float(dist[end[0]]) + end[1]
+        if via < best:
+            return via, self._expand(source, target, starts, end, root, pred)
+        if np.isfinite(best):
+            return best, self._along(source, target)
+        return None
+
+    def _ways(self, node: int, other: int) -> list[_Way]:
+        """Return the ways from ``node`` into the contracted graph: ``(junction index, cost, side)``.
+
+        On a chain shared with ``other`` only the side away from ``other`` is kept (the other one passes it).
+        """
+        c = self.chains
+        chain = int(c.chain[node])
+        if chain < 0:
+            return [(int(c.junction_id[node]), 0.0, 0)]
+        along = float(self.cum[node])
+        ways = [
+            (int(c.junction_id[c.a[chain]]), float(self.to_a[chain]) + along, -1),
+            (int(c.junction_id[c.b[chain]]), float(self.length[chain]) - along + float(self.to_b[chain]), 1),
+        ]
+        if c.chain[other] == chain:
+            return [ways[0]] if c.position[node] < c.position[other] else [ways[1]]
+        return ways
+
+    def _set_source(self, starts: list[_Way]) -> None:
+        """Link the virtual node (index m) to ``starts``' junctions: the scratch entries of its row."""
+        m = self.chains.junctions.size
+        cheapest: dict[int, float] = {}
+        for junction, cost, _side in starts:
+            cheapest[junction] = min(cost, cheapest.get(junction, np.inf))
+        entries = [*sorted(cheapest.items()), (m, np.inf)]  # (m, inf): an unused slot, a self-link never taken
+        k = self._scratch
+        self.matrix.indices[k : k + 2] = [entries[0][0], entries[1][0]]
+        self.matrix.data[k : k + 2] = [entries[0][1], entries[1][1]]
+
+    def _along(self, source: int, target: int) -> list[int]:
+        """Return the nodes from ``source`` to ``target`` along their shared chain."""
+        i, j = int(self.chains.position[source]), int(self.chains.position[target])
+        order = self.chains.order
+        return order[i : j + 1].tolist() if i <= j else order[j : i + 1][::-1].tolist()
+
+    def _expand(
+        self, source: int, target: int, starts: list[_Way], end: _Way, root: int, pred: np.ndarray
+    ) -> list[int]:
+        """Return the node ids of the contracted path ``root → … → end``, with the source and target segments."""
+        c = self.chains
+        m = c.junctions.size
+        hops = [end[0]]
+        while hops[-1] != root:
+            hops.append(int(pred[hops[-1]]))
+        hops.reverse()
+        pieces: list[np.ndarray] = []
+        if root == m:  # leave the source's chain by the side whose junction the path enters first
+            side = min((s for s in starts if s[0] == hops[1]), key=lambda s: s[1])[2]
+            pieces.append(self._to_end(source, side))
+            hops = hops[1:]
+        junctions = np.asarray(hops, dtype=np.int64)
+        nodes = c.junctions[junctions]
+        pieces.append(nodes[:1])
+        chains = self.via[np.searchsorted(self.keys, junctions[:-1] * m + junctions[1:])]
+        for k, chain in enumerate(chains.tolist()):
+            if chain >= 0:
+                inner = c.order[c.start[chain] : c.start[chain + 1]]
+                pieces.append(inner if c.a[chain] == nodes[k] else inner[::-1])
+            pieces.append(nodes[k + 1 : k + 2])
+        if end[2] != 0:
+            pieces.append(self._to_end(target, end[2])[::-1])
+        return np.concatenate(pieces).tolist()
+
+    def _to_end(self, node: int, side: int) -> np.ndarray:
+        """Return the chain nodes from ``node`` to its chain's ``a`` end (side -1) or ``b`` end (+1), inclusive."""
+        c = self.chains
+        chain, i = int(c.chain[node]), int(c.position[node])
+        if side < 0:
+            return c.order[c.start[chain] : i + 1][::-1]
+        return c.order[i : c.start[chain + 1]]
+
+
+def _pattern(n: int, lo: np.ndarray, hi: np.ndarray) -> sp.csr_matrix:
+    """Return the (n, n) adjacency pattern (ones) of links ``lo``–``hi``."""
+    return sp.csr_matrix((np.ones(lo.size), (lo, hi)), shape=(n, n))
+
+
+def _inner_components(n: int, lo: np.ndarray, hi: np.ndarray, inner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return component labels of the subgraph induced by the ``inner`` nodes, and its links (indices)."""
+    links = np.flatnonzero(inner[lo] & inner[hi])
+    return connected_components(_pattern(n, lo[links], hi[links]), directed=False)[1], links

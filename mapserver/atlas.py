@@ -1,0 +1,693 @@
+"""Merges in the store: reading merge candidates, writing a merge with its provenance, undo, redo, offline merge.
+
+The glue between :mod:`mapserver.merge` (pure merging of engine states) and :mod:`mapserver.store`
+(rows, archives, merge events). ``pipeline.process_into_store`` writes the merges a session makes
+online through :func:`write_merges`; ``mapserver merge`` calls :func:`merge_stored_maps` and
+:func:`redo_merge`; ``mapserver unmerge`` calls :func:`unmerge`.
+
+One merge event, in one write transaction (docs/architecture.md, "Merge", "Unmerge"): every stored
+map involved is claimed at the version it was read (a concurrent writer → ``StaleMapError``, nothing
+written); the event is recorded with its sessions, matches, lattice offset, SE(3) transform and
+confirmations; the pre-merge state of every map involved is archived (stored maps from their rows,
+the session's own partial map from memory); the joined maps are dropped and the merged state is
+written into the *host*, the oldest map involved (lowest id), so a growing atlas keeps the name of
+its first map. Undo restores the archives exactly; redo re-applies the recorded match to them.
+
+Store-level snapshot keys written beside the engine's (kept generically by the store):
+
+* ``st_next_index`` (S, 3) int64: per session, the next template and experience index of its stable
+  identity (indices of rows a merge identified away are never given again);
+* ``mg_*``: the online merge driver's state of a session stopped with ``--stop-after`` (resume):
+  ``mg_session`` (), ``mg_map_version`` () (the map version it belongs to: a changed map voids the
+  streaks), ``mg_odometry`` (4,), ``mg_absorbed`` (A,), ``mg_matched`` (Q, 2), ``mg_streaks`` (M, C),
+  ``mg_versions`` (Q, 2) (candidate map id, version the streak was built against).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from sqlalchemy import Connection, func, select
+
+from core import Params, params_from_dict
+from mapserver.errors import ConflictError, InputError, MergeError
+from mapserver.merge import Match, MergeRecord, StoredMap, find_match, merge_snapshots, merge_states, restore_merged
+from mapserver.merge.identity import RowIdentities, next_index_from_table
+from mapserver.merge.online import MergerState
+from mapserver.merge.snapshot import params_incompatibility
+from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, find_map, get_map
+from mapserver.store.archive import archive_map_state, archive_state, load_archive, restore_map_states
+from mapserver.store.merge_events import (
+    MergeEventSpec,
+    get_merge_event,
+    list_merge_events,
+    record_merge_event,
+    set_merge_status,
+    update_merge_details,
+)
+from mapserver.store.models import Evidence, Experience, Map, Template
+from mapserver.store.sessions import get_reckoning, get_sessions, sessions_of_map, update_session
+from mapserver.store.state import WriteResult, read_map_state, write_map_state
+
+logger = logging.getLogger(__name__)
+
+ID_NEXT_KEY = "st_next_index"
+MERGER_PREFIX = "mg_"
+_RECORD_ARRAYS = ("template_map", "experience_map", "merge_links")
+
+
+# ------------------------------------------------------------------------------------------------ reading
+
+
+@dataclass(eq=False)
+class AtlasMap:
+    """A stored map as a merge sees it: its row, parameters, engine snapshot, identities and sessions."""
+
+    id: int
+    name: str
+    version: int
+    params: Params
+    snapshot: dict[str, np.ndarray]
+    identities: RowIdentities
+    session_ids: list[int]
+    partial_sessions: list[int]
+
+    def stored(self) -> StoredMap:
+        """Return the map as the merge algorithms take it (key = map id)."""
+        return StoredMap(self.id, self.params, self.snapshot)
+
+
+def _index_maxima(conn: Connection, session_ids: Sequence[int]) -> dict[int, tuple[int, int]]:
+    """Return session → (1 + largest template index, 1 + largest experience/evidence index) stored anywhere."""
+    out: dict[int, list[int]] = {int(s): [0, 0] for s in session_ids}
+    if not out:
+        return {}
+    ids = list(out)
+    for table, axis in ((Template, 0), (Experience, 1), (Evidence, 1)):
+        rows = conn.execute(
+            select(table.session_id, func.max(table.origin_index)).where(table.session_id.in_(ids))
+            .group_by(table.session_id)
+        ).all()  # fmt: skip
+        for sid, top in rows:
+            if top is not None:
+                out[int(sid)][axis] = max(out[int(sid)][axis], int(top) + 1)
+    return {k: (v[0], v[1]) for k, v in out.items()}
+
+
+def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
+    """Load a stored map with its identities (next indices past every index its sessions ever used)."""
+    content = read_map_state(conn=conn, map_id=map_id)
+    meta = content.meta
+    identities = RowIdentities.from_arrays(
+        meta.template_session, meta.template_index, meta.experience_session, meta.experience_index,
+        next_index_from_table(content.snapshot.get(ID_NEXT_KEY)),
+    )  # fmt: skip
+    session_ids = [s.id for s in meta.sessions]
+    for sid, (nt, ne) in _index_maxima(conn, session_ids).items():
+        identities.raise_next(sid, nt, ne)
+    return AtlasMap(
+        id=meta.map.id,
+        name=meta.map.name,
+        version=meta.map.version,
+        params=params_from_dict(content.params),
+        snapshot=content.snapshot,
+        identities=identities,
+        session_ids=session_ids,
+        partial_sessions=[s.id for s in meta.sessions if not s.complete],
+    )
+
+
+def merge_candidates(
+    conn: Connection, *, params: Params, exclude: int | None = None
+) -> tuple[list[AtlasMap], dict[str, str]]:
+    """Return the stored maps a session with ``params`` may merge into, and why the others may not.
+
+    A map is a candidate when its parameters are compatible (lattice, template size, matcher
+    geometry) and none of its sessions is still being processed (a partial session's robot state
+    lives in its map; a merge would replace it). Maps are returned by id (oldest first).
+    """
+    rows = conn.execute(select(Map.id, Map.name, Map.params).order_by(Map.id)).all()
+    candidates: list[AtlasMap] = []
+    skipped: dict[str, str] = {}
+    for map_id, name, map_params in rows:
+        if exclude is not None and int(map_id) == exclude:
+            continue
+        try:
+            reason = params_incompatibility(params_from_dict(dict(map_params)), params)
+        except Exception as err:  # parameters stored by another version: not mergeable, say why
+            reason = f"its parameters cannot be read ({err})"
+        if reason is None:
+            partial = [s.name for s in sessions_of_map(conn=conn, map_id=int(map_id)) if not s.complete]
+            if partial:
+                reason = f"session(s) {', '.join(map(repr, partial))} of it are still being processed (partial)"
+        if reason:
+            skipped[str(name)] = reason
+            continue
+        candidates.append(read_atlas_map(conn, int(map_id)))
+    return candidates, skipped
+
+
+def resume_merger_state(stored: AtlasMap, session_id: int, candidates: Sequence[AtlasMap]) -> MergerState | None:
+    """Return the merge driver's state a partial session left in its map (None: none stored).
+
+    Streaks are kept only when the map is still at the version the session wrote and the candidate
+    map is at the version the streak was built against; otherwise they restart (the odometry stays).
+    """
+    snap = stored.snapshot
+    needed = ("mg_session", "mg_map_version", "mg_odometry", "mg_absorbed", "mg_matched", "mg_streaks")
+    if any(k not in snap for k in needed) or int(snap["mg_session"]) != session_id:
+        return None
+    state = MergerState.from_arrays({k[len(MERGER_PREFIX) :]: snap[k] for k in needed[2:]})
+    if int(snap["mg_map_version"]) != stored.version:
+        return state.without(list(state.streaks))
+    versions = {int(k): int(v) for k, v in np.asarray(snap.get("mg_versions", np.zeros((0, 2))), np.int64)}
+    current = {c.id: c.version for c in candidates}
+    stale = [k for k in state.streaks if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
+    return state.without(stale)
+
+
+def merger_keys(
+    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[AtlasMap]
+) -> dict[str, np.ndarray]:
+    """Return the ``mg_*`` snapshot keys that let a partial session resume its merge driver."""
+    arrays = state.to_arrays()
+    out = {MERGER_PREFIX + k: v for k, v in arrays.items()}
+    out["mg_session"] = np.asarray(session_id, dtype=np.int64)
+    out["mg_map_version"] = np.asarray(map_version, dtype=np.int64)
+    out["mg_versions"] = np.asarray([[c.id, c.version] for c in candidates], dtype=np.int64).reshape(-1, 2)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ writing
+
+
+@dataclass(eq=False)
+class PartialSide:
+    """The partial side of a merge as it was right before it (restored by an undo).
+
+    Attributes:
+        name: the map name it is restored under.
+        map_id: its stored map, if it was one (an offline merge's map A; a resumed session's map).
+        snapshot: engine snapshot; origins are tags (see ``tags`` in :func:`write_merges`).
+        identities: its rows' identities (tags).
+        params: its parameters.
+        session_ids: its sessions (ids).
+        from_store: archive it from its stored rows (it is ``map_id``'s state unchanged) instead of memory.
+    """
+
+    name: str
+    map_id: int | None
+    snapshot: Mapping[str, np.ndarray] | None
+    identities: RowIdentities | None
+    params: Params
+    session_ids: list[int]
+    from_store: bool = False
+
+
+@dataclass(eq=False)
+class MergeToWrite:
+    """One merge event to store: the stored map merged into, the partial side, what was done.
+
+    ``host_id``/``host_name``: the map that holds the merged result right after this event (the oldest
+    map involved so far; an undo restores the maps named by its archives, this one among them).
+    """
+
+    mode: str
+    target: AtlasMap
+    partial: PartialSide
+    match: Match
+    record: MergeRecord
+    host_id: int
+    host_name: str
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class WrittenMerges:
+    """What :func:`write_merges` stored."""
+
+    event_ids: list[int]
+    host_id: int
+    host_name: str
+    result: WriteResult
+
+
+def _retag(snapshot: Mapping[str, np.ndarray], tags: Mapping[int, int]) -> dict[str, np.ndarray]:
+    out = dict(snapshot)
+    for key in ("lv_origin", "em_origin"):
+        values = np.asarray(snapshot[key], dtype=np.int64)
+        mapped = values.copy()
+        for tag, sid in tags.items():
+            mapped[values == tag] = sid
+        out[key] = mapped
+    return out
+
+
+def _uid(sessions: np.ndarray, indices: np.ndarray, row: int) -> list[int]:
+    return [int(sessions[row]), int(indices[row])]
+
+
+def matches_json(target: AtlasMap, partial_ids: RowIdentities, record: MergeRecord) -> dict[str, Any]:
+    """Return the event's ``matches``: identified template and experience pairs with stable identities."""
+    lt_s, lt_i = target.identities.template_arrays()
+    le_s, le_i = target.identities.experience_arrays()
+    pt_s, pt_i = partial_ids.template_arrays()
+    pe_s, pe_i = partial_ids.experience_arrays()
+    tmap, emap = np.asarray(record.template_map), np.asarray(record.experience_map)
+    templates = [
+        {"target": int(tmap[z]), "source": int(z), "target_uid": _uid(lt_s, lt_i, int(tmap[z])),
+         "source_uid": _uid(pt_s, pt_i, int(z))}
+        for z in np.flatnonzero(tmap < record.template_offset).tolist()
+    ]  # fmt: skip
+    experiences = [
+        {"target": int(emap[e]), "source": int(e), "target_uid": _uid(le_s, le_i, int(emap[e])),
+         "source_uid": _uid(pe_s, pe_i, int(e))}
+        for e in np.flatnonzero(emap < record.experience_offset).tolist()
+    ]  # fmt: skip
+    return {
+        "anchor": {"target_template": record.stored_template, "target_experience": record.stored_experience,
+                   "source_template": record.partial_template},
+        "templates": templates,
+        "experiences": experiences,
+    }  # fmt: skip
+
+
+def record_summary(record: MergeRecord) -> dict[str, Any]:
+    """Return a merge record as JSON without its per-row arrays (they are recomputed by a redo)."""
+    data = record.to_dict()
+    for key in _RECORD_ARRAYS:
+        data.pop(key, None)
+    data["merge_links"] = int(np.asarray(record.merge_links).size)
+    return data
+
+
+def match_to_dict(match: Match) -> dict[str, Any]:
+    """Return a match as JSON (see :func:`match_from_dict`)."""
+    data = asdict(match)
+    data["partial_pose"] = [float(v) for v in match.partial_pose]
+    data["partial_packet"] = [float(v) for v in match.partial_packet]
+    data["pairs"] = [[int(a), int(b)] for a, b in match.pairs]
+    return data
+
+
+def match_from_dict(data: Mapping[str, Any]) -> Match:
+    """Rebuild a :class:`Match` from :func:`match_to_dict` output."""
+    return Match(
+        stored_template=int(data["stored_template"]),
+        stored_experience=int(data["stored_experience"]),
+        partial_template=int(data["partial_template"]),
+        partial_pose=tuple(float(v) for v in data["partial_pose"]),  # type: ignore[arg-type]
+        partial_packet=tuple(float(v) for v in data["partial_packet"]),
+        relative_rad=float(data["relative_rad"]),
+        confirmations=int(data["confirmations"]),
+        pairs=tuple((int(a), int(b)) for a, b in data["pairs"]),
+    )
+
+
+def _transform7(record: MergeRecord) -> tuple[float, ...]:
+    x, y, z, yaw = record.transform
+    return (x, y, z, 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
+
+
+def _claim_all(conn: Connection, claimed: Mapping[int, int]) -> dict[int, int]:
+    """Claim every map at the version it was read; return the new versions (a vanished map is stale)."""
+    out: dict[int, int] = {}
+    for map_id, version in sorted(claimed.items()):
+        try:
+            out[map_id] = claim_map(conn=conn, map_id=map_id, expected_version=version)
+        except UnknownMapError as err:
+            msg = f"a map this merge reads was dropped by another writer ({err}); nothing was written"
+            raise StaleMapError(msg) from err
+    return out
+
+
+def write_merges(
+    conn: Connection,
+    *,
+    merges: Sequence[MergeToWrite],
+    claimed: Mapping[int, int],
+    host_id: int,
+    params: Params,
+    snapshot: Mapping[str, np.ndarray],
+    identities: RowIdentities,
+    tags: Mapping[int, int],
+    session_ids: Sequence[int],
+    extra: Mapping[str, np.ndarray] | None = None,
+) -> WrittenMerges:
+    """Store merge events and the merged map in the caller's write transaction (see the module docstring).
+
+    Args:
+        conn: a connection in a write transaction.
+        merges: the merge events, in the order they happened.
+        claimed: every stored map involved → the version it was read at.
+        host_id: the map (among ``claimed``) the merged state is written into; the others are dropped.
+        params: the merged map's parameters.
+        snapshot: the merged engine snapshot (origins are tags).
+        identities: the merged rows' identities (tags).
+        tags: origin tag → session id for tags that are not ids yet (a new session: ``{0: id}``).
+        session_ids: the merged map's sessions.
+        extra: more snapshot keys to store (``mg_*``).
+
+    Raises:
+        StaleMapError: a map changed or vanished since it was read (nothing is written).
+    """
+    versions = _claim_all(conn, {k: v for k, v in claimed.items() if k != host_id})
+    host = get_map_by_id_or_stale(conn, host_id)
+    event_ids: list[int] = []
+    for merge in merges:
+        partial_ids = (merge.partial.identities or RowIdentities()).retagged(tags)
+        spec = MergeEventSpec(
+            map_id=merge.host_id,
+            map_name=merge.host_name,
+            mode=merge.mode,
+            confirmations=merge.record.confirmations,
+            lattice_offset=list(merge.record.lattice_offset),
+            transform=_transform7(merge.record),
+            yaw=merge.record.transform[3],
+            matches=matches_json(merge.target, partial_ids, merge.record),
+            target_sessions=merge.target.session_ids,
+            source_sessions=merge.partial.session_ids,
+            details={**merge.details, "host": {"name": merge.host_name, "map_id": merge.host_id}},
+        )
+        event_id = record_merge_event(conn=conn, spec=spec)
+        event_ids.append(event_id)
+        archive_map_state(conn=conn, map_id=merge.target.id, event_id=event_id, role="target")
+        if merge.partial.from_store and merge.partial.map_id is not None:
+            archive_map_state(conn=conn, map_id=merge.partial.map_id, event_id=event_id, role="source")
+    for map_id in sorted(versions):
+        drop_map(conn=conn, map_id=map_id)
+    state = {**dict(snapshot), ID_NEXT_KEY: identities.retagged(tags).next_table(), **dict(extra or {})}
+    t_index = identities.template_arrays()[1]
+    e_index = identities.experience_arrays()[1]
+    result = write_map_state(  # claims the host: a concurrent writer there → StaleMapError, nothing written
+        conn=conn, map_id=host_id, expected_version=claimed[host_id], params=params, snapshot=state,
+        session_ids=list(session_ids), origins={**{s: s for s in session_ids}, **dict(tags)},
+        template_index=t_index, experience_index=e_index,
+    )  # fmt: skip
+    for merge, event_id in zip(merges, event_ids, strict=True):
+        side = merge.partial
+        if side.from_store or side.snapshot is None or side.identities is None:
+            continue
+        ids = side.identities.retagged(tags)
+        t_s, t_i = ids.template_arrays()
+        e_s, e_i = ids.experience_arrays()
+        archive_state(
+            conn=conn, map_name=side.name, params=side.params,
+            snapshot={**_retag(side.snapshot, tags), ID_NEXT_KEY: ids.next_table()},
+            session_ids=side.session_ids, template_session=t_s, template_index=t_i, experience_session=e_s,
+            experience_index=e_i, map_id=side.map_id if side.map_id == host_id else None,  # others are dropped
+            event_id=event_id, role="source",
+        )  # fmt: skip
+    return WrittenMerges(event_ids, host_id, host.name, result)
+
+
+def get_map_by_id_or_stale(conn: Connection, map_id: int) -> Any:
+    """Return a map's row; a vanished map means another writer was first (``StaleMapError``)."""
+    from mapserver.store.maps import get_map_by_id
+
+    try:
+        return get_map_by_id(conn=conn, map_id=map_id)
+    except UnknownMapError as err:
+        msg = f"map id {map_id} was dropped by another writer; nothing was written"
+        raise StaleMapError(msg) from err
+
+
+def merge_summary(event_id: int, merge: MergeToWrite, host_name: str) -> dict[str, Any]:
+    """Return one entry of ``process --json``'s ``merges`` (see the README, "Multisession merging")."""
+    r = merge.record
+    x, y, z, yaw = r.transform
+    return {
+        "event": event_id,
+        "into": merge.target.name,
+        "map": host_name,
+        "frame": merge.details.get("frame"),
+        "stamp": merge.details.get("stamp"),
+        "confirmations": r.confirmations,
+        "matched_templates": int(np.count_nonzero(np.asarray(r.template_map) < r.template_offset)),
+        "matched_experiences": int(np.count_nonzero(np.asarray(r.experience_map) < r.experience_offset)),
+        "lattice_offset": [float(v) for v in r.lattice_offset],
+        "lattice_shifted": r.lattice_shifted,
+        "transform": {"x": x, "y": y, "z": z, "yaw": yaw},
+    }
+
+
+# ------------------------------------------------------------------------------------------------ offline
+
+
+@dataclass(frozen=True)
+class MergeOutcome:
+    """What an offline merge or a redo did."""
+
+    event_id: int
+    map_name: str
+    record: MergeRecord
+    sessions: list[str] = field(default_factory=list)
+
+
+def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | None = None) -> MergeOutcome:
+    """Merge stored map ``source`` (A) into stored map ``into`` (B) offline, with its event and archives.
+
+    Raises:
+        NotFoundError: a map does not exist.
+        InputError: the same map twice, or ``confirm`` < 1.
+        NoConfirmedMatchError: no confirmed template match (exit 2).
+        MergeError: incompatible maps, or a map holds a session still being processed.
+        StaleMapError: a map changed while merging (nothing written).
+    """
+    if source == into:
+        msg = f"cannot merge map {source!r} into itself"
+        raise InputError(msg)
+    if confirm is not None and confirm < 1:
+        msg = f"--confirm must be at least 1, got {confirm!r}"
+        raise InputError(msg)
+    with db.read() as conn:
+        a = read_atlas_map(conn, get_map(conn=conn, name=source).id)
+        b = read_atlas_map(conn, get_map(conn=conn, name=into).id)
+    for m in (a, b):
+        if m.partial_sessions:
+            msg = (
+                f"map {m.name!r} holds a session still being processed (partial); finish it (process its log "
+                "again) before merging"
+            )
+            raise MergeError(msg)
+    match = find_match(StoredMap(a.name, a.params, a.snapshot), StoredMap(b.name, b.params, b.snapshot),
+                       confirm=confirm)  # fmt: skip
+    engine, record = merge_snapshots(b.stored(), a.stored(), match)
+    identities = RowIdentities.merged(b.identities, a.identities, record)
+    host = a if a.id < b.id else b
+    partial = PartialSide(a.name, a.id, None, a.identities, a.params, a.session_ids, from_store=True)
+    merge = MergeToWrite(
+        mode="offline", target=b, partial=partial, match=match, record=record, host_id=host.id, host_name=host.name,
+        details={"match": match_to_dict(match), "record": record_summary(record), "settle": True,
+                 "source": {"name": a.name, "map_id": a.id}, "target": {"name": b.name, "map_id": b.id},
+                 "session_frames": {}},
+    )  # fmt: skip
+    with db.write() as conn:
+        sessions = sorted(set(a.session_ids) | set(b.session_ids))
+        merge.details["session_frames"] = {
+            str(s.id): s.frames_processed for s in get_sessions(conn=conn, session_ids=sessions)
+        }
+        written = write_merges(
+            conn, merges=[merge], claimed={a.id: a.version, b.id: b.version}, host_id=host.id, params=b.params,
+            snapshot=engine.snapshot(), identities=identities, tags={}, session_ids=sessions,
+        )  # fmt: skip
+    return MergeOutcome(written.event_ids[0], written.host_name, record)
+
+
+# ------------------------------------------------------------------------------------------------ undo / redo
+
+
+@dataclass(frozen=True)
+class UnmergeOutcome:
+    """What an unmerge restored."""
+
+    event_id: int
+    maps: list[str]
+    session_rewound: str | None = None
+    frames: int | None = None
+
+
+def _event_sessions(event: Any) -> set[int]:
+    return {int(s) for s in event.sessions}
+
+
+def unmerge(db: Database, *, event_id: int) -> UnmergeOutcome:
+    """Undo a merge event: every map involved is restored exactly as it was before it (one transaction).
+
+    A session whose frames after the merge lived in the merged map (an online merge) is set back to
+    the merge frame: processing its log again continues it from there (with or without merging).
+
+    Raises:
+        NotFoundError: no such event.
+        ConflictError: the event is not applied, a later applied event involves its sessions (undo that
+            first), or the maps changed after it in a way an undo would lose (a session processed further,
+            another session joined, a map of the same name created).
+    """
+    with db.write() as conn:
+        event = get_merge_event(conn=conn, event_id=event_id)
+        if event.status != "applied":
+            msg = f"merge event {event_id} is {event.status} already"
+            raise ConflictError(msg)
+        mine = _event_sessions(event)
+        later = [e.id for e in list_merge_events(conn=conn) if e.id > event.id and e.status == "applied"
+                 and _event_sessions(e) & mine]  # fmt: skip
+        if later:
+            msg = (
+                f"merge event {later[-1]} (later) involves the same sessions; undo it first "
+                f"(mapserver unmerge --event {later[-1]}), newest first"
+            )
+            raise ConflictError(msg)
+        details = dict(event.details or {})
+        archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
+        if not archives:
+            msg = f"merge event {event_id} has no archived states to restore"
+            raise ConflictError(msg)
+        frames = {int(k): int(v) for k, v in (details.get("session_frames") or {}).items()}
+        for name in sorted({a.map_name for a in archives} | {event.map_name}):
+            record = find_map(conn=conn, name=name)
+            if record is None:
+                continue
+            held = {s.id: s for s in sessions_of_map(conn=conn, map_id=record.id)}
+            strangers = sorted(s.name for sid, s in held.items() if sid not in mine)
+            if strangers:
+                msg = (
+                    f"map {name!r} now holds session(s) {', '.join(map(repr, strangers))} that joined after merge "
+                    f"event {event_id}; an unmerge would drop them"
+                )
+                raise ConflictError(msg)
+            ahead = sorted(s.name for sid, s in held.items() if sid in frames and s.frames_processed > frames[sid])
+            if ahead:
+                msg = (
+                    f"session(s) {', '.join(map(repr, ahead))} of map {name!r} were processed further after merge "
+                    f"event {event_id}; an unmerge would lose those frames"
+                )
+                raise ConflictError(msg)
+        restored = restore_map_states(conn=conn, archive_ids=event.archive_ids)
+        rewound = None
+        at = details.get("frames_at")
+        sid = details.get("session")
+        if sid is not None and at is not None:
+            session = get_sessions(conn=conn, session_ids=[int(sid)])[0]
+            rows, _pose = get_reckoning(conn=conn, session_id=session.id)
+            pose = details.get("reckoning_pose")
+            update_session(
+                conn=conn, session_id=session.id, status="partial", frames_processed=int(at),
+                last_stamp=float(details["stamp"]), reckoning=rows[: int(at)],
+                reckoning_pose=None if pose is None else tuple(float(v) for v in pose),  # type: ignore[arg-type]
+            )  # fmt: skip
+            rewound = session.name
+        set_merge_status(conn=conn, event_id=event_id, status="undone")
+        details["undo"] = {a.map_name: r.version for a, r in zip(archives, restored, strict=True)}
+        update_merge_details(conn=conn, event_id=event_id, details=details)
+    return UnmergeOutcome(event_id, [a.map_name for a in archives], rewound, None if at is None else int(at))
+
+
+def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
+    """Re-apply an undone merge event: its recorded match on its archived states, written as the original was.
+
+    The result equals the original merge bit for bit (``merge_states`` is deterministic). For an online
+    merge the session stays at the merge frame; processing its log again continues it in the merged map
+    exactly as the original run did.
+
+    Raises:
+        NotFoundError: no such event.
+        ConflictError: the event is not undone, or its maps changed since the unmerge.
+    """
+    with db.write() as conn:
+        event = get_merge_event(conn=conn, event_id=event_id)
+        if event.status != "undone":
+            msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
+            raise ConflictError(msg)
+        details = dict(event.details or {})
+        undo = details.get("undo") or {}
+        current: dict[str, Any] = {}
+        for name, version in undo.items():
+            record = find_map(conn=conn, name=name)
+            if record is None or record.version != int(version):
+                msg = f"map {name!r} changed after merge event {event_id} was undone; it cannot be redone"
+                raise ConflictError(msg)
+            current[name] = record
+        archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
+        targets = [a for a in archives if a.role == "target"]
+        sources = [a for a in archives if a.role == "source"]
+        if len(targets) != 1 or len(sources) != 1:
+            msg = f"merge event {event_id} does not have one target and one source archive"
+            raise ConflictError(msg)
+        target, source = targets[0], sources[0]
+        match = match_from_dict(details["match"])
+        shift = bool((details.get("record") or {}).get("lattice_shifted", True))
+        t_params, s_params = params_from_dict(target.params), params_from_dict(source.params)
+        t_ids = RowIdentities.from_arrays(
+            target.template_session, target.template_index, target.experience_session, target.experience_index,
+            next_index_from_table(target.snapshot.get(ID_NEXT_KEY)),
+        )  # fmt: skip
+        s_ids = RowIdentities.from_arrays(
+            source.template_session, source.template_index, source.experience_session, source.experience_index,
+            next_index_from_table(source.snapshot.get(ID_NEXT_KEY)),
+        )  # fmt: skip
+        for ids, archived in ((t_ids, target), (s_ids, source)):
+            for sid, (nt, ne) in _index_maxima(conn, archived.session_ids).items():
+                ids.raise_next(sid, nt, ne)
+        extra: dict[str, np.ndarray] = {}
+        if event.mode == "offline":
+            engine, record = merge_snapshots(
+                StoredMap(target.map_name, t_params, target.snapshot),
+                StoredMap(source.map_name, s_params, source.snapshot), match, shift_lattice=shift,
+            )  # fmt: skip
+            params = t_params
+        else:
+            state, record = merge_states(target.snapshot, source.snapshot, match, shift_lattice=shift)
+            sid = int(details["session"])
+            engine = restore_merged(s_params, state, record, origin=sid)
+            engine.loop_closures = int(source.snapshot.get("eng_loop_closures", np.asarray(0)))
+            params = s_params
+            session = get_sessions(conn=conn, session_ids=[sid])[0]
+            if not session.complete:
+                state_after = MergerState(np.asarray(details.get("odometry", [0.0] * 4), dtype=np.float64))
+                version_after = current[details["host"]["name"]].version + 1
+                extra = merger_keys(state_after, session_id=sid, map_version=version_after, candidates=[])
+        identities = RowIdentities.merged(t_ids, s_ids, record)
+        host_name = details["host"]["name"]
+        host = current[host_name]
+        versions = _claim_all(conn, {r.id: r.version for r in current.values() if r.id != host.id})
+        for map_id in sorted(versions):
+            drop_map(conn=conn, map_id=map_id)
+        sessions = sorted(set(target.session_ids) | set(source.session_ids))
+        state_out = {**engine.snapshot(), ID_NEXT_KEY: identities.next_table(), **extra}
+        result = write_map_state(
+            conn=conn, map_id=host.id, expected_version=host.version, params=params, snapshot=state_out,
+            session_ids=sessions, template_index=identities.template_arrays()[1],
+            experience_index=identities.experience_arrays()[1],
+        )  # fmt: skip
+        set_merge_status(conn=conn, event_id=event_id, status="applied")
+        details.pop("undo", None)
+        details["host"] = {**details["host"], "map_id": result.map_id}
+        update_merge_details(conn=conn, event_id=event_id, details=details)
+        names = [s.name for s in get_sessions(conn=conn, session_ids=sessions)]
+    return MergeOutcome(event_id, host_name, record, names)
+
+
+__all__ = [
+    "ID_NEXT_KEY",
+    "AtlasMap",
+    "MergeOutcome",
+    "MergeToWrite",
+    "PartialSide",
+    "UnmergeOutcome",
+    "WrittenMerges",
+    "matches_json",
+    "merge_candidates",
+    "merge_stored_maps",
+    "merge_summary",
+    "merger_keys",
+    "read_atlas_map",
+    "redo_merge",
+    "resume_merger_state",
+    "unmerge",
+    "write_merges",
+]

@@ -1,0 +1,213 @@
+"""Merges through the store (``mapserver.atlas`` with ``pipeline``): resume, undo, redo, offline merge, concurrency.
+
+Small Virtual Tour (ellipse at half scale; session 2 drives 1.25 laps and merges at its 12th frame).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from core import preset
+from mapserver import atlas, pipeline
+from mapserver.errors import ConflictError, MergeError, NoConfirmedMatchError
+from mapserver.ingest.reader import MissionLog
+from mapserver.ingest.simulator import simulate
+from mapserver.store import load_map, open_database, save_map
+from mapserver.store.merge_events import get_merge_event, list_merge_events
+from mapserver.store.sessions import get_reckoning
+from tests.mapserver.merge.scenario_metrics import cli_code, cli_json
+from tests.mapserver.store.conftest import assert_same_arrays, db_url, make_url, row_counts  # noqa: F401
+
+pytestmark = pytest.mark.slow
+
+PARAMS = preset("circle")
+STORE_KEYS = ("st_next_index",)
+
+
+@pytest.fixture(scope="module")
+def tour(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("tour")
+    simulate("ellipse", directory, seed=0, scale=0.5, params={"session2_laps": 1.25, "single_laps": 0.6})
+    return directory
+
+
+def _snapshot(url: str, name: str) -> dict[str, np.ndarray]:
+    with open_database(url) as db:
+        return load_map(db, name=name).snapshot
+
+
+def _engine_keys(snapshot: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: v for k, v in snapshot.items() if not k.startswith(("mg_", "st_"))}
+
+
+@pytest.mark.parametrize("stop", [5, 30], ids=["stop-before-the-merge", "stop-after-the-merge"])
+def test_resuming_a_merging_session_equals_one_run(tour: Path, db_url: str, make_url: Any, stop: int) -> None:  # noqa: F811
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=db_url)
+    whole = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)
+    assert [m["frame"] for m in whole.merges] == [11]
+    split = make_url()
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=split)
+    first = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=split, stop_after=stop)
+    second = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=split)
+    assert [m["frame"] for m in first.merges + second.merges] == [11]
+    assert first.map_name == ("session2" if stop <= 11 else "session1") and second.map_name == "session1"
+    assert second.summary()["frames_per_s"] is not None and second.frames_run == whole.frames - stop
+    assert_same_arrays(_snapshot(db_url, "session1"), _snapshot(split, "session1"))
+    with open_database(db_url) as a, open_database(split) as b:
+        assert row_counts(a)["experiences"] == row_counts(b)["experiences"]
+        meta_a, meta_b = load_map(a, name="session1").meta, load_map(b, name="session1").meta
+        assert meta_a.experience_index.tobytes() == meta_b.experience_index.tobytes()
+        assert meta_a.template_index.tobytes() == meta_b.template_index.tobytes()
+
+
+def test_unmerge_restores_the_maps_exactly_and_redo_reproduces_the_merge(
+    tour: Path,
+    db_url: str,  # noqa: F811
+    make_url: Any,  # noqa: F811
+) -> None:
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=db_url)
+    before = _snapshot(db_url, "session1")
+    merged = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)
+    summary = merged.summary()
+    (entry,) = summary["merges"]
+    assert set(entry) >= {"event", "into", "map", "frame", "stamp", "confirmations", "matched_templates",
+                          "transform", "lattice_offset"}  # fmt: skip
+    assert entry["into"] == entry["map"] == summary["map"] == "session1" and entry["confirmations"] >= 3
+    final = _snapshot(db_url, "session1")
+    with open_database(db_url) as db, db.read() as conn:
+        event = get_merge_event(conn=conn, event_id=entry["event"])
+    assert (event.mode, event.status, event.confirmations) == ("online", "applied", entry["confirmations"])
+    assert sorted(event.sessions.values()) == ["source", "target"] and len(event.archive_ids) == 2
+    assert len(event.matches["templates"]) == entry["matched_templates"] >= 2
+    assert event.details["frame"] == entry["frame"] and len(event.lattice_offset) == 3
+
+    assert cli_json("unmerge", "--db", db_url, "--event", str(entry["event"]))["frames"] == entry["frame"] + 1
+    assert_same_arrays(before, _snapshot(db_url, "session1"))  # the stored map, bit for bit
+    alone = make_url()  # the partial map = session 2 processed alone up to the merge frame
+    pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=alone, merge=False, stop_after=entry["frame"] + 1)
+    expected, restored = _snapshot(alone, "session2"), _snapshot(db_url, "session2")
+    assert_same_arrays(_engine_keys(expected), _engine_keys(restored), skip=("lv_origin", "em_origin"))
+    with open_database(db_url) as db, db.read() as conn:
+        session = load_map(db, name="session2").meta.sessions[0]
+        rows, _pose = get_reckoning(conn=conn, session_id=session.id)
+        assert (session.status, session.frames_processed, rows.shape[0]) == ("partial", entry["frame"] + 1, 12)
+    code, err = cli_code("unmerge", "--db", db_url, "--event", str(entry["event"]))
+    assert code == 1 and err.strip().splitlines()[-1] == f"ERROR: merge event {entry['event']} is undone already"
+
+    assert cli_json("merge", "--db", db_url, "--redo", str(entry["event"])) == {
+        "merged": True, "event": entry["event"], "map": "session1"}  # fmt: skip
+    again = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)  # continues after the merge
+    assert again.merges == [] and again.frames == merged.frames
+    # the same map as the original run (rows re-created after the merge frame get fresh identities)
+    assert_same_arrays(final, _snapshot(db_url, "session1"), skip=STORE_KEYS)
+    code, err = cli_code("merge", "--db", db_url, "--redo", str(entry["event"]))
+    assert code == 1 and "only an undone event can be redone" in err
+
+
+def test_unmerge_refuses_while_a_later_merge_involves_the_same_sessions(tour: Path, tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'atlas.db'}"
+    for log in ("session1", "session2", "single"):
+        pipeline.process_into_store(tour / f"{log}.bag", PARAMS, db_url=url)
+    with open_database(url) as db, db.read() as conn:
+        events = list_merge_events(conn=conn)
+    assert [e.status for e in events] == ["applied", "applied"]  # single starts where session 1 did: known start
+    first, second = events[0].id, events[1].id
+    known = events[1].details  # single starts where session 1 did: it activates that experience and maps on
+    assert known["frame"] <= 3 and known["record"]["experiences"] == known["record"]["experience_offset"]
+    code, err = cli_code("unmerge", "--db", url, "--event", str(first))
+    assert code == 1
+    assert err.strip().splitlines()[-1] == (
+        f"ERROR: merge event {second} (later) involves the same sessions; undo it first "
+        f"(mapserver unmerge --event {second}), newest first"
+    )
+    cli_json("unmerge", "--db", url, "--event", str(second))
+    cli_json("unmerge", "--db", url, "--event", str(first))
+    maps = cli_json("maps", "--db", url)["maps"]
+    assert sorted((m["name"], m["sessions"]) for m in maps) == [("session1", 1), ("session2", 1), ("single", 1)]
+
+
+def test_offline_merge_refuses_without_a_match_and_undoes_and_redoes_exactly(
+    tour: Path,
+    db_url: str,  # noqa: F811
+) -> None:
+    for log in ("session1", "session2"):
+        pipeline.process_into_store(tour / f"{log}.bag", PARAMS, db_url=db_url, merge=False)
+    a, b = _snapshot(db_url, "session2"), _snapshot(db_url, "session1")
+    with open_database(db_url) as db:
+        counts = row_counts(db)
+    code, err = cli_code("merge", "--db", db_url, "--map", "session2", "--into", "session1", "--confirm", "500")
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ERROR: no confirmed match of map 'session2' in map 'session1'")
+    with open_database(db_url) as db:
+        assert row_counts(db) == counts  # nothing written
+    assert cli_code("merge", "--db", db_url, "--map", "session1", "--into", "session1")[0] == 2
+    assert cli_code("merge", "--db", db_url, "--map", "nowhere", "--into", "session1")[0] == 2
+
+    done = cli_json("merge", "--db", db_url, "--map", "session2", "--into", "session1")
+    assert done == {"merged": True, "event": 1, "map": "session1"}
+    maps = cli_json("maps", "--db", db_url)["maps"]
+    assert [(m["name"], m["sessions"]) for m in maps] == [("session1", 2)]
+    assert maps[0]["templates"] < a["lv_means"].size + b["lv_means"].size  # matched templates not duplicated
+    merged = _snapshot(db_url, "session1")
+    cli_json("unmerge", "--db", db_url, "--event", "1")
+    assert_same_arrays(a, _snapshot(db_url, "session2"))
+    assert_same_arrays(b, _snapshot(db_url, "session1"))
+    cli_json("merge", "--db", db_url, "--redo", "1")
+    assert_same_arrays(merged, _snapshot(db_url, "session1"))
+
+
+def test_a_concurrent_write_to_the_stored_map_makes_the_session_redo_its_merge(
+    tour: Path,
+    db_url: str,  # noqa: F811
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=db_url)
+    original = atlas.merge_candidates
+    calls: list[int] = []
+
+    def racing(conn: Any, **kwargs: Any) -> Any:
+        found = original(conn, **kwargs)
+        calls.append(len(found[0]))
+        if len(calls) == 1:  # another writer saves the stored map after this session read it
+            with open_database(db_url) as other:
+                content = load_map(other, name="session1")
+                save_map(other, name="session1", params=content.params, snapshot=content.snapshot,
+                         sessions=[s.id for s in content.meta.sessions],
+                         expected_version=content.meta.map.version)  # fmt: skip
+        return found
+
+    monkeypatch.setattr(atlas, "merge_candidates", racing)
+    with caplog.at_level(logging.WARNING):
+        result = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)
+    assert calls == [1, 1] and "processing the log again" in caplog.text
+    assert len(result.merges) == 1 and result.map_name == "session1"
+    with open_database(db_url) as db, db.read() as conn:
+        assert len(list_merge_events(conn=conn)) == 1
+        assert row_counts(db)["maps"] == 1 and row_counts(db)["map_archives"] == 2
+
+
+def test_a_processed_log_is_hashed_once(tour: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    original = MissionLog.sha256
+    hashed: list[str] = []
+
+    def counting(self: MissionLog) -> str:
+        if self._sha256 is None:
+            hashed.append(str(self.path))
+        return original.fget(self)  # type: ignore[attr-defined,no-any-return]
+
+    monkeypatch.setattr(MissionLog, "sha256", property(counting))
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=f"sqlite:///{tmp_path / 'a.db'}")
+    assert len(hashed) == 1
+
+
+def test_no_confirmed_match_exits_2_while_other_refused_merges_exit_1() -> None:
+    assert (NoConfirmedMatchError.exit_code, NoConfirmedMatchError.http_status) == (2, 409)
+    assert issubclass(NoConfirmedMatchError, MergeError) and issubclass(MergeError, ConflictError)
+    assert (MergeError.exit_code, ConflictError.exit_code) == (1, 1)
