@@ -98,6 +98,10 @@ class MergeEventPublic(BaseModel):
     sessions: dict[str, str] = Field(description="session name → role (target or source)")
     transform: list[float] = Field(description="tx, ty, tz, qx, qy, qz, qw applied to the source")
     yaw: float
+    lattice_offset: list[float] = Field(description="pose-cell offset (cells) applied to the source: x, y, [z,] th")
+    matches: dict[str, Any] = Field(
+        description="matched templates and experiences: anchor pair, identified pairs (target/source ids and uids)"
+    )
 
 
 class MapPublic(BaseModel):

@@ -2,8 +2,8 @@
 
 The ``ellipse`` scenario (Menezes et al.'s Virtual Tour) is simulated with a short second session:
 session A drives 3/4 of the loop, session B starts in the unmapped quarter and drives one lap over A's
-route. Both are processed into the database as ``process --db`` does, so B merges into A's map once
-online merging is available (one map, two sessions); the map is called ``demo``.
+route. Both are processed into the database as ``process --db`` does, so B merges into A's map online
+(one map, two sessions, one merge event); the map is called ``demo``.
 """
 
 from __future__ import annotations

@@ -1,51 +1,10 @@
-"""Shared helpers for engine tests: a tiny deterministic 'corridor' world with exact revisits."""
+"""Shared fixtures for engine tests: the strip world (``tests/worlds.py``)."""
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import pytest
 
-from core.motion import Motion
-
-
-class StripWorld:
-    """A closed route whose camera view at arc position s is a window of a random texture strip.
-
-    Views of one place are identical on every lap (plus optional noise), different
-    places differ, so a loop closes exactly where the route repeats.
-    """
-
-    def __init__(
-        self, perimeter_m: float = 40.0, px_per_m: float = 8.0, height: int = 24, width: int = 64, seed: int = 3
-    ) -> None:
-        rng = np.random.default_rng(seed)
-        self.columns = int(perimeter_m * px_per_m)
-        base = rng.random((height, self.columns))
-        # smooth along the route so small pose changes give similar views
-        kernel = np.ones(5) / 5.0
-        smooth = np.stack([np.convolve(np.concatenate([r[-2:], r, r[:2]]), kernel, "valid") for r in base])
-        self.texture = (40 + 180 * smooth).astype(np.uint8)
-        self.perimeter = perimeter_m
-        self.px_per_m = px_per_m
-        self.width = width
-
-    def view(self, s: float) -> np.ndarray:
-        start = round(s * self.px_per_m) % self.columns
-        idx = (start + np.arange(self.width)) % self.columns
-        return self.texture[:, idx]
-
-    def drive(self, laps: float, speed: float = 1.0, dt: float = 0.5, yaw_bias: float = 0.0):
-        """Yield (image, motion, stamp) around a circle of the world's perimeter."""
-        n = int(laps * self.perimeter / (speed * dt))
-        radius = self.perimeter / (2 * math.pi)
-        dyaw = speed * dt / radius
-        for i in range(n):
-            s = i * speed * dt
-            turn = dyaw + yaw_bias * dt
-            motion = Motion(0.0, 0.0, 0.0, 0.0, 0.0) if i == 0 else Motion(speed * dt, 0.0, 0.0, turn, dt)
-            yield self.view(s), motion, i * dt
+from tests.worlds import StripWorld
 
 
 @pytest.fixture

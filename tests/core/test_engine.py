@@ -12,7 +12,7 @@ from core import Engine
 from core.config import Params
 from core.engine import Action
 from core.motion import Motion
-from tests.core.conftest import StripWorld
+from tests.worlds import StripWorld
 
 
 def _params(**changes: object) -> Params:

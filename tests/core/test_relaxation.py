@@ -17,7 +17,7 @@ from core import Engine
 from core.config import Params
 from core.experience_map import ExperienceMap, LinkKind
 from core.motion import Motion
-from tests.core.conftest import StripWorld
+from tests.worlds import StripWorld
 
 TOLERANCE = 1e-6
 

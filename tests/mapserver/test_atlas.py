@@ -11,9 +11,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
 from core import preset
 from mapserver import atlas, pipeline
+from mapserver.api import Settings, create_app
 from mapserver.errors import ConflictError, MergeError, NoConfirmedMatchError
 from mapserver.ingest.reader import MissionLog
 from mapserver.ingest.simulator import simulate
@@ -65,8 +67,17 @@ def test_resuming_a_merging_session_equals_one_run(tour: Path, db_url: str, make
         assert meta_a.template_index.tobytes() == meta_b.template_index.tobytes()
 
 
+def _api_merge_events(url: str, tmp_path: Path, name: str) -> list[dict[str, Any]]:
+    settings = Settings(db_url=url, upload_dir=tmp_path / "uploads", allow_anonymous_reads=True)
+    with TestClient(create_app(settings)) as client:
+        response = client.get(f"/v1/maps/{name}")
+    assert response.status_code == 200, response.text
+    return response.json()["merge_events"]
+
+
 def test_unmerge_restores_the_maps_exactly_and_redo_reproduces_the_merge(
     tour: Path,
+    tmp_path: Path,
     db_url: str,  # noqa: F811
     make_url: Any,  # noqa: F811
 ) -> None:
@@ -85,6 +96,12 @@ def test_unmerge_restores_the_maps_exactly_and_redo_reproduces_the_merge(
     assert sorted(event.sessions.values()) == ["source", "target"] and len(event.archive_ids) == 2
     assert len(event.matches["templates"]) == entry["matched_templates"] >= 2
     assert event.details["frame"] == entry["frame"] and len(event.lattice_offset) == 3
+    shown = _api_merge_events(db_url, tmp_path, "session1")  # the provenance GET /v1/maps/{name} shows
+    assert [(e["id"], e["mode"], e["status"], e["confirmations"]) for e in shown] == [
+        (entry["event"], "online", "applied", entry["confirmations"])]  # fmt: skip
+    assert shown[0]["sessions"] == {"session1": "target", "session2": "source"}
+    assert shown[0]["lattice_offset"] == pytest.approx(entry["lattice_offset"])
+    assert shown[0]["transform"] == pytest.approx(list(event.transform)) and shown[0]["matches"] == event.matches
 
     assert cli_json("unmerge", "--db", db_url, "--event", str(entry["event"]))["frames"] == entry["frame"] + 1
     assert_same_arrays(before, _snapshot(db_url, "session1"))  # the stored map, bit for bit

@@ -80,7 +80,7 @@ def read_map(name: MapName, services: ServicesDep, _token: ReadAccess) -> MapPub
             MergeEventPublic(
                 id=e.id, mode=e.mode, status=e.status, confirmations=e.confirmations, created_at=e.created_at,
                 undone_at=e.undone_at, sessions={names.get(s, str(s)): role for s, role in e.sessions.items()},
-                transform=list(e.transform), yaw=e.yaw,
+                transform=list(e.transform), yaw=e.yaw, lattice_offset=list(e.lattice_offset), matches=e.matches,
             )
             for e in events
         ],

@@ -21,43 +21,11 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
-from core import Engine, Motion, Params, preset
+from core import Engine, Params, preset
 from mapserver.ingest.writer import OdomSample, write_log
 from mapserver.store import Database, open_database
 from mapserver.store.models import Base
-
-
-class StripWorld:
-    """A closed route whose camera view at arc length s is a window of a smooth random texture strip.
-
-    Views of one place are identical on every lap, different places differ, so loops close where the
-    route repeats.
-    """
-
-    def __init__(self, perimeter_m: float = 40.0, px_per_m: float = 8.0, height: int = 24, width: int = 64,
-                 seed: int = 3) -> None:  # fmt: skip
-        rng = np.random.default_rng(seed)
-        self.columns = int(perimeter_m * px_per_m)
-        base = rng.random((height, self.columns))
-        kernel = np.ones(5) / 5.0
-        smooth = np.stack([np.convolve(np.concatenate([r[-2:], r, r[:2]]), kernel, "valid") for r in base])
-        self.texture = (40 + 180 * smooth).astype(np.uint8)
-        self.perimeter = perimeter_m
-        self.px_per_m = px_per_m
-        self.width = width
-
-    def view(self, s: float) -> np.ndarray:
-        start = round(s * self.px_per_m) % self.columns
-        return self.texture[:, (start + np.arange(self.width)) % self.columns]
-
-    def drive(self, laps: float, speed: float = 1.0, dt: float = 0.5) -> Iterator[tuple[np.ndarray, Motion, float]]:
-        """Yield (image, motion, stamp) around the circle."""
-        radius = self.perimeter / (2 * math.pi)
-        for i in range(int(laps * self.perimeter / (speed * dt))):
-            turn = speed * dt / radius
-            motion = Motion(0.0, 0.0, 0.0, 0.0, 0.0) if i == 0 else Motion(speed * dt, 0.0, 0.0, turn, dt)
-            yield self.view(i * speed * dt), motion, i * dt
-
+from tests.worlds import StripWorld
 
 PG_BASE = os.environ.get("MAPSERVER_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 T0_NS = 1_700_000_000_000_000_000

@@ -15,7 +15,8 @@ from mapserver.cli import main
 from mapserver.store import load_map, open_database
 from mapserver.store.evidence import decode_jpeg, get_evidence
 from mapserver.store.sessions import get_reckoning
-from tests.mapserver.store.conftest import StripWorld, assert_same_arrays, row_counts, small_params, write_loop_log
+from tests.mapserver.store.conftest import assert_same_arrays, row_counts, small_params, write_loop_log
+from tests.worlds import StripWorld
 
 pytestmark = pytest.mark.slow
 
