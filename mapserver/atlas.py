@@ -122,19 +122,14 @@ def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
     )
 
 
-def merge_candidates(
-    conn: Connection, *, params: Params, exclude: int | None = None
-) -> tuple[list[AtlasMap], dict[str, str]]:
-    """Return the stored maps a session with ``params`` may merge into, and why the others may not.
-
-    A map is a candidate when its parameters are compatible (lattice, template size, matcher
-    geometry) and none of its sessions is still being processed (a partial session's robot state
-    lives in its map; a merge would replace it). Maps are returned by id (oldest first).
-    """
-    rows = conn.execute(select(Map.id, Map.name, Map.params).order_by(Map.id)).all()
-    candidates: list[AtlasMap] = []
+def _eligible_maps(
+    conn: Connection, *, params: Params, exclude: int | None
+) -> tuple[dict[int, int], dict[str, str]]:
+    """Return {map id: version} of the stored maps a session with ``params`` may merge into, and why not the others."""
+    rows = conn.execute(select(Map.id, Map.name, Map.params, Map.version).order_by(Map.id)).all()
+    eligible: dict[int, int] = {}
     skipped: dict[str, str] = {}
-    for map_id, name, map_params in rows:
+    for map_id, name, map_params, version in rows:
         if exclude is not None and int(map_id) == exclude:
             continue
         try:
@@ -148,8 +143,42 @@ def merge_candidates(
         if reason:
             skipped[str(name)] = reason
             continue
-        candidates.append(read_atlas_map(conn, int(map_id)))
-    return candidates, skipped
+        eligible[int(map_id)] = int(version)
+    return eligible, skipped
+
+
+def merge_candidates(
+    conn: Connection, *, params: Params, exclude: int | None = None
+) -> tuple[list[AtlasMap], dict[str, str]]:
+    """Return the stored maps a session with ``params`` may merge into, and why the others may not.
+
+    A map is a candidate when its parameters are compatible (lattice, template size, matcher
+    geometry) and none of its sessions is still being processed (a partial session's robot state
+    lives in its map; a merge would replace it). Maps are returned by id (oldest first).
+    """
+    eligible, skipped = _eligible_maps(conn, params=params, exclude=exclude)
+    return [read_atlas_map(conn, map_id) for map_id in eligible], skipped
+
+
+def ensure_candidates_unchanged(
+    conn: Connection, *, params: Params, exclude: int | None, seen: Mapping[int, int]
+) -> None:
+    """Raise ``StaleMapError`` when the maps a session may merge into are no longer those it was matched against.
+
+    Call it in the session's write transaction after :func:`mapserver.store.lock_atlas`. A session is
+    matched, frame by frame, against the candidates read when it started (``seen``: map id → version).
+    If since then a map became a candidate (another session finished concurrently: its map is new, or
+    its partial session completed) or a candidate changed, the session may connect to maps it never
+    saw; the pipeline processes it again against the atlas as it is now, so sessions processed in
+    parallel still merge with each other.
+    """
+    now, _skipped = _eligible_maps(conn, params=params, exclude=exclude)
+    if now == dict(seen):
+        return
+    names = dict(conn.execute(select(Map.id, Map.name).where(Map.id.in_(set(now) | set(seen)))).all())
+    changed = sorted(names.get(k, str(k)) for k in set(now) | set(seen) if now.get(k) != seen.get(k))
+    msg = f"the maps this session may merge into changed while it was processed ({', '.join(map(repr, changed))})"
+    raise StaleMapError(msg)
 
 
 def resume_merger_state(stored: AtlasMap, session_id: int, candidates: Sequence[AtlasMap]) -> MergerState | None:

@@ -26,6 +26,9 @@ from mapserver.ingest import MissionLog, open_log
 
 logger = logging.getLogger(__name__)
 
+STALE_ATTEMPTS = 3
+"""Runs of one log before giving up when concurrent writers keep changing the maps it merges with."""
+
 ProgressCallback = Callable[[int, int], None]
 
 
@@ -296,7 +299,8 @@ def process_into_store(
     Raises:
         InputError: unreadable log, no frames, invalid ``stop_after`` or ``confirm``, a map name taken, or
             parameters that differ from the stored session's.
-        ConflictError: another process wrote a map this session reads concurrently twice in a row.
+        ConflictError: concurrent writers changed the maps this session reads or may merge into during
+            each of ``STALE_ATTEMPTS`` runs.
     """
     from mapserver.store import StaleMapError, open_database
 
@@ -310,11 +314,11 @@ def process_into_store(
     options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice)
     with open_log(log_path, topics) as log, open_database(db_url) as db:
         identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
-        for attempt in (1, 2):
+        for attempt in range(1, STALE_ATTEMPTS + 1):
             try:
                 return _process_session(db, log_path, log, params, identity, options)
             except StaleMapError as err:
-                if attempt == 2:
+                if attempt == STALE_ATTEMPTS:
                     raise
                 logger.warning("%s; processing the log again", err)
     raise AssertionError("unreachable")  # pragma: no cover
@@ -524,7 +528,7 @@ def _store_session(
     """Write the session, its map (merged or not), its merge events and evidence in one transaction."""
     from mapserver import atlas
     from mapserver.store import evidence as evidence_store
-    from mapserver.store import get_map_by_id
+    from mapserver.store import get_map_by_id, lock_atlas
     from mapserver.store.maps import create_map
     from mapserver.store.sessions import NewSession, create_session, get_sessions, update_session
     from mapserver.store.state import plain_params
@@ -536,6 +540,12 @@ def _store_session(
     status = "complete" if processed >= total else "partial"
     wanted = plain_params(params)
     with db.write() as conn:
+        if opts.merge:
+            lock_atlas(conn=conn)
+            atlas.ensure_candidates_unchanged(
+                conn, params=params, exclude=None if own is None else own.id,
+                seen={c.id: c.version for c in candidates},
+            )  # fmt: skip
         if session is not None:
             session_id = session.id
             update_session(

@@ -11,7 +11,9 @@ Rules of :class:`EmbeddedJobEngine`:
 * ``workers`` threads; each claims the oldest queued job whose map (``jobs.map_name``: the requested
   map, or the log's name) no other thread is running, so jobs that touch the same map run one after
   another and different maps run in parallel. (A session that merges into *another* stored map is
-  protected by the store's optimistic map versions: the pipeline redoes its work once on a conflict.)
+  protected by the store's optimistic map versions, and two sessions processed in parallel still merge
+  with each other: the one that writes second sees that the maps it may merge into changed and is
+  processed again against them — ``atlas.ensure_candidates_unchanged``.)
 * Start (:meth:`start`): jobs left ``running`` by a previous server process — killed, crashed, or
   stopped mid-job — are queued again and rerun from the start (the pipeline stores nothing until its
   single final transaction, so there is nothing half-written to undo), or failed with the reason once

@@ -32,6 +32,7 @@ from mapserver.store.maps import (
     get_map,
     get_map_by_id,
     list_maps,
+    lock_atlas,
 )
 from mapserver.store.migrate import HEAD_REVISION, current_revision, downgrade, ensure_schema, upgrade
 from mapserver.store.sessions import NewSession, SessionRecord, find_session, get_session, sessions_of_map
@@ -68,6 +69,7 @@ __all__ = [
     "get_session",
     "list_maps",
     "load_map",
+    "lock_atlas",
     "open_database",
     "read_map_state",
     "save_map",

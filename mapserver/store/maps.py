@@ -112,6 +112,21 @@ def create_map(*, conn: Connection, name: str, params: Mapping[str, Any]) -> Map
     return MapRecord(int(map_id), name, 0, dict(params), now, now)
 
 
+ATLAS_LOCK_KEY = 0x6D617073  # "maps"
+"""PostgreSQL advisory lock taken by :func:`lock_atlas`."""
+
+
+def lock_atlas(*, conn: Connection) -> None:
+    """Serialise the write transactions that decide which maps a session joins (until this transaction ends).
+
+    SQLite write transactions hold the database write lock already (``BEGIN IMMEDIATE``); on
+    PostgreSQL (READ COMMITTED) a transaction-level advisory lock makes a second writer wait, after
+    which its statements see the first writer's committed maps.
+    """
+    if conn.dialect.name == "postgresql":
+        conn.execute(select(func.pg_advisory_xact_lock(ATLAS_LOCK_KEY)))
+
+
 def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
     """Bump the map's version if it is still ``expected_version``; return the new version.
 

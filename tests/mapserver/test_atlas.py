@@ -6,6 +6,8 @@ Small Virtual Tour (ellipse at half scale; session 2 drives 1.25 laps and merges
 from __future__ import annotations
 
 import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -208,6 +210,33 @@ def test_a_concurrent_write_to_the_stored_map_makes_the_session_redo_its_merge(
     with open_database(db_url) as db, db.read() as conn:
         assert len(list_merge_events(conn=conn)) == 1
         assert row_counts(db)["maps"] == 1 and row_counts(db)["map_archives"] == 2
+
+
+def test_two_sessions_processed_at_once_still_merge(tour: Path, db_url: str) -> None:  # noqa: F811
+    # Both runs read the (empty) atlas before either writes: a barrier at their first frame makes sure.
+    barrier = threading.Barrier(2, timeout=60)
+
+    def run(name: str) -> Any:
+        met: list[bool] = []
+
+        def meet(_done: int, _total: int) -> None:
+            if not met:  # the first progress report of the first run (a second run goes on alone)
+                met.append(True)
+                barrier.wait()
+
+        return pipeline.process_into_store(tour / f"{name}.bag", PARAMS, db_url=db_url, progress=meet)
+
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(run, ["session1", "session2"]))
+    # the run that wrote second saw a new map it may merge into, processed its log again, and merged
+    assert sorted(len(r.merges) for r in results) == [0, 1]
+    with open_database(db_url) as db, db.read() as conn:
+        events = list_merge_events(conn=conn)
+        maps = load_map(db, name=results[0].map_name).meta
+        assert results[0].map_name == results[1].map_name
+        assert sorted(s.name for s in maps.sessions) == ["session1", "session2"]
+        assert all(s.complete for s in maps.sessions) and row_counts(db)["maps"] == 1
+    assert [(e.mode, e.status) for e in events] == [("online", "applied")]
 
 
 def test_a_processed_log_is_hashed_once(tour: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

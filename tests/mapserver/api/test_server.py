@@ -48,17 +48,14 @@ def test_concurrent_uploads_are_all_stored(server: Server, tmp_path: Path) -> No
         assert [j["status"] for j in jobs] == ["done", "done"], jobs
         maps = client.get("/v1/maps", headers=bearer(token)).json()["maps"]
         details = [client.get(f"/v1/maps/{m['name']}", headers=bearer(token)).json() for m in maps]
-    stored_sessions = sorted(s["name"] for d in details for s in d["sessions"])
-    assert stored_sessions == ["evening", "morning"]
+    # Both jobs ran in parallel (different maps); the one that finished second saw the other's new map,
+    # processed its log again and merged: one map holding both sessions, nothing lost.
+    assert [(m["name"] in ("morning", "evening"), m["sessions"]) for m in maps] == [(True, 2)]
+    (detail,) = details
+    assert sorted(s["name"] for s in detail["sessions"]) == ["evening", "morning"]
+    assert [(e["mode"], e["status"]) for e in detail["merge_events"]] == [("online", "applied")]
     alone = {p.stem: pipeline.process_log(p, resolve_params("irat")) for p in logs}
-    if len(maps) == 2:  # not merged: each map is exactly its log processed alone
-        for m in maps:
-            assert (m["experiences"], m["links"], m["templates"]) == (
-                alone[m["name"]].experiences, alone[m["name"]].links, alone[m["name"]].templates)
-    else:  # merged into one map: both sessions, nothing dropped
-        assert len(maps) == 1 and maps[0]["sessions"] == 2
-        assert maps[0]["experiences"] >= max(r.experiences for r in alone.values())
-        assert len(details[0]["merge_events"]) >= 1
+    assert maps[0]["experiences"] >= max(r.experiences for r in alone.values())
 
 
 def test_server_killed_during_a_job_reruns_it(server: Server, tmp_path: Path) -> None:
