@@ -43,7 +43,7 @@ from scipy.sparse.csgraph import connected_components
 
 from core._buffers import GrowBuffer
 from core.lattice import wrap_angle, wrap_scalar
-from core.relaxation import Incidence, Worklist, residuals, roots, solve, solve_block
+from core.relaxation import Incidence, Worklist, member_of, residuals, roots, solve, solve_block, sorted_unique
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -303,7 +303,7 @@ class ExperienceMap:
         if ids.size < p.exp_relax_batch:  # widen the block along the trajectory: consecutive ids are neighbours
             reach = (p.exp_relax_batch // ids.size - 1) // 2
             if reach > 0:
-                ids = np.unique((ids[:, None] + np.arange(-reach, reach + 1)[None, :]).ravel())
+                ids = sorted_unique((ids[:, None] + np.arange(-reach, reach + 1)[None, :]).ravel())
                 ids = ids[(ids >= 0) & (ids < self.count)]
         ids = ids[(self._incidence.degree[ids] > 0) & (self._parent.view[ids] != ids)]  # anchors never move
         if ids.size == 0:
@@ -336,7 +336,7 @@ class ExperienceMap:
         if fraction < 1.0 or winding_changed:
             self._work.push(np.concatenate([ids[moved], neighbours]))
         else:  # the batch sits at its own fixed point: only the neighbours outside it may have to follow
-            self._work.push(neighbours[~np.isin(neighbours, ids)])
+            self._work.push(neighbours[~member_of(neighbours, np.sort(ids))])
         return self.last_relax_updates
 
     def _relaxation_operator(self) -> sp.csr_matrix:

@@ -10,9 +10,12 @@ after the template-mean prefilter.
 Speed without changing the result: when a caller only needs to know whether
 some template is within a limit (``process`` asks for ``vt_match_threshold``),
 each (template, offset) pair is first bounded from below by its column sums,
-``Σ_x |Σ_y v − Σ_y t| ≤ Σ_x Σ_y |v − t|`` (triangle inequality), and only pairs
-whose bound is within the limit get the full comparison. OpenRatSLAM's early
-break inside the difference loop plays the same role there.
+``Σ_x |Σ_y v − Σ_y t| ≤ Σ_x Σ_y |v − t|`` (triangle inequality), then the pairs
+that pass by the same bound over horizontal bands of rows (up to
+``BOUND_BANDS`` bands: ``Σ_b Σ_x |Σ_{y∈b} v − Σ_{y∈b} t|``, tighter and still a
+lower bound), and only pairs whose bounds are within the limit get the full
+comparison. OpenRatSLAM's early break inside the difference loop plays the same
+role there.
 
 Deliberate deviations from OpenRatSLAM (documented, not accidental):
 
@@ -31,13 +34,16 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import uniform_filter
 
 from core._buffers import GrowBuffer, Scratch
 
 if TYPE_CHECKING:
     from core.config import Params
+
+BOUND_BANDS = 4  # row bands of the second matching bound (more bands: tighter bound, more work)
+FLOAT32_UNIT = 2.0**-24  # unit roundoff of float32
+SPLIT_MIN_ROWS = 16  # fewer templates than this left after the bounds: compare all rows in one pass
 
 
 class ImageError(ValueError):
@@ -95,6 +101,29 @@ def patch_normalise(values: np.ndarray, radius: int, min_std: float) -> np.ndarr
     return out
 
 
+def band_edges(rows: int, bands: int) -> np.ndarray:
+    """Return the row boundaries [0, …, rows] splitting ``rows`` into ``min(bands, rows)`` near-equal bands."""
+    count = max(1, min(bands, rows))
+    return (np.arange(count + 1) * rows) // count
+
+
+def offset_windows(a: np.ndarray, width: int, offsets: np.ndarray) -> np.ndarray:
+    """Return a read-only (…, len(offsets), width) view: window k is ``a[..., o_k : o_k + width]``.
+
+    ``offsets`` must be evenly spaced and ``a`` C-contiguous (a scratch buffer); the
+    same as ``sliding_window_view(a, width, axis=-1)[..., offsets, :]`` without its
+    per-call overhead, which dominates on the matcher's small arrays.
+    """
+    first = int(offsets[0])
+    stride = int(offsets[1] - offsets[0]) if offsets.size > 1 else 1
+    step = a.strides[-1]
+    shape = (*a.shape[:-1], int(offsets.size), width)
+    strides = (*a.strides[:-1], step * stride, step)
+    view = np.ndarray(shape, dtype=a.dtype, buffer=a, offset=first * step, strides=strides)
+    view.flags.writeable = False
+    return view
+
+
 class LocalViewCells:
     """Template store and matcher (OpenRatSLAM ``LocalViewMatch`` semantics)."""
 
@@ -102,7 +131,11 @@ class LocalViewCells:
         self.params = params
         self._templates = GrowBuffer((params.template_y_size, params.template_x_size), np.float32)
         self._means = GrowBuffer((), np.float64)
-        self._colsums = GrowBuffer((params.template_x_size,), np.float64)  # Σ_y per column (match bound)
+        self._colsums = GrowBuffer((params.template_x_size,), np.float32)  # Σ_y per column (match bound)
+        self._band_edges = band_edges(params.template_y_size, BOUND_BANDS)
+        bands = self._band_edges.size - 1
+        self._bandsums = GrowBuffer((bands, params.template_x_size), np.float32)  # Σ_{y∈band} per column
+        self._peak = 0.0  # the largest |value| of any stored template (float32 slack of the bounds)
         self._scratch = Scratch()
         self.current = -1
         self.previous = -1
@@ -133,6 +166,9 @@ class LocalViewCells:
         self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
         self._colsums.extend(stored.sum(axis=1, dtype=np.float64))
+        self._bandsums.extend(np.add.reduceat(stored, self._band_edges[:-1], axis=1, dtype=np.float64))
+        if stored.size:
+            self._peak = max(self._peak, float(np.abs(stored).max()))
 
     # ------------------------------------------------------------- templates
     def make_template(self, image: np.ndarray) -> tuple[np.ndarray, float]:
@@ -222,26 +258,62 @@ class LocalViewCells:
     def _bounded_pairs(
         self, view: np.ndarray, candidates: np.ndarray, offsets: np.ndarray, width: int, start: int, limit_sum: float
     ) -> np.ndarray:
-        """Return the (candidates, offsets) mask of pairs whose column-sum bound is ≤ ``limit_sum``.
+        """Return the (candidates, offsets) mask of pairs whose lower bounds are ≤ ``limit_sum``.
 
-        The bound ``Σ_x |Σ_y v − Σ_y t|`` never exceeds the summed absolute difference.
+        First the column-sum bound ``Σ_x |Σ_y v − Σ_y t|``, then, for the templates
+        with a pair left, the band bound ``Σ_b Σ_x |Σ_{y∈b} v − Σ_{y∈b} t|``; neither
+        exceeds the summed absolute difference (triangle inequality). Both run in
+        float32 with the limit widened by a bound on float32 rounding, so a pair is
+        never dropped that exact arithmetic would keep.
         """
-        n, tx = candidates.size, self.params.template_x_size
         view_cols = view.sum(axis=0, dtype=np.float64)[start : start + width]
+        keep = self._bound_below(self._colsums.view, candidates, view_cols, offsets, width, limit_sum, "col")
+        rows = np.flatnonzero(keep.any(axis=1))
+        if rows.size == 0:
+            return keep
+        view_bands = np.add.reduceat(view, self._band_edges[:-1], axis=0, dtype=np.float64)[:, start : start + width]
+        band_keep = self._bound_below(
+            self._bandsums.view, candidates[rows], view_bands, offsets, width, limit_sum, "band"
+        )
+        keep[rows] &= band_keep
+        return keep
+
+    def _bound_below(
+        self,
+        sums: np.ndarray,
+        rows: np.ndarray,
+        view_sums: np.ndarray,
+        offsets: np.ndarray,
+        width: int,
+        limit_sum: float,
+        name: str,
+    ) -> np.ndarray:
+        """Return the (rows, offsets) mask ``Σ |windows(sums[rows]) − view_sums| ≤ limit_sum`` (float32 sums).
+
+        ``sums`` holds per-template float32 partial sums (N, …, tx) over rows (one
+        band: column sums; several: band sums); ``view_sums`` the view's same sums over
+        the compared columns (…, width), float64. Panoramic templates wrap around by
+        repeating their first ``width − 1`` columns. Each of the m summed terms is
+        off by at most 2u·(|v| + |t|) (u = 2⁻²⁴: the two roundings to float32 and the
+        subtraction) and the summation by m·u·Σ more, so the limit is widened by
+        ``4(m + 2)·u·(Σ|v| + ty·width·peak)`` (peak: the largest stored |value|).
+        """
+        tx = self.params.template_x_size
+        inner = sums.shape[1:-1]
         span = tx + width - 1 if self.params.vt_panoramic else tx
-        sums = self._scratch.get("colsums", (n, span), np.float64)
-        sums[:, :tx] = self._colsums.view[candidates]
+        stored = self._scratch.get(name + "sums", (rows.size, *inner, span), np.float32)
+        np.take(sums, rows, axis=0, out=stored[..., :tx] if self.params.vt_panoramic else stored)
         if self.params.vt_panoramic:
-            sums[:, tx:] = sums[:, : width - 1]
-        first, last = int(offsets[0]), int(offsets[-1]) + 1
-        stride = int(offsets[1] - offsets[0]) if offsets.size > 1 else 1
-        windows = sliding_window_view(sums, width, axis=1)[:, first:last:stride, :]  # (n, offsets, width) view
-        diff = self._scratch.get("coldiff", (n, offsets.size, width), np.float64)
-        np.subtract(windows, view_cols, out=diff)
+            stored[..., tx:] = stored[..., : width - 1]
+        windows = offset_windows(stored, width, offsets)  # (n, …, offsets, width) view
+        diff = self._scratch.get(name + "diff", windows.shape, np.float32)
+        np.subtract(windows, view_sums.astype(np.float32)[..., None, :], out=diff)
         np.abs(diff, out=diff)
-        bound = self._scratch.get("colbound", (n, offsets.size), np.float64)
-        np.sum(diff, axis=2, out=bound)
-        return bound <= limit_sum
+        bound = diff.sum(axis=-1).sum(axis=tuple(range(1, 1 + len(inner))))
+        terms = math.prod(inner) * width
+        magnitude = float(np.abs(view_sums).sum()) + self.params.template_y_size * width * self._peak
+        slack = 4.0 * (terms + 2) * FLOAT32_UNIT * magnitude
+        return bound <= limit_sum + slack
 
     def _errors(
         self,
@@ -255,20 +327,20 @@ class LocalViewCells:
     ) -> np.ndarray:
         """Return Σ|view − template| (len(rows), len(offsets)) for the ``keep`` pairs; inf for the others.
 
-        With a finite ``limit_sum`` the rows are compared in two bands: a pair whose
-        first-band sum already exceeds the limit is dropped (its error is inf), the
-        vectorised counterpart of OpenRatSLAM's early break.
+        With a finite ``limit_sum`` and more than ``SPLIT_MIN_ROWS`` templates the rows
+        are compared in two bands: a pair whose first-band sum already exceeds the
+        limit is dropped (its error is inf), the vectorised counterpart of
+        OpenRatSLAM's early break.
         """
         ty, tx = view.shape
         panoramic = self.params.vt_panoramic
         span = tx + width - 1 if panoramic else tx
-        split = ty // 2 if math.isfinite(limit_sum) and ty >= 2 else ty
+        # two bands pay off only when many rows reach this stage; for a few the second pass is pure overhead
+        split = ty // 2 if math.isfinite(limit_sum) and ty >= 2 and rows.size > SPLIT_MIN_ROWS else ty
         bands = [(0, split), (split, ty)] if split < ty else [(0, ty)]
         total = np.zeros(keep.shape, dtype=np.float64)
         alive = keep.copy()
         active = np.arange(rows.size)
-        first, last = int(offsets[0]), int(offsets[-1]) + 1
-        stride = int(offsets[1] - offsets[0]) if offsets.size > 1 else 1
         for y0, y1 in bands:
             h = y1 - y0
             chunk = max(1, (1 << 19) // (h * offsets.size * width))  # ≤ 2 MB of differences at a time
@@ -280,7 +352,7 @@ class LocalViewCells:
                 if panoramic:
                     stored[:, :, tx:] = stored[:, :, : width - 1]
                 # every offset at once: a (n, h, offsets, width) view of sliding windows, no copy
-                windows = sliding_window_view(stored, width, axis=2)[:, :, first:last:stride, :]
+                windows = offset_windows(stored, width, offsets)
                 diff = self._scratch.get("diff", (n, h, offsets.size, width), np.float32)
                 np.subtract(windows, view[y0:y1, None, start : start + width], out=diff)
                 np.abs(diff, out=diff)
@@ -306,6 +378,8 @@ class LocalViewCells:
         self._templates.append(template)
         self._means.append(mean)
         self._colsums.append(template.sum(axis=0, dtype=np.float64))
+        self._bandsums.append(np.add.reduceat(template, self._band_edges[:-1], axis=0, dtype=np.float64))
+        self._peak = max(self._peak, float(np.abs(template).max()))
         self.current = self.count - 1
         self.relative_rad = 0.0
         return self.current, 0.0, True

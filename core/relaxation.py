@@ -57,7 +57,8 @@ import math
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import LinAlgError
+from scipy.linalg.lapack import dpotrf, dpotrs
 from scipy.sparse.linalg import splu
 
 from core._buffers import GrowBuffer
@@ -185,14 +186,14 @@ def solve_block(
     starts = np.concatenate([[0], np.cumsum(degree[:-1])]).astype(np.int64)
     flat = owner[inside] * b + local[inside]
     laplacian = np.diag(degree) - np.bincount(flat, minlength=b * b).reshape(b, b)
-    factor = cho_factor(laplacian, lower=True, check_finite=False)
+    factor = _cholesky(laplacian)
 
     yaw = pose[:, 3]
     raw = yaw[dst] - yaw[src] - transform[:, 3]
     winding = np.round(raw / TWO_PI)
     measured = transform[:, 3] + TWO_PI * winding
     fixed_yaw = np.where(inside, 0.0, yaw[other])
-    new_yaw = cho_solve(factor, np.add.reduceat(fixed_yaw - sign * measured, starts), check_finite=False)
+    new_yaw = _cho_solve(factor, np.add.reduceat(fixed_yaw - sign * measured, starts))
 
     other_yaw = np.where(inside, new_yaw[local], yaw[other])
     source_yaw = np.where(is_source, new_yaw[owner], other_yaw)
@@ -204,11 +205,50 @@ def solve_block(
     measured_xyz[:, 1] = sin_y * transform[:, 0] + cos_y * transform[:, 1]
     measured_xyz[:, 2] = transform[:, 2]
     fixed_xyz = pose[other, :3] * (~inside)[:, None]
-    new_xyz = cho_solve(factor, np.add.reduceat(fixed_xyz - sign[:, None] * measured_xyz, starts), check_finite=False)
+    new_xyz = _cho_solve(factor, np.add.reduceat(fixed_xyz - sign[:, None] * measured_xyz, starts))
     out = np.empty((b, 4))
     out[:, :3] = new_xyz
     out[:, 3] = new_yaw
     return out, changed
+
+
+def sorted_unique(ids: np.ndarray) -> np.ndarray:
+    """Return the distinct values of an integer array in increasing order (``np.unique`` without its overhead)."""
+    ordered = np.sort(ids)
+    if ordered.size < 2:
+        return ordered
+    keep = np.empty(ordered.size, dtype=bool)
+    keep[0] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=keep[1:])
+    return ordered[keep]
+
+
+def member_of(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """Return a mask: is each of ``values`` in ``sorted_set`` (increasing, non-empty)? ``np.isin`` by bisection."""
+    slot = np.minimum(np.searchsorted(sorted_set, values), sorted_set.size - 1)
+    return sorted_set[slot] == values
+
+
+def _cholesky(matrix: np.ndarray) -> np.ndarray:
+    """Return the lower Cholesky factor of a symmetric positive definite matrix (LAPACK ``dpotrf``).
+
+    The LAPACK routine scipy's ``cho_factor`` wraps, called directly: on the
+    relaxation's small blocks the wrapper's checks cost more than the factorisation.
+    """
+    factor, info = dpotrf(matrix, lower=1, clean=0)
+    if info != 0:
+        msg = f"relaxation block is not positive definite (dpotrf info {info})"
+        raise LinAlgError(msg)
+    return factor
+
+
+def _cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``L·Lᵀ·x = rhs`` for the lower factor of :func:`_cholesky` (LAPACK ``dpotrs``)."""
+    solution, info = dpotrs(factor, rhs, lower=1)
+    if info != 0:
+        msg = f"dpotrs failed (info {info})"
+        raise LinAlgError(msg)
+    return solution
 
 
 class Incidence:
@@ -298,7 +338,7 @@ class Worklist:
         """Append the ids not queued yet (each once, in increasing order)."""
         if ids.size == 0:
             return
-        ids = np.unique(ids)
+        ids = sorted_unique(ids)
         self.reserve(int(ids[-1]) + 1)
         new = ids[~self._queued[ids]]
         if new.size:

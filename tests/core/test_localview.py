@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.config import Params
-from core.localview import LocalViewCells, patch_normalise
+from core.localview import LocalViewCells, band_edges, offset_windows, patch_normalise
 
 # grey levels of a 4 × 6 test image; the RGB version is (g − 9, g, g + 9), whose channel mean is g
 GREY = np.array(
@@ -210,10 +210,11 @@ def _compare_reference(cells: LocalViewCells, view: np.ndarray, mean: float) -> 
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 100_000), panoramic=st.booleans(), step=st.integers(1, 2))
-def test_vectorised_match_equals_the_loop_reference(seed: int, panoramic: bool, step: int) -> None:
+@given(seed=st.integers(0, 100_000), panoramic=st.booleans(), step=st.integers(1, 2), ty=st.sampled_from([3, 9]))
+def test_vectorised_match_equals_the_loop_reference(seed: int, panoramic: bool, step: int, ty: int) -> None:
+    # ty = 9: bands of 2–3 rows, so the band bound is a strict lower bound, not the error itself
     rng = np.random.default_rng(seed)
-    ty, tx, n = 3, 10, 12
+    tx, n = 10, 12
     cells = _cells(template_x_size=tx, template_y_size=ty, vt_shift_match=2, vt_step_match=step,
                    vt_panoramic=panoramic, vt_match_threshold=0.06)
     base = rng.uniform(0.2, 0.8, (n, ty, tx))
@@ -246,3 +247,25 @@ def test_process_matches_or_creates() -> None:
     assert cells.count == 2 and (cells.current, cells.previous) == (1, 0)
     back = LocalViewCells.restore(cells.params, cells.snapshot())
     assert back.process(other) == (1, 0.0, False)  # the restored store (and its match bound) matches as before
+
+
+def test_band_edges_split_rows_into_near_equal_bands() -> None:
+    assert band_edges(20, 4).tolist() == [0, 5, 10, 15, 20]
+    assert band_edges(10, 4).tolist() == [0, 2, 5, 7, 10]
+    assert band_edges(3, 4).tolist() == [0, 1, 2, 3]  # never more bands than rows
+    assert band_edges(1, 4).tolist() == [0, 1]
+
+
+@settings(max_examples=25, deadline=None)
+@given(rows=st.integers(1, 4), cols=st.integers(3, 12), data=st.data())
+def test_offset_windows_equal_sliding_windows(rows: int, cols: int, data: st.DataObject) -> None:
+    width = data.draw(st.integers(1, cols))
+    stride = data.draw(st.integers(1, 3))
+    first = data.draw(st.integers(0, cols - width))
+    offsets = np.arange(first, cols - width + 1, stride)
+    a = np.arange(rows * cols, dtype=np.float64).reshape(rows, cols)
+    want = np.lib.stride_tricks.sliding_window_view(a, width, axis=1)[:, offsets, :]
+    got = offset_windows(a, width, offsets)
+    assert got.shape == want.shape
+    assert np.array_equal(got, want)
+    assert not got.flags.writeable
