@@ -622,6 +622,7 @@ def write_map_state(
     if unknown:
         msg = f"origins name session(s) {unknown!r} that are not among the map's sessions {ids!r}"
         raise StoreError(msg)
+    _check_sessions_exist(conn, ids)
     template_sessions = _map_tags(np.asarray(snapshot["lv_origin"]), tag_map, "templates")
     experience_sessions = _map_tags(np.asarray(snapshot["em_origin"]), tag_map, "experiences")
     _check_session_owners(conn, map_id, np.union1d(template_sessions, experience_sessions))
@@ -648,6 +649,18 @@ def write_map_state(
     if ids:
         conn.execute(update(Session).where(Session.id.in_(ids)).values(map_id=map_id))
     return WriteResult(map_id, version, template_sessions, t_index, experience_sessions, e_index)
+
+
+def _check_sessions_exist(conn: Connection, ids: Sequence[int]) -> None:
+    """Refuse session ids that are not stored (rows reference them; SQLite bulk writes skip foreign-key checks)."""
+    wanted = sorted(set(ids))
+    if not wanted:
+        return
+    found = set(conn.execute(select(Session.id).where(Session.id.in_(wanted))).scalars())
+    missing = [s for s in wanted if s not in found]
+    if missing:
+        msg = f"session id(s) {missing!r} are not stored"
+        raise StoreError(msg)
 
 
 def _check_session_owners(conn: Connection, map_id: int, sessions: np.ndarray) -> None:

@@ -172,6 +172,23 @@ def test_origins_must_name_sessions_of_the_map(db: Database, engine: Engine) -> 
         save_map(db, name="x", params=engine.params, snapshot=engine.snapshot(), sessions=[_session(origin=7)])
 
 
+def test_references_are_checked_even_where_sqlite_skips_foreign_keys(db: Database, engine: Engine) -> None:
+    # save_map writes without SQLite's per-row foreign-key lookups; its own checks must refuse what they would
+    snap = engine.snapshot()
+    before = row_counts(db)
+    with pytest.raises(StoreError, match=r"session id\(s\) \[987654\] are not stored"):
+        save_map(db, name="ghost", params=engine.params, snapshot=snap, sessions=[987654])
+    bad = dict(snap)
+    bad["em_link_to"] = snap["em_link_to"].copy()
+    bad["em_link_to"][0] = len(snap["em_pose"])
+    with pytest.raises(StoreError, match=r"em_link_to.*outside"):
+        save_map(db, name="dangling", params=engine.params, snapshot=bad, sessions=[_session()])
+    assert row_counts(db) == before
+    with db.read() as conn:  # the pooled connection has its foreign keys back
+        if db.dialect == "sqlite":
+            assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+
+
 # --------------------------------------------------------------------------------------- property test
 
 _finite = st.floats(allow_nan=False, width=64)
