@@ -107,6 +107,18 @@ def band_edges(rows: int, bands: int) -> np.ndarray:
     return (np.arange(count + 1) * rows) // count
 
 
+def band_sums(templates: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Return (N, bands, tx) float64: each template's column sums over the row bands ``edges[b]:edges[b+1]``."""
+    sizes = np.diff(edges)
+    if np.all(sizes == sizes[0]):  # equal bands: one reduction over a reshaped view
+        n, tx = templates.shape[0], templates.shape[2]
+        return templates.reshape(n, sizes.size, int(sizes[0]), tx).sum(axis=2, dtype=np.float64)
+    out = np.empty((templates.shape[0], edges.size - 1, templates.shape[2]), dtype=np.float64)
+    for band in range(edges.size - 1):  # a handful of bands, each summed over every template at once
+        templates[:, edges[band] : edges[band + 1], :].sum(axis=1, dtype=np.float64, out=out[:, band, :])
+    return out
+
+
 def offset_windows(a: np.ndarray, width: int, offsets: np.ndarray) -> np.ndarray:
     """Return a read-only (…, len(offsets), width) view: window k is ``a[..., o_k : o_k + width]``.
 
@@ -165,10 +177,11 @@ class LocalViewCells:
         stored = np.asarray(templates, dtype=np.float32)
         self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
-        self._colsums.extend(stored.sum(axis=1, dtype=np.float64))
-        self._bandsums.extend(np.add.reduceat(stored, self._band_edges[:-1], axis=1, dtype=np.float64))
+        bands = band_sums(stored, self._band_edges)
+        self._colsums.extend(bands.sum(axis=1))
+        self._bandsums.extend(bands)
         if stored.size:
-            self._peak = max(self._peak, float(np.abs(stored).max()))
+            self._peak = max(self._peak, float(stored.max()), -float(stored.min()))
 
     # ------------------------------------------------------------- templates
     def make_template(self, image: np.ndarray) -> tuple[np.ndarray, float]:
@@ -271,7 +284,7 @@ class LocalViewCells:
         rows = np.flatnonzero(keep.any(axis=1))
         if rows.size == 0:
             return keep
-        view_bands = np.add.reduceat(view, self._band_edges[:-1], axis=0, dtype=np.float64)[:, start : start + width]
+        view_bands = band_sums(view[None], self._band_edges)[0, :, start : start + width]
         band_keep = self._bound_below(
             self._bandsums.view, candidates[rows], view_bands, offsets, width, limit_sum, "band"
         )
@@ -378,7 +391,7 @@ class LocalViewCells:
         self._templates.append(template)
         self._means.append(mean)
         self._colsums.append(template.sum(axis=0, dtype=np.float64))
-        self._bandsums.append(np.add.reduceat(template, self._band_edges[:-1], axis=0, dtype=np.float64))
+        self._bandsums.append(band_sums(template[None], self._band_edges)[0])
         self._peak = max(self._peak, float(np.abs(template).max()))
         self.current = self.count - 1
         self.relative_rad = 0.0
