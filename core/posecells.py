@@ -46,6 +46,8 @@ from core.lattice import circulant_kernel, wrapped_distance
 if TYPE_CHECKING:
     from core.config import Params
 
+SPARSE_FRACTION = 8  # attractor steps on the active block when it spans at most 1/8 of the lattice
+
 
 class PoseCellNetwork:
     """Pose-cell activity, its dynamics and the view-template links.
@@ -79,6 +81,9 @@ class PoseCellNetwork:
         # Excitation then inhibition, each a separable wrapped Gaussian: one circulant matrix per axis.
         self._excite = [circulant_kernel(d, p.pc_w_e_dim, p.pc_w_e_var) for d in self.shape]
         self._inhibit = [circulant_kernel(d, p.pc_w_i_dim, p.pc_w_i_var) for d in self.shape]
+        # each kernel's reach: the offsets (mod d) it spreads a cell to — column 0 of the circulant
+        self._excite_reach = [np.flatnonzero(m[:, 0]) for m in self._excite]
+        self._inhibit_reach = [np.flatnonzero(m[:, 0]) for m in self._inhibit]
         th_dim = self.shape[-1]
         angles = np.arange(th_dim, dtype=np.float64) * (2.0 * math.pi / th_dim)
         # exact zeros on the axis-aligned layers, so integer moves stay integer
@@ -112,21 +117,66 @@ class PoseCellNetwork:
         inhibition subtracts the ``pc_w_i_dim``-cube spread of the excited activity.
         Both cubes are separable, so each is applied as one small circulant matrix
         product per axis (equal to OpenRatSLAM's cell-by-cell spread up to rounding).
+
+        Like OpenRatSLAM, which visits only active cells, the work follows the
+        packet: when the active cells' slices, widened by the two kernels' reach,
+        span at most ``1/SPARSE_FRACTION`` of the lattice, only that block is
+        computed — every cell outside it gets no excitation or inhibition and
+        ends at max(0 − φ, 0) = 0, exactly as in the full computation.
         """
         p = self.params
-        w0, w1, w2, w3 = self._scratch(4)
-        excited = _separable(self.activity, self._excite, w0, w1)
-        inhibited = _separable(excited, self._inhibit, w2, w3)
-        cells = np.subtract(excited, inhibited, out=excited)
-        cells -= p.pc_global_inhib
-        np.maximum(cells, 0.0, out=cells)
-        total = cells.sum()
-        if total > 0.0:
-            cells /= total
-        else:  # everything inhibited (OpenRatSLAM asserts): restart from the decoded packet centre
+        region = self._active_region()
+        if region is None:
+            w0, w1, w2, w3 = self._scratch(4)
+            excited = _separable(self.activity, self._excite, w0, w1)
+            inhibited = _separable(excited, self._inhibit, w2, w3)
+            cells = np.subtract(excited, inhibited, out=excited)
+            cells -= p.pc_global_inhib
+            np.maximum(cells, 0.0, out=cells)
+            total = cells.sum()
+            if total > 0.0:
+                cells /= total
+        else:
+            source, spread, reach = region
+            block = self.activity[np.ix_(*source)]
+            excite = [m[np.ix_(o, i)] for m, o, i in zip(self._excite, spread, source, strict=True)]
+            excited = _apply_axes(block, excite)  # on the spread slices
+            inhibit = [m[np.ix_(o, i)] for m, o, i in zip(self._inhibit, reach, spread, strict=True)]
+            local = np.negative(_apply_axes(excited, inhibit))  # on the reach slices (⊇ spread)
+            inside = [np.searchsorted(r, s) for r, s in zip(reach, spread, strict=True)]
+            local[np.ix_(*inside)] += excited
+            local -= p.pc_global_inhib
+            np.maximum(local, 0.0, out=local)
+            total = local.sum()
+            if total > 0.0:
+                local /= total
+            cells = self._scratch(1)[0]
+            cells.fill(0.0)
+            cells[np.ix_(*reach)] = local
+        if not total > 0.0:  # everything inhibited (OpenRatSLAM asserts): restart from the decoded packet centre
             cells[...] = 0.0
             cells[tuple(int(b) % d for b, d in zip(self.best, self.shape, strict=True))] = 1.0
         self.activity = cells
+
+    def _active_region(self) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] | None:
+        """Return per-axis sorted cell indices (active, after excitation, after inhibition), or None.
+
+        ``active``: the slices holding activity; ``spread``: those the excitation
+        kernel reaches from them; ``reach``: those the inhibition kernel reaches from
+        ``spread`` (always ⊇ ``spread``). None when the block is too large to pay off
+        (more than 1/``SPARSE_FRACTION`` of the cells) or nothing is active.
+        """
+        occupied = self.activity != 0.0
+        active = [np.flatnonzero(occupied.any(axis=other)) for other in self._marginal_axes]
+        if active[0].size == 0:
+            return None
+        spread = [_reach(a, off, d) for a, off, d in zip(active, self._excite_reach, self.shape, strict=True)]
+        reach = [
+            np.union1d(_reach(s, off, d), s) for s, off, d in zip(spread, self._inhibit_reach, self.shape, strict=True)
+        ]
+        if SPARSE_FRACTION * math.prod(r.size for r in reach) > self.activity.size:
+            return None
+        return active, spread, reach
 
     def path_integrate(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> None:
         """Shift the packet by odometry (OpenRatSLAM ``path_integration``).
@@ -152,14 +202,37 @@ class PoseCellNetwork:
         np.copyto(a, np.moveaxis(self.activity, -1, 0))
         if v != 0.0:
             dim_x, dim_y = self.shape[0], self.shape[1]
-            shift_x = _shift_matrices(v * self._layer_cos, dim_x)  # (θ, X, X)
-            shift_y = _shift_matrices(v * self._layer_sin, dim_y)  # (θ, Y, Y)
-            if self.rank == 3:
-                np.matmul(shift_x, a, out=b)
-                np.matmul(b, shift_y.transpose(0, 2, 1), out=a)
+            # Only heading layers holding activity move anything (a packet spans a few of them): the
+            # others stay zero, and each layer's product is computed exactly as in a full batch.
+            layers = np.flatnonzero(a.reshape(th_dim, -1).any(axis=1))
+            shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x)  # (L, X, X)
+            shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y)  # (L, Y, Y)
+            moving = a[layers]
+            occupied = moving != 0.0
+            rows = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 1)))
+            cols = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 2)))
+            if SPARSE_FRACTION * rows.size * cols.size <= dim_x * dim_y:
+                # a compact packet: move only its rows and columns, to the rows and columns they reach
+                shift_x = shift_x[:, :, rows]
+                shift_y = shift_y[:, :, cols]
+                to_rows = np.flatnonzero(shift_x.any(axis=(0, 2)))
+                to_cols = np.flatnonzero(shift_y.any(axis=(0, 2)))
+                shift_x = shift_x[:, to_rows]
+                shift_y = shift_y[:, to_cols]
+                moving = moving[:, rows][:, :, cols]
+                a[layers] = 0.0
+                target = np.ix_(layers, to_rows, to_cols)
             else:
-                np.matmul(shift_x, a.reshape(th_dim, dim_x, -1), out=b.reshape(th_dim, dim_x, -1))
-                np.matmul(shift_y[:, None], b, out=a)
+                target = (layers,)
+            count, span_x, span_y = moving.shape[:3]
+            if self.rank == 3:
+                moved = np.matmul(np.matmul(shift_x, moving), shift_y.transpose(0, 2, 1))
+            else:
+                moved = np.matmul(shift_x, moving.reshape(count, span_x, -1)).reshape(
+                    count, shift_x.shape[1], span_y, -1
+                )
+                moved = np.matmul(shift_y[:, None], moved)
+            a[target] = moved
         if moved_z:
             a, b = _shift_axis(a, dz_m / p.pc_cell_z_size, 3, b, c), a
         if dyaw_rad != 0.0:
@@ -320,6 +393,19 @@ class PoseCellNetwork:
         net.prev_vt = int(state["pc_prev_vt"])
         net.vt_delta_th = float(state["pc_vt_delta_th"])
         return net
+
+
+def _reach(indices: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndarray:
+    """Return the sorted distinct ``(i + o) mod dim`` for i in ``indices`` and o in ``offsets``."""
+    return np.unique((indices[:, None] + offsets[None, :]) % dim)
+
+
+def _apply_axes(block: np.ndarray, matrices: list[np.ndarray]) -> np.ndarray:
+    """Apply ``matrices[a]`` (out_a × in_a) along every axis a of ``block`` in turn; return the new block."""
+    out = block
+    for axis, matrix in enumerate(matrices):
+        out = np.moveaxis(np.tensordot(matrix, out, axes=([1], [axis])), 0, axis)
+    return out
 
 
 def _separable(cells: np.ndarray, matrices: list[np.ndarray], even: np.ndarray, odd: np.ndarray) -> np.ndarray:

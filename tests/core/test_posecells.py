@@ -280,3 +280,75 @@ def test_heading_offset_is_kept_until_the_next_injection() -> None:
     # delta_to corrects the decoded heading by the offset before the wrapped distance
     net.best = np.array([6.0, 6.0, 2.0])
     assert float(net.delta_to(np.array([6.0, 6.0, 5.0]))) == pytest.approx(0.0)
+
+
+def _compact_packet(net: PoseCellNetwork, rng: np.random.Generator, size: int = 3) -> np.ndarray:
+    """A random ``size``-wide packet of activity at a random place (often across the lattice faces)."""
+    cells = np.zeros(net.shape)
+    corner = [int(rng.integers(0, d)) for d in net.shape]
+    index = np.ix_(*[(c + np.arange(size)) % d for c, d in zip(corner, net.shape, strict=True)])
+    cells[index] = rng.random((size,) * net.rank)
+    return cells / cells.sum()
+
+
+def test_attractor_step_on_the_packet_block_equals_the_direct_convolution() -> None:
+    """A compact packet on a large lattice takes the block path; it equals the cell-by-cell spread."""
+    p = Params().replace(pc_dim_xy=40, pc_dim_th=36)
+    net = PoseCellNetwork(p)
+    cells = np.zeros(net.shape)
+    cells[np.ix_([39, 0, 1], [0, 1, 2], [35, 0, 1])] = np.random.default_rng(2).random((3, 3, 3))  # across 2 faces
+    cells /= cells.sum()
+    net.activity = cells.copy()
+    assert net._active_region() is not None  # the block path, not the full lattice
+    net.step_attractor()
+
+    def spread(src: np.ndarray, size: int, var: float) -> np.ndarray:
+        offs = np.arange(size) - size // 2
+        w = np.exp(-(offs[:, None, None] ** 2 + offs[None, :, None] ** 2 + offs[None, None, :] ** 2) / (2 * var * var))
+        w /= w.sum()
+        out = np.zeros_like(src)
+        for a in range(size):
+            for b in range(size):
+                for g in range(size):
+                    out += w[a, b, g] * np.roll(src, (offs[a], offs[b], offs[g]), axis=(0, 1, 2))
+        return out
+
+    excited = spread(cells, p.pc_w_e_dim, p.pc_w_e_var)
+    expected = np.maximum(excited - spread(excited, p.pc_w_i_dim, p.pc_w_i_var) - p.pc_global_inhib, 0.0)
+    expected /= expected.sum()
+    assert np.allclose(net.activity, expected, rtol=0, atol=1e-15)
+    assert np.count_nonzero(net.activity) == np.count_nonzero(expected)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    four_dof=st.booleans(),
+    forward=st.floats(-3.0, 3.0),
+    dyaw=st.floats(-1.0, 1.0),
+    dz=st.floats(-2.0, 2.0),
+)
+def test_packet_block_paths_equal_the_full_lattice(
+    seed: int, four_dof: bool, forward: float, dyaw: float, dz: float
+) -> None:
+    import core.posecells as posecells
+
+    changes: dict[str, object] = {"pc_dim_xy": 48, "pc_dim_th": 24, "pc_cell_x_size": 1.0}
+    if four_dof:
+        changes.update(pc_dim_xy=40, pc_dim_z=16, pc_dim_th=8, pc_cell_z_size=1.0)
+    rng = np.random.default_rng(seed)
+    block, full = _net(**changes), _net(**changes)
+    cells = _compact_packet(block, rng)
+    block.activity, full.activity = cells.copy(), cells.copy()
+    assert block._active_region() is not None
+    block.step_attractor()
+    block.path_integrate(forward, dyaw, dz)
+    saved = posecells.SPARSE_FRACTION
+    posecells.SPARSE_FRACTION = 10**9  # never small enough: the full-lattice products
+    try:
+        assert full._active_region() is None
+        full.step_attractor()
+        full.path_integrate(forward, dyaw, dz)
+    finally:
+        posecells.SPARSE_FRACTION = saved
+    assert np.allclose(block.activity, full.activity, rtol=0, atol=1e-15)
