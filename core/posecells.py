@@ -84,6 +84,10 @@ class PoseCellNetwork:
         # each kernel's reach: the offsets (mod d) it spreads a cell to — column 0 of the circulant
         self._excite_reach = [np.flatnonzero(m[:, 0]) for m in self._excite]
         self._inhibit_reach = [np.flatnonzero(m[:, 0]) for m in self._inhibit]
+        # can a packet block ever be small enough? (even one active cell reaches both kernels' widths)
+        widths = zip(self.shape, self._excite_reach, self._inhibit_reach, strict=True)
+        smallest = math.prod(min(d, e.size + i.size - 1) for d, e, i in widths)
+        self._blocks = SPARSE_FRACTION * smallest <= math.prod(self.shape)
         th_dim = self.shape[-1]
         angles = np.arange(th_dim, dtype=np.float64) * (2.0 * math.pi / th_dim)
         # exact zeros on the axis-aligned layers, so integer moves stay integer
@@ -166,6 +170,8 @@ class PoseCellNetwork:
         ``spread`` (always ⊇ ``spread``). None when the block is too large to pay off
         (more than 1/``SPARSE_FRACTION`` of the cells) or nothing is active.
         """
+        if not self._blocks:
+            return None
         occupied = self.activity != 0.0
         active = [np.flatnonzero(occupied.any(axis=other)) for other in self._marginal_axes]
         if active[0].size == 0:
@@ -208,10 +214,11 @@ class PoseCellNetwork:
             shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x)  # (L, X, X)
             shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y)  # (L, Y, Y)
             moving = a[layers]
-            occupied = moving != 0.0
-            rows = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 1)))
-            cols = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 2)))
-            if SPARSE_FRACTION * rows.size * cols.size <= dim_x * dim_y:
+            if self._blocks:
+                occupied = moving != 0.0
+                rows = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 1)))
+                cols = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 2)))
+            if self._blocks and SPARSE_FRACTION * rows.size * cols.size <= dim_x * dim_y:
                 # a compact packet: move only its rows and columns, to the rows and columns they reach
                 shift_x = shift_x[:, :, rows]
                 shift_y = shift_y[:, :, cols]
