@@ -89,6 +89,19 @@ def test_attractor_step_normalises_and_keeps_the_packet_centre() -> None:
     assert best == pytest.approx([4.0, 17.0, 30.0], abs=1e-9)
 
 
+def _direct_spread(src: np.ndarray, size: int, var: float) -> np.ndarray:
+    """OpenRatSLAM's cell-by-cell wrapped spread through the ``size``-cube Gaussian (σ = var), by np.roll."""
+    offs = np.arange(size) - size // 2
+    w = np.exp(-(offs[:, None, None] ** 2 + offs[None, :, None] ** 2 + offs[None, None, :] ** 2) / (2 * var * var))
+    w /= w.sum()
+    out = np.zeros_like(src)
+    for a in range(size):
+        for b in range(size):
+            for g in range(size):
+                out += w[a, b, g] * np.roll(src, (offs[a], offs[b], offs[g]), axis=(0, 1, 2))
+    return out
+
+
 def test_excite_equals_direct_wrapped_convolution() -> None:
     """The FFT path equals OpenRatSLAM's cell-by-cell spread (independent direct sum)."""
     p = Params().replace(pc_dim_xy=9, pc_dim_th=10, pc_global_inhib=0.0)
@@ -99,20 +112,8 @@ def test_excite_equals_direct_wrapped_convolution() -> None:
     net.activity = cells.copy()
     net.step_attractor()
 
-    def spread(src: np.ndarray, size: int, var: float) -> np.ndarray:
-        c = size // 2
-        offs = np.arange(size) - c
-        w = np.exp(-(offs[:, None, None] ** 2 + offs[None, :, None] ** 2 + offs[None, None, :] ** 2) / (2 * var * var))
-        w /= w.sum()
-        out = np.zeros_like(src)
-        for a in range(size):
-            for b in range(size):
-                for g in range(size):
-                    out += w[a, b, g] * np.roll(src, (offs[a], offs[b], offs[g]), axis=(0, 1, 2))
-        return out
-
-    excited = spread(cells, 7, 1.0)
-    inhibited = excited - spread(excited, 5, 2.0)
+    excited = _direct_spread(cells, 7, 1.0)
+    inhibited = excited - _direct_spread(excited, 5, 2.0)
     inhibited = np.maximum(inhibited, 0.0)
     inhibited /= inhibited.sum()
     assert np.allclose(net.activity, inhibited, atol=1e-12)
@@ -302,19 +303,8 @@ def test_attractor_step_on_the_packet_block_equals_the_direct_convolution() -> N
     assert net._active_region() is not None  # the block path, not the full lattice
     net.step_attractor()
 
-    def spread(src: np.ndarray, size: int, var: float) -> np.ndarray:
-        offs = np.arange(size) - size // 2
-        w = np.exp(-(offs[:, None, None] ** 2 + offs[None, :, None] ** 2 + offs[None, None, :] ** 2) / (2 * var * var))
-        w /= w.sum()
-        out = np.zeros_like(src)
-        for a in range(size):
-            for b in range(size):
-                for g in range(size):
-                    out += w[a, b, g] * np.roll(src, (offs[a], offs[b], offs[g]), axis=(0, 1, 2))
-        return out
-
-    excited = spread(cells, p.pc_w_e_dim, p.pc_w_e_var)
-    expected = np.maximum(excited - spread(excited, p.pc_w_i_dim, p.pc_w_i_var) - p.pc_global_inhib, 0.0)
+    excited = _direct_spread(cells, p.pc_w_e_dim, p.pc_w_e_var)
+    expected = np.maximum(excited - _direct_spread(excited, p.pc_w_i_dim, p.pc_w_i_var) - p.pc_global_inhib, 0.0)
     expected /= expected.sum()
     assert np.allclose(net.activity, expected, rtol=0, atol=1e-15)
     assert np.count_nonzero(net.activity) == np.count_nonzero(expected)
