@@ -19,25 +19,49 @@ from collections.abc import Sequence
 from mapserver.errors import MapServerError
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the top-level parser with one subparser per command module."""
+def command_modules() -> list[str]:
+    """Return the names of the command modules of this package (found without importing them)."""
+    return sorted(info.name for info in pkgutil.iter_modules(__path__) if not info.name.startswith("_"))
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """Build the top-level parser with one subparser per command module (or only the module ``only``).
+
+    Importing every command pulls in FastAPI, SQLAlchemy, alembic and scipy (seconds on a slow
+    machine), so :func:`main` registers just the command it runs; the full parser serves
+    ``mapserver --help`` and unknown commands.
+    """
     parser = argparse.ArgumentParser(prog="mapserver", description="Multisession map server for RatSLAM-family SLAM")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages on stderr")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
+    for name in command_modules() if only is None else [only]:
+        module = importlib.import_module(f"{__name__}.{name}")
         register = getattr(module, "register", None)
         if register is not None:
             register(subparsers)
     return parser
 
 
+def _command_module(argv: Sequence[str]) -> str | None:
+    """Return the module of the command named in ``argv`` (its first non-option word), if any.
+
+    A command module may register a command of another spelling (``import_`` registers ``import``).
+    """
+    word = next((a for a in argv if not a.startswith("-")), None)
+    if word is None:
+        return None
+    modules = command_modules()
+    for name in (word, f"{word}_"):
+        if name in modules:
+            return name
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI and return its exit code (0 ok, 1 failure, 2 bad input)."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    only = _command_module(arguments)
+    args = build_parser(only).parse_args(arguments)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:
         code = int(args.func(args))
