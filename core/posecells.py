@@ -35,7 +35,7 @@ Deliberate deviations:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -135,11 +135,7 @@ class PoseCellNetwork:
             excited = _separable(self.activity, self._excite, w0, w1)
             inhibited = _separable(excited, self._inhibit, w2, w3)
             cells = np.subtract(excited, inhibited, out=excited)
-            cells -= p.pc_global_inhib
-            np.maximum(cells, 0.0, out=cells)
-            total = cells.sum()
-            if total > 0.0:
-                cells /= total
+            total = _inhibit_globally_and_normalise(cells, p.pc_global_inhib)
         else:
             source, spread, reach = region
             block = self.activity[np.ix_(*source)]
@@ -149,11 +145,7 @@ class PoseCellNetwork:
             local = np.negative(_apply_axes(excited, inhibit))  # on the reach slices (⊇ spread)
             inside = [np.searchsorted(r, s) for r, s in zip(reach, spread, strict=True)]
             local[np.ix_(*inside)] += excited
-            local -= p.pc_global_inhib
-            np.maximum(local, 0.0, out=local)
-            total = local.sum()
-            if total > 0.0:
-                local /= total
+            total = _inhibit_globally_and_normalise(local, p.pc_global_inhib)
             cells = self._scratch(1)[0]
             cells.fill(0.0)
             cells[np.ix_(*reach)] = local
@@ -172,8 +164,7 @@ class PoseCellNetwork:
         """
         if not self._blocks:
             return None
-        occupied = self.activity != 0.0
-        active = [np.flatnonzero(occupied.any(axis=other)) for other in self._marginal_axes]
+        active = _occupied(self.activity, range(self.rank))
         if active[0].size == 0:
             return None
         spread = [_reach(a, off, d) for a, off, d in zip(active, self._excite_reach, self.shape, strict=True)]
@@ -214,11 +205,11 @@ class PoseCellNetwork:
             shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x)  # (L, X, X)
             shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y)  # (L, Y, Y)
             moving = a[layers]
-            if self._blocks:
-                occupied = moving != 0.0
-                rows = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 1)))
-                cols = np.flatnonzero(occupied.any(axis=tuple(i for i in range(moving.ndim) if i != 2)))
-            if self._blocks and SPARSE_FRACTION * rows.size * cols.size <= dim_x * dim_y:
+            compact = self._blocks
+            if compact:
+                rows, cols = _occupied(moving, (1, 2))
+                compact = SPARSE_FRACTION * rows.size * cols.size <= dim_x * dim_y
+            if compact:
                 # a compact packet: move only its rows and columns, to the rows and columns they reach
                 shift_x = shift_x[:, :, rows]
                 shift_y = shift_y[:, :, cols]
@@ -400,6 +391,22 @@ class PoseCellNetwork:
         net.prev_vt = int(state["pc_prev_vt"])
         net.vt_delta_th = float(state["pc_vt_delta_th"])
         return net
+
+
+def _inhibit_globally_and_normalise(cells: np.ndarray, inhibition: float) -> float:
+    """Subtract global inhibition φ, clip at 0 and scale to total 1, in place (Eq. 3); return the pre-scale total."""
+    cells -= inhibition
+    np.maximum(cells, 0.0, out=cells)
+    total = float(cells.sum())
+    if total > 0.0:
+        cells /= total
+    return total
+
+
+def _occupied(cells: np.ndarray, axes: Iterable[int]) -> list[np.ndarray]:
+    """Return, for each axis in ``axes``, the sorted indices of the slices of ``cells`` holding a non-zero."""
+    nonzero = cells != 0.0
+    return [np.flatnonzero(nonzero.any(axis=tuple(i for i in range(cells.ndim) if i != a))) for a in axes]
 
 
 def _reach(indices: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndarray:
