@@ -16,6 +16,8 @@ a lost connection) or :class:`~mapserver.errors.ConflictError` (a constraint a c
 from __future__ import annotations
 
 import logging
+import sqlite3
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -111,7 +113,7 @@ def _configure_sqlite(engine: Engine) -> None:
         try:
             cursor.execute("PRAGMA foreign_keys=ON")
             cursor.execute(f"PRAGMA busy_timeout={int(SQLITE_BUSY_TIMEOUT_S * 1000)}")
-            cursor.execute("PRAGMA journal_mode=WAL")
+            _switch_to_wal(cursor)
             cursor.execute("PRAGMA synchronous=NORMAL")
             cursor.execute(f"PRAGMA cache_size=-{SQLITE_CACHE_KIB}")
         finally:
@@ -121,6 +123,27 @@ def _configure_sqlite(engine: Engine) -> None:
     def _on_begin(conn: Connection) -> None:
         write = bool(conn.get_execution_options().get(_WRITE_OPTION))
         conn.exec_driver_sql("BEGIN IMMEDIATE" if write else "BEGIN")
+
+
+def _switch_to_wal(cursor: Any) -> None:
+    """Run ``PRAGMA journal_mode=WAL``, retrying while another connection holds the file exclusively.
+
+    SQLite answers "database is locked" at once, without calling the busy handler, when a connection
+    opens the file while another one switches a new file to WAL, recovers a WAL or cleans up after
+    its last connection closed (sqlite.org/wal.html, "Sometimes Queries Return SQLITE_BUSY"): two
+    processes opening a fresh store together hit it. Retried with backoff up to the busy timeout.
+    """
+    deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_S
+    delay = 0.001
+    while True:
+        try:
+            cursor.execute("PRAGMA journal_mode=WAL")
+            return
+        except sqlite3.OperationalError as err:
+            if "locked" not in str(err) or time.monotonic() >= deadline:
+                raise
+        time.sleep(delay)
+        delay = min(2 * delay, 0.05)
 
 
 def _set_foreign_keys(conn: Connection, *, on: bool) -> None:
