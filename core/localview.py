@@ -173,7 +173,7 @@ class LocalViewCells:
         return self._means.view
 
     def add_templates(self, templates: np.ndarray, means: np.ndarray) -> None:
-        """Append templates in bulk (merge, restore, benchmarks)."""
+        """Append templates with their means, column and band sums (new views, merge, restore, benchmarks)."""
         stored = np.asarray(templates, dtype=np.float32)
         self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
@@ -388,11 +388,7 @@ class LocalViewCells:
             self.current = best
             self.relative_rad = relative
             return best, relative, False
-        self._templates.append(template)
-        self._means.append(mean)
-        self._colsums.append(template.sum(axis=0, dtype=np.float64))
-        self._bandsums.append(band_sums(template[None], self._band_edges)[0])
-        self._peak = max(self._peak, float(np.abs(template).max()))
+        self.add_templates(template[None], np.array([mean]))
         self.current = self.count - 1
         self.relative_rad = 0.0
         return self.current, 0.0, True

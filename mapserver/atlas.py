@@ -175,8 +175,9 @@ def ensure_candidates_unchanged(
     now, _skipped = _eligible_maps(conn, params=params, exclude=exclude)
     if now == dict(seen):
         return
-    names = dict(conn.execute(select(Map.id, Map.name).where(Map.id.in_(set(now) | set(seen)))).all())
-    changed = sorted(names.get(k, str(k)) for k in set(now) | set(seen) if now.get(k) != seen.get(k))
+    differing = {k for k in now.keys() | seen.keys() if now.get(k) != seen.get(k)}
+    names = dict(conn.execute(select(Map.id, Map.name).where(Map.id.in_(differing))).all())
+    changed = sorted(names.get(k, str(k)) for k in differing)
     msg = f"the maps this session may merge into changed while it was processed ({', '.join(map(repr, changed))})"
     raise StaleMapError(msg)
 
