@@ -39,6 +39,15 @@ if TYPE_CHECKING:
     from core.config import Params
 
 
+def view_cells_class(params: Params) -> type[LocalViewCells]:
+    """Return the view module of ``params.frontend``: LVC templates, or SDR/HTM view cells (torch, lazy import)."""
+    if params.frontend == "sdr-htm":
+        from core.neocortex import NeocortexViewCells
+
+        return NeocortexViewCells  # type: ignore[return-value]  # same interface (process, count, snapshot)
+    return LocalViewCells
+
+
 class Action(IntEnum):
     """OpenRatSLAM ``TopologicalAction`` codes (0 = nothing)."""
 
@@ -74,7 +83,7 @@ class Engine:
     def __init__(self, params: Params, origin: int = 0) -> None:
         self.params = params
         self.origin = origin
-        self.local_view = LocalViewCells(params)
+        self.local_view = view_cells_class(params)(params)
         self.odometry = VisualOdometry(params)
         self.pose_cells = PoseCellNetwork(params)
         self.map = ExperienceMap(params, self.pose_cells.rank)
@@ -119,7 +128,10 @@ class Engine:
             loop_closure = self.map.create_link(self.map.current, target, relative_rad, LinkKind.LOOP)
             self.map.set_experience(target, relative_rad)
             self.loop_closures += int(loop_closure)
-        self.map.relax_step()
+        if not self.params.openratslam_compat:
+            self.map.relax_step()
+        elif action != Action.NONE:  # OpenRatSLAM relaxes after every published action
+            self.map.iterate_openratslam()
         self.frames += 1
         self.last_stamp = stamp
         return StepResult(
@@ -204,7 +216,7 @@ class Engine:
     def restore(cls, params: Params, state: Mapping[str, np.ndarray], origin: int = 0) -> Engine:
         """Rebuild an engine from :meth:`snapshot` arrays so that it continues bit for bit."""
         engine = cls(params, origin)
-        engine.local_view = LocalViewCells.restore(params, state)
+        engine.local_view = view_cells_class(params).restore(params, state)
         engine.lv_origin = np.asarray(state["lv_origin"], dtype=np.int64).tolist()
         engine.odometry = VisualOdometry.restore(params, state)
         engine.pose_cells = PoseCellNetwork.restore(params, state)

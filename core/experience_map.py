@@ -28,6 +28,12 @@ Deliberate deviations from OpenRatSLAM:
   relative geometry is the same). The first experience therefore stays where it
   was created: at the odometry accumulated before it (the origin when it is
   created on the first frame), facing ``exp_initial_em_deg``.
+
+``openratslam_compat`` switches every one of these to OpenRatSLAM's code: ``v·dt``
+along the new facing (sideways and vertical motion ignored), Δt since start, links
+read the source's heading as it is then, and relaxation is OpenRatSLAM's
+``iterate`` (:mod:`core.compat`: ``exp_loops`` sweeps after every action, nothing
+anchored) instead of :meth:`ExperienceMap.relax_step` / :meth:`ExperienceMap.settle`.
 """
 
 from __future__ import annotations
@@ -41,9 +47,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from core import compat
 from core._buffers import GrowBuffer
 from core.lattice import wrap_angle, wrap_scalar
 from core.relaxation import Incidence, Worklist, member_of, residuals, roots, solve, solve_block, sorted_unique
+from core.robust import SWITCHABLE_KINDS, Drift, switch_off_outliers
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -76,6 +84,10 @@ class ExperienceMap:
         self._dt = GrowBuffer((), np.float64)
         self._distance = GrowBuffer((), np.float64)
         self._kind = GrowBuffer((), np.int8)
+        self._active = GrowBuffer((), np.bool_)  # False: switched off by the robust check (core.robust)
+        self._off = 0  # links switched off
+        self._switchable = 0  # loop and merge links
+        self._checked = 0  # loop and merge links at the last robust check
         self._pairs: set[tuple[int, int]] = set()
         self._exps_of_template: list[list[int]] = []
         self._incidence = Incidence()
@@ -123,6 +135,11 @@ class ExperienceMap:
         )
 
     @property
+    def link_active(self) -> np.ndarray:
+        """Return each link's status (K,) bool: False when the robust check switched it off (view)."""
+        return self._active.view
+
+    @property
     def relax_pending(self) -> bool:
         """Return whether some experience's relaxation correction may still exceed ``exp_relax_tolerance``."""
         return len(self._work) > 0
@@ -157,6 +174,13 @@ class ExperienceMap:
         facing is advanced, so a frame's composed motion is applied exactly.
         """
         a = self.accum
+        if self.params.openratslam_compat:  # OpenRatSLAM: turn first, then v·dt along the new facing
+            a[3] = compat.clip_rad_180(a[3] + motion.dyaw)
+            a[0] += motion.dx * math.cos(a[3])
+            a[1] += motion.dx * math.sin(a[3])
+            a[4] += motion.dt
+            a[5] += abs(motion.dx)
+            return
         facing = a[3]
         c, s = math.cos(facing), math.sin(facing)
         a[0] += c * motion.dx - s * motion.dy
@@ -236,6 +260,8 @@ class ExperienceMap:
         self._dt.append(dt)
         self._distance.append(distance)
         self._kind.append(kind)
+        self._active.append(True)
+        self._switchable += int(kind in SWITCHABLE_KINDS)
         self._pairs.add((source, target))
         self._incidence.add_link(source, target, link)
         self._union(source, target)
@@ -265,7 +291,10 @@ class ExperienceMap:
             return
         self.previous = self.current
         self.current = experience
+        elapsed = self.accum[4]
         self.accum[:] = 0.0
+        if self.params.openratslam_compat:  # OpenRatSLAM never resets accum_delta_time_s
+            self.accum[4] = elapsed
         self.accum[3] = wrap_scalar(float(self._pose.view[experience, 3]) + relative_rad)
 
     def _turn_accumulator(self, turn: float) -> None:
@@ -297,7 +326,11 @@ class ExperienceMap:
         """
         p = self.params
         self.last_relax_updates = 0
-        if p.exp_loops <= 0 or len(self._work) == 0:
+        if p.exp_loops <= 0 or p.openratslam_compat:
+            return 0
+        if p.exp_robust and self._switchable >= max(self._checked + 1, 2 * self._checked):
+            self.check_links()
+        if len(self._work) == 0:
             return 0
         ids = self._work.pop(p.exp_relax_batch)
         if ids.size < p.exp_relax_batch:  # widen the block along the trajectory: consecutive ids are neighbours
@@ -309,6 +342,10 @@ class ExperienceMap:
         if ids.size == 0:
             return 0
         links, owner = self._incidence.gather(ids)
+        if self._off:
+            ids, links, owner = self._active_links_of(ids, links, owner)
+            if ids.size == 0:
+                return 0
         src = self._from.view[links]
         dst = self._to.view[links]
         pose = self._pose.view
@@ -340,18 +377,71 @@ class ExperienceMap:
         return self.last_relax_updates
 
     def _relaxation_operator(self) -> sp.csr_matrix:
-        """Return the (E, K) sparse map from link residuals to corrections, c/degree, anchors' rows zero."""
+        """Return the (E, K) sparse map from link residuals to corrections, c/degree, anchors' rows zero.
+
+        Switched-off links have zero columns and do not count in the degree.
+        """
         if self._operator is None:
             n = self.count
             k = self.link_count
             rows = np.concatenate([self._from.view, self._to.view])
             cols = np.concatenate([np.arange(k), np.arange(k)])
-            degree = np.bincount(rows, minlength=n).astype(np.float64)
+            on = np.concatenate([self._active.view, self._active.view])
+            degree = np.bincount(rows[on] if self._off else rows, minlength=n).astype(np.float64)
             degree[degree == 0] = 1.0
             free = ~self.anchors()
             vals = np.concatenate([np.ones(k), -np.ones(k)]) * (self.params.exp_correction / degree[rows]) * free[rows]
+            if self._off:
+                vals = vals * on
             self._operator = sp.csr_matrix((vals, (rows, cols)), shape=(n, k))
         return self._operator
+
+    def _active_links_of(
+        self, ids: np.ndarray, links: np.ndarray, owner: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Drop switched-off links from a gathered block, and the block members left without a link."""
+        keep = self._active.view[links]
+        links, owner = links[keep], owner[keep]
+        counts = np.bincount(owner, minlength=ids.size)
+        if np.all(counts > 0):
+            return ids, links, owner
+        remap = np.cumsum(counts > 0) - 1
+        return ids[counts > 0], links, remap[owner]
+
+    def check_links(self) -> bool:
+        """Run the robust check (:func:`core.robust.switch_off_outliers`); return whether a link changed status.
+
+        Loop and merge links inconsistent with the rest of the graph are switched off,
+        and switched-off links that became consistent are switched back on; when any
+        changes, the map moves to the fixed point of relaxation over the active links.
+        """
+        self._checked = self._switchable
+        if self._switchable == 0:
+            return False
+        p = self.params
+        drift = Drift(p.exp_robust_drift, p.exp_robust_yaw_drift, p.exp_robust_threshold)
+        src, dst, transform, _, distance, kind = self.links
+        result = switch_off_outliers(self._pose.view, src, dst, transform, kind, distance, self.anchors(), drift)
+        if np.array_equal(result.active, self._active.view):
+            return False
+        self._active.view[:] = result.active
+        self._off = int(np.count_nonzero(~result.active))
+        self._operator = None
+        self._solve_active()
+        return True
+
+    def _solve_active(self) -> None:
+        """Move every experience to the fixed point of relaxation over the active links (turning the accumulator)."""
+        pose = self._pose.view
+        start_yaw = float(pose[self.current, 3]) if self.current >= 0 else 0.0
+        on = self._active.view
+        src, dst, transform = self._from.view, self._to.view, self._transform.view
+        if self._off:
+            src, dst, transform = src[on], dst[on], transform[on]
+        pose[:] = solve(pose, src, dst, transform, self.anchors())
+        if self.current >= 0:
+            self._turn_accumulator(wrap_scalar(float(pose[self.current, 3]) - start_yaw))
+        self._work.clear()
 
     def full_corrections(self) -> np.ndarray:
         """Return every experience's relaxation correction (E, 4) under the current poses (no clamps)."""
@@ -404,21 +494,27 @@ class ExperienceMap:
         moves, not where it settles. Then the corrections are checked once; should
         any still exceed ``exp_relax_tolerance`` (a heading winding that changed),
         :meth:`relax` runs until they do not, at most ``max_iterations`` iterations.
-        ``exp_loops = 0`` switches relaxation off: nothing moves.
+        ``exp_loops = 0`` switches relaxation off: nothing moves. With ``exp_robust``
+        the robust check (:meth:`check_links`) runs first, and the fixed point is that
+        of the active links.
         """
         self._work.clear()
-        if self.link_count == 0 or self.params.exp_loops <= 0:
+        if self.link_count == 0 or self.params.exp_loops <= 0 or self.params.openratslam_compat:
             return 0
-        pose = self._pose.view
-        start_yaw = float(pose[self.current, 3]) if self.current >= 0 else 0.0
-        pose[:] = solve(pose, self._from.view, self._to.view, self._transform.view, self.anchors())
-        if self.current >= 0:
-            self._turn_accumulator(wrap_scalar(float(pose[self.current, 3]) - start_yaw))
+        if not (self.params.exp_robust and self.check_links()):
+            self._solve_active()
         run = 0
         while run < max_iterations and float(np.abs(self.full_corrections()).max()) > self.params.exp_relax_tolerance:
             run += self.relax(min(1000, max_iterations - run))
         self._work.clear()
         return run
+
+    def iterate_openratslam(self) -> None:
+        """Relax as OpenRatSLAM's ``ExperienceMap::iterate`` (``exp_loops`` sweeps; see :mod:`core.compat`)."""
+        p = self.params
+        compat.iterate(self._pose.view, self._from.view, self._to.view, self._transform.view, p.exp_loops,
+                       p.exp_correction)
+        self._work.clear()
 
     def link_residual(self, link: int) -> float:
         """Return the largest absolute residual (m or rad) of one link under the current poses."""
@@ -441,6 +537,8 @@ class ExperienceMap:
             "em_link_dt": self._dt.copy(),
             "em_link_distance": self._distance.copy(),
             "em_link_kind": self._kind.copy(),
+            "em_link_active": self._active.copy(),
+            "em_robust_checked": np.asarray(self._checked, dtype=np.int64),
             "em_current": np.asarray(self.current, dtype=np.int64),
             "em_previous": np.asarray(self.previous, dtype=np.int64),
             "em_accum": self.accum.copy(),
@@ -452,7 +550,8 @@ class ExperienceMap:
     def restore(cls, params: Params, lattice_rank: int, state: Mapping[str, np.ndarray]) -> ExperienceMap:
         """Rebuild a map from :meth:`snapshot` arrays, exactly.
 
-        ``em_relax_queue`` is optional: without it a pending relaxation
+        ``em_link_active`` (default: every link on) and ``em_robust_checked`` (default:
+        checked with every link there is) are optional. ``em_relax_queue`` is optional: without it a pending relaxation
         (``em_relax_pending``) schedules every linked experience.
         """
         em = cls(params, lattice_rank)
@@ -467,6 +566,13 @@ class ExperienceMap:
         em._dt = GrowBuffer.from_array(state["em_link_dt"], np.float64)
         em._distance = GrowBuffer.from_array(state["em_link_distance"], np.float64)
         em._kind = GrowBuffer.from_array(state["em_link_kind"], np.int8)
+        active = np.ones(len(em._kind), dtype=bool)  # links a state lists no status for are on
+        given = np.asarray(state.get("em_link_active", np.zeros(0, dtype=bool)), dtype=bool).reshape(-1)
+        active[: min(given.size, active.size)] = given[: active.size]
+        em._active = GrowBuffer.from_array(active, np.bool_)
+        em._off = int(np.count_nonzero(~active))
+        em._switchable = int(np.count_nonzero(np.isin(em._kind.view, SWITCHABLE_KINDS)))
+        em._checked = int(state.get("em_robust_checked", np.asarray(em._switchable)))
         src, dst = em._from.view, em._to.view
         em._pairs = set(zip(src.tolist(), dst.tolist(), strict=True))
         n = em.count

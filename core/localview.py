@@ -20,7 +20,7 @@ role there.
 Deliberate deviations from OpenRatSLAM (documented, not accidental):
 
 * patch normalisation of a cell whose patch has σ = 0 gives 0.5 (OpenRatSLAM
-  divides 0 by 0 and its clamp turns the NaN into 1.0);
+  divides 0 by 0 and its clamp turns the NaN into 1.0, as ``openratslam_compat`` does);
 * ``vt_shift_match`` larger than the template is narrowed to ``(tx − 1)//2``
   (OpenRatSLAM reads past the template);
 * templates are stored as float32 (OpenRatSLAM: double); the mean is taken
@@ -83,13 +83,14 @@ def block_average(region: np.ndarray, ty: int, tx: int) -> np.ndarray:
     return region[: by * ty, : bx * tx].reshape(ty, by, tx, bx).mean(axis=(1, 3))
 
 
-def patch_normalise(values: np.ndarray, radius: int, min_std: float) -> np.ndarray:
+def patch_normalise(values: np.ndarray, radius: int, min_std: float, flat: float = 0.5) -> np.ndarray:
     """Patch normalisation: ``clip(((v − μ)/σ + 3)/6, 0, 1)`` over the (2r+1)² neighbourhood.
 
     As OpenRatSLAM's ``convert_view_to_view_template``: positions outside the
     template are clamped to the nearest border cell (the border is replicated), so
     every patch has (2r+1)² samples; μ and σ are their mean and population standard
-    deviation. Cells with σ < ``min_std`` (or σ = 0) become 0.5.
+    deviation. Cells with σ < ``min_std`` become 0.5, and cells with σ = 0 ``flat``
+    (0.5; OpenRatSLAM's 0/0 clamps to 1.0, which ``openratslam_compat`` passes).
     """
     size = 2 * radius + 1
     mean = uniform_filter(values, size=size, mode="nearest")
@@ -98,6 +99,8 @@ def patch_normalise(values: np.ndarray, radius: int, min_std: float) -> np.ndarr
     out = np.full_like(values, 0.5)
     ok = (std > 0) & (std >= min_std)
     out[ok] = np.clip(((values[ok] - mean[ok]) / std[ok] + 3.0) / 6.0, 0.0, 1.0)
+    if flat != 0.5:
+        out[(std == 0) & (std >= min_std)] = flat
     return out
 
 
@@ -199,7 +202,8 @@ class LocalViewCells:
             if mean > 0:
                 values = np.clip(values * (p.vt_normalisation / mean), 0.0, 1.0)
         if p.vt_patch_normalise > 0:
-            values = patch_normalise(values, p.vt_patch_normalise, p.vt_min_patch_normalisation_std)
+            flat = 1.0 if p.openratslam_compat else 0.5
+            values = patch_normalise(values, p.vt_patch_normalise, p.vt_min_patch_normalisation_std, flat)
         template = values.astype(np.float32)
         return template, float(template.mean(dtype=np.float64))
 
@@ -224,11 +228,26 @@ class LocalViewCells:
                 is within ``limit``. The answer is then the same as without ``limit``
                 whenever the best error is ≤ ``limit``.
         """
-        p = self.params
         if self.count == 0:
             return -1, math.inf, 0.0
-        prefilter = p.vt_match_threshold + p.vt_mean_prefilter_epsilon
-        candidates = np.flatnonzero(np.abs(self._means.view - mean) <= prefilter)
+        prefilter = self.params.vt_match_threshold + self.params.vt_mean_prefilter_epsilon
+        return self._best_of(template, np.flatnonzero(np.abs(self._means.view - mean) <= prefilter), limit)
+
+    def match_among(
+        self, template: np.ndarray, mean: float, ids: np.ndarray, limit: float | None = None
+    ) -> tuple[int, float, float]:
+        """Return :meth:`match`'s answer restricted to the templates ``ids`` (same prefilter, bounds, ties).
+
+        The merge verification asks whether the current view matches one of the templates that a
+        stored map predicts at a place (``mapserver.merge.hypotheses``), not whether it matches any.
+        """
+        ids = np.unique(np.asarray(ids, dtype=np.int64))
+        prefilter = self.params.vt_match_threshold + self.params.vt_mean_prefilter_epsilon
+        return self._best_of(template, ids[np.abs(self._means.view[ids] - mean) <= prefilter], limit)
+
+    def _best_of(self, template: np.ndarray, candidates: np.ndarray, limit: float | None) -> tuple[int, float, float]:
+        """Return (best of the sorted, prefiltered template ids ``candidates`` or −1, error, relative_rad)."""
+        p = self.params
         if candidates.size == 0:
             return -1, math.inf, 0.0
         view = np.asarray(template, dtype=np.float32)

@@ -30,10 +30,15 @@ Deliberate deviations:
 * the decoding window is narrowed on axes shorter than 2·``pc_cells_to_avg`` + 1
   (OpenRatSLAM would count cells twice); a fully inhibited network restarts at
   the last decoded centre (OpenRatSLAM asserts).
+
+With ``openratslam_compat`` the first two follow OpenRatSLAM's code: a translation
+of s cells (any size) keeps weight 1 − |s| in place and moves |s| one cell, and
+while fewer than ``vt_min_inject_age`` templates exist every known one injects.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
@@ -202,8 +207,10 @@ class PoseCellNetwork:
             # Only heading layers holding activity move anything (a packet spans a few of them): the
             # others stay zero, and each layer's product is computed exactly as in a full batch.
             layers = np.flatnonzero(a.reshape(th_dim, -1).any(axis=1))
-            shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x)  # (L, X, X)
-            shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y)  # (L, Y, Y)
+            before = a[layers].copy() if p.openratslam_compat else None
+            one_cell = p.openratslam_compat
+            shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x, one_cell)  # (L, X, X)
+            shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y, one_cell)  # (L, Y, Y)
             moving = a[layers]
             compact = self._blocks
             if compact:
@@ -231,6 +238,8 @@ class PoseCellNetwork:
                 )
                 moved = np.matmul(shift_y[:, None], moved)
             a[target] = moved
+            if before is not None:
+                _openratslam_corner_loss(a, before, layers, v)
         if moved_z:
             a, b = _shift_axis(a, dz_m / p.pc_cell_z_size, 3, b, c), a
         if dyaw_rad != 0.0:
@@ -247,6 +256,8 @@ class PoseCellNetwork:
         short for it, so no cell counts twice) is summed per axis and each axis
         decoded as the circular mean ``atan2(Σ s·sin, Σ s·cos)·n/(2π)`` in [0, n).
         """
+        if self.params.openratslam_compat:
+            return self._decode_openratslam()
         cells = self.activity
         flat = int(np.argmax(cells.T))  # reversed axes: (θ, [z,] y, x) scan order
         peak = np.unravel_index(flat, self.shape[::-1])[::-1]
@@ -264,6 +275,42 @@ class PoseCellNetwork:
             if value < 0.0:
                 value += dim
             best[axis] = value if value < dim else 0.0
+        self.best = best
+        return best
+
+    def _decode_openratslam(self) -> np.ndarray:
+        """``find_best`` as OpenRatSLAM's code computes it, to the last bit where it can (``openratslam_compat``).
+
+        OpenRatSLAM's lattice is ours transposed in x and y (its heading-0 layer moves along its second
+        axis), so its scan order is (θ, x, y) in ours. Its per-axis sums add cells in its loop order,
+        its lookups are (i+1)-based with a final "− 1", and its wrap leaves values in [0, n]. These
+        change the decoded centre by ~1e-15 of a cell, but that decides the cell a new template's link
+        truncates to (16.999999999999996 → 16, not 17).
+        """
+        cells = self.activity
+        scan = (self.rank - 1, *range(self.rank - 1))
+        flat = int(np.argmax(cells.transpose(scan)))
+        peak = [0] * self.rank
+        for axis, index in zip(scan, np.unravel_index(flat, [self.shape[a] for a in scan]), strict=True):
+            peak[axis] = int(index)
+        windows = [(c + off) % d for c, off, d in zip(peak, self._window_offsets, self.shape, strict=True)]
+        box = cells[np.ix_(*windows)]
+        best = np.empty(self.rank, dtype=np.float64)
+        for axis in range(self.rank):
+            order = [a for a in scan if a != axis]
+            marginal = np.ascontiguousarray(box.transpose((*order, axis))).reshape(-1, box.shape[axis]).sum(axis=0)
+            dim = self.shape[axis]
+            s = c = 0.0
+            for k in np.argsort(windows[axis], kind="stable"):  # index order, as its loop over the whole axis
+                angle = (int(windows[axis][k]) + 1) * 2.0 * math.pi / dim
+                s += math.sin(angle) * float(marginal[k])
+                c += math.cos(angle) * float(marginal[k])
+            value = math.atan2(s, c) * dim / (2.0 * math.pi) - 1.0
+            while value < 0.0:
+                value += dim
+            while value > dim:
+                value -= dim
+            best[axis] = value
         self.best = best
         return best
 
@@ -319,7 +366,9 @@ class PoseCellNetwork:
         th_dim = self.shape[-1]
         if created:
             self.add_link(template, self.best.copy())
-        elif template < template_count - p.vt_min_inject_age:
+        elif template < template_count - p.vt_min_inject_age or (
+            p.openratslam_compat and template_count < p.vt_min_inject_age  # OpenRatSLAM's unsigned wrap-around
+        ):
             decay = self._links_decay.view
             coords_all = self._links_coords.view
             strength = self._links_strength.view
@@ -327,7 +376,9 @@ class PoseCellNetwork:
             for link in self.links_of(template):
                 if template == self.current_vt:
                     decay[link] += p.vt_active_decay
-                energy = p.pc_vt_inject_energy * strength[link] / 30.0 * (30.0 - math.exp(1.2 * decay[link]))
+                # exp capped: a template seen for ~600 frames in a row overflows math.exp (OpenRatSLAM: inf)
+                saturation = math.exp(min(1.2 * decay[link], 700.0))
+                energy = p.pc_vt_inject_energy * strength[link] / 30.0 * (30.0 - saturation)
                 if energy > 0.0:
                     self.vt_delta_th = offset
                     coords = coords_all[link].copy()
@@ -442,14 +493,16 @@ def _separable(cells: np.ndarray, matrices: list[np.ndarray], even: np.ndarray, 
     return src
 
 
-def _shift_matrices(shifts: np.ndarray, dim: int) -> np.ndarray:
+def _shift_matrices(shifts: np.ndarray, dim: int, one_cell: bool = False) -> np.ndarray:
     """Return (n, dim, dim) matrices moving a wrapped axis by ``shifts[k]`` cells with linear weights.
 
     Matrix k sends cell i to ``i + ⌊s_k⌋`` with weight ``1 − frac(s_k)`` and to
-    ``i + ⌊s_k⌋ + 1`` with weight ``frac(s_k)``, modulo ``dim``.
+    ``i + ⌊s_k⌋ + 1`` with weight ``frac(s_k)``, modulo ``dim``. With ``one_cell``
+    (OpenRatSLAM's four-neighbour weights, the same for |s| ≤ 1) cell i keeps
+    ``1 − |s_k|`` and sends ``|s_k|`` to ``i ± 1``, whatever the size of ``s_k``.
     """
     n = shifts.shape[0]
-    whole = np.floor(shifts)
+    whole = np.where(shifts >= 0.0, 0.0, -1.0) if one_cell else np.floor(shifts)
     frac = shifts - whole
     columns = np.arange(dim)
     base = (np.arange(n) * (dim * dim))[:, None] + columns[None, :]
@@ -459,6 +512,55 @@ def _shift_matrices(shifts: np.ndarray, dim: int) -> np.ndarray:
     matrices[base + rows0 * dim] = (1.0 - frac)[:, None]
     matrices[base + rows1 * dim] = frac[:, None]
     return matrices.reshape(n, dim, dim)
+
+
+@functools.lru_cache(maxsize=64)
+def _openratslam_rot90(dim: int, rot: int) -> np.ndarray:
+    """Return ``r`` with ``r[j, i]`` = the flat index of the cell OpenRatSLAM's ``rot90_square`` moves to (j, i).
+
+    Its in-place four-cycle rotation (float centre, truncating casts) run on an index grid.
+    """
+    grid = [[j * dim + i for i in range(dim)] for j in range(dim)]
+    a, b, c, d = {1: (0, -1, 1, 0), 2: (-1, 0, 0, -1), 3: (0, 1, -1, 0)}.get(rot % 4, (1, 0, 0, 1))
+    centre = (dim - 1) / 2.0
+    turns = 0 if rot % 4 == 0 else (1 if rot % 2 == 1 else 2)
+    if rot % 4 == 2:
+        a, b, c, d = 0, -1, 1, 0
+    for _ in range(turns):
+        for j in range(int(centre) + (1 - dim % 2)):
+            for i in range(int(centre) + 1):
+                ii, jj, old = i, j, grid[j][i]
+                for _quad in range(4):
+                    ii, jj = (int(a * (ii - centre) + b * (jj - centre) + centre),
+                              int(c * (ii - centre) + d * (jj - centre) + centre))
+                    grid[jj][ii], old = old, grid[jj][ii]
+    return np.asarray(grid, dtype=np.int64)
+
+
+def _openratslam_corner_loss(cells: np.ndarray, before: np.ndarray, layers: np.ndarray, v: float) -> None:
+    """Remove what OpenRatSLAM's translation loses at each layer's rotated corner (``openratslam_compat``).
+
+    OpenRatSLAM rotates layer k by ⌊2·dir/π⌋ quarter turns (dir = k·2π/n_θ, + π when moving backwards),
+    moves it by at most one cell towards +i and +j on a plane padded by one cell, then wraps the padding
+    back — but its two wrap-back loops start at index 1, so what leaves rotated cell (0, n−1) along +i
+    (weight ``v·sin·(1 − v·cos)``) and rotated cell (n−1, 0) along +j (weight ``v·cos·(1 − v·sin)``) never
+    reaches rotated cell (0, 0). ``cells`` is heading-first (θ, x, y), our x being its j; ``before`` holds
+    the moved layers before the move.
+    """
+    dim = cells.shape[1]
+    th_dim = cells.shape[0]
+    speed = abs(v)
+    extra = math.pi if v < 0 else 0.0
+    for plane, k in zip(before, layers.tolist(), strict=True):
+        direction = k * (2.0 * math.pi / th_dim) + extra
+        quarter = math.floor(direction * 2 / math.pi)
+        dir90 = direction - quarter * math.pi / 2
+        along_i = speed * math.sin(dir90) * (1.0 - speed * math.cos(dir90))
+        along_j = speed * math.cos(dir90) * (1.0 - speed * math.sin(dir90))
+        where = _openratslam_rot90(dim, int(quarter) % 4)
+        lost = plane.flat[where[0, dim - 1]] * along_i + plane.flat[where[dim - 1, 0]] * along_j
+        if lost != 0.0:
+            cells[k].flat[where[0, 0]] -= lost
 
 
 def _roll_into(src: np.ndarray, shift: int, axis: int, out: np.ndarray) -> np.ndarray:

@@ -12,8 +12,9 @@ translation profile gives the speed ``min_diff · vtrans_scaling`` capped at
 
 Deliberate deviations from OpenRatSLAM: ``rate`` is ``1/dt`` when the frame
 interval is known, so the estimate does not depend on the playback rate
-(OpenRatSLAM uses ``camera_hz``, the fallback here); the first frame gives zero
-motion (OpenRatSLAM compares it with an all-zero profile).
+(OpenRatSLAM uses ``camera_hz``, the fallback here, and always with
+``openratslam_compat``); the first frame gives zero motion (OpenRatSLAM compares it
+with an all-zero profile).
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ class VisualOdometry:
         )
         vtrans = vrot = 0.0
         if self.prev_vtrans.shape == vtrans_profile.shape and self.prev_vrot.shape == vrot_profile.shape:
-            rate = 1.0 / dt if dt > 0 else p.camera_hz
+            rate = 1.0 / dt if dt > 0 and not p.openratslam_compat else p.camera_hz
             shift, _ = best_shift(vrot_profile, self.prev_vrot)
             vrot = shift * math.radians(p.camera_fov_deg) / grey.shape[1] * rate
             _, diff = best_shift(vtrans_profile, self.prev_vtrans)

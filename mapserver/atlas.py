@@ -19,8 +19,9 @@ Store-level snapshot keys written beside the engine's (kept generically by the s
   identity (indices of rows a merge identified away are never given again);
 * ``mg_*``: the online merge driver's state of a session stopped with ``--stop-after`` (resume):
   ``mg_session`` (), ``mg_map_version`` () (the map version it belongs to: a changed map voids the
-  streaks), ``mg_odometry`` (4,), ``mg_absorbed`` (A,), ``mg_matched`` (Q, 2), ``mg_streaks`` (M, C),
-  ``mg_versions`` (Q, 2) (candidate map id, version the streak was built against).
+  hypotheses), ``mg_odometry`` (4,), ``mg_absorbed`` (A,), ``mg_hypotheses``, ``mg_support``, ``mg_banned``,
+  ``mg_track_*`` (:class:`mapserver.merge.resume.MergerState`), ``mg_versions`` (Q, 2) (candidate map id,
+  version the hypotheses were built against).
 """
 
 from __future__ import annotations
@@ -185,19 +186,19 @@ def ensure_candidates_unchanged(
 def resume_merger_state(stored: AtlasMap, session_id: int, candidates: Sequence[AtlasMap]) -> MergerState | None:
     """Return the merge driver's state a partial session left in its map (None: none stored).
 
-    Streaks are kept only when the map is still at the version the session wrote and the candidate
-    map is at the version the streak was built against; otherwise they restart (the odometry stays).
+    Hypotheses are kept only when the map is still at the version the session wrote and the candidate
+    map is at the version they were built against; otherwise they restart (the odometry and track stay).
     """
     snap = stored.snapshot
-    needed = ("mg_session", "mg_map_version", "mg_odometry", "mg_absorbed", "mg_matched", "mg_streaks")
-    if any(k not in snap for k in needed) or int(snap["mg_session"]) != session_id:
+    if "mg_session" not in snap or "mg_hypotheses" not in snap or int(snap["mg_session"]) != session_id:
         return None
-    state = MergerState.from_arrays({k[len(MERGER_PREFIX) :]: snap[k] for k in needed[2:]})
+    arrays = {k[len(MERGER_PREFIX) :]: v for k, v in snap.items() if k.startswith(MERGER_PREFIX)}
+    state = MergerState.from_arrays(arrays)
     if int(snap["mg_map_version"]) != stored.version:
-        return state.without(list(state.streaks))
+        return state.without(list(state.hypotheses))
     versions = {int(k): int(v) for k, v in np.asarray(snap.get("mg_versions", np.zeros((0, 2))), np.int64)}
     current = {c.id: c.version for c in candidates}
-    stale = [k for k in state.streaks if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
+    stale = [k for k in state.hypotheses if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
     return state.without(stale)
 
 
@@ -436,6 +437,29 @@ def write_merges(
     return WrittenMerges(event_ids, host_id, host.name, result)
 
 
+def write_rejected_merges(
+    conn: Connection, *, merges: Sequence[MergeToWrite], tags: Mapping[int, int]
+) -> list[int]:
+    """Record online merges rolled back by their verification (status ``rejected``); return their event ids.
+
+    No map changed (the session went on as its own map), so nothing is archived or claimed: the event
+    keeps the transform, the matches and the evidence, under the stored map the session was wrongly
+    merged into.
+    """
+    event_ids: list[int] = []
+    for merge in merges:
+        partial_ids = (merge.partial.identities or RowIdentities()).retagged(tags)
+        spec = MergeEventSpec(
+            map_id=merge.target.id, map_name=merge.target.name, mode=merge.mode,
+            confirmations=merge.record.confirmations, lattice_offset=list(merge.record.lattice_offset),
+            transform=_transform7(merge.record), yaw=merge.record.transform[3],
+            matches=matches_json(merge.target, partial_ids, merge.record), target_sessions=merge.target.session_ids,
+            source_sessions=merge.partial.session_ids, details=dict(merge.details), status="rejected",
+        )  # fmt: skip
+        event_ids.append(record_merge_event(conn=conn, spec=spec))
+    return event_ids
+
+
 def get_map_by_id_or_stale(conn: Connection, map_id: int) -> Any:
     """Return a map's row; a vanished map means another writer was first (``StaleMapError``)."""
     from mapserver.store.maps import get_map_by_id
@@ -463,6 +487,8 @@ def merge_summary(event_id: int, merge: MergeToWrite, host_name: str) -> dict[st
         "lattice_offset": [float(v) for v in r.lattice_offset],
         "lattice_shifted": r.lattice_shifted,
         "transform": {"x": x, "y": y, "z": z, "yaw": yaw},
+        "status": merge.details.get("status", "applied"),
+        "evidence": merge.details.get("evidence"),
     }
 
 

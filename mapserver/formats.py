@@ -226,6 +226,7 @@ def map_json(
     link_dist = np.asarray(snapshot["em_link_distance"], dtype=np.float64).reshape(-1).tolist()
     link_kind = np.asarray(snapshot["em_link_kind"]).reshape(-1).tolist()
     link_tf = np.asarray(snapshot["em_link_transform"], dtype=np.float64).reshape(-1, 4).tolist()
+    link_off = set(np.flatnonzero(~np.asarray(snapshot.get("em_link_active", np.ones(0, bool)), dtype=bool)).tolist())
     links = []
     for k in range(len(link_from)):
         kind = LINK_KINDS.get(int(link_kind[k]))
@@ -242,6 +243,8 @@ def map_json(
                 "transform": link_tf[k],
             }
         )
+        if k in link_off:  # switched off by robust relaxation (stays stored)
+            links[-1]["active"] = False
 
     if "lv_means" in snapshot:
         n_templates = int(np.asarray(snapshot["lv_means"]).shape[0])

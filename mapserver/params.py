@@ -55,3 +55,32 @@ def _scenario_preset(log: str | Path | None) -> str | None:
         logger.info("using preset %r from %s", name, scenario)
         return name
     return None
+
+
+def with_frontend(params: Params, backbone: str | None = None, weights: str | Path | None = None) -> Params:
+    """Return ``params`` with the CLI's ``--backbone`` / ``--weights`` applied to the neocortical front-end.
+
+    Raises:
+        ConfigError: a weights file that does not exist, weights without a backbone, or an invalid name.
+    """
+    changes: dict[str, str] = {}
+    if backbone:
+        changes["frontend_backbone"] = backbone
+    if weights:
+        if not Path(weights).is_file():
+            msg = f"weights file not found: {str(weights)!r}"
+            raise ConfigError(msg)
+        changes["frontend_weights"] = str(weights)
+    if not changes:
+        return params
+    try:
+        updated = params.replace(**changes)
+    except CoreConfigError as err:
+        raise ConfigError(str(err)) from err
+    if updated.frontend != "sdr-htm":
+        msg = "--backbone/--weights apply to the sdr-htm front-end: use --preset poseidon-sdr or neoslam"
+        raise ConfigError(msg)
+    if updated.frontend_weights and updated.frontend_backbone == "none":
+        msg = "--weights needs a CNN backbone: --backbone shufflenetv2 or alexnet (or frontend_backbone in the config)"
+        raise ConfigError(msg)
+    return updated

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -316,12 +317,32 @@ def process_into_store(
         identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
         for attempt in range(1, STALE_ATTEMPTS + 1):
             try:
-                return _process_session(db, log_path, log, params, identity, options)
+                if attempt < STALE_ATTEMPTS:
+                    return _process_session(db, log_path, log, params, identity, options)
+                with commit_gate(db):  # the last try: no session of this process commits meanwhile
+                    return _process_session(db, log_path, log, params, identity, options)
             except StaleMapError as err:
                 if attempt == STALE_ATTEMPTS:
                     raise
                 logger.warning("%s; processing the log again", err)
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+_GATES: dict[str, threading.RLock] = {}
+_GATES_GUARD = threading.Lock()
+
+
+def commit_gate(db: Any) -> threading.RLock:
+    """Return this process's commit gate of ``db``'s database (one re-entrant lock per URL).
+
+    Every session commit of this process passes the gate; the last of the ``STALE_ATTEMPTS`` runs of a
+    session holds it from start to commit, so sessions committed by other threads (the embedded job
+    engine's workers, parallel ``process`` calls in one program) cannot make it stale and a long
+    session is not starved by a stream of short ones. Writers in other processes are not held back.
+    """
+    key = db.url.render_as_string(hide_password=False)
+    with _GATES_GUARD:
+        return _GATES.setdefault(key, threading.RLock())
 
 
 @dataclass(frozen=True)
@@ -336,28 +357,12 @@ class _Options:
     shift_lattice: bool
 
 
-@dataclass(eq=False)
-class _PendingMerge:
-    """An online merge made during the run, stored in the session's write transaction."""
-
-    event: Any  # mapserver.merge.MergeEvent
-    target: Any  # mapserver.atlas.AtlasMap
-    partial_ids: Any  # RowIdentities before the merge (tags)
-    partial_name: str
-    partial_map_id: int | None
-    partial_sessions: list[int]  # stored sessions in the partial besides the running one
-    frames_at: int
-    reckoning_pose: list[float]
-    host_id: int
-    host_name: str
-
-
 def _process_session(
     db: Any, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
 ) -> ProcessResult:
     """One attempt of :func:`process_into_store` (redone once when a map changed meanwhile)."""
-    from core import Action
     from mapserver import atlas
+    from mapserver.live import Holder, LiveSession
     from mapserver.merge import OnlineMerger
     from mapserver.merge.identity import RowIdentities
     from mapserver.store import find_map, find_session, get_map_by_id
@@ -433,60 +438,21 @@ def _process_session(
                      resume=resume)
         if candidates else None
     )  # fmt: skip
-    by_id = {c.id: c for c in candidates}
-    pending: list[_PendingMerge] = []
-    collector = EvidenceCollector(params.sync_stale_sec)
-    stamps: list[float] = []
-    # the map the partial map is at the moment: the session's own stored map, or (after merges) the oldest joined
-    holder: dict[str, Any] = {
-        "id": None if own is None else own.id,
-        "name": name if own is None else own.name,
-        "sessions": [] if own is None else [s for s in own.session_ids if s != tag],
-        "engine": engine,
-        "ids": ids,
-    }
-
-    def on_step(frame: Any, result: StepResult) -> Engine | None:
-        current: Engine = holder["engine"]
-        rows: RowIdentities = holder["ids"]
-        rows.extend(current.template_count, current.experience_count, tag)
-        stamp = frame.stamp_ns * 1e-9
-        stamps.append(stamp)
-        collector.observe(stamp, frame.image)
-        if result.action == Action.CREATE_NODE:
-            collector.experience(int(rows.experience_arrays()[1][result.experience]), stamp)
-        reckoning.add(stamp, result.motion)
-        if merger is None:
-            return None
-        event = merger.observe(current, result)
-        if event is None:
-            return None
-        target = by_id[int(event.key)]  # type: ignore[call-overload]
-        ids_before = rows.copy()
-        if holder["id"] is None or target.id < holder["id"]:
-            host_id, host_name = target.id, target.name
-        else:
-            host_id, host_name = holder["id"], holder["name"]
-        pending.append(
-            _PendingMerge(
-                event=event, target=target, partial_ids=ids_before, partial_name=holder["name"],
-                partial_map_id=holder["id"], partial_sessions=list(holder["sessions"]), frames_at=start + len(stamps),
-                reckoning_pose=[float(v) for v in reckoning.pose], host_id=host_id, host_name=host_name,
-            )
-        )  # fmt: skip
-        holder.update(
-            id=host_id, name=host_name, engine=event.engine,
-            sessions=sorted(set(holder["sessions"]) | set(target.session_ids)),
-            ids=RowIdentities.merged(target.identities, rows, event.record),
-        )  # fmt: skip
-        return event.engine
-
-    run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=on_step)
-    engine, ids = run.engine, holder["ids"]
+    holder = Holder(
+        id=None if own is None else own.id, name=name if own is None else own.name,
+        sessions=[] if own is None else [s for s in own.session_ids if s != tag], engine=engine, ids=ids,
+    )  # fmt: skip
+    live = LiveSession(
+        holder=holder, tag=tag, start=start, merger=merger, targets={c.id: c for c in candidates},
+        collector=EvidenceCollector(params.sync_stale_sec), reckoning=reckoning,
+    )  # fmt: skip
+    run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step)
+    engine, ids = run.engine, live.holder.ids
     if run.frames == 0 and own is None:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
     if merger is not None:
+        merger.finish()
         for other, reason in merger.skipped.items():
             logger.warning("map %r is not a merge candidate: %s", other, reason)
     processed = start + run.frames
@@ -496,9 +462,10 @@ def _process_session(
     ids.extend(engine.template_count, engine.experience_count, tag)
     return _store_session(
         db, log_path, params, identity, opts,
-        session=session, own=own, name=name, engine=engine, ids=ids, pending=pending,
+        session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
         merger=merger if not complete else None, candidates=candidates, processed=processed, total=total,
-        stamps=stamps, collector=collector, stored_rows=stored_rows, reckoning=reckoning, frames_run=run.frames,
+        stamps=live.stamps, collector=live.collector, stored_rows=stored_rows, reckoning=reckoning,
+        frames_run=run.frames,
     )  # fmt: skip
 
 
@@ -514,7 +481,7 @@ def _store_session(
     name: str,
     engine: Engine,
     ids: Any,
-    pending: list[_PendingMerge],
+    pending: list[Any],
     merger: Any,
     candidates: list[Any],
     processed: int,
@@ -539,7 +506,7 @@ def _store_session(
     pose = tuple(float(v) for v in reckoning.pose)
     status = "complete" if processed >= total else "partial"
     wanted = plain_params(params)
-    with db.write() as conn:
+    with commit_gate(db), db.write() as conn:
         if opts.merge:
             lock_atlas(conn=conn)
             atlas.ensure_candidates_unchanged(
@@ -566,55 +533,39 @@ def _store_session(
             session_id = created.id
         tags = {NEW_SESSION_ORIGIN: session_id} if session is None else {}
         claimed: dict[int, int] = {} if own is None else {own.id: own.version}
-        claimed.update({m.target.id: m.target.version for m in pending})
+        applied = [m for m in pending if m.status == "applied"]
+        claimed.update({m.target.id: m.target.version for m in applied})
         if claimed:
             host_id = min(claimed)
         else:
             host_id = create_map(conn=conn, name=name, params=wanted).id
             claimed = {host_id: 0}
         session_ids = sorted({session_id, *(own.session_ids if own is not None else [])}
-                             | {s for m in pending for s in m.target.session_ids})  # fmt: skip
+                             | {s for m in applied for s in m.target.session_ids})  # fmt: skip
         extra: dict[str, np.ndarray] = {}
         if merger is not None:
             expected = claimed[host_id] + 1  # the version this write gives the map
             extra = atlas.merger_keys(
                 merger.export_state(), session_id=session_id, map_version=expected, candidates=candidates
             )
-        writes: list[Any] = []
-        all_ids = sorted(session_ids)
-        frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=all_ids)}
-        for m in pending:
-            ev = m.event
-            partial = atlas.PartialSide(
-                name=m.partial_name, map_id=m.partial_map_id, snapshot=ev.partial, identities=m.partial_ids,
-                params=params, session_ids=sorted({session_id, *m.partial_sessions}),
-            )  # fmt: skip
-            details = {
-                "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
-                "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
-                "match": atlas.match_to_dict(ev.match), "record": atlas.record_summary(ev.record),
-                "target": {"name": m.target.name, "map_id": m.target.id},
-                "source": {"name": m.partial_name, "map_id": m.partial_map_id},
-                "absorbed": [earlier.target.name for earlier in pending[: pending.index(m)]],
-                "session_frames": {str(k): int(v) for k, v in frames_now.items()},
-            }  # fmt: skip
-            writes.append(
-                atlas.MergeToWrite(
-                    mode="online", target=m.target, partial=partial, match=ev.match, record=ev.record,
-                    host_id=m.host_id, host_name=m.host_name, details=details,
-                )
-            )  # fmt: skip
+        frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
+        writes = [_merge_to_write(m, pending, session_id, params, frames_now) for m in pending]
         written = atlas.write_merges(
-            conn, merges=writes, claimed=claimed, host_id=host_id, params=engine.params, snapshot=snapshot,
-            identities=ids, tags=tags, session_ids=session_ids, extra=extra,
+            conn, merges=[w for w, m in zip(writes, pending, strict=True) if m.status == "applied"], claimed=claimed,
+            host_id=host_id, params=engine.params, snapshot=snapshot, identities=ids, tags=tags,
+            session_ids=session_ids, extra=extra,
         )  # fmt: skip
+        rejected = [w for w, m in zip(writes, pending, strict=True) if m.status == "rejected"]
+        rejected_ids = atlas.write_rejected_merges(conn, merges=rejected, tags=tags)
         e_session, e_index = ids.retagged(tags).experience_arrays()
         mine = set(e_index[e_session == session_id].tolist())
         items = [(img.experience, img) for img in images if img.experience in mine]
         evidence_store.save_evidence(conn=conn, session_id=session_id, items=items)
         map_record = get_map_by_id(conn=conn, map_id=host_id)
         sessions_now = get_sessions(conn=conn, session_ids=list(session_ids))
-    merges = [atlas.merge_summary(eid, w, w.host_name) for eid, w in zip(written.event_ids, writes, strict=True)]
+    applied_writes = [w for w, m in zip(writes, pending, strict=True) if m.status == "applied"]
+    merges = [atlas.merge_summary(e, w, w.host_name) for e, w in zip(written.event_ids, applied_writes, strict=True)]
+    merges += [atlas.merge_summary(e, w, w.host_name) for e, w in zip(rejected_ids, rejected, strict=True)]
     for entry in merges:
         logger.info("merged into map %r at frame %s (event %d)", entry["into"], entry["frame"], entry["event"])
     document = None
@@ -643,3 +594,30 @@ def _store_session(
         document=document,
         frames_run=frames_run,
     )
+
+
+def _merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
+    """Return the store's view of one online merge (:class:`mapserver.live.PendingMerge`) with its provenance."""
+    from mapserver import atlas
+
+    ev = m.event
+    partial = atlas.PartialSide(
+        name=m.partial_name, map_id=m.partial_map_id, snapshot=ev.partial, identities=m.partial_ids,
+        params=params, session_ids=sorted({session_id, *m.partial_sessions}),
+    )  # fmt: skip
+    details = {
+        "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
+        "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
+        "match": atlas.match_to_dict(ev.match), "record": atlas.record_summary(ev.record),
+        "target": {"name": m.target.name, "map_id": m.target.id},
+        "source": {"name": m.partial_name, "map_id": m.partial_map_id},
+        "absorbed": [e.target.name for e in pending[: pending.index(m)] if e.status == "applied"],
+        "session_frames": {str(k): int(v) for k, v in frames_now.items()},
+        "evidence": ev.evidence, "status": m.status,
+    }  # fmt: skip
+    if m.rejected_at is not None:
+        details["rejected_at_frame"] = m.rejected_at
+    return atlas.MergeToWrite(
+        mode="online", target=m.target, partial=partial, match=ev.match, record=ev.record,
+        host_id=m.host_id, host_name=m.host_name, details=details,
+    )  # fmt: skip

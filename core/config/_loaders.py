@@ -27,7 +27,7 @@ IGNORED_KEYS = frozenset(
         "topic_root", "media_path", "image_file", "enable", "vt_window_width", "vt_window_height",
         "exp_map_size", "posecells_size", "vt_threshold_condition", "use_sim_time", "image_topic",
         "odom_topic", "camera_topic", "pc_vt_inject_energy_scale", "draw", "log_file", "log_level",
-        "vt_enable_draw", "pc_enable_draw", "em_enable_draw",
+        "vt_enable_draw", "pc_enable_draw", "em_enable_draw", "max_goals",
     }
 )
 
@@ -39,13 +39,21 @@ def params_from_dict(values: Mapping[str, Any], base: Params | None = None, *, w
         ConfigError: an unknown key, naming the closest valid one, or an invalid value.
     """
     changes: dict[str, Any] = {}
+    unknown: list[str] = []
     for raw_key, value in values.items():
         key = ALIASES.get(str(raw_key).strip(), str(raw_key).strip())
         if key in IGNORED_KEYS:
             continue
         if key not in FIELD_NAMES:
-            raise ConfigError(unknown_key_message(str(raw_key), where))
+            unknown.append(str(raw_key))
+            continue
         changes[key] = coerce(key, value)
+    if len(unknown) == 1:
+        raise ConfigError(unknown_key_message(unknown[0], where))
+    if unknown:
+        place = f" in {where}" if where else ""
+        msg = f"{len(unknown)} unknown parameters{place}: {', '.join(map(repr, unknown))} (not keys of this engine)"
+        raise ConfigError(msg)
     return (base or Params()).replace(**changes)
 
 
@@ -94,12 +102,15 @@ def _parse_yaml(text: str, file: Path) -> dict[str, Any]:
     if not isinstance(doc, dict):
         msg = f"config {str(file)!r} is not a mapping of parameters"
         raise ConfigError(msg)
+    return _flatten(doc)
+
+
+def _flatten(doc: Mapping[str, Any]) -> dict[str, Any]:
+    """Return the leaf keys of nested YAML sections (node → ros__parameters → group → key), later ones winning."""
     values: dict[str, Any] = {}
     for key, value in doc.items():
-        if isinstance(value, dict) and isinstance(value.get("ros__parameters"), dict):
-            values.update(value["ros__parameters"])
-        elif isinstance(value, dict):
-            values.update(value)
+        if isinstance(value, dict):
+            values.update(_flatten(value))
         else:
             values[key] = value
     return values

@@ -57,6 +57,11 @@ class Params:
     exp_relax_batch: int = 64
     max_correction_norm: float = 0.0
     max_correction_step: float = 0.0
+    # robust relaxation (core.robust): switch off loop/merge links inconsistent with the graph
+    exp_robust: bool = True
+    exp_robust_drift: float = 0.1  # expected odometry drift, metres per metre travelled
+    exp_robust_yaw_drift: float = 0.1  # radians per metre travelled
+    exp_robust_threshold: float = 5.0  # outlier when the normalised residual exceeds this
     # visual odometry
     vtrans_image_x_min: int = 0
     vtrans_image_x_max: int = -1
@@ -81,6 +86,49 @@ class Params:
     sync_stale_sec: float = 0.75
     # multisession merge
     merge_confirm: int = 3
+    merge_evidence_m: float = -1.0  # net agreeing metres before a merge; −1: the map's scale; 0: K matches only
+    merge_probation_m: float = -1.0  # metres a merge keeps verifying itself; −1: auto (map scale); 0: no verification
+    # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
+    openratslam_compat: bool = False
+    # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"
+    frontend: str = "lvc"
+    frontend_backbone: str = "none"  # none (weight-free: LVC template through LSBH) | shufflenetv2 | alexnet
+    frontend_weights: str = ""  # torchvision state-dict file for the backbone (never downloaded)
+    frontend_device: str = "auto"  # auto (CUDA when present) | cpu | cuda
+    lsbh_bits: int = 2048  # L: SDR length per modality (two halves of L/2)
+    lsbh_s: float = 0.25  # k = floor(s·L/2) top and bottom projections (Eq. 4.2)
+    lsbh_seed: int = 42
+    sp_columns: int = 2048
+    sp_num_active_columns: int = 20
+    sp_potential_radius: int = 600
+    sp_potential_pct: float = 0.5
+    sp_syn_perm_connected: float = 0.2
+    sp_syn_perm_active_inc: float = 0.006
+    sp_syn_perm_inactive_dec: float = 0.008
+    sp_boost_strength: float = 0.0
+    sp_duty_cycle_period: int = 1000
+    sp_learn: bool = True
+    tm_cells_per_column: int = 40
+    tm_activation_threshold: int = 5
+    tm_min_threshold: int = 3
+    tm_initial_permanence: float = 0.55
+    tm_connected_permanence: float = 0.5
+    tm_max_new_synapse_count: int = 20
+    tm_max_synapses_per_segment: int = 32
+    tm_permanence_increment: float = 0.008
+    tm_permanence_decrement: float = 0.012
+    tm_predicted_segment_decrement: float = 0.0
+    sv_descriptor_source: str = "tm"  # tm: TM winner cells (sequence memory); sp: SP columns (ablation)
+    sv_tm_window: int = 7
+    sv_tm_topk: int = 15
+    interval_mode: bool = True
+    theta_alpha: float = 0.65
+    theta_rho: int = 3
+    sv_tm_match_threshold: float = 0.30
+    sv_min_intersection: int = 12
+    sv_enable_f1_gate: bool = True
+    min_f1: float = 0.55
+    sv_use_iou_tiebreak: bool = True
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -147,6 +195,8 @@ def coerce(key: str, value: Any) -> Any:
             return int(value)
         if kind is float:
             return float(value.strip() if isinstance(value, str) else value)
+        if kind is str:
+            return str(value).strip()
     except (TypeError, ValueError) as err:
         msg = f"parameter {key!r}: {value!r} is not a valid {kind.__name__}"
         raise ConfigError(msg) from err
@@ -177,6 +227,9 @@ def _validate(p: Params) -> None:
                 "vt_active_decay", "pc_cells_to_avg", "min_event_trans_xy", "min_event_dz", "sync_stale_sec"):
         if getattr(p, key) < 0:
             fail(key, "must be ≥ 0")
+    for key in ("exp_robust_drift", "exp_robust_yaw_drift", "exp_robust_threshold"):
+        if not getattr(p, key) > 0:
+            fail(key, "must be > 0")
     if not 0 < p.exp_correction <= 1:
         fail("exp_correction", "must be in (0, 1]")
     if not 1 <= p.vpr_min_rep <= p.vpr_window:
@@ -185,7 +238,46 @@ def _validate(p: Params) -> None:
         fail("vpr_leak_rate", "must be ≥ 1")
     if p.merge_confirm < 1:
         fail("merge_confirm", "must be ≥ 1")
+    for key in ("merge_evidence_m", "merge_probation_m"):
+        if getattr(p, key) < 0 and getattr(p, key) != -1.0:
+            fail(key, "must be ≥ 0 metres, or -1 for the map's scale")
+    _validate_frontend(p, fail)
     for axis in ("x", "y"):
         lo, hi = getattr(p, f"image_crop_{axis}_min"), getattr(p, f"image_crop_{axis}_max")
         if lo < 0 or (hi != -1 and hi <= lo):
             fail(f"image_crop_{axis}_max", f"must be -1 or greater than image_crop_{axis}_min ({lo})")
+
+
+FRONTENDS = ("lvc", "sdr-htm")
+BACKBONES = ("none", "shufflenetv2", "alexnet")
+
+
+def _validate_frontend(p: Params, fail: typing.Callable[[str, str], None]) -> None:
+    """Check the neocortical front-end's keys (only their ranges; the module checks the weights file)."""
+    for key, allowed in (("frontend", FRONTENDS), ("frontend_backbone", BACKBONES),
+                         ("frontend_device", ("auto", "cpu", "cuda")), ("sv_descriptor_source", ("tm", "sp"))):
+        if getattr(p, key) not in allowed:
+            fail(key, f"must be one of {', '.join(allowed)}")
+    if p.lsbh_bits < 2 or p.lsbh_bits % 2:
+        fail("lsbh_bits", "must be an even number ≥ 2")
+    if not 0 < p.lsbh_s <= 0.5 or int(p.lsbh_s * (p.lsbh_bits // 2)) < 1:
+        fail("lsbh_s", "must be in (0, 0.5] and give k = floor(s·L/2) ≥ 1")
+    for key in ("sp_columns", "sp_num_active_columns", "sp_duty_cycle_period", "tm_cells_per_column",
+                "tm_activation_threshold", "tm_max_new_synapse_count", "sv_tm_window", "sv_tm_topk", "theta_rho"):
+        if getattr(p, key) < 1:
+            fail(key, "must be at least 1")
+    if p.sp_num_active_columns > p.sp_columns:
+        fail("sp_num_active_columns", f"must be ≤ sp_columns ({p.sp_columns})")
+    if not 0 <= p.tm_min_threshold <= p.tm_activation_threshold:
+        fail("tm_min_threshold", f"must be in 0..tm_activation_threshold ({p.tm_activation_threshold})")
+    if p.tm_max_synapses_per_segment < p.tm_max_new_synapse_count:
+        fail("tm_max_synapses_per_segment", f"must be ≥ tm_max_new_synapse_count ({p.tm_max_new_synapse_count})")
+    for key in ("sp_potential_pct", "sp_syn_perm_connected", "tm_initial_permanence", "tm_connected_permanence",
+                "theta_alpha", "sv_tm_match_threshold", "min_f1"):
+        if not 0 <= getattr(p, key) <= 1:
+            fail(key, "must be in [0, 1]")
+    for key in ("sp_potential_radius", "sp_syn_perm_active_inc", "sp_syn_perm_inactive_dec", "sp_boost_strength",
+                "tm_permanence_increment", "tm_permanence_decrement", "tm_predicted_segment_decrement",
+                "sv_min_intersection"):
+        if getattr(p, key) < 0:
+            fail(key, "must be ≥ 0")

@@ -70,6 +70,29 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
     }
 )
 
+# PoseidonSLAM with its neocortical front-end (thesis §4.2.2, Table 4.1; HTM values of Tables 4.1/5.1: SP
+# 2048 columns, 20 active, potential radius 600, inc/dec 0.006/0.008; TM 40 cells, activation 5, initial
+# 0.55, connected 0.5, 20 new synapses, inc/dec 0.008/0.012; descriptor window 7, top-15, θα 0.65, θρ 3;
+# gates I_min 12, τ_R 0.30, F1 0.55, IoU tie-break). Weight-free encoder unless frontend_backbone/weights
+# are given. A separate preset: "poseidon" keeps the LVC front-end its tests and figures were made with.
+_SDR_HTM = {"frontend": "sdr-htm"}
+# fjscoelho/ratslam config/neoslam_robotarium.yaml (OpenRatSLAM2's NeoSLAM run): its pose-cell and
+# experience-map keys; the neocortex (SDR/HTM, Table 5.1 values) replaces the intensity templates. The
+# template size feeds the weight-free encoder only (chosen by us: the file has no local-view keys).
+_NEOSLAM_YAML = {
+    "pc_dim_xy": 30, "pc_dim_th": 36, "pc_w_e_dim": 7, "pc_w_i_dim": 5, "pc_w_e_var": 1.0, "pc_w_i_var": 2.0,
+    "pc_global_inhib": 0.00002, "vt_active_decay": 1.0, "pc_vt_inject_energy": 0.15, "pc_cell_x_size": 1.0,
+    "exp_delta_pc_threshold": 2.0, "pc_vt_restore": 0.05, "exp_correction": 0.5, "exp_loops": 1,
+    "exp_initial_em_deg": 90.0,
+}
+PRESETS = MappingProxyType(
+    {
+        **PRESETS,
+        "poseidon-sdr": PRESETS["poseidon"].replace(**_SDR_HTM),
+        "neoslam": _DEFAULT.replace(**_NEOSLAM_YAML, **_SDR_HTM, template_x_size=64, template_y_size=24),
+    }
+)
+
 
 def preset(name: str) -> Params:
     """Return the preset called ``name``.

@@ -15,6 +15,7 @@ from mapserver.api.errors import install_error_handlers
 from mapserver.api.routes import health, jobs, maps, sessions
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
+from mapserver.api.viewer import install_viewer
 
 DESCRIPTION = """\
 Multisession RatSLAM map server. Upload mission logs (ROS 1/ROS 2 bags), follow their processing
@@ -64,4 +65,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     for module in (health, sessions, jobs, maps):
         app.include_router(module.router)
+    install_viewer(app)  # the web viewer at / and its routes (issue 16)
     return app

@@ -17,9 +17,13 @@ class ErrorPublic(BaseModel):
 
 
 class HealthPublic(BaseModel):
-    """``GET /healthz``."""
+    """``GET /healthz`` (``engine``, ``broker``, ``queue`` and ``workers`` only in distributed mode)."""
 
     status: Literal["ok"] = "ok"
+    engine: str | None = None
+    broker: str | None = Field(None, description="'ok' or 'unreachable: reason'")
+    queue: str | None = None
+    workers: list[str] | None = Field(None, description="workers that answered on the queue within 1 s")
 
 
 class UploadAccepted(BaseModel):
@@ -54,6 +58,17 @@ class JobPublic(BaseModel):
     finished_at: datetime | None
 
 
+class MapHealthPublic(BaseModel):
+    """A map's health: how well its active links agree (issue 12)."""
+
+    residual: float = Field(
+        description="RMS over the active links of residual / drift expected over one link length (≈0.5–1.2 consistent)"
+    )
+    worst: float = Field(default=0.0, description="the largest of those normalised residuals (over 3: inconsistent)")
+    switched_off: int = Field(description="links switched off by robust relaxation (stored, not used)")
+    links: int
+
+
 class MapSummaryPublic(BaseModel):
     """One map in ``GET /v1/maps``."""
 
@@ -62,6 +77,7 @@ class MapSummaryPublic(BaseModel):
     templates: int
     experiences: int
     links: int
+    health: MapHealthPublic | None = None
 
 
 class MapsPublic(BaseModel):
@@ -112,6 +128,7 @@ class MapPublic(BaseModel):
     templates: int
     experiences: int
     links: int
+    health: MapHealthPublic | None = None
     created_at: datetime
     updated_at: datetime
     params: dict[str, Any] = Field(description="the map's effective engine parameters")

@@ -24,6 +24,18 @@ from mapserver.store.tokens import LAST_USED_RESOLUTION_S, mark_token_used
 logger = logging.getLogger(__name__)
 
 
+def _job_engine(settings: Settings, db: Database) -> JobEngine:
+    """Return the job engine the settings name (``embedded`` threads, or ``celery`` workers)."""
+    if settings.jobs == "celery":
+        from mapserver.api.cluster import CeleryJobEngine
+
+        return CeleryJobEngine(db, broker_url=settings.broker_url, queue=settings.job_queue, lease_s=settings.lease_s)
+    return EmbeddedJobEngine(
+        db, db_url=settings.db_url, workers=settings.workers,
+        progress_interval_s=settings.progress_interval_s, max_attempts=settings.max_job_attempts,
+    )  # fmt: skip
+
+
 @dataclass
 class Services:
     """The server's long-lived objects (one per application)."""
@@ -46,10 +58,7 @@ class Services:
         db = open_database(settings.db_url)
         try:
             settings.uploads.mkdir(parents=True, exist_ok=True)
-            engine = EmbeddedJobEngine(
-                db, db_url=settings.db_url, workers=settings.workers,
-                progress_interval_s=settings.progress_interval_s, max_attempts=settings.max_job_attempts,
-            )  # fmt: skip
+            engine = _job_engine(settings, db)
             engine.start()
         except BaseException:
             db.dispose()

@@ -31,6 +31,11 @@ class Settings:
         progress_interval_s: a job writes its progress to the database at most this often.
         max_job_attempts: a job interrupted by a server stop this many times is failed instead of rerun.
         graph_cache_maps: how many maps' path graphs are kept in memory.
+        jobs: job engine, ``embedded`` (threads in this process) or ``celery`` (``mapserver worker``
+            processes; PostgreSQL only).
+        broker_url: Celery broker URL (``redis://…`` or ``amqp://…``; default the local Redis).
+        job_queue: the Celery queue the workers consume.
+        lease_s: the Celery workers' job lease (dispatch is repeated after twice this).
     """
 
     db_url: str = DEFAULT_DB_URL
@@ -45,6 +50,10 @@ class Settings:
     progress_interval_s: float = 0.5
     max_job_attempts: int = 3
     graph_cache_maps: int = 8
+    jobs: str = "embedded"
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    job_queue: str = "mapserver"
+    lease_s: float = 30.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -56,11 +65,19 @@ class Settings:
             "progress_interval_s": self.progress_interval_s >= 0,
             "max_job_attempts": self.max_job_attempts >= 1,
             "graph_cache_maps": self.graph_cache_maps >= 1,
+            "jobs": self.jobs in ("embedded", "celery"),
+            "lease_s": self.lease_s > 0,
         }
         for name, ok in checks.items():
             if not ok:
                 msg = f"invalid server setting {name}={getattr(self, name)!r}"
                 raise ConfigError(msg)
+        if self.jobs == "celery" and not self.db_url.startswith("postgresql"):
+            msg = (
+                f"--jobs celery needs a PostgreSQL database (--db postgresql+psycopg://...), got {self.db_url!r}: "
+                "workers on other machines cannot share a SQLite file"
+            )
+            raise ConfigError(msg)
 
     @property
     def uploads(self) -> Path:
@@ -83,14 +100,14 @@ class Settings:
 
         Variables: ``MAPSERVER_DB``, ``MAPSERVER_UPLOAD_DIR``, ``MAPSERVER_MAX_UPLOAD_BYTES``,
         ``MAPSERVER_MAX_UNPACKED_BYTES``, ``MAPSERVER_WORKERS``, ``MAPSERVER_ALLOW_ANONYMOUS_READS``
-        (1/true/yes), ``MAPSERVER_HOST``, ``MAPSERVER_PORT``.
+        (1/true/yes), ``MAPSERVER_HOST``, ``MAPSERVER_PORT``, ``MAPSERVER_JOBS``, ``MAPSERVER_BROKER``.
 
         Raises:
             ConfigError: a variable does not parse.
         """
         env = os.environ if environ is None else environ
         values: dict[str, object] = {}
-        text = {"DB": "db_url", "UPLOAD_DIR": "upload_dir", "HOST": "host"}
+        text = {"DB": "db_url", "UPLOAD_DIR": "upload_dir", "HOST": "host", "JOBS": "jobs", "BROKER": "broker_url"}
         numbers = {"MAX_UPLOAD_BYTES": "max_upload_bytes", "MAX_UNPACKED_BYTES": "max_unpacked_bytes",
                    "WORKERS": "workers", "PORT": "port"}  # fmt: skip
         for key, field in text.items():

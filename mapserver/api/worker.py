@@ -19,7 +19,7 @@ from mapserver import pipeline
 from mapserver.errors import MapServerError
 from mapserver.ingest import open_log
 from mapserver.params import resolve_params
-from mapserver.store import Database, find_map, find_session
+from mapserver.store import Database, StaleMapError, find_map, find_session
 from mapserver.store.jobs import JobRecord, set_job_progress
 
 logger = logging.getLogger(__name__)
@@ -31,11 +31,16 @@ class JobInterrupted(Exception):  # noqa: N818 - a control-flow signal, not an e
 
 @dataclass(frozen=True, slots=True)
 class JobOutcome:
-    """What a finished job produced: the session and map ids, or the one-line error."""
+    """What a finished job produced: the session and map ids, or the one-line error.
+
+    ``stale``: the error is the pipeline's last :class:`~mapserver.store.StaleMapError` (maps it may merge
+    into kept changing while it ran); running the job again may succeed.
+    """
 
     session_id: int | None = None
     map_id: int | None = None
     error: str | None = None
+    stale: bool = False
 
 
 class ProgressReporter:
@@ -121,7 +126,7 @@ def execute_job(
     except JobInterrupted:
         raise
     except MapServerError as err:
-        return JobOutcome(error=str(err).replace(str(log_path.parent) + "/", ""))
+        return JobOutcome(error=str(err).replace(str(log_path.parent) + "/", ""), stale=isinstance(err, StaleMapError))
     except Exception as err:
         logger.exception("job %d failed unexpectedly", job.id)
         return JobOutcome(error=f"internal error ({type(err).__name__}): {err}")

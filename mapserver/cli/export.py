@@ -1,4 +1,4 @@
-"""``mapserver export --db URL --map NAME --format json|tum|png --out FILE``: write a stored map."""
+"""``mapserver export --db URL --map NAME --format json|tum|png|g2o|csv --out FILE``: write a stored map."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ from mapserver.store.export import EXPORT_FORMATS, export_map
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add the ``export`` command."""
-    parser = subparsers.add_parser("export", help="write a stored map as map JSON, TUM poses or a PNG plot")
+    parser = subparsers.add_parser(
+        "export", help="write a stored map as map JSON, TUM poses, a PNG plot, a g2o pose graph or CSV tables"
+    )
     parser.add_argument("--db", default=DEFAULT_DB_URL, help=f"SQLAlchemy URL (default: {DEFAULT_DB_URL})")
     parser.add_argument("--map", dest="map_name", required=True, help="the stored map")
     parser.add_argument("--format", dest="fmt", required=True, choices=EXPORT_FORMATS)
@@ -25,6 +27,8 @@ def run(args: argparse.Namespace) -> int:
     with open_database(args.db) as db:
         result = export_map(db, name=args.map_name, fmt=args.fmt, out=args.out)
     info(f"wrote map {args.map_name!r} ({result['experiences']} experiences) as {args.fmt} to {args.out}")
+    if "links_out" in result:
+        info(f"wrote its links to {result['links_out']}")
     if args.json:
         emit_json(result)
     return 0

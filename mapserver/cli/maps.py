@@ -28,7 +28,10 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("no maps\n")
         return 0
     width = max(4, *(len(m.name) for m in maps))
-    sys.stdout.write(f"{'name':<{width}}  sessions  templates  experiences    links\n")
+    sys.stdout.write(f"{'name':<{width}}  sessions  templates  experiences    links  residual  off\n")
     for m in maps:
-        sys.stdout.write(f"{m.name:<{width}}  {m.sessions:>8}  {m.templates:>9}  {m.experiences:>11}  {m.links:>7}\n")
+        health = f"{m.health['residual']:>8.2f}  {m.health['switched_off']:>3}" if m.health else f"{'-':>8}  {'-':>3}"
+        sys.stdout.write(
+            f"{m.name:<{width}}  {m.sessions:>8}  {m.templates:>9}  {m.experiences:>11}  {m.links:>7}  {health}\n"
+        )
     return 0

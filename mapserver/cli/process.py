@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from core import ConfigError
 from mapserver import pipeline
 from mapserver.cli._output import emit_json, info
 from mapserver.cli._progress import progress_bar
 from mapserver.errors import InputError
 from mapserver.ingest.topics import parse_topics_arg
-from mapserver.params import resolve_params
+from mapserver.params import resolve_params, with_frontend
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -30,9 +31,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="consecutive matching frames that confirm a merge (default: the parameters' merge_confirm; 1 = paper)",
     )  # fmt: skip
     parser.add_argument(
+        "--merge-evidence", type=float, metavar="M",
+        help="metres of net agreeing views a merge needs (parameter merge_evidence_m; -1: the map's scale; "
+        "0: --confirm matches alone, the paper's trigger)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--merge-probation", type=float, metavar="M",
+        help="metres a merge keeps verifying itself before it stands (parameter merge_probation_m; -1: the "
+        "map's scale; 0: no verification)",
+    )  # fmt: skip
+    parser.add_argument(
         "--merge-no-shift", action="store_true",
         help="DEBUG: merge without operation (iii), the pose-cell lattice shift (Menezes et al. Fig. 12)",
     )  # fmt: skip
+    parser.add_argument("--backbone", choices=("none", "shufflenetv2", "alexnet"),
+                        help="CNN of the sdr-htm front-end (none: the weight-free encoder)")
+    parser.add_argument("--weights", help="torchvision state-dict file of the --backbone (never downloaded)")
     parser.add_argument("--stop-after", type=int, help="process only this many frames (resume later with --db)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line of stdout")
     parser.set_defaults(func=run)
@@ -44,7 +58,17 @@ def run(args: argparse.Namespace) -> int:
     if not log.exists():
         msg = f"log not found: {str(log)!r}"
         raise InputError(msg)
-    params = resolve_params(args.preset, args.config, log)
+    params = with_frontend(resolve_params(args.preset, args.config, log), args.backbone, args.weights)
+    overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if overrides:
+        if not args.db:
+            msg = "--merge-evidence and --merge-probation need --db (merging is into stored maps)"
+            raise InputError(msg)
+        try:
+            params = params.replace(**overrides)
+        except ConfigError as err:
+            raise InputError(str(err)) from err
     topics = parse_topics_arg(args.topics) if args.topics else None
     if args.map_name and not args.db:
         msg = "--map needs --db"

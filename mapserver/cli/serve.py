@@ -1,4 +1,4 @@
-"""``mapserver serve [--db URL] [--host H] [--port P]``: run the REST API with uvicorn."""
+"""``mapserver serve [--db URL] [--host H] [--port P] [--jobs embedded|celery --broker URL]``: run the REST API."""
 
 from __future__ import annotations
 
@@ -23,6 +23,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--upload-dir", type=Path, help="where uploads are kept (default: uploads/ beside the DB)")
     parser.add_argument("--max-upload-bytes", type=int,
                         help=f"largest accepted upload (default: {defaults.max_upload_bytes})")  # fmt: skip
+    parser.add_argument("--jobs", choices=("embedded", "celery"),
+                        help="job engine: threads in this process, or `mapserver worker` processes (PostgreSQL only)")
+    parser.add_argument("--broker", help=f"Celery broker URL for --jobs celery (default: {defaults.broker_url})")
+    parser.add_argument("--queue", help=f"Celery queue of the workers (default: {defaults.job_queue})")
+    parser.add_argument("--lease-seconds", type=float, help=f"workers' job lease (default: {defaults.lease_s})")
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"),
                         help="server log level (default: info)")  # fmt: skip
     parser.set_defaults(func=run)
@@ -35,11 +40,13 @@ def run(args: argparse.Namespace) -> int:
     settings = Settings.from_env().with_overrides(
         db_url=args.db, host=args.host, port=args.port, allow_anonymous_reads=args.allow_anonymous_reads,
         workers=args.workers, upload_dir=args.upload_dir, max_upload_bytes=args.max_upload_bytes,
+        jobs=args.jobs, broker_url=args.broker, job_queue=args.queue, lease_s=args.lease_seconds,
     )  # fmt: skip
     with open_database(settings.db_url) as db:  # fail here, with one ERROR line, on a bad or old database
         url = db.display_url()
     reads = "anonymous reads allowed" if settings.allow_anonymous_reads else "reads need a token"
-    info(f"serving {url} on http://{settings.host}:{settings.port} ({reads}; docs at /docs)")
+    jobs = f"jobs on Celery workers, queue {settings.job_queue!r}" if settings.jobs == "celery" else "embedded jobs"
+    info(f"serving {url} on http://{settings.host}:{settings.port} ({reads}; {jobs}; docs at /docs)")
     uvicorn.run(
         create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
         timeout_graceful_shutdown=30,

@@ -37,6 +37,7 @@ TOPIC_KEYS = ("image", "odometry", "ground_truth")
 TRUTH_WORDS = ("ground_truth", "groundtruth", "truth", "overhead", "mocap", "vicon")
 TRUTH_TOKENS = ("gt",)
 _OFF_VALUES = frozenset({"", "none"})
+NO_CAMERA = "no camera topic: process needs sensor_msgs/Image or CompressedImage"
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,10 +140,10 @@ def _override(
     return value
 
 
-def map_topics(
+def choose_topics(
     topics: Sequence[TopicInfo], overrides: Mapping[str, str] | None = None, *, source: str = "log"
-) -> TopicMapping:
-    """Choose the image, odometry and ground-truth topics (rule in the module docstring).
+) -> dict[str, str | None]:
+    """Choose the image, odometry and ground-truth topics (rule in the module docstring); None = no such topic.
 
     Args:
         topics: the topics of the log.
@@ -150,10 +151,10 @@ def map_topics(
         source: the log's path, used in error messages.
 
     Returns:
-        The mapping.
+        ``{"image", "odometry", "ground_truth"}``, each a topic name or None (``image`` None: no camera).
 
     Raises:
-        IngestError: unknown key, topic not in the log or of the wrong type, or no usable camera topic.
+        IngestError: unknown key, or a topic not in the log or of the wrong type.
 
     """
     overrides = dict(overrides or {})
@@ -174,11 +175,24 @@ def map_topics(
     }
     for key, value in overrides.items():
         chosen[key] = _override(key, value, by_name, allowed[key], source)
+    return chosen
+
+
+def map_topics(
+    topics: Sequence[TopicInfo], overrides: Mapping[str, str] | None = None, *, source: str = "log"
+) -> TopicMapping:
+    """Choose the topics ``process`` reads (:func:`choose_topics`), requiring a camera topic with messages.
+
+    Raises:
+        IngestError: unknown key, topic not in the log or of the wrong type, or no usable camera topic.
+
+    """
+    chosen = choose_topics(topics, overrides, source=source)
     image = chosen["image"]
     if image is None:
-        msg = f"{source}: no usable camera topic (sensor_msgs/msg/Image or CompressedImage with messages)"
+        msg = f"{source}: {NO_CAMERA} (none with messages in this log; 'mapserver inspect' lists its topics)"
         raise IngestError(msg)
-    if by_name[image].count == 0:
+    if next(t.count for t in topics if t.name == image) == 0:
         msg = f"{source}: camera topic {image!r} has no messages"
         raise IngestError(msg)
     return TopicMapping(image=image, odometry=chosen["odometry"], ground_truth=chosen["ground_truth"])

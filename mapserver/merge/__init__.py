@@ -10,7 +10,9 @@ Public surface::
 
 Modules: ``se3`` (4-DoF pose algebra), ``lattice`` (pose-cell lattice transform),
 ``record`` (Match, MergeRecord), ``snapshot`` (schema checks), ``states`` (merge_states),
-``engines`` (engine-level merge), ``confirm`` (confirmation rule), ``online`` (driver),
+``engines`` (engine-level merge), ``confirm`` (match observations, the offline confirmation rule),
+``hypotheses`` (the online merge decision), ``verify`` (probation and rollback), ``online`` (driver),
+``resume`` (the driver's state between runs),
 ``offline`` (search and merge of two stored maps).
 """
 
@@ -18,7 +20,7 @@ from mapserver.merge.confirm import Observation, Streak
 from mapserver.merge.engines import StoredMap, merge_engine, merge_snapshots, restore_merged
 from mapserver.merge.lattice import LatticeTransform
 from mapserver.merge.offline import find_match, merge_maps
-from mapserver.merge.online import MergeEvent, OnlineMerger, default_position_tolerance
+from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback, default_position_tolerance
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.states import merge_states
 
@@ -29,6 +31,7 @@ __all__ = [
     "MergeRecord",
     "Observation",
     "OnlineMerger",
+    "Rollback",
     "StoredMap",
     "Streak",
     "default_position_tolerance",

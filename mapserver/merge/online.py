@@ -4,34 +4,37 @@ Usage (what ``pipeline.py`` does)::
 
     merger = OnlineMerger([StoredMap(key, params, state), ...])
     engine = Engine(params, origin=tag)   # the session's origin tag (the store: its id, or 0 until it has one)
-    for image, motion, stamp in frames:
-        result = engine.step(image, motion, stamp)
-        event = merger.observe(engine, result)
-        if event is not None:          # store event.record; continue in the merged engine
+    for frame in frames:
+        result = engine.step(frame.image, frame.motion, frame.stamp_ns * 1e-9)
+        event = merger.observe(engine, result, frame)
+        if isinstance(event, MergeEvent):   # a merge: continue in the merged engine
+            engine = event.engine
+        elif isinstance(event, Rollback):   # its verification failed: continue as the session's own map
             engine = event.engine
 
 After every frame the current view (``engine.local_view.last_view``) is matched against
 every candidate stored map's templates with the engine's own matcher
-(``LocalViewCells.match`` with the match threshold as its limit, as the engine itself asks:
-same thresholds, vectorised over templates, pairs that cannot match pruned). A merge needs the
-confirmation of :mod:`mapserver.merge.confirm` (K consecutive agreeing frames, K from
-``Params.merge_confirm`` unless given; K = 1 is the paper). Then the session's engine is
-merged into that map (:func:`mapserver.merge.engines.merge_engine`), mapping continues in the
-merged engine, and that map is no longer a candidate. The session may later merge again into
-another stored map: the merged engine (session plus the first map) is then the partial map
-and the second map the loaded one, so one session bridging two maps joins them into one.
+(``LocalViewCells.match`` with the match threshold as its limit). Matches propose alignments;
+the merge decision weighs them as competing hypotheses with a sequential test over distance
+travelled (:mod:`mapserver.merge.hypotheses`): a merge needs one alignment to clearly beat all
+others and "no merge" over ``merge_evidence_m`` metres. Then the session's engine is merged
+into that map (:func:`mapserver.merge.engines.merge_engine`), mapping continues in the merged
+engine, and the merge verifies itself for ``merge_probation_m`` metres
+(:mod:`mapserver.merge.verify`); a contradiction rolls it back (:class:`Rollback`). No other
+merge is decided during a probation. The session may later merge into another stored map: the
+merged engine (session plus the first map) is then the partial map and the second map the
+loaded one, so one session bridging two maps joins them into one.
 
-Known start (Menezes et al. scenario i): a session that starts at a mapped place confirms
-its match within its first K frames; every template and experience it has made by then
-lies inside the confirmation window and is identified with the stored one, so the merge
-leaves the stored map as it was, with the robot at the matched experience, and the session
-maps on from there: no separate partial map remains.
+Known start (Menezes et al. scenario i): a session that starts at a mapped place wins its
+hypothesis after ``merge_evidence_m`` metres; every template it made by then is paired with a
+stored one (the hypothesis's support), so the merge identifies them and no separate partial
+map remains.
 
 Resume: :meth:`OnlineMerger.export_state` returns what the driver carries from frame to frame
-(the session's odometry, the maps absorbed, the running confirmation streaks) as a
+(the session's odometry, the maps absorbed, the recent track, the hypotheses) as a
 :class:`MergerState`; ``OnlineMerger(..., resume=state)`` continues from it, so a session
-stopped after frame k and continued gives the merges of one run (the caller drops the streaks
-of maps that changed in between: :meth:`MergerState.without`).
+stopped after frame k and continued gives the merges of one run. A probation still running when
+the session stops ends there (its merge stays, recorded with verification ``incomplete``).
 """
 
 from __future__ import annotations
@@ -39,21 +42,25 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from core import Engine, StepResult
 from core.localview import LocalViewCells
-from mapserver.merge.confirm import Observation, Streak
+from mapserver.merge.confirm import Observation
 from mapserver.merge.engines import StoredMap, merge_engine
+from mapserver.merge.hypotheses import EvidenceRule, Hypothesis, HypothesisSet, StoredPlaces, Track, decide
 from mapserver.merge.record import Match, MergeRecord
+from mapserver.merge.resume import MergerState
 from mapserver.merge.se3 import compose, relative
 from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
+from mapserver.merge.verify import PASSED, REJECTED, Probation
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_YAW_TOLERANCE = 0.5
-"""Radians between a match's heading and the heading the streak's odometry predicts."""
+"""Radians between a match's heading and the heading a hypothesis predicts."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,15 +71,17 @@ class MergeEvent:
         key: the stored map merged into (the loaded map).
         engine: the merged engine; the session continues in it.
         record: what the merge did (:class:`MergeRecord`).
-        frame: the session frame that confirmed the merge.
+        frame: the session frame that decided the merge.
         stamp: its log time (s).
         absorbed: keys of stored maps already merged into the session before this merge
             (they are part of the partial map here).
-        match: the confirmed correspondence the merge applied (re-applying it to the same two
-            states gives the same merged state: redo).
+        match: the correspondence the merge applied (re-applying it to the same two states
+            gives the same merged state: redo).
         partial: the session's engine snapshot right before the merge (the partial map; an
             undo restores it).
         odometry: (4,) the driver's odometry pose of the session at the frame (x, y, z, yaw).
+        evidence: the decision's figures (the winner's hits and misses, the best rival's score,
+            the rule) and, once known, ``verification`` (:meth:`Probation.evidence`).
     """
 
     key: object
@@ -84,6 +93,24 @@ class MergeEvent:
     match: Match | None = None
     partial: Mapping[str, np.ndarray] | None = field(default=None, repr=False)
     odometry: np.ndarray | None = field(default=None, repr=False)
+    evidence: dict[str, Any] = field(default_factory=dict, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class Rollback:
+    """A merge rolled back by its own verification: the session continues in ``engine`` (its own map).
+
+    Attributes:
+        event: the merge rolled back (its ``evidence["verification"]`` says why).
+        engine: the session's engine as if the merge had never happened.
+        frame: the frame that contradicted the merge.
+        created: experiences ``engine`` made during the probation: (id, stamp, camera image).
+    """
+
+    event: MergeEvent
+    engine: Engine
+    frame: int
+    created: tuple[tuple[int, float, Any], ...] = field(default=(), repr=False)
 
 
 @dataclass(eq=False)
@@ -92,39 +119,45 @@ class _Candidate:
     cells: LocalViewCells
     order: np.ndarray
     starts: np.ndarray
-    poses: np.ndarray
-    streak: Streak
-    matched_frames: int = field(default=0)
+    hypotheses: HypothesisSet
 
 
-def default_position_tolerance(stored: StoredMap) -> float:
-    """Return 3× the median odometry-link length of a stored map (its experience spacing), metres.
+def map_spacing(stored: StoredMap) -> float:
+    """Return the median odometry-link length of a stored map (its experience spacing), metres.
 
-    A view matches a template over about one experience spacing, so agreeing matches may
-    differ by that much; a map without links falls back to 2× the experience threshold in metres.
+    A map without links falls back to the experience threshold in metres.
     """
     kind = np.asarray(stored.state["em_link_kind"])
     distance = np.asarray(stored.state["em_link_distance"], dtype=np.float64)[kind == 0]
     distance = distance[distance > 0]
     p = stored.params
-    floor = 2.0 * p.exp_delta_pc_threshold * p.pc_cell_x_size
-    if distance.size == 0:
-        return floor
-    return max(3.0 * float(np.median(distance)), 0.5 * floor)
+    floor = p.exp_delta_pc_threshold * p.pc_cell_x_size
+    return floor if distance.size == 0 else max(float(np.median(distance)), 0.25 * floor)
+
+
+def default_position_tolerance(stored: StoredMap) -> float:
+    """Return 3× the experience spacing of a stored map (:func:`map_spacing`), metres.
+
+    A view matches a template over about one experience spacing, so agreeing matches may
+    differ by that much.
+    """
+    return 3.0 * map_spacing(stored)
 
 
 class OnlineMerger:
-    """Merges a running session into the stored maps it connects to.
+    """Merges a running session into the stored maps it connects to (see the module docstring).
 
     Args:
         stored: the candidate stored maps (maps whose parameters cannot merge with the
             session's are skipped, see :attr:`skipped`).
-        confirm: K, consecutive agreeing frames needed; None → the session's ``Params.merge_confirm``.
+        confirm: K, supporting matches a winning hypothesis needs; None → ``Params.merge_confirm``.
         shift_lattice: False disables operation (iii) (debug, the paper's Fig. 12).
         position_tolerance: metres; None → :func:`default_position_tolerance` per map.
         yaw_tolerance: radians (default :data:`DEFAULT_YAW_TOLERANCE`).
         resume: the driver's state after an earlier part of the same session
-            (:meth:`export_state`); streaks of maps not among ``stored`` are ignored.
+            (:meth:`export_state`); hypotheses of maps not among ``stored`` are ignored.
+        evidence_m, probation_m: metres (None → ``Params.merge_evidence_m`` / ``merge_probation_m``;
+            −1 → the stored map's scale; 0 → K matches decide / no verification).
     """
 
     def __init__(
@@ -136,17 +169,26 @@ class OnlineMerger:
         position_tolerance: float | None = None,
         yaw_tolerance: float = DEFAULT_YAW_TOLERANCE,
         resume: MergerState | None = None,
+        evidence_m: float | None = None,
+        probation_m: float | None = None,
     ) -> None:
         self._stored = list(stored)
         self._confirm = confirm
         self.shift_lattice = shift_lattice
         self._position_tolerance = position_tolerance
         self._yaw_tolerance = yaw_tolerance
+        self._evidence_m = evidence_m
+        self._probation_m = probation_m
         self._candidates: list[_Candidate] | None = None
+        self._before_merge: list[_Candidate] = []
         self.skipped: dict[object, str] = {}
         self.absorbed: list[object] = []
         self.events: list[MergeEvent] = []
+        self.rollbacks: list[Rollback] = []
+        self.probation: Probation | None = None
+        self._probation_event: MergeEvent | None = None
         self._odometry = np.zeros(4)
+        self._track = Track(0.0)
         self._resume: MergerState | None = resume
         if resume is not None:
             self._odometry = np.asarray(resume.odometry, dtype=np.float64).copy()
@@ -159,8 +201,15 @@ class OnlineMerger:
             return [s.key for s in self._stored if s.key not in self.skipped]
         return [c.stored.key for c in self._candidates]
 
+    def _rule(self, stored: StoredMap, params: Any) -> EvidenceRule:
+        tolerance = self._position_tolerance
+        if tolerance is None:
+            tolerance = default_position_tolerance(stored)
+        evidence = params.merge_evidence_m if self._evidence_m is None else self._evidence_m
+        probation = params.merge_probation_m if self._probation_m is None else self._probation_m
+        return EvidenceRule.for_map(map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation)
+
     def _prepare(self, engine: Engine) -> list[_Candidate]:
-        needed = self._confirm if self._confirm is not None else engine.params.merge_confirm
         candidates: list[_Candidate] = []
         for stored in self._stored:
             reason = params_incompatibility(stored.params, engine.params)
@@ -170,91 +219,86 @@ class OnlineMerger:
                 continue
             state = stored.state
             templates = np.asarray(state["em_template"], dtype=np.int64)
-            n_templates = int(np.shape(state["lv_means"])[0])
-            order, starts = experiences_by_template(templates, n_templates)
-            tolerance = self._position_tolerance
-            if tolerance is None:
-                tolerance = default_position_tolerance(stored)
-            candidates.append(
-                _Candidate(
-                    stored=stored,
-                    cells=LocalViewCells.restore(engine.params, state),  # the session's matcher
-                    order=order,
-                    starts=starts,
-                    poses=np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4),
-                    streak=Streak(needed, tolerance, self._yaw_tolerance),
-                )
+            order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
+            cells = LocalViewCells.restore(engine.params, state)  # the session's matcher
+            rule = self._rule(stored, engine.params)
+            poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
+            places = StoredPlaces(
+                cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic, rule
             )
+            candidates.append(_Candidate(stored, cells, order, starts, HypothesisSet(places, rule)))
+        self._track.keep_m = max((c.hypotheses.rule.history_m for c in candidates), default=0.0)
         if self._resume is not None:
-            for candidate in candidates:
-                entries, neutral, matched = self._resume.streaks.get(candidate.stored.key, ((), (), 0))
-                candidate.streak.entries = list(entries)
-                candidate.streak.neutral = list(neutral)
-                candidate.matched_frames = matched
+            self._resume.restore_into(candidates, self._track)
             self._resume = None
         return candidates
 
-    def observe(self, engine: Engine, result: StepResult) -> MergeEvent | None:
-        """Match the frame just processed against the candidates; merge when one is confirmed.
+    def observe(self, engine: Engine, result: StepResult, frame: Any = None) -> MergeEvent | Rollback | None:
+        """Match the frame just processed against the candidates; merge, verify or roll back.
 
         Args:
             engine: the session's engine right after ``engine.step`` (partial or already merged).
-            result: what that step returned (its motion feeds the confirmation's odometry).
+            result: what that step returned (its motion feeds the driver's odometry).
+            frame: the frame itself (``image``, ``motion``, ``stamp_ns``): needed while a merge is on
+                probation, to step the session's engine without the merge.
 
         Returns:
-            The merge made at this frame (continue in ``event.engine``), or None.
+            The merge made at this frame (continue in ``event.engine``), a :class:`Rollback`
+            (continue in ``rollback.engine``), or None.
         """
         if self._candidates is None:
             self._candidates = self._prepare(engine)
         m = result.motion
-        self._odometry = compose(self._odometry, np.array([m.dx, m.dy, m.dz, m.dyaw]))
+        step = np.array([m.dx, m.dy, m.dz, m.dyaw])
+        self._odometry = compose(self._odometry, step)
         view = engine.local_view.last_view
-        if view is None or not self._candidates:
+        if view is None:
+            return None
+        moved = float(np.linalg.norm(step[:3]))
+        self._track.add(result.frame, self._odometry, moved, view, engine.local_view.last_mean)
+        if self.probation is not None:
+            return self._verify(result, frame)
+        if not self._candidates:
             return None
         threshold = engine.params.vt_match_threshold
-        confirmed: list[_Candidate] = []
         for candidate in self._candidates:
-            u, error, relative = candidate.cells.match(view, engine.local_view.last_mean, limit=threshold)
-            if u < 0 or error > threshold:
-                candidate.streak.reset()
-                continue
-            candidate.matched_frames += 1
-            observation = self._observation(candidate, engine, result.frame, u, error, relative)
-            if candidate.streak.add(observation):
-                confirmed.append(candidate)
-        if not confirmed:
+            u, error, rel = candidate.cells.match(view, engine.local_view.last_mean, limit=threshold)
+            found = None
+            if u >= 0 and error <= threshold:
+                found = self._observation(candidate, engine, result.frame, u, error, rel)
+            candidate.hypotheses.update(self._track, found, u if error <= threshold else -1)
+        needed = self._confirm if self._confirm is not None else engine.params.merge_confirm
+        decision = decide({c.stored.key: c.hypotheses for c in self._candidates}, needed)
+        if decision is None:
             return None
-        chosen = max(confirmed, key=lambda c: (len(c.streak.entries), -c.streak.best.error))
-        return self._merge(chosen, engine, result)
+        key, winner, rival = decision
+        chosen = next(c for c in self._candidates if c.stored.key == key)
+        return self._merge(chosen, winner, rival, engine, result, frame)
 
     def _observation(
-        self, candidate: _Candidate, engine: Engine, frame: int, u: int, error: float, relative: float
+        self, candidate: _Candidate, engine: Engine, frame: int, u: int, error: float, rel: float
     ) -> Observation:
+        """Return the frame's match of stored template u (its experience: the one a hypothesis expects)."""
         mine = candidate.order[candidate.starts[u] : candidate.starts[u + 1]]
+        places = candidate.hypotheses.places
         experience = -1
         if mine.size == 1:
             experience = int(mine[0])
         elif mine.size > 1:
-            predicted = candidate.streak.predict(self._odometry)
-            if predicted is None:
+            predictions = [h.predict(self._odometry) for h in candidate.hypotheses.hypotheses]
+            if not predictions:
                 experience = int(mine[0])
             else:
-                gap = np.linalg.norm(candidate.poses[mine, :3] - predicted[:3], axis=1)
-                experience = int(mine[int(np.argmin(gap))])
+                gaps = [np.linalg.norm(places.poses[mine, :3] - p[:3], axis=1) for p in predictions]
+                experience = int(mine[int(np.argmin(np.min(gaps, axis=0)))])
         seen = np.zeros(4)
         if experience >= 0:
-            seen = compose(candidate.poses[experience], np.array([0.0, 0.0, 0.0, relative]))
+            seen = compose(places.poses[experience], np.array([0.0, 0.0, 0.0, rel]))
         return Observation(
-            frame=frame,
-            stored_template=u,
-            stored_experience=experience,
-            error=float(error),
-            relative_rad=float(relative),
-            partial_template=int(engine.local_view.current),
-            odometry=self._odometry.copy(),
-            packet=engine.pose_cells.best.copy(),
-            seen=seen,
-        )
+            frame=frame, stored_template=u, stored_experience=experience, error=float(error), relative_rad=float(rel),
+            partial_template=int(engine.local_view.current), odometry=self._odometry.copy(),
+            packet=engine.pose_cells.best.copy(), seen=seen,
+        )  # fmt: skip
 
     def _robot_pose(self, engine: Engine, odometry_then: np.ndarray) -> np.ndarray:
         """Return the robot's pose at an earlier frame in the session map's frame (via odometry since)."""
@@ -266,132 +310,103 @@ class OnlineMerger:
         now = np.array([base[0] + a[0], base[1] + a[1], base[2] + a[2], a[3]])
         return compose(now, relative(self._odometry, odometry_then))
 
-    def _merge(self, candidate: _Candidate, engine: Engine, result: StepResult) -> MergeEvent:
-        streak = candidate.streak
-        anchor = streak.best
+    def _merge(
+        self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult, frame: Any
+    ) -> MergeEvent:
+        """Apply Algorithm 1 with the winning hypothesis's anchor and pairs; start its probation."""
+        anchor = winner.anchor
         pose = self._robot_pose(engine, anchor.odometry)
         match = Match(
-            stored_template=anchor.stored_template,
-            stored_experience=anchor.stored_experience,
-            partial_template=anchor.partial_template,
-            partial_pose=(float(pose[0]), float(pose[1]), float(pose[2]), float(pose[3])),
-            partial_packet=tuple(float(v) for v in anchor.packet),
-            relative_rad=anchor.relative_rad,
-            confirmations=len(streak.entries),
-            pairs=streak.pairs(),
-        )
+            stored_template=anchor.stored_template, stored_experience=anchor.stored_experience,
+            partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),  # type: ignore[arg-type]
+            partial_packet=tuple(float(v) for v in anchor.packet), relative_rad=anchor.relative_rad,
+            confirmations=len(winner.support), pairs=winner.pairs(),
+        )  # fmt: skip
         partial = engine.snapshot()
         merged, record = merge_engine(
             candidate.stored, engine, match, shift_lattice=self.shift_lattice, partial=partial
         )
+        rule = candidate.hypotheses.rule
+        evidence = {
+            "decision": {**winner.evidence(rule), "rival_score_m": round(rival, 3)},
+            "rule": {"evidence_m": round(rule.evidence_m, 3), "probation_m": round(rule.probation_m, 3),
+                     "reject_m": round(rule.reject_m, 3), "position_tolerance_m": round(rule.position_tolerance, 3),
+                     "miss_weight": rule.miss_weight},
+            "distance_m": round(self._track.distance, 3),
+        }  # fmt: skip
         event = MergeEvent(
-            key=candidate.stored.key,
-            engine=merged,
-            record=record,
-            frame=result.frame,
-            stamp=float(engine.last_stamp),
-            absorbed=tuple(self.absorbed),
-            match=match,
-            partial=partial,
-            odometry=self._odometry.copy(),
-        )
+            key=candidate.stored.key, engine=merged, record=record, frame=result.frame,
+            stamp=float(engine.last_stamp), absorbed=tuple(self.absorbed), match=match, partial=partial,
+            odometry=self._odometry.copy(), evidence=evidence,
+        )  # fmt: skip
         logger.info(
-            "merged into map %r at frame %d (%d confirmations, %d templates, %d experiences)",
-            candidate.stored.key, result.frame, record.confirmations, record.templates, record.experiences,
-        )
+            "merged into map %r at frame %d (%.2f m of evidence, rival %.2f m, %d templates, %d experiences)",
+            candidate.stored.key, result.frame, winner.score(rule.miss_weight), rival, record.templates,
+            record.experiences,
+        )  # fmt: skip
         self.absorbed.append(candidate.stored.key)
         self.events.append(event)
+        self._before_merge = list(self._candidates or [])
         self._candidates = [c for c in self._candidates or [] if c is not candidate]
         for other in self._candidates:  # their pairs and packets refer to the engine before the merge
-            other.streak.reset()
+            other.hypotheses.hypotheses.clear()
+        if rule.probation_m > 0:
+            if frame is None:
+                msg = "a merge on probation needs the frames: call observe(engine, result, frame)"
+                raise ValueError(msg)
+            n_loaded = int(np.shape(candidate.stored.state["em_pose"])[0])
+            self.probation = Probation(
+                candidate.stored.key, winner, candidate.hypotheses, engine, self._track.distance, n_loaded
+            )
+            self._probation_event = event
         return event
+
+    def _verify(self, result: StepResult, frame: Any) -> Rollback | None:
+        """Step the probation; pass (drop the shadow) or roll the merge back."""
+        probation = self.probation
+        assert probation is not None
+        if frame is None:
+            msg = "a merge on probation needs the frames: call observe(engine, result, frame)"
+            raise ValueError(msg)
+        verdict = probation.step(self._track, result, frame)
+        if verdict is None:
+            return None
+        event = self._probation_event
+        assert event is not None
+        event.evidence["verification"] = probation.evidence(self._track, verdict)
+        self.probation = None
+        if verdict == PASSED:
+            logger.info("merge into map %r verified over %.2f m", event.key, self._track.distance - probation.start_m)
+            return None
+        assert verdict == REJECTED
+        logger.warning("merge into map %r rolled back at frame %d: %s", event.key, result.frame, probation.reason)
+        self.absorbed.pop()
+        self.events.remove(event)
+        self._candidates = self._before_merge
+        for candidate in self._candidates:
+            candidate.hypotheses.hypotheses.clear()
+        probation.hset.ban(probation.hypothesis)
+        rollback = Rollback(event, probation.shadow, result.frame, tuple(probation.created))
+        self.rollbacks.append(rollback)
+        return rollback
+
+    def finish(self) -> None:
+        """End a probation still running (the log ended or the session stops): its merge stays, unverified."""
+        if self.probation is not None and self._probation_event is not None:
+            self._probation_event.evidence["verification"] = self.probation.evidence(self._track, "incomplete")
+            self.probation = None
 
     # ------------------------------------------------------------------ resume
     def export_state(self) -> MergerState:
         """Return what the driver carries to the next frame (see the module docstring, "Resume")."""
-        streaks: dict[object, tuple[tuple[Observation, ...], tuple[Observation, ...], int]] = {}
+        self.finish()
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:
-                if c.streak.entries or c.streak.neutral or c.matched_frames:
-                    streaks[c.stored.key] = (tuple(c.streak.entries), tuple(c.streak.neutral), c.matched_frames)
+                hset = c.hypotheses
+                if hset.hypotheses or hset.banned:
+                    hypotheses[c.stored.key] = (tuple(hset.hypotheses), tuple(hset.banned))
         elif self._resume is not None:
-            streaks = dict(self._resume.streaks)
-        return MergerState(self._odometry.copy(), tuple(self.absorbed), streaks)
-
-
-_FIXED_COLUMNS = 16  # key, kind, frame, template, experience, error, relative, partial template, odometry (4), seen (4)
-
-
-@dataclass(frozen=True, eq=False)
-class MergerState:
-    """The online driver's state between two frames, for resuming a session later.
-
-    Attributes:
-        odometry: (4,) the session's odometry pose so far (x, y, z, yaw).
-        absorbed: keys of the maps merged so far.
-        streaks: stored-map key → (streak entries, neutral observations, frames that matched the map).
-    """
-
-    odometry: np.ndarray
-    absorbed: tuple[object, ...] = ()
-    streaks: Mapping[object, tuple[tuple[Observation, ...], tuple[Observation, ...], int]] = field(
-        default_factory=dict
-    )
-
-    def without(self, keys: Sequence[object]) -> MergerState:
-        """Return the state with the streaks of these maps dropped (maps that changed since)."""
-        gone = set(keys)
-        return MergerState(self.odometry, self.absorbed, {k: v for k, v in self.streaks.items() if k not in gone})
-
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        """Return the state as plain arrays (map keys must be integers).
-
-        Keys: ``odometry``, ``absorbed``, ``matched``, ``streaks``.
-
-        ``streaks`` has one float64 row per observation: key, kind (0 entry, 1 neutral), frame,
-        stored template, stored experience, error, relative_rad, partial template, odometry (4),
-        seen (4), packet (D); ``matched`` is (Q, 2) int64: key, frames that matched that map.
-        """
-        rows: list[np.ndarray] = []
-        for key, (entries, neutral, _matched) in self.streaks.items():
-            for kind, group in ((0, entries), (1, neutral)):
-                for o in group:
-                    head = [float(int(key)), float(kind), float(o.frame), float(o.stored_template),  # type: ignore[call-overload]
-                            float(o.stored_experience), o.error, o.relative_rad, float(o.partial_template)]  # fmt: skip
-                    rows.append(np.concatenate([head, o.odometry, o.seen, o.packet]).astype(np.float64))
-        width = max((r.size for r in rows), default=_FIXED_COLUMNS)
-        return {
-            "odometry": np.asarray(self.odometry, dtype=np.float64).reshape(4).copy(),
-            "absorbed": np.asarray([int(k) for k in self.absorbed], dtype=np.int64),  # type: ignore[call-overload]
-            "matched": np.asarray(
-                [[int(k), int(v[2])] for k, v in self.streaks.items()], dtype=np.int64  # type: ignore[call-overload]
-            ).reshape(-1, 2),
-            "streaks": np.vstack(rows) if rows else np.zeros((0, width), dtype=np.float64),
-        }
-
-    @classmethod
-    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> MergerState:
-        """Rebuild a state from :meth:`to_arrays` output."""
-        table = np.asarray(arrays["streaks"], dtype=np.float64)
-        matched = {int(k): int(v) for k, v in np.asarray(arrays["matched"], dtype=np.int64).reshape(-1, 2)}
-        groups: dict[int, tuple[list[Observation], list[Observation]]] = {}
-        for row in table:
-            key = int(row[0])
-            obs = Observation(
-                frame=int(row[2]),
-                stored_template=int(row[3]),
-                stored_experience=int(row[4]),
-                error=float(row[5]),
-                relative_rad=float(row[6]),
-                partial_template=int(row[7]),
-                odometry=row[8:12].copy(),
-                packet=row[_FIXED_COLUMNS:].copy(),
-                seen=row[12:16].copy(),
-            )
-            groups.setdefault(key, ([], []))[int(row[1])].append(obs)
-        keys = sorted(set(groups) | set(matched))
-        streaks = {
-            k: (tuple(groups.get(k, ([], []))[0]), tuple(groups.get(k, ([], []))[1]), matched.get(k, 0)) for k in keys
-        }
-        absorbed = tuple(int(k) for k in np.asarray(arrays["absorbed"], dtype=np.int64).reshape(-1))
-        return cls(np.asarray(arrays["odometry"], dtype=np.float64).reshape(4).copy(), absorbed, streaks)
+            hypotheses = dict(self._resume.hypotheses)
+        track = self._resume.track if self._candidates is None and self._resume is not None else self._track
+        return MergerState(self._odometry.copy(), tuple(self.absorbed), hypotheses, track)

@@ -81,6 +81,15 @@ def _remap(ids: np.ndarray, mapping: np.ndarray) -> np.ndarray:
     return out
 
 
+def _link_active(state: State) -> np.ndarray:
+    """Return the state's per-link status (``em_link_active``; every link on when it lists none)."""
+    count = np.asarray(state["em_link_from"]).reshape(-1).shape[0]
+    active = np.ones(count, dtype=bool)
+    given = np.asarray(state.get("em_link_active", np.zeros(0, dtype=bool)), dtype=bool).reshape(-1)
+    active[: min(given.size, count)] = given[:count]
+    return active
+
+
 def default_identify_within(loaded: State) -> float:
     """Return half the median odometry-link length of the loaded map, metres (∞ when it has no link).
 
@@ -259,6 +268,7 @@ def merge_states(
     new_dt = [np.asarray(partial["em_link_dt"], dtype=np.float64)[keep_l]]
     new_dist = [np.asarray(partial["em_link_distance"], dtype=np.float64)[keep_l]]
     new_joins = [joins[keep_l]]
+    new_active = [_link_active(partial)[keep_l] | joins[keep_l]]  # a link that becomes a merge link starts on
 
     accum = np.asarray(partial["em_accum"], dtype=np.float64).copy()
     current = int(partial["em_current"])
@@ -274,6 +284,7 @@ def merge_states(
         new_dt.append(np.array([float(accum[4])]))
         new_dist.append(np.array([float(np.linalg.norm(link[:3]))]))
         new_joins.append(np.array([True]))
+        new_active.append(np.array([True]))
     link_kind = np.concatenate([np.asarray(loaded["em_link_kind"], dtype=np.int8), *new_kind]).astype(np.int8)
     merge_links = n_ll + np.flatnonzero(np.concatenate(new_joins))
 
@@ -334,6 +345,7 @@ def merge_states(
         "em_link_dt": np.concatenate([np.asarray(loaded["em_link_dt"], dtype=np.float64), *new_dt]),
         "em_link_distance": np.concatenate([np.asarray(loaded["em_link_distance"], dtype=np.float64), *new_dist]),
         "em_link_kind": link_kind,
+        "em_link_active": np.concatenate([_link_active(loaded), *new_active]),
         "em_current": np.asarray(em_current, dtype=np.int64),
         "em_previous": np.asarray(em_previous, dtype=np.int64),
         "em_accum": accum,

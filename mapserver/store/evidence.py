@@ -126,6 +126,18 @@ class EvidenceCollector:
                 best = (offset, frame_stamp, image)
         self._pending[experience_id] = (stamp_s, best[0], best[1], best[2])
 
+    def replace_from(self, first_id: int, items: Sequence[tuple[int, float, np.ndarray]]) -> None:
+        """Forget experiences ``first_id`` and later, then take ``items`` (id, stamp, its own frame) instead.
+
+        A merge rolled back by its verification: the experiences the merged engine made are gone, and
+        those the session's own engine made meanwhile come with the frames that created them.
+        """
+        self._pending = {k: v for k, v in self._pending.items() if k < first_id}
+        self._done = [img for img in self._done if img.experience < first_id]
+        self.unmatched = [k for k in self.unmatched if k < first_id]
+        for experience_id, stamp_s, image in items:
+            self._pending[experience_id] = (stamp_s, 0.0, stamp_s, image)
+
     def _finalise(self, experience_id: int) -> None:
         exp_stamp, _offset, frame_stamp, image = self._pending.pop(experience_id)
         if image is None:

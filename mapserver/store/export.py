@@ -1,4 +1,7 @@
-"""Export a stored map: map JSON (the contract's ``mapserver-map/1``), TUM experience poses, PNG graph plot.
+"""Export a stored map: map JSON, TUM poses, PNG plot, g2o pose graph or CSV tables.
+
+Map JSON is the contract's ``mapserver-map/1``; g2o is :mod:`mapserver.formats_g2o`; CSV is
+:mod:`mapserver.formats_csv` (``--out X.csv`` holds the experiences, ``X.links.csv`` beside it the links).
 
 Every writer is atomic (temporary file + rename, :func:`mapserver.formats.atomic_write_bytes`).
 """
@@ -14,13 +17,15 @@ import numpy as np
 
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, atomic_write_bytes, map_json, write_map_json, write_tum
+from mapserver.formats_csv import experiences_csv, links_csv
+from mapserver.formats_g2o import g2o_text
 from mapserver.store.db import Database
 from mapserver.store.mapio import load_map
 from mapserver.store.sessions import get_reckoning
 from mapserver.store.state import MapContent
 
-ExportFormat = Literal["json", "tum", "png"]
-EXPORT_FORMATS: tuple[str, ...] = ("json", "tum", "png")
+ExportFormat = Literal["json", "tum", "png", "g2o", "csv"]
+EXPORT_FORMATS: tuple[str, ...] = ("json", "tum", "png", "g2o", "csv")
 
 
 def map_document(content: MapContent, *, odometry: np.ndarray | None = None) -> dict[str, Any]:
@@ -66,16 +71,23 @@ def render_png(content: MapContent, *, title: str | None = None) -> bytes:
     src = np.asarray(snap["em_link_from"]).reshape(-1)
     dst = np.asarray(snap["em_link_to"]).reshape(-1)
     kinds = np.asarray(snap["em_link_kind"]).reshape(-1)
+    active = np.ones(src.shape[0], dtype=bool)
+    active[: np.asarray(snap.get("em_link_active", active)).size] = np.asarray(snap.get("em_link_active", active))
     fig, ax = plt.subplots(figsize=(8, 8), dpi=100)
     styles = {0: ("0.6", "-", "odometry"), 1: ("tab:red", "--", "loop"), 2: ("tab:green", "-", "merge"),
               3: ("tab:purple", ":", "manual")}  # fmt: skip
     for code, (colour, style, label) in styles.items():
-        chosen = kinds == code
+        chosen = (kinds == code) & active
         if np.any(chosen):
             segments = np.stack([pose[src[chosen], :2], pose[dst[chosen], :2]], axis=1)
             ax.add_collection(
                 LineCollection(segments, colors=colour, linestyles=style, linewidths=0.8, label=f"{label} links")
             )
+    if not active.all():  # switched off by robust relaxation: grey, dashed
+        segments = np.stack([pose[src[~active], :2], pose[dst[~active], :2]], axis=1)
+        ax.add_collection(
+            LineCollection(segments, colors="0.75", linestyles="--", linewidths=0.8, label="switched-off links")
+        )
     cmap = plt.get_cmap("tab10")
     for k, session in enumerate(content.meta.sessions):
         chosen = origin == session.id
@@ -95,8 +107,19 @@ def render_png(content: MapContent, *, title: str | None = None) -> bytes:
     return buffer.getvalue()
 
 
+def links_csv_path(out: str | Path) -> Path:
+    """Return where ``export --format csv --out OUT`` writes the links table: ``OUT``'s stem + ``.links.csv``."""
+    target = Path(out)
+    return target.with_name(f"{target.stem if target.suffix.lower() == '.csv' else target.name}.links.csv")
+
+
+def is_planar(params: Mapping[str, Any]) -> bool:
+    """True for maps of a 3-DoF (x, y, θ) lattice (``pc_dim_z`` ≤ 1): exported as SE2."""
+    return int(params.get("pc_dim_z", 1)) <= 1
+
+
 def export_map(db: Database, *, name: str, fmt: str, out: str | Path) -> dict[str, Any]:
-    """Write stored map ``name`` to ``out`` as ``json``, ``tum`` or ``png``; return a small summary.
+    """Write stored map ``name`` to ``out`` as ``json``, ``tum``, ``png``, ``g2o`` or ``csv``; return a summary.
 
     The JSON carries the ``odometry`` extension when the map has exactly one session with dead-reckoning
     rows (what ``evaluate`` uses for its odometry baseline).
@@ -123,11 +146,20 @@ def export_map(db: Database, *, name: str, fmt: str, out: str | Path) -> dict[st
     elif fmt == "tum":
         stamps, positions, quats = tum_rows(content.snapshot)
         write_tum(target, stamps, positions, quats)
+    elif fmt == "g2o":
+        atomic_write_bytes(target, g2o_text(content.snapshot, planar=is_planar(content.params)).encode("utf-8"))
+    elif fmt == "csv":
+        names = content.meta.session_names()
+        atomic_write_bytes(target, experiences_csv(content.snapshot, names).encode("utf-8"))
+        atomic_write_bytes(links_csv_path(target), links_csv(content.snapshot).encode("utf-8"))
     else:
         atomic_write_bytes(target, render_png(content))
-    return {
+    result = {
         "map": name,
         "format": fmt,
         "out": str(target),
         "experiences": int(np.asarray(content.snapshot["em_pose"]).reshape(-1, 4).shape[0]),
     }
+    if fmt == "csv":
+        result["links_out"] = str(links_csv_path(target))
+    return result

@@ -13,7 +13,21 @@ empty); records are read until a ``-`` line, after which come the file's "curren
   ``links_to[]``, ``time_from_current_s``, ``goal_to_current``, ``current_to_goal``, then ``-``,
   ``current_exp_id``, ``prev_exp_id``.
 * ``links.txt``: per link ``d``, ``heading_rad``, ``facing_rad``, ``exp_to_id``, ``exp_from_id``,
-  ``delta_time_s`` (no trailer). ``goal_list.txt`` is ignored.
+  ``delta_time_s`` (no trailer). ``goal_list.txt`` is ignored (it may be empty or absent).
+
+The files are read as multisession-ratslam really writes them (every quirk below is in its own
+repository's ``Saves/``):
+
+* Numbers are Python ``str(float)`` or numpy ``%.18e`` text: ids may be written ``16.0`` (a save of a
+  loaded map) and any value in scientific notation (``1.38777878078e-17``).
+* Empty lists are empty lines (an experience without links, a template without experiences).
+* Trailers differ: ``posecellvisual_templates.txt`` of a map that was loaded and saved again ends with
+  the current id and an empty line where the previous id belongs (the tool's loader reads one line too
+  many there and writes back the empty string). An empty or missing previous id is -1 ("none").
+* A map saved before its first frame: ``localviewcells.txt`` holds TEMPLATE_SIZE, ``-``, ``0``, ``0``;
+  ``experiences.txt`` and ``posecellexperiences.txt`` hold ``-``, ``0``, ``0``;
+  ``posecellvisual_templates.txt`` and ``links.txt`` are empty. A save directory may even hold only empty
+  files. Such maps import as empty maps; a current id that names no record (the tool's initial 0) is -1.
 
 What the format lacks, and what the import does about it (also returned as ``notes``):
 
@@ -132,10 +146,19 @@ class _Lines:
             return True
         return False
 
+    def empty(self) -> bool:
+        """Return True when the file holds no records and no trailer (only blank lines, or nothing)."""
+        return all(line == "" for line in self.lines)
+
     def trailer(self) -> tuple[int, int]:
+        """Return the (current, previous) ids after ``-``; an empty or missing previous id is -1."""
         current = self.integer("the current id after '-'")
-        previous = self.integer("the previous id after '-'")
-        if not self.at_end():
+        previous = -1
+        if not self.at_end() and self.lines[self.pos] != "":
+            previous = self.integer("the previous id after '-'")
+        elif not self.at_end():
+            self.pos += 1
+        if any(self.lines[self.pos :]):
             raise self.fail("unexpected lines after the current and previous ids", self.pos + 1)
         return current, previous
 
@@ -150,8 +173,10 @@ def _directory_digest(directory: Path) -> str:
 
 def _templates(directory: Path, params: Params) -> tuple[np.ndarray, np.ndarray, int, int]:
     f = _Lines(directory / "localviewcells.txt")
-    size = f.integer("TEMPLATE_SIZE")
     ty, tx = params.template_y_size, params.template_x_size
+    if f.empty():
+        return np.zeros((0, ty, tx), dtype=np.float32), np.zeros(0), -1, -1
+    size = f.integer("TEMPLATE_SIZE")
     if size != ty * tx:
         msg = (
             f"{f.path}:1: templates have {size} values but the parameters give template_y_size × "
@@ -180,7 +205,7 @@ def _pose_cell_links(directory: Path, n_templates: int) -> tuple[np.ndarray, np.
     ids: list[int] = []
     coords: list[tuple[float, float, float]] = []
     decays: list[float] = []
-    while not f.records_end():
+    while not f.empty() and not f.records_end():
         ident = f.integer("pose-cell template id")
         if not 0 <= ident < n_templates:
             raise f.fail(f"pose-cell link names template {ident}, but there are {n_templates} templates")
@@ -188,7 +213,7 @@ def _pose_cell_links(directory: Path, n_templates: int) -> tuple[np.ndarray, np.
         coords.append((f.number("pc_x"), f.number("pc_y"), f.number("pc_th")))
         decays.append(f.number("decay"))
         f.numbers("exps[]")
-    current, previous = f.trailer()
+    current, previous = (-1, -1) if f.empty() else f.trailer()
     return (
         np.array(ids, dtype=np.int64),
         np.array(coords, dtype=np.float64).reshape(-1, 3),
@@ -202,10 +227,11 @@ def _pose_cell_experiences(directory: Path) -> tuple[np.ndarray, np.ndarray]:
     f = _Lines(directory / "posecellexperiences.txt")
     coords: list[tuple[float, float, float]] = []
     vts: list[int] = []
-    while not f.records_end():
+    while not f.empty() and not f.records_end():
         coords.append((f.number("x_pc"), f.number("y_pc"), f.number("th_pc")))
         vts.append(f.integer("vt_id"))
-    f.trailer()
+    if not f.empty():
+        f.trailer()
     return np.array(coords, dtype=np.float64).reshape(-1, 3), np.array(vts, dtype=np.int64)
 
 
@@ -213,7 +239,7 @@ def _experiences(directory: Path) -> tuple[np.ndarray, np.ndarray, int, int]:
     f = _Lines(directory / "experiences.txt")
     poses: list[tuple[float, float, float]] = []
     vts: list[int] = []
-    while not f.records_end():
+    while not f.empty() and not f.records_end():
         ident = f.integer("experience id")
         if ident != len(poses):
             raise f.fail(f"experience id {ident} where {len(poses)} was expected (ids must run 0, 1, 2, ...)")
@@ -224,7 +250,7 @@ def _experiences(directory: Path) -> tuple[np.ndarray, np.ndarray, int, int]:
         f.number("time_from_current_s")
         f.number("goal_to_current")
         f.number("current_to_goal")
-    current, previous = f.trailer()
+    current, previous = (-1, -1) if f.empty() else f.trailer()
     return np.array(poses, dtype=np.float64).reshape(-1, 3), np.array(vts, dtype=np.int64), current, previous
 
 
@@ -246,6 +272,148 @@ def _links(directory: Path, n_experiences: int) -> np.ndarray:
                 raise f.fail(f"link names experience {ident}, but there are {n_experiences} experiences")
         rows.append((from_id, to_id, d, heading, facing, dt))
     return np.array(rows, dtype=np.float64).reshape(-1, 6)
+
+
+@dataclass
+class _Save:
+    """The five files of a save directory, parsed (ids as read; -1 = none)."""
+
+    templates: np.ndarray
+    means: np.ndarray
+    lv_ids: tuple[int, int]
+    pc_template: np.ndarray
+    pc_coords: np.ndarray
+    pc_decay: np.ndarray
+    pc_ids: tuple[int, int]
+    exp_pc: np.ndarray
+    poses: np.ndarray
+    exp_vt: np.ndarray
+    em_ids: tuple[int, int]
+    links: np.ndarray
+
+
+def _read_save(path: Path, params: Params) -> _Save:
+    """Parse the five files and check that they agree with each other (ids, counts, templates)."""
+    templates, means, lv_current, lv_previous = _templates(path, params)
+    n_templates = templates.shape[0]
+    pc_template, pc_coords, pc_decay, pc_current, pc_previous = _pose_cell_links(path, n_templates)
+    exp_pc, exp_pc_vt = _pose_cell_experiences(path)
+    poses, exp_vt, em_current, em_previous = _experiences(path)
+    n_exp = poses.shape[0]
+    if exp_pc.shape[0] != n_exp:
+        msg = f"{path}: posecellexperiences.txt has {exp_pc.shape[0]} experiences, experiences.txt {n_exp}"
+        raise InputError(msg)
+    if not np.array_equal(exp_pc_vt, exp_vt):
+        k = int(np.flatnonzero(exp_pc_vt != exp_vt)[0])
+        msg = (
+            f"{path}: experience {k} has template {exp_vt[k]} in experiences.txt, "
+            f"{exp_pc_vt[k]} in posecellexperiences.txt"
+        )
+        raise InputError(msg)
+    if exp_vt.size and (exp_vt.min() < 0 or exp_vt.max() >= n_templates):
+        msg = f"{path}: experiences name templates outside 0..{n_templates - 1}"
+        raise InputError(msg)
+    if n_exp and not 0 <= em_current < n_exp:
+        msg = f"{path}/experiences.txt: the current experience {em_current} is not one of 0..{n_exp - 1}"
+        raise InputError(msg)
+    if n_templates and not -1 <= lv_current < n_templates:
+        msg = f"{path}/localviewcells.txt: the current template {lv_current} is out of range"
+        raise InputError(msg)
+    return _Save(
+        templates=templates,
+        means=means,
+        lv_ids=_ids_or_none(lv_current, lv_previous, n_templates),
+        pc_template=pc_template,
+        pc_coords=pc_coords,
+        pc_decay=pc_decay,
+        pc_ids=_ids_or_none(pc_current, pc_previous, n_templates),
+        exp_pc=exp_pc,
+        poses=poses,
+        exp_vt=exp_vt,
+        em_ids=_ids_or_none(em_current, em_previous, n_exp),
+        links=_links(path, n_exp),
+    )
+
+
+def _ids_or_none(current: int, previous: int, count: int) -> tuple[int, int]:
+    """Return (current, previous) with ids that name no record (the tool's initial 0 in an empty map) as -1."""
+    return (current if 0 <= current < count else -1, previous if 0 <= previous < count else -1)
+
+
+def _link_kinds_and_stamps(
+    src: np.ndarray, dst: np.ndarray, dt: np.ndarray, n_exp: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Infer link kinds (0 odometry, 1 loop) and experience stamps from the links in file order.
+
+    A link reaching an experience of a higher id than any earlier link reached created it (odometry), and
+    that experience's stamp is its source's stamp + Δt; experience 0 is at 0 s; an experience no link
+    created (the first of a merged-in session) takes the stamp of the experience before it.
+    """
+    kinds = np.ones(src.shape[0], dtype=np.int8)
+    stamps = np.full(n_exp, np.nan)
+    if n_exp:
+        stamps[0] = 0.0
+    reached = 0
+    for j, (s, t) in enumerate(zip(src.tolist(), dst.tolist(), strict=True)):
+        if t > reached:
+            kinds[j] = 0
+            reached = t
+            if not math.isnan(stamps[s]):
+                stamps[t] = stamps[s] + dt[j]
+    for k in range(1, n_exp):
+        if math.isnan(stamps[k]):
+            stamps[k] = stamps[k - 1]
+    return kinds, stamps
+
+
+def _experience_graph(save: _Save, snapshot: dict[str, Any], dims: np.ndarray) -> None:
+    """Fill the experience-map keys of ``snapshot`` (poses, lattice cells, links, stamps, current ids)."""
+    n_exp = save.poses.shape[0]
+    pose = np.zeros((n_exp, 4))
+    pose[:, 0:2] = save.poses[:, 0:2]
+    pose[:, 3] = save.poses[:, 2]
+    snapshot["em_pose"] = pose
+    snapshot["em_pc"] = np.mod(save.exp_pc, dims)
+    snapshot["em_template"] = save.exp_vt
+    snapshot["em_origin"] = np.zeros(n_exp, dtype=np.int64)
+    links = save.links
+    src = links[:, 0].astype(np.int64)
+    dst = links[:, 1].astype(np.int64)
+    d, heading, facing, dt = links[:, 2], links[:, 3], links[:, 4], links[:, 5]
+    kinds, stamps = _link_kinds_and_stamps(src, dst, dt, n_exp)
+    transform = np.zeros((src.shape[0], 4))
+    transform[:, 0] = d * np.cos(heading)
+    transform[:, 1] = d * np.sin(heading)
+    transform[:, 3] = facing
+    snapshot["em_stamp"] = stamps
+    snapshot["em_link_from"] = src
+    snapshot["em_link_to"] = dst
+    snapshot["em_link_transform"] = transform
+    snapshot["em_link_dt"] = dt.copy()
+    snapshot["em_link_distance"] = np.abs(d)
+    snapshot["em_link_kind"] = kinds
+    snapshot["em_current"] = np.asarray(save.em_ids[0], dtype=np.int64)
+    snapshot["em_previous"] = np.asarray(save.em_ids[1], dtype=np.int64)
+    snapshot["em_relax_pending"] = np.asarray(False)
+    snapshot["eng_last_stamp"] = np.asarray(stamps[-1] if n_exp else math.nan, dtype=np.float64)
+
+
+def _place_activity(save: _Save, snapshot: dict[str, Any], shape: tuple[int, ...]) -> str:
+    """Move a fresh engine's packet to the current experience's cell; return the note saying where."""
+    current = save.em_ids[0]
+    note = "the pose-cell activity is not in this format: it starts from a single-cell packet"
+    if current < 0:
+        return note + " at the lattice centre (no current experience)"
+    dims = np.asarray(shape)
+    centre = dims // 2
+    cell = np.floor(np.mod(save.exp_pc[current], dims) + 0.5).astype(np.int64) % dims
+    activity = np.asarray(snapshot["pc_activity"])
+    snapshot["pc_activity"] = np.roll(activity, tuple((cell - centre).tolist()), axis=(0, 1, 2))
+    snapshot["pc_best"] = cell.astype(np.float64)
+    accum = np.zeros(6)
+    accum[3] = save.poses[current, 2]
+    snapshot["em_accum"] = accum
+    return note + f" at the current experience's cell {tuple(cell.tolist())!r}"
 
 
 def read_multisession_ratslam(directory: str | Path, params: Params) -> ImportedMap:
@@ -271,102 +439,26 @@ def read_multisession_ratslam(directory: str | Path, params: Params) -> Imported
     if len(shape) != 3:
         msg = f"{FORMAT} maps use an (x, y, th) lattice; the parameters give a {len(shape)}-D lattice {shape!r}"
         raise InputError(msg)
-    templates, means, lv_current, lv_previous = _templates(path, params)
-    pc_template, pc_coords, pc_decay, pc_current, pc_previous = _pose_cell_links(path, templates.shape[0])
-    exp_pc, exp_pc_vt = _pose_cell_experiences(path)
-    poses, exp_vt, em_current, em_previous = _experiences(path)
-    n_exp = poses.shape[0]
-    if exp_pc.shape[0] != n_exp:
-        msg = f"{path}: posecellexperiences.txt has {exp_pc.shape[0]} experiences, experiences.txt {n_exp}"
-        raise InputError(msg)
-    if not np.array_equal(exp_pc_vt, exp_vt):
-        k = int(np.flatnonzero(exp_pc_vt != exp_vt)[0])
-        msg = (
-            f"{path}: experience {k} has template {exp_vt[k]} in experiences.txt, "
-            f"{exp_pc_vt[k]} in posecellexperiences.txt"
-        )
-        raise InputError(msg)
-    if exp_vt.size and (exp_vt.min() < 0 or exp_vt.max() >= templates.shape[0]):
-        msg = f"{path}: experiences name templates outside 0..{templates.shape[0] - 1}"
-        raise InputError(msg)
-    if n_exp and not 0 <= em_current < n_exp:
-        msg = f"{path}/experiences.txt: the current experience {em_current} is not one of 0..{n_exp - 1}"
-        raise InputError(msg)
-    if not -1 <= lv_current < templates.shape[0]:
-        msg = f"{path}/localviewcells.txt: the current template {lv_current} is out of range"
-        raise InputError(msg)
-    links = _links(path, n_exp)
-
+    save = _read_save(path, params)
     dims = np.asarray(shape, dtype=np.float64)
     snapshot: dict[str, Any] = Engine(params).snapshot()
-    snapshot["lv_templates"] = templates
-    snapshot["lv_means"] = means
-    snapshot["lv_origin"] = np.zeros(templates.shape[0], dtype=np.int64)
-    snapshot["lv_current"] = np.asarray(lv_current, dtype=np.int64)
-    snapshot["lv_previous"] = np.asarray(lv_previous, dtype=np.int64)
-    snapshot["pc_link_template"] = pc_template
-    snapshot["pc_link_coords"] = np.mod(pc_coords, dims)
-    snapshot["pc_link_strength"] = np.ones(pc_template.shape[0])
-    snapshot["pc_link_decay"] = pc_decay
-    snapshot["pc_current_vt"] = np.asarray(pc_current, dtype=np.int64)
-    snapshot["pc_prev_vt"] = np.asarray(pc_previous, dtype=np.int64)
-
-    pose = np.zeros((n_exp, 4))
-    pose[:, 0:2] = poses[:, 0:2]
-    pose[:, 3] = poses[:, 2]
-    snapshot["em_pose"] = pose
-    snapshot["em_pc"] = np.mod(exp_pc, dims)
-    snapshot["em_template"] = exp_vt
-    snapshot["em_origin"] = np.zeros(n_exp, dtype=np.int64)
-
-    src = links[:, 0].astype(np.int64)
-    dst = links[:, 1].astype(np.int64)
-    d, heading, facing, dt = links[:, 2], links[:, 3], links[:, 4], links[:, 5]
-    kinds = np.ones(src.shape[0], dtype=np.int8)
-    stamps = np.full(n_exp, np.nan)
-    if n_exp:
-        stamps[0] = 0.0
-    reached = 0
-    for j, (s, t) in enumerate(zip(src.tolist(), dst.tolist(), strict=True)):
-        if t > reached:
-            kinds[j] = 0
-            reached = t
-            if not math.isnan(stamps[s]):
-                stamps[t] = stamps[s] + dt[j]
-    for k in range(1, n_exp):
-        if math.isnan(stamps[k]):
-            stamps[k] = stamps[k - 1]
-    transform = np.zeros((src.shape[0], 4))
-    transform[:, 0] = d * np.cos(heading)
-    transform[:, 1] = d * np.sin(heading)
-    transform[:, 3] = facing
-    snapshot["em_stamp"] = stamps
-    snapshot["em_link_from"] = src
-    snapshot["em_link_to"] = dst
-    snapshot["em_link_transform"] = transform
-    snapshot["em_link_dt"] = dt.copy()
-    snapshot["em_link_distance"] = np.abs(d)
-    snapshot["em_link_kind"] = kinds
-    snapshot["em_current"] = np.asarray(em_current if n_exp else -1, dtype=np.int64)
-    snapshot["em_previous"] = np.asarray(em_previous if n_exp else -1, dtype=np.int64)
-    snapshot["em_relax_pending"] = np.asarray(False)
-
-    activity = np.asarray(snapshot["pc_activity"])
-    centre = np.array([d_ // 2 for d_ in shape])
-    notes = ["the pose-cell activity is not in this format: it starts from a single-cell packet"]
-    if n_exp and em_current >= 0:
-        cell = np.floor(np.mod(exp_pc[em_current], dims) + 0.5).astype(np.int64) % np.asarray(shape)
-        snapshot["pc_activity"] = np.roll(activity, tuple((cell - centre).tolist()), axis=(0, 1, 2))
-        snapshot["pc_best"] = cell.astype(np.float64)
-        accum = np.zeros(6)
-        accum[3] = pose[em_current, 3]
-        snapshot["em_accum"] = accum
-        notes[0] += f" at the current experience's cell {tuple(cell.tolist())!r}"
-    else:
-        notes[0] += " at the lattice centre (no current experience)"
-    notes.append("experience stamps are rebuilt from the links' delta_time_s (the format stores none)")
-    notes.append("link kinds are inferred: a link reaching a new experience is odometry, others are loops")
-    snapshot["eng_last_stamp"] = np.asarray(stamps[-1] if n_exp else math.nan, dtype=np.float64)
+    snapshot["lv_templates"] = save.templates
+    snapshot["lv_means"] = save.means
+    snapshot["lv_origin"] = np.zeros(save.templates.shape[0], dtype=np.int64)
+    snapshot["lv_current"] = np.asarray(save.lv_ids[0], dtype=np.int64)
+    snapshot["lv_previous"] = np.asarray(save.lv_ids[1], dtype=np.int64)
+    snapshot["pc_link_template"] = save.pc_template
+    snapshot["pc_link_coords"] = np.mod(save.pc_coords, dims)
+    snapshot["pc_link_strength"] = np.ones(save.pc_template.shape[0])
+    snapshot["pc_link_decay"] = save.pc_decay
+    snapshot["pc_current_vt"] = np.asarray(save.pc_ids[0], dtype=np.int64)
+    snapshot["pc_prev_vt"] = np.asarray(save.pc_ids[1], dtype=np.int64)
+    _experience_graph(save, snapshot, dims)
+    notes = [
+        _place_activity(save, snapshot, shape),
+        "experience stamps are rebuilt from the links' delta_time_s (the format stores none)",
+        "link kinds are inferred: a link reaching a new experience is odometry, others are loops",
+    ]
     snapshot = {k: np.asarray(v) for k, v in snapshot.items()}
     return ImportedMap(snapshot=snapshot, sha256=_directory_digest(path), notes=notes)
 

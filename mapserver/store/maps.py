@@ -43,15 +43,18 @@ class MapSummary:
     templates: int
     experiences: int
     links: int
+    #: {"residual", "switched_off", "links"} (mapserver.store.health); None for a state stored before it existed
+    health: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """Return ``{"name", "sessions", "templates", "experiences", "links"}``."""
+        """Return ``{"name", "sessions", "templates", "experiences", "links", "health"}``."""
         return {
             "name": self.name,
             "sessions": self.sessions,
             "templates": self.templates,
             "experiences": self.experiences,
             "links": self.links,
+            "health": self.health,
         }
 
 
@@ -157,7 +160,7 @@ def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
 
 
 def list_maps(*, conn: Connection) -> list[MapSummary]:
-    """Return every map with its session, template, experience and link counts, by name."""
+    """Return every map with its session, template, experience and link counts and its health, by name."""
     sessions = (
         select(Session.map_id, func.count().label("n")).where(Session.map_id.is_not(None)).group_by(Session.map_id)
     ).subquery()
@@ -168,12 +171,13 @@ def list_maps(*, conn: Connection) -> list[MapSummary]:
             func.coalesce(MapState.n_templates, 0),
             func.coalesce(MapState.n_experiences, 0),
             func.coalesce(MapState.n_links, 0),
+            MapState.health,
         )
         .outerjoin(sessions, sessions.c.map_id == Map.id)
         .outerjoin(MapState, MapState.map_id == Map.id)
         .order_by(Map.name)
     ).all()
-    return [MapSummary(str(r[0]), int(r[1]), int(r[2]), int(r[3]), int(r[4])) for r in rows]
+    return [MapSummary(str(r[0]), int(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5]) for r in rows]
 
 
 def clear_map(*, conn: Connection, map_id: int) -> None:

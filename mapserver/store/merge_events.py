@@ -49,6 +49,7 @@ class MergeEventSpec:
     target_sessions: Sequence[int]
     source_sessions: Sequence[int]
     details: Mapping[str, Any] | None = None
+    status: str = "applied"
 
 
 @dataclass(frozen=True)
@@ -73,11 +74,14 @@ class MergeEventRecord:
 
 
 def record_merge_event(*, conn: Connection, spec: MergeEventSpec) -> int:
-    """Insert a merge event (status ``applied``) and its sessions; return its id.
+    """Insert a merge event (status ``applied``, or ``rejected`` for one its verification rolled back); return its id.
 
     Raises:
-        StoreError: the transform does not have 7 values.
+        StoreError: the transform does not have 7 values, or an unknown status.
     """
+    if spec.status not in MERGE_STATUSES:
+        msg = f"merge status must be one of {MERGE_STATUSES!r}, got {spec.status!r}"
+        raise StoreError(msg)
     if len(spec.transform) != 7:
         msg = f"a merge transform is (tx, ty, tz, qx, qy, qz, qw), got {len(spec.transform)} values"
         raise StoreError(msg)
@@ -88,7 +92,7 @@ def record_merge_event(*, conn: Connection, spec: MergeEventSpec) -> int:
             map_id=spec.map_id,
             map_name=spec.map_name,
             mode=spec.mode,
-            status="applied",
+            status=spec.status,
             confirmations=int(spec.confirmations),
             lattice_offset=[float(v) for v in spec.lattice_offset],
             tx=tx, ty=ty, tz=tz, qx=qx, qy=qy, qz=qz, qw=qw,

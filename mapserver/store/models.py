@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     CheckConstraint,
     DateTime,
     Double,
@@ -41,6 +42,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
 )
+from sqlalchemy import true as sa_true
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
@@ -62,7 +64,7 @@ LINK_KIND_NAMES: tuple[str, ...] = ("odometry", "loop", "merge", "manual")
 SESSION_STATUSES: tuple[str, ...] = ("partial", "complete")
 JOB_STATUSES: tuple[str, ...] = ("queued", "running", "done", "failed")
 TOKEN_SCOPES: tuple[str, ...] = ("read", "write")
-MERGE_STATUSES: tuple[str, ...] = ("applied", "undone")
+MERGE_STATUSES: tuple[str, ...] = ("applied", "undone", "rejected")
 
 
 def utcnow() -> datetime:
@@ -250,6 +252,8 @@ class Link(Base):
     dt: Mapped[float] = mapped_column(Double)
     distance: Mapped[float] = mapped_column(Double)
     kind: Mapped[str] = mapped_column(String(16))
+    #: False when robust relaxation switched the link off (core.robust); migration 0004
+    active: Mapped[bool] = mapped_column(Boolean, server_default=sa_true(), default=True, nullable=False)
 
 
 class MapState(Base):
@@ -277,6 +281,8 @@ class MapState(Base):
     pc_activity: Mapped[bytes] = mapped_column(LargeBinary)
     arrays: Mapped[bytes] = mapped_column(LargeBinary)
     manifest: Mapped[dict[str, Any]] = mapped_column(JSON)
+    #: {"residual", "switched_off", "links"} when the state was written (mapserver.store.health); migration 0004
+    health: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
 
@@ -393,6 +399,7 @@ class Job(Base):
         CheckConstraint(_in("status", JOB_STATUSES), name="status"),
         CheckConstraint("progress >= 0 AND progress <= 1", name="progress"),
         Index("ix_jobs_status_created_at", "status", "created_at"),
+        Index("ix_jobs_map_name_status", "map_name", "status"),
         {"sqlite_autoincrement": True},
     )
 
@@ -413,3 +420,5 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    lease_owner: Mapped[str | None] = mapped_column(String(200))
+    lease_expires_at: Mapped[datetime | None] = mapped_column(UtcDateTime)

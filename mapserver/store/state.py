@@ -7,7 +7,8 @@ Where each snapshot key goes:
 ``pc_link_*``                                          ``pose_cell_links`` (row order kept: ``seq``)
 ``em_pose``, ``em_pc``, ``em_template``, ``em_stamp``,  ``experiences``
 ``em_origin``
-``em_link_*``                                          ``links`` (row order kept: ``seq``)
+``em_link_*``                                          ``links`` (row order kept: ``seq``; ``em_link_active``:
+                                                      ``links.active``, true when a snapshot lacks it)
 ``pc_activity``                                        ``map_states.pc_activity`` (zlib, raw float64)
 every other key (current template/experience,          ``map_states.arrays`` (compressed npz), so a
 accumulators, VO profiles, gate, ``eng_*``, new keys)  key a newer engine adds is never lost
@@ -53,6 +54,7 @@ from mapserver.store.arrays import (
 )
 from mapserver.store.bulk import bulk_insert, fetch_tuples
 from mapserver.store.errors import CorruptStateError, OwnershipError
+from mapserver.store.health import map_health
 from mapserver.store.maps import MapRecord, claim_map, get_map_by_id
 from mapserver.store.models import (
     LINK_KIND_NAMES,
@@ -78,6 +80,7 @@ PLACES: dict[str, str] = {
     **dict.fromkeys(POSE_CELL_LINK_KEYS, "pose_cell_links"),
     **dict.fromkeys(EXPERIENCE_KEYS, "experiences"),
     **dict.fromkeys(LINK_KEYS, "links"),
+    "em_link_active": "links",
     ACTIVITY_KEY: "pc_activity",
 }
 """Snapshot key → where it is stored (keys not listed go to the ``arrays`` npz)."""
@@ -246,6 +249,8 @@ def _check_snapshot(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
         "em_link_distance": (k,),
         "em_link_kind": (k,),
     }
+    if "em_link_active" in snapshot:
+        expected["em_link_active"] = (k,)
     for key, shape in expected.items():
         got = _array(snapshot, key).shape
         if got != shape:
@@ -515,6 +520,7 @@ def _insert_links(conn: Connection, map_id: int, snapshot: Mapping[str, Any]) ->
     count = source.shape[0]
     transform = np.asarray(snapshot["em_link_transform"], dtype=np.float64).reshape(-1, 4)
     names = np.asarray(LINK_KIND_NAMES, dtype=object)[np.asarray(snapshot["em_link_kind"]).astype(np.int64)]
+    active = np.asarray(snapshot.get("em_link_active", np.ones(count, dtype=bool)), dtype=bool).reshape(-1)
     rows = list(
         zip(
             [map_id] * count,
@@ -528,10 +534,11 @@ def _insert_links(conn: Connection, map_id: int, snapshot: Mapping[str, Any]) ->
             np.asarray(snapshot["em_link_dt"], dtype=np.float64).tolist(),
             np.asarray(snapshot["em_link_distance"], dtype=np.float64).tolist(),
             names.tolist(),
+            active.tolist(),
             strict=True,
         )
     )
-    columns = ("map_id", "seq", "from_id", "to_id", "dx", "dy", "dz", "dyaw", "dt", "distance", "kind")
+    columns = ("map_id", "seq", "from_id", "to_id", "dx", "dy", "dz", "dyaw", "dt", "distance", "kind", "active")
     bulk_insert(conn, Link.__table__, columns, rows)  # type: ignore[arg-type]
 
 
@@ -542,7 +549,26 @@ def _scalar(snapshot: Mapping[str, Any], key: str, default: float) -> float:
     return float(value) if value.size == 1 else default
 
 
-def _write_state_row(conn: Connection, map_id: int, snapshot: Mapping[str, Any], shapes: _Shapes) -> None:
+def _with_link_status(snapshot: Mapping[str, Any]) -> Mapping[str, Any]:
+    """Return ``snapshot`` with ``em_link_active`` fitted to the links, as the engine reads it.
+
+    A snapshot whose links were replaced may carry a status array of another length: links past
+    its end are on, statuses past the last link are dropped (``ExperienceMap.restore``'s rule).
+    """
+    if "em_link_active" not in snapshot:
+        return snapshot
+    count = np.asarray(snapshot["em_link_from"]).reshape(-1).shape[0]
+    given = np.asarray(snapshot["em_link_active"], dtype=bool).reshape(-1)
+    if given.shape[0] == count:
+        return snapshot
+    active = np.ones(count, dtype=bool)
+    active[: min(given.size, count)] = given[:count]
+    return {**snapshot, "em_link_active": active}
+
+
+def _write_state_row(
+    conn: Connection, map_id: int, snapshot: Mapping[str, Any], shapes: _Shapes, params: Any
+) -> None:
     manifest: dict[str, Any] = {}
     extra: dict[str, np.ndarray] = {}
     for key, value in snapshot.items():
@@ -570,6 +596,7 @@ def _write_state_row(conn: Connection, map_id: int, snapshot: Mapping[str, Any],
         "pc_activity": pack_raw(np.asarray(snapshot[ACTIVITY_KEY])),
         "arrays": pack_npz(extra),
         "manifest": manifest,
+        "health": map_health(params, snapshot),
         "updated_at": utcnow(),
     }
     conn.execute(MapState.__table__.delete().where(MapState.map_id == map_id))
@@ -614,6 +641,7 @@ def write_map_state(
         OwnershipError: a template or experience of the snapshot belongs to another map.
         StoreError: the snapshot is malformed, has NaN in a row table, or tags that name no session.
     """
+    snapshot = _with_link_status(snapshot)
     version = claim_map(conn=conn, map_id=map_id, expected_version=expected_version)
     shapes = _check_snapshot(snapshot)
     ids = [int(s) for s in session_ids]
@@ -643,7 +671,7 @@ def write_map_state(
     _insert_pose_cell_links(conn, map_id, snapshot, shapes.rank)
     _insert_experiences(conn, map_id, snapshot, shapes.rank, experience_sessions, e_index)
     _insert_links(conn, map_id, snapshot)
-    _write_state_row(conn, map_id, snapshot, shapes)
+    _write_state_row(conn, map_id, snapshot, shapes, params)
     conn.execute(update(Map).where(Map.id == map_id).values(params=plain_params(params)))
     conn.execute(update(Session).where(Session.map_id == map_id, Session.id.not_in(ids)).values(map_id=None))
     if ids:
@@ -801,11 +829,14 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     block = _column_block(
         fetch_tuples(
             conn,
-            select(Link.from_id, Link.to_id, Link.dx, Link.dy, Link.dz, Link.dyaw, Link.dt, Link.distance, kind_code)
+            select(
+                Link.from_id, Link.to_id, Link.dx, Link.dy, Link.dz, Link.dyaw, Link.dt, Link.distance, kind_code,
+                Link.active,
+            )
             .where(Link.map_id == map_id)
             .order_by(Link.seq),
         ),
-        9,
+        10,
     )
     built["em_link_from"] = block[:, 0].astype(np.int64)
     built["em_link_to"] = block[:, 1].astype(np.int64)
@@ -813,6 +844,7 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     built["em_link_dt"] = block[:, 6].copy()
     built["em_link_distance"] = block[:, 7].copy()
     built["em_link_kind"] = block[:, 8].astype(np.int64)
+    built["em_link_active"] = block[:, 9].astype(bool)
 
     snapshot: dict[str, np.ndarray] = {}
     for key, info in manifest.items():

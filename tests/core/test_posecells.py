@@ -342,3 +342,16 @@ def test_packet_block_paths_equal_the_full_lattice(
     finally:
         posecells.SPARSE_FRACTION = saved
     assert np.allclose(block.activity, full.activity, rtol=0, atol=1e-15)
+
+
+def test_a_template_seen_for_hundreds_of_frames_saturates_without_overflow() -> None:
+    net = _net(pc_dim_xy=11, pc_dim_th=12, vt_min_inject_age=0)
+    net.on_view_template(0, 0.0, 1, created=True)
+    before = net.activity.copy()
+    net.on_view_template(0, 0.0, 1, created=False)  # decay 1 + 1 = 2: e^2.4 < 30, energy is injected
+    assert net.activity.sum() > before.sum()
+    for _ in range(800):  # decay grows by 1 − 0.05 a frame: 1.2·decay passes exp's range (~709) near 590
+        net.on_view_template(0, 0.0, 1, created=False)
+    saturated = net.activity.copy()
+    net.on_view_template(0, 0.0, 1, created=False)
+    np.testing.assert_array_equal(net.activity, saturated)  # nothing more is injected

@@ -143,7 +143,7 @@ def _missing(tmp_path: Path) -> Path:
         (_truncated, ""),
         (_corrupt_middle, "corrupt log"),
         (_corrupt_mcap_with_checksums, "checksum mismatch"),
-        (_no_camera, "no usable camera topic"),
+        (_no_camera, "no camera topic: process needs sensor_msgs/Image or CompressedImage"),
         (_unsupported_encoding, "unsupported image encoding 'yuv422'"),
         (_missing, "not found"),
     ],

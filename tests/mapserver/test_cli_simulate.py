@@ -49,7 +49,11 @@ def test_process_picks_the_preset_named_in_scenario_json(tmp_path: Path, capsys:
 @pytest.mark.parametrize(
     ("argv", "reason"),
     [
-        (["moon"], "unknown scenario 'moon' (valid: loop, figure8, ellipse, bridge, chain5, cave3d, aliased)"),
+        (
+            ["moon"],
+            "unknown scenario 'moon' (valid: loop, figure8, ellipse, bridge, chain5, cave3d, aliased, "
+            "twin, twin-overlap, symmetric, symmetric-overlap)",
+        ),
         (["loop", "--param", "laps"], "expected NAME=VALUE"),
         (["loop", "--param", "laps=two"], "not a finite number"),
         (["loop", "--param", "speed=2"], "unknown parameter 'speed' for scenario 'loop'"),

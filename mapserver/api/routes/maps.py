@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import tempfile
 import threading
+import time
 from pathlib import Path as FilePath
 from typing import Annotated, Any, Literal
 
@@ -14,6 +15,7 @@ from starlette.concurrency import run_in_threadpool
 
 from core.paths import PathResult
 from mapserver.api.deps import ReadAccess, ServicesDep
+from mapserver.api.metrics import PATH_SECONDS
 from mapserver.api.schemas import (
     ErrorPublic,
     ExperiencePublic,
@@ -65,6 +67,7 @@ def read_map(name: MapName, services: ServicesDep, _token: ReadAccess) -> MapPub
         templates=summary.templates,
         experiences=summary.experiences,
         links=summary.links,
+        health=summary.health,
         created_at=record.created_at,
         updated_at=record.updated_at,
         params=record.params,
@@ -135,9 +138,13 @@ async def read_path(
     """
     # on the event loop: the version lookup and the search (each well under a millisecond on a cached
     # map); a load and build of the graph goes to a worker thread
-    entry = services.graphs.current(name) or await run_in_threadpool(services.graphs.get, name)
-    result = entry.path(source, target, weight)
-    return Response(_path_json(result), media_type="application/json")
+    started = time.perf_counter()
+    try:
+        entry = services.graphs.current(name) or await run_in_threadpool(services.graphs.get, name)
+        result = entry.path(source, target, weight)
+        return Response(_path_json(result), media_type="application/json")
+    finally:
+        PATH_SECONDS.observe(time.perf_counter() - started)
 
 
 def _path_json(result: PathResult) -> bytes:

@@ -12,6 +12,9 @@ passage around an elliptic loop at 0.15 m/s with 2 Hz images, the vehicle's dept
 loop; walls reach from the floor to the water surface and are banded in depth, so the camera's depth
 changes what it sees.
 
+The look-alike scenarios that try to break the merge safeguard (``twin``, ``twin-overlap``, ``symmetric``,
+``symmetric-overlap``) are ground scenarios too; they live in :mod:`.lookalike`.
+
 Every scenario takes ``scale`` (route and world size; noise lengths scale with it, frame spacing does not)
 and its own parameters (:data:`SCENARIOS` lists them with their defaults).
 """
@@ -455,6 +458,10 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
     )
 
 
+# The look-alike scenarios build on this module's helpers; the package imports this module first, so
+# lookalike finds them defined when it imports them.
+from mapserver.ingest.simulator import lookalike as _lookalike  # noqa: E402
+
 SCENARIOS: Mapping[str, ScenarioDef] = {
     d.name: d
     for d in (
@@ -475,5 +482,6 @@ SCENARIOS: Mapping[str, ScenarioDef] = {
                     build_cave3d),
         ScenarioDef("aliased", "two distinct places that look alike for a short stretch",
                     {"laps": 1.1, "alias_length_m": 0.25}, build_aliased),
+        *_lookalike.DEFINITIONS,
     )
 }

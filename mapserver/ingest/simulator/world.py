@@ -6,7 +6,8 @@ A world optionally has a ceiling (a cave's water surface); otherwise the sky is 
 
 :class:`WorldBuilder` assembles a world: single walls, boxes, boxes scattered at random off the vehicles'
 routes (so every place has its own arrangement of distinct textures), and exact copies of a set of surfaces
-at another place (the ``aliased`` scenario's look-alike stretch). :meth:`WorldBuilder.build` packs
+at another place (the ``aliased`` and ``twin`` scenarios' look-alike stretches) or rotated about a centre
+(the ``symmetric`` scenario). :meth:`WorldBuilder.build` packs
 everything into flat numpy arrays for the renderer.
 """
 
@@ -201,6 +202,37 @@ class WorldBuilder:
             )
             out.append(len(self.surfaces) - 1)
         return out
+
+    def rotate_copy(self, indices: Sequence[int], centre: Sequence[float], angle: float) -> list[int]:
+        """Add exact copies (same textures, same heights) of surfaces rotated by ``angle`` about ``centre``.
+
+        A rotation keeps each surface's orientation (``p0 → p1`` maps to ``p0' → p1'``), so the copy's texture
+        runs the same way along it: rotating the viewer with the surfaces gives the same image.
+        """
+        c, s = math.cos(angle), math.sin(angle)
+        cx, cy = float(centre[0]), float(centre[1])
+
+        def turn(p: tuple[float, float]) -> tuple[float, float]:
+            dx, dy = p[0] - cx, p[1] - cy
+            return (cx + c * dx - s * dy, cy + s * dx + c * dy)
+
+        out = []
+        for k in indices:
+            src = self.surfaces[k]
+            self.surfaces.append(_Surface(turn(src.p0), turn(src.p1), src.base, src.top, src.texture))
+            out.append(len(self.surfaces) - 1)
+        return out
+
+    def remove(self, indices: Sequence[int]) -> None:
+        """Remove surfaces (their textures stay in the list, unused); later indices shift down."""
+        drop = set(indices)
+        self.surfaces = [surface for k, surface in enumerate(self.surfaces) if k not in drop]
+
+    def midpoints(self) -> FloatArray:
+        """Return the (S, 2) midpoints of the surfaces added so far."""
+        if not self.surfaces:
+            return np.zeros((0, 2))
+        return np.array([[(s.p0[0] + s.p1[0]) / 2, (s.p0[1] + s.p1[1]) / 2] for s in self.surfaces])
 
     def scatter_boxes(
         self,

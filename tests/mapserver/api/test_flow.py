@@ -8,9 +8,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from mapserver import pipeline
 from mapserver.params import resolve_params
+from mapserver.store.health import map_health
 from tests.mapserver.api.conftest import Api
 from tests.mapserver.api.logs import write_strip_log
 
@@ -55,10 +57,17 @@ def test_upload_job_map_path_export(api: Api, strip_log: Path, tmp_path: Path) -
     # the API stored exactly what `process --db` stores for the same log and preset
     expected = pipeline.process_log(strip_log, resolve_params("irat"))
     maps = api.client.get("/v1/maps", headers=api.read).json()["maps"]
+    health = maps[0].pop("health")
     assert maps == [{"name": "lab", "sessions": 1, "templates": expected.templates,
                      "experiences": expected.experiences, "links": expected.links}]  # fmt: skip
+    # the health figure of the map as stored (core.robust.health over the engine's own snapshot)
+    own = map_health(resolve_params("irat"), expected.engine.snapshot())
+    assert health == {"switched_off": 0, "links": expected.links, "residual": pytest.approx(own["residual"]),
+                      "worst": pytest.approx(own["worst"])}  # fmt: skip
 
     detail = api.client.get("/v1/maps/lab", headers=api.read).json()
+    assert detail["health"] == {**health, "residual": pytest.approx(health["residual"]),
+                                "worst": pytest.approx(health["worst"])}  # fmt: skip
     assert [s["name"] for s in detail["sessions"]] == ["strip"]
     assert detail["sessions"][0]["frames"] == 62
     assert detail["sessions"][0]["status"] == "complete"
@@ -158,7 +167,9 @@ def test_openapi_and_docs(api: Api) -> None:
     schema = api.client.get("/openapi.json").json()
     ops = {op["operationId"] for path in schema["paths"].values() for op in path.values()}
     assert ops == {"get_health", "upload_session", "get_job", "list_maps", "get_map", "list_experiences",
-                   "find_path", "export_map"}  # fmt: skip
+                   "find_path", "export_map", "get_metrics", "get_graph_view", "get_nearest_experience",
+                   "get_experience", "get_experience_evidence", "list_merges", "get_merge", "undo_merge",
+                   "redo_merge"}  # fmt: skip
     assert "multipart/form-data" in schema["paths"]["/v1/sessions"]["post"]["requestBody"]["content"]
     assert api.client.get("/docs").status_code == 200
     assert api.client.get("/healthz").json() == {"status": "ok"}

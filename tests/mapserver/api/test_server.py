@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 import sqlalchemy as sa
 
@@ -87,8 +88,12 @@ def test_server_killed_during_a_job_reruns_it(server: Server, tmp_path: Path) ->
         assert done["map"] == "long" and done["session"] == "long"
         maps = client.get("/v1/maps", headers=bearer(token)).json()["maps"]
     expected = pipeline.process_log(log, resolve_params("irat"))
+    health = maps[0].pop("health")
     assert maps == [{"name": "long", "sessions": 1, "templates": expected.templates,
                      "experiences": expected.experiences, "links": expected.links}]  # fmt: skip
+    # the resumed job switched off what an uninterrupted run switches off (30 laps: one link 24 → 26)
+    off = int(np.count_nonzero(~expected.engine.map.link_active))
+    assert health["switched_off"] == off and health["links"] == expected.links
     with open_database(server.db_url) as db, db.read() as conn:
         from mapserver.store.jobs import get_job
 

@@ -302,7 +302,7 @@ def test_directory_without_metadata_and_unknown_suffix(tmp_path: Path) -> None:
 @pytest.mark.parametrize("fmt", ["bag", "mcap"])
 def test_only_odometry_has_no_camera(make_log: LogFactory, fmt: str) -> None:
     path = make_log("odom_only", fmt, [], arc_odometry(10, 20.0))
-    with pytest.raises(IngestError, match="no usable camera topic") as err:
+    with pytest.raises(IngestError, match="no camera topic: process needs sensor_msgs/Image or CompressedImage") as err:
         open_log(path)
     assert str(path) in one_line(err)
 

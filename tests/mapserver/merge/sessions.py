@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
 from core import Action, Engine, Params
-from mapserver.merge import MergeEvent, OnlineMerger, StoredMap
+from mapserver.merge import MergeEvent, OnlineMerger, Rollback, StoredMap
 from mapserver.merge.se3 import compose, inverse
 from tests.mapserver.merge.world import LoopWorld
 
@@ -40,6 +41,8 @@ class Run:
     arcs: np.ndarray
     created: np.ndarray  # per frame: the frame created an experience
     merged_frames: list[int] = field(default_factory=list)
+    rolled_back_frames: list[int] = field(default_factory=list)
+    rollbacks: list[Rollback] = field(default_factory=list)
 
     def new_on_mapped_ground(self, mapped: list[tuple[float, float]], after: int | None = None) -> tuple[int, int]:
         """Return (frames, frames creating an experience) after the first merge where the route was mapped.
@@ -79,14 +82,19 @@ def run_session(
     arcs = world.arc(start, length, step=step)
     created = np.zeros(arcs.size, dtype=bool)
     merged_frames: list[int] = []
+    rolled_back: list[int] = []
     for i, (image, motion, stamp) in enumerate(world.drive(start, length, step=step, t0=1000.0)):
-        result = engine.step(image, motion, stamp)
+        frame = SimpleNamespace(image=image, motion=motion, stamp_ns=round(stamp * 1e9))
+        result = engine.step(image, motion, frame.stamp_ns * 1e-9)
         created[i] = result.action == Action.CREATE_NODE
-        event = driver.observe(engine, result)
-        if event is not None:
+        event = driver.observe(engine, result, frame)
+        if isinstance(event, MergeEvent):
             engine = event.engine
             merged_frames.append(i)
-    return Run(engine, driver.events, arcs, created, merged_frames)
+        elif isinstance(event, Rollback):
+            engine = event.engine
+            rolled_back.append(i)
+    return Run(engine, driver.events, arcs, created, merged_frames, rolled_back, driver.rollbacks)
 
 
 def true_alignment(world: LoopWorld, loaded_start: float, partial_start: float) -> np.ndarray:

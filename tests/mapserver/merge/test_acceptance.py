@@ -167,6 +167,9 @@ def test_aliased_places_merge_only_without_confirmation(scenario: Any, tmp_path:
     careful = _process_all(directory, info, _db(tmp_path, "careful"))
     assert [r["merges"] for r in careful] == [[], []]
     assert [r["map"] for r in careful] == ["session1", "session2"]
-    eager = _process_all(directory, info, _db(tmp_path, "eager"), "--confirm", "1")
+    paper = ("--confirm", "1", "--merge-evidence", "0", "--merge-probation", "0")
+    eager = _process_all(directory, info, _db(tmp_path, "eager"), *paper)
     assert [len(r["merges"]) for r in eager] == [0, 1]  # the paper's single-frame trigger merges look-alikes
     assert eager[1]["merges"][0]["confirmations"] == 1 and eager[1]["map"] == "session1"
+    one_match = _process_all(directory, info, _db(tmp_path, "one"), "--confirm", "1")  # K = 1, evidence decides
+    assert [r["merges"] for r in one_match] == [[], []]

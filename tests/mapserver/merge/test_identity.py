@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -85,8 +87,9 @@ def test_the_driver_resumed_from_its_exported_state_merges_as_one_run() -> None:
                 arrays = driver.export_state().to_arrays()
                 engine = Engine.restore(PARAMS, engine.snapshot(), origin=9)
                 driver = OnlineMerger([stored], resume=MergerState.from_arrays(arrays))
-            result = engine.step(image, motion, stamp)
-            event = driver.observe(engine, result)
+            frame = SimpleNamespace(image=image, motion=motion, stamp_ns=round(stamp * 1e9))
+            result = engine.step(image, motion, frame.stamp_ns * 1e-9)
+            event = driver.observe(engine, result, frame)
             if event is not None:
                 engine = event.engine
                 events.append((event.frame, event.record.transform))
@@ -95,7 +98,8 @@ def test_the_driver_resumed_from_its_exported_state_merges_as_one_run() -> None:
     whole = run(None)
     assert len(whole) == 1
     confirming = whole[0][0]
-    assert run(confirming - 1) == whole  # stopped in the middle of the confirming streak
+    assert run(confirming - 1) == whole  # stopped while the winning hypothesis gathers its evidence
+    assert run(confirming // 2) == whole
     state = MergerState(np.arange(4.0), (3,), {})
     assert MergerState.from_arrays(state.to_arrays()).absorbed == (3,)
 

@@ -87,7 +87,10 @@ def test_known_start_activates_the_stored_experience(first_half: StoredMap) -> N
     """Scenario (i): a session starting on mapped ground joins the stored map with no partial map left."""
     stored_count = int(np.shape(first_half.state["em_pose"])[0])
     run = run_session(WORLD, 5.0, 30.0, [first_half])
-    assert len(run.events) == 1 and run.merged_frames[0] <= PARAMS.merge_confirm + 1
+    assert len(run.events) == 1
+    # the merge waits for the evidence distance (0.5 m a frame), no longer
+    needed = run.events[0].evidence["rule"]["evidence_m"]
+    assert needed / 0.5 <= run.merged_frames[0] <= needed / 0.5 + 2
     record = run.events[0].record
     assert record.experiences == stored_count  # everything the session had made was identified
     assert np.all(record.experience_map < stored_count)
@@ -102,14 +105,45 @@ def test_confirmation_rejects_a_look_alike_place() -> None:
     world = LoopWorld(perimeter=40.0, alias=(2.0, 25.0, 5.5))  # arcs 25–30.5 look like arcs 2–7.5
     stored = map_stretch(world, 0.0, 20.0, 1)
     truth = true_alignment(world, 0.0, 22.0)
-    eager = run_session(world, 22.0, 25.0, [stored], confirm=1)
+    eager = run_session(world, 22.0, 25.0, [stored], confirm=1, evidence_m=0.0, probation_m=0.0)  # the paper
     assert eager.events and eager.arcs[eager.merged_frames[0]] < 30.0  # merged inside the look-alike stretch
     gap, _ = _transform_error(eager.events[0].record.transform, truth)
     assert gap > 5.0
+    one_match = run_session(world, 22.0, 25.0, [stored], confirm=1)  # K = 1, but the evidence test decides
+    assert len(one_match.events) == 1 and one_match.arcs[one_match.merged_frames[0]] < 10.0
     careful = run_session(world, 22.0, 25.0, [stored])
-    assert len(careful.events) == 1 and careful.arcs[careful.merged_frames[0]] < 5.0  # at the real overlap
+    # at the real overlap, once the evidence distance is driven there
+    assert len(careful.events) == 1 and careful.arcs[careful.merged_frames[0]] < 10.0
     gap, turn = _transform_error(careful.events[0].record.transform, truth)
     assert gap < 0.3 and turn < 0.05
+
+
+def test_a_false_merge_is_rolled_back_by_its_verification_and_the_true_one_still_happens() -> None:
+    """The paper's trigger merges inside the look-alike stretch; the probation sees the stored map's views
+    fail where that merge predicts them, rolls it back to the session's own engine, and the session
+    merges later at the real overlap."""
+    world = LoopWorld(perimeter=40.0, alias=(2.0, 25.0, 5.5))
+    stored = map_stretch(world, 0.0, 20.0, 1)
+    truth = true_alignment(world, 0.0, 22.0)
+    run = run_session(world, 22.0, 25.0, [stored], confirm=1, evidence_m=0.0)  # decision: the paper's; verified
+    assert len(run.rollbacks) == 1
+    rolled = run.rollbacks[0].event
+    gap, _ = _transform_error(rolled.record.transform, truth)
+    assert gap > 5.0  # it was the false merge
+    verification = rolled.evidence["verification"]
+    assert verification["status"] == "rejected" and verification["post_miss_m"] > 0
+    assert run.arcs[run.rolled_back_frames[0]] < 40.0  # before the session reaches the real overlap
+    assert len(run.events) == 1  # the true merge, after the rollback (on one match: within a frame's 0.5 m)
+    gap, turn = _transform_error(run.events[0].record.transform, truth)
+    assert gap < 0.6 and turn < 0.1
+    # the session after the rollback is the engine that never merged: its first frames are the same map
+    alone = Engine(PARAMS, origin=9)
+    for image, motion, stamp in world.drive(22.0, 25.0, step=0.5, t0=1000.0):
+        alone.step(image, motion, round(stamp * 1e9) * 1e-9)
+    shadow = run.rollbacks[0].engine
+    assert shadow.experience_count <= alone.experience_count
+    n = shadow.experience_count
+    np.testing.assert_array_equal(shadow.map.poses[:n], alone.map.poses[:n])
 
 
 def test_a_session_bridging_two_maps_joins_them() -> None:
@@ -148,9 +182,10 @@ def test_incompatible_stored_maps_are_skipped(first_half: StoredMap) -> None:
 
 
 def test_confirmation_default_comes_from_the_parameters(first_half: StoredMap) -> None:
-    params: Params = PARAMS.replace(merge_confirm=1)
-    run = run_session(WORLD, 24.0, 20.0, [StoredMap(1, params, first_half.state)], params=params)
-    assert run.events and run.events[0].record.confirmations == 1
+    for k in (1, 4):  # with no evidence distance, K supporting matches decide
+        params: Params = PARAMS.replace(merge_confirm=k, merge_evidence_m=0.0, merge_probation_m=0.0)
+        run = run_session(WORLD, 24.0, 20.0, [StoredMap(1, params, first_half.state)], params=params)
+        assert run.events and run.events[0].record.confirmations == k
 
 
 @pytest.mark.slow

@@ -15,7 +15,7 @@ from mapserver.errors import MergeError
 from mapserver.merge import LatticeTransform, Match, MergeRecord, merge_states, restore_merged
 from mapserver.merge.lattice import wrap_coords
 from mapserver.merge.se3 import compose, inverse, relative
-from mapserver.merge.snapshot import SNAPSHOT_KEYS
+from mapserver.merge.snapshot import OPTIONAL_SNAPSHOT_KEYS, SNAPSHOT_KEYS
 from tests.mapserver.merge.snapshots import TX, TY, make_state
 
 DIMS = (21, 21, 36)
@@ -178,7 +178,8 @@ def test_output_has_exactly_the_documented_keys_and_restores() -> None:
     loaded, partial = loaded_state(), partial_state(TURN)
     loaded["eng_future_cache"] = np.zeros(3)  # an optional key someone may add: not carried
     state, _ = merge_states(loaded, partial, Match.at_experience(partial, 3, stored_template=2, stored_experience=2))
-    assert set(state) == set(SNAPSHOT_KEYS)
+    assert set(state) == set(SNAPSHOT_KEYS) | set(OPTIONAL_SNAPSHOT_KEYS)
+    assert state["em_link_active"].tolist() == [True] * state["em_link_from"].size
     assert state["lv_templates"].dtype == np.float32 and state["em_link_kind"].dtype == np.int8
     assert state["em_template"].dtype == np.int64 and state["em_pose"].dtype == np.float64
     engine = Engine.restore(params, state, origin=2)
@@ -262,3 +263,16 @@ def test_restore_merged_schedules_relaxation_at_the_merge_links() -> None:
     queued = set(engine.map.relax_queue.tolist())
     ends = set(state["em_link_from"][tail].tolist()) | set(state["em_link_to"][tail].tolist())
     assert ends <= queued and len(queued) < engine.experience_count
+
+
+def test_merged_maps_keep_the_link_flags_of_both_maps() -> None:
+    loaded, partial = loaded_state(), partial_state(TURN)
+    loaded["em_link_active"] = np.arange(loaded["em_link_from"].size) % 2 == 0  # every other link switched off
+    partial["em_link_active"] = np.zeros(partial["em_link_from"].size, dtype=bool)  # all off
+    state, _ = merge_states(loaded, partial, Match.at_experience(partial, 3, stored_template=2, stored_experience=2))
+    n_loaded = loaded["em_link_from"].size
+    assert state["em_link_active"][:n_loaded].tolist() == loaded["em_link_active"].tolist()
+    kinds = state["em_link_kind"][n_loaded:]
+    # the partial's kept links stay off; the links that join the graphs (merge links) start on
+    assert state["em_link_active"][n_loaded:].tolist() == (kinds == 2).tolist()
+    assert (kinds == 2).any() and (kinds != 2).any()

@@ -27,10 +27,13 @@ def stored(db: Database) -> dict[str, np.ndarray]:
 
 def test_maps_lists_counts(db_url: str, stored: dict[str, np.ndarray], capsys) -> None:  # type: ignore[no-untyped-def]
     assert main(["maps", "--db", db_url, "--json"]) == 0
-    assert json.loads(capsys.readouterr().out.splitlines()[-1]) == {
+    listed = json.loads(capsys.readouterr().out.splitlines()[-1])
+    health = listed["maps"][0].pop("health")
+    assert listed == {
         "maps": [{"name": "two", "sessions": 1, "templates": stored["lv_templates"].shape[0],
                   "experiences": stored["em_pose"].shape[0], "links": stored["em_link_from"].shape[0]}]
     }  # fmt: skip
+    assert health["links"] == stored["em_link_from"].shape[0] and health["switched_off"] == 0
     assert main(["maps", "--db", db_url]) == 0
     assert capsys.readouterr().out.splitlines()[1].split()[:2] == ["two", "1"]
 

@@ -26,6 +26,10 @@ EXPECTED = {
     "chain5": ("circle", ["session1", "session2", "session3", "session4", "session5"], False),
     "cave3d": ("poseidon", ["session1", "session2"], True),
     "aliased": ("circle", ["session1", "session2"], False),
+    "twin": ("circle", ["session1", "session2"], False),
+    "twin-overlap": ("circle", ["session1", "session2"], True),
+    "symmetric": ("circle", ["session1", "session2"], True),
+    "symmetric-overlap": ("circle", ["session1", "session2"], True),
 }
 
 

@@ -1,0 +1,136 @@
+"""Issue 17 figures: place recognition of the ``lvc`` and ``sdr-htm`` front-ends, VPR Guard on and off.
+
+Usage: python bench/neocortex_vpr.py [--out DIR] [--seed 0] [--scale 1.0] [--scenarios aliased,cave3d]
+       [--frontends lvc,sdr-htm,sdr-htm-imin8] [--reuse]
+
+For each scenario the simulator writes its logs (all sessions, then the single run when there is one);
+every session log of a scenario goes through ONE engine in turn (so a later session's look-alike places
+meet the earlier sessions' view cells) with the scenario's preset and its variants:
+
+* ``lvc``: the preset as it is (intensity templates);
+* ``sdr-htm``: the same preset with ``frontend = "sdr-htm"`` (weight-free encoder, thesis HTM values);
+* ``sdr-htm-imin8`` (on request): ``sdr-htm`` with the intersection gate lowered from 12 to 8 of 15 bits;
+* ``sdr-sp``, ``sdr-sp-imin8`` (on request): the descriptor from the SP's columns instead of the TM's
+  winner cells (``sv_descriptor_source = "sp"``): the same pipeline without sequence memory;
+
+each with ``vpr_guard`` on and off. Per run it prints the place-recognition rates of
+:func:`mapserver.evaluation.place_recognition` (recall = revisit_match_rate; precision = 1 −
+false_match_rate, with the evaluation's default radii), the loop-closure links judged against the ground
+truth (TP when the two experiences' true positions are within 5 m, the thesis's d_thr), the counts, and
+the front-end throughput (frames/s of the whole engine). The last stdout line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from core.config import preset
+from core.engine import Engine
+from core.experience_map import LinkKind
+from mapserver.evaluation import interpolate_poses, place_recognition
+from mapserver.formats import Trajectory, read_tum
+from mapserver.ingest.simulator.output import simulate
+from mapserver.pipeline import run_engine
+
+D_THR = 5.0
+VARIANTS: dict[str, dict[str, Any]] = {
+    "lvc": {"frontend": "lvc"},
+    "sdr-htm": {"frontend": "sdr-htm"},
+    "sdr-htm-imin8": {"frontend": "sdr-htm", "sv_min_intersection": 8},
+    "sdr-sp": {"frontend": "sdr-htm", "sv_descriptor_source": "sp"},
+    "sdr-sp-imin8": {"frontend": "sdr-htm", "sv_descriptor_source": "sp", "sv_min_intersection": 8},
+}
+
+
+def _ground_truth(directory: Path, logs: list[dict[str, Any]]) -> Trajectory:
+    parts = [read_tum(directory / s["ground_truth"]) for s in logs]
+    return Trajectory(
+        np.concatenate([p.stamps_s for p in parts]),
+        np.concatenate([p.positions_xyz for p in parts]),
+        np.concatenate([p.quat_xyzw for p in parts]),
+    )
+
+
+def _loop_links(engine: Engine, gt: Trajectory) -> dict[str, int]:
+    snap = engine.snapshot()
+    kinds = snap["em_link_kind"].astype(np.int64)
+    src, dst = snap["em_link_from"][kinds == LinkKind.LOOP], snap["em_link_to"][kinds == LinkKind.LOOP]
+    stamps = snap["em_stamp"]
+    a = interpolate_poses(gt, stamps[src], max_diff_s=0.5)
+    b = interpolate_poses(gt, stamps[dst], max_diff_s=0.5)
+    d = np.linalg.norm(a[:, :3] - b[:, :3], axis=1)
+    return {"loop_links": int(src.size), "tp": int(np.sum(d <= D_THR)), "fp": int(np.sum(d > D_THR))}
+
+
+def _run(directory: Path, logs: list[dict[str, Any]], params: Any, gt: Trajectory) -> dict[str, Any]:
+    engine = Engine(params)
+    rows: list[tuple[float, int, int]] = []
+
+    def record(frame: Any, result: Any) -> None:
+        rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
+
+    started = time.perf_counter()
+    frames = 0
+    for s in logs:
+        frames += run_engine(engine, directory / s["log"], on_step=record).frames
+    seconds = time.perf_counter() - started
+    pr = place_recognition(rows, gt)
+    false_rate = pr["false_match_rate"]
+    return {
+        "frames": frames,
+        "view_cells": engine.template_count,
+        "experiences": engine.experience_count,
+        "recall": pr["revisit_match_rate"],
+        "precision": None if false_rate is None else 1.0 - false_rate,
+        "revisit_frames": pr["revisit_frames"],
+        "revisit_matched": pr["revisit_matched"],
+        "matched_frames": pr["matched_frames"],
+        "false_matches": pr["false_matches"],
+        **_loop_links(engine, gt),
+        "frames_per_s": round(frames / seconds, 1),
+        "ms_per_frame": round(1000 * seconds / frames, 2),
+    }
+
+
+def main() -> None:
+    """Simulate, run every variant and print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--scale", type=float, default=1.0)
+    parser.add_argument("--scenarios", default="aliased,cave3d")
+    parser.add_argument("--frontends", default="lvc,sdr-htm")
+    parser.add_argument("--reuse", action="store_true", help="use the logs already simulated in --out")
+    args = parser.parse_args()
+    out = args.out or Path(tempfile.mkdtemp(prefix="neocortex-vpr-"))
+    figures: dict[str, Any] = {}
+    for name in args.scenarios.split(","):
+        directory = out / name
+        if args.reuse and (directory / "scenario.json").is_file():
+            info = json.loads((directory / "scenario.json").read_text(encoding="utf-8"))
+        else:
+            info = simulate(name, directory, seed=args.seed, scale=args.scale)
+        logs = list(info["sessions"]) + ([info["single"]] if info.get("single") else [])
+        gt = _ground_truth(directory, logs)
+        base = preset(info["preset"])
+        for variant in args.frontends.split(","):
+            params = base.replace(**VARIANTS[variant])
+            for guard in (True, False):
+                key = f"{name}/{variant}/guard-{'on' if guard else 'off'}"
+                figures[key] = _run(directory, logs, params.replace(vpr_guard=guard), gt)
+                print(key, json.dumps(figures[key]), flush=True)
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,152 @@
+"""HTM Spatial Pooler on torch tensors (thesis Table 3.2 data structures, Table 4.1/5.1 values).
+
+Columns sit on a ring of ``columns`` positions, inputs on a ring of ``inputs`` positions; column c's
+centre is input ⌊(c + ½)·inputs/columns⌋ and its potential pool is a fixed ``potential_pct`` share
+(seeded draw) of the inputs within ``potential_radius`` of the centre (wrapping). Initial permanences of
+the pool are uniform in [connected − 0.1, connected + 0.1] (about half connected), outside the pool 0.
+
+Per input x (bool, ``inputs``):
+
+* overlap(c) = #{i : x_i ∧ perm(c, i) ≥ connected}, then ``overlap < stimulus`` → 0;
+* boosted = overlap · boost(c) with boost(c) = exp(−β·(activeDuty(c) − target)), target = w/columns;
+* global inhibition: the w columns with the largest boosted overlap (ties: lower column index),
+  columns with zero overlap never win;
+* learning (winners only): perm += inc on active pool inputs, −= dec on inactive pool inputs, clipped
+  to [0, 1]; duty cycles are moving averages over ``duty_cycle_period`` steps.
+
+Everything is exact integer counting or elementwise float32 arithmetic, so results do not depend on
+the thread count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+from core.neocortex.lsbh import digest
+
+
+class SpatialPooler:
+    """A global-inhibition spatial pooler whose whole state is a few dense tensors."""
+
+    def __init__(
+        self,
+        inputs: int,
+        columns: int,
+        active: int,
+        *,
+        potential_radius: int,
+        potential_pct: float,
+        connected: float,
+        inc: float,
+        dec: float,
+        boost_strength: float = 0.0,
+        duty_cycle_period: int = 1000,
+        stimulus_threshold: int = 0,
+        seed: int = 42,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.inputs, self.columns, self.active = inputs, columns, active
+        self.connected, self.inc, self.dec = connected, inc, dec
+        self.boost_strength, self.period, self.stimulus = boost_strength, duty_cycle_period, stimulus_threshold
+        self.device = torch.device(device)
+        potential, perm = initial_pools(inputs, columns, potential_radius, potential_pct, connected, seed)
+        self.potential = potential.to(self.device)
+        self.permanence = perm.to(self.device)
+        self._connected_t = (self.permanence >= connected).to(torch.float32).T.contiguous()  # (inputs, columns)
+        self.active_duty = torch.zeros(columns, dtype=torch.float32, device=self.device)
+        self.overlap_duty = torch.zeros(columns, dtype=torch.float32, device=self.device)
+        self.iteration = 0
+
+    def overlaps(self, x: torch.Tensor) -> torch.Tensor:
+        """Return the (columns,) overlap counts of bool input ``x`` with each column's connected synapses.
+
+        The sum of the connected-synapse rows of the active inputs, in float32 over 0/1 values: every
+        partial sum is an integer < 2²⁴, so exact in any order.
+        """
+        active = torch.nonzero(x.to(self.device)).flatten()
+        counts = torch.index_select(self._connected_t, 0, active).sum(dim=0).to(torch.int64)
+        return torch.where(counts >= self.stimulus, counts, torch.zeros_like(counts))
+
+    def boost(self) -> torch.Tensor:
+        """Return the (columns,) boost factors exp(−β·(activeDuty − w/columns)); all 1 when β = 0."""
+        if self.boost_strength == 0:
+            return torch.ones(self.columns, dtype=torch.float32, device=self.device)
+        target = self.active / self.columns
+        return torch.exp(-self.boost_strength * (self.active_duty - target))
+
+    def inhibit(self, scores: torch.Tensor) -> torch.Tensor:
+        """Return the sorted indices of the ``active`` best-scoring columns with a score > 0 (ties: lower index)."""
+        order = torch.sort(scores, descending=True, stable=True).indices[: self.active]
+        winners = order[scores[order] > 0]
+        return torch.sort(winners).values
+
+    def compute(self, x: torch.Tensor, learn: bool = True) -> torch.Tensor:
+        """Return the active columns (sorted int64) for input ``x`` and, with ``learn``, adapt the pools."""
+        overlap = self.overlaps(x)
+        winners = self.inhibit(overlap.to(torch.float32) * self.boost())
+        if learn:
+            self._learn(x.to(self.device), winners, overlap)
+        return winners
+
+    def _learn(self, x: torch.Tensor, winners: torch.Tensor, overlap: torch.Tensor) -> None:
+        old = torch.index_select(self.permanence, 0, winners)
+        pool = torch.index_select(self.potential, 0, winners)
+        delta = torch.where(x[None, :], self.inc, -self.dec).to(torch.float32)
+        rows = torch.where(pool, (old + delta).clamp_(0.0, 1.0), old)
+        self.permanence.index_copy_(0, winners, rows)
+        now = rows >= self.connected
+        r, i = torch.nonzero(now != (old >= self.connected), as_tuple=True)  # synapses that (dis)connected
+        self._connected_t[i, winners[r]] = now[r, i].to(torch.float32)
+        self.iteration += 1
+        period = float(min(self.period, self.iteration))
+        fired = torch.zeros(self.columns, dtype=torch.float32, device=self.device)
+        fired[winners] = 1.0
+        self.active_duty = (self.active_duty * (period - 1.0) + fired) / period
+        overlapped = (overlap > 0).to(torch.float32)
+        self.overlap_duty = (self.overlap_duty * (period - 1.0) + overlapped) / period
+
+    # -------------------------------------------------------------- snapshot
+    def snapshot(self, prefix: str = "sp_") -> dict[str, np.ndarray]:
+        """Return the learnt state: the pool's permanences (row-major order of the seeded pool mask) and duties."""
+        return {
+            prefix + "permanence": self.permanence[self.potential].cpu().numpy().copy(),
+            prefix + "pool_digest": digest(self.potential.to(torch.float32)),
+            prefix + "active_duty": self.active_duty.cpu().numpy().copy(),
+            prefix + "overlap_duty": self.overlap_duty.cpu().numpy().copy(),
+            prefix + "iteration": np.asarray(self.iteration, dtype=np.int64),
+        }
+
+    def load(self, state: Mapping[str, np.ndarray], prefix: str = "sp_") -> None:
+        """Overwrite the learnt state with :meth:`snapshot` arrays, exactly."""
+        values = torch.from_numpy(np.array(state[prefix + "permanence"], dtype=np.float32)).reshape(-1)
+        pool_digest = digest(self.potential.to(torch.float32))
+        same_pool = np.array_equal(state[prefix + "pool_digest"], pool_digest)
+        if values.numel() != int(self.potential.sum()) or not same_pool:
+            msg = "the stored spatial pooler does not fit the potential pools regenerated from its seed"
+            raise ValueError(msg)
+        perm = torch.zeros((self.columns, self.inputs), dtype=torch.float32, device=self.device)
+        perm[self.potential] = values.to(self.device)
+        self.permanence = perm
+        self._connected_t = (perm >= self.connected).to(torch.float32).T.contiguous()
+        self.active_duty = torch.from_numpy(np.array(state[prefix + "active_duty"], np.float32)).to(self.device)
+        self.overlap_duty = torch.from_numpy(np.array(state[prefix + "overlap_duty"], np.float32)).to(self.device)
+        self.iteration = int(state[prefix + "iteration"])
+
+
+def initial_pools(
+    inputs: int, columns: int, radius: int, pct: float, connected: float, seed: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return (potential (columns, inputs) bool, permanence float32) as described in the module docstring."""
+    generator = torch.Generator(device="cpu").manual_seed(int(seed))
+    centre = ((torch.arange(columns, dtype=torch.float64) + 0.5) * inputs / columns).floor().to(torch.int64)
+    offset = torch.arange(inputs, dtype=torch.int64)[None, :] - centre[:, None]
+    ring = torch.minimum(offset.remainder(inputs), (-offset).remainder(inputs))
+    near = ring <= radius
+    draw = torch.rand((columns, inputs), generator=generator, dtype=torch.float32)
+    potential = near & (draw < pct)
+    start = torch.rand((columns, inputs), generator=generator, dtype=torch.float32)
+    perm = torch.where(potential, (connected - 0.1) + 0.2 * start, torch.zeros_like(start)).clamp_(0.0, 1.0)
+    return potential, perm

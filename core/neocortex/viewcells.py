@@ -1,0 +1,192 @@
+"""Spatial-view cells from SDRs and HTM: the engine's second view module (``frontend = "sdr-htm"``).
+
+Per frame (PoseidonSLAM §4.2.2): embedding y (Eq. 4.1) → LSBH SDR (Eq. 4.2) → OR fusion (Eq. 4.3; one
+camera modality here) → spatial pooler → temporal memory → winner cells → descriptor D_t (pooling,
+interval union, top-k cap; Eqs 4.4–4.5) → overlap match against the prototypes (Eqs 4.6–4.9) → the
+matched id, or a new view cell whose prototype is D_t (Eq. 4.10). The interface is the one of
+:class:`core.localview.LocalViewCells`: ``process(image) -> (id, relative_rad, created)``, ``count``,
+``current``/``previous``, ``snapshot``/``restore``; relative_rad is always 0 (SDRs carry no shift).
+
+Snapshot: the prototypes are the ``lv_templates`` rows, float32 (N, 1, topk) holding cell ids (exact:
+ids < 2²⁴) padded with −1, ``lv_means`` their sizes, so the store, archives and merges treat them as
+templates. The projection (``nc_projection``, or for CNN embeddings too big to store its SHA-256
+``nc_projection_digest``, checked on restore), the pooler (``nc_sp_*``), the temporal memory
+(``nc_tm_*``) and the descriptor's window (``nc_history*``, ``nc_run``) are plain arrays too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from core.neocortex.descriptor import Match, MatchGates, best_match, cap_topk, interval_length
+from core.neocortex.encoder import Encoder, resolve_device
+from core.neocortex.lsbh import digest, fuse, lsbh_bits, projection
+from core.neocortex.spatial_pooler import SpatialPooler
+from core.neocortex.temporal_memory import TemporalMemory, TMConfig
+
+if TYPE_CHECKING:
+    from core.config import Params
+
+STORED_PROJECTION_MAX = 1 << 22  # projections up to 4 Mi entries (16 MB) are stored; larger ones by digest
+FLOAT32_EXACT = 1 << 24
+
+
+class NeocortexViewCells:
+    """SDR + HTM view cells with prototype matching by overlap recall."""
+
+    def __init__(self, params: Params) -> None:
+        self.params = params
+        self.device = resolve_device(params.frontend_device)
+        if self.device.type == "cpu":
+            torch.set_num_threads(1)  # small tensors: intra-op threads only add contention (as the pipeline's BLAS)
+        self.encoder = Encoder(params, self.device)
+        half = params.lsbh_bits // 2
+        self.k = int(params.lsbh_s * half)
+        self.projection = projection(self.encoder.dims, half, params.lsbh_seed).to(self.device)
+        self.sp = SpatialPooler(
+            params.lsbh_bits, params.sp_columns, params.sp_num_active_columns,
+            potential_radius=params.sp_potential_radius, potential_pct=params.sp_potential_pct,
+            connected=params.sp_syn_perm_connected, inc=params.sp_syn_perm_active_inc,
+            dec=params.sp_syn_perm_inactive_dec, boost_strength=params.sp_boost_strength,
+            duty_cycle_period=params.sp_duty_cycle_period, seed=params.lsbh_seed + 1, device=self.device,
+        )
+        self.tm = TemporalMemory(tm_config(params), self.device)
+        if self.tm.cells >= FLOAT32_EXACT:
+            msg = f"sp_columns × tm_cells_per_column = {self.tm.cells} cells: prototypes need < 2^24"
+            raise ValueError(msg)
+        self.gates = MatchGates(params.sv_min_intersection, params.sv_tm_match_threshold,
+                                params.sv_enable_f1_gate, params.min_f1, params.sv_use_iou_tiebreak)
+        self.history: list[np.ndarray] = []
+        self.run = 0
+        self._prototypes = np.empty((0, params.sv_tm_topk), dtype=np.int64)
+        self._sizes = np.empty(0, dtype=np.int64)
+        self.current = -1
+        self.previous = -1
+        self.relative_rad = 0.0
+        self.last_view: np.ndarray | None = None
+        self.last_mean = 0.0
+        self.last_match: Match | None = None
+
+    @property
+    def count(self) -> int:
+        """Return the number of view cells (prototypes)."""
+        return int(self._sizes.size)
+
+    @property
+    def prototypes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return (cells (N, topk) int64 padded −1, sizes (N,))."""
+        return self._prototypes, self._sizes
+
+    def add_prototypes(self, cells: np.ndarray, sizes: np.ndarray) -> None:
+        """Append prototypes (−1 padded rows of ``sv_tm_topk`` cell ids) with their sizes."""
+        rows = np.asarray(cells, dtype=np.int64).reshape(-1, self.params.sv_tm_topk)
+        self._prototypes = np.concatenate([self._prototypes, rows])
+        self._sizes = np.concatenate([self._sizes, np.asarray(sizes, dtype=np.int64).reshape(-1)])
+
+    # ------------------------------------------------------------------ step
+    def sdr(self, image: np.ndarray) -> torch.Tensor:
+        """Return the fused SDR (lsbh_bits,) bool of ``image`` (Eqs 4.1–4.3, camera modality)."""
+        y = self.encoder(image)
+        v = (y @ self.projection)[0]
+        return fuse([lsbh_bits(v, self.k)])
+
+    def descriptor(self, winners: np.ndarray) -> np.ndarray:
+        """Push this step's winner cells and return D_t (see :mod:`core.neocortex.descriptor`)."""
+        p = self.params
+        if self.history and winners.size:
+            shared = np.intersect1d(winners, self.history[-1], assume_unique=True).size
+            self.run = self.run + 1 if shared / winners.size >= p.theta_alpha else 1
+        else:
+            self.run = 1
+        self.history.append(winners)
+        del self.history[: max(0, len(self.history) - p.sv_tm_window)]
+        span = interval_length(self.run, p.sv_tm_window, p.theta_rho, p.interval_mode)
+        return cap_topk(self.history[-span:], p.sv_tm_topk)
+
+    def process(self, image: np.ndarray) -> tuple[int, float, bool]:
+        """Encode, pool, sequence and match ``image``; return (view cell id, 0.0, created)."""
+        columns = self.sp.compute(self.sdr(image), learn=self.params.sp_learn)
+        _, winners = self.tm.compute(columns, learn=True)
+        source = columns if self.params.sv_descriptor_source == "sp" else winners  # sp: no sequence memory
+        d = self.descriptor(source.cpu().numpy().astype(np.int64))
+        match = best_match(d, self._prototypes, self._sizes, self.gates)
+        self.last_view, self.last_mean, self.last_match = d, float(d.size), match
+        self.previous = self.current
+        if match is not None and match.accepted:
+            self.current = match.index
+            return match.index, 0.0, False
+        row = np.full((1, self.params.sv_tm_topk), -1, dtype=np.int64)
+        row[0, : d.size] = d
+        self.add_prototypes(row, np.array([d.size]))
+        self.current = self.count - 1
+        return self.current, 0.0, True
+
+    def match(self, descriptor: np.ndarray) -> Match | None:
+        """Return the best prototype for ``descriptor`` with the Eq. 4.9 verdict (no state change)."""
+        return best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes, self._sizes, self.gates)
+
+    # -------------------------------------------------------------- snapshot
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Return the whole front-end state as plain arrays (keys ``lv_*`` and ``nc_*``)."""
+        p = self.params
+        history = np.full((p.sv_tm_window, max((h.size for h in self.history), default=0)), -1, np.int64)
+        for i, h in enumerate(self.history):
+            history[i, : h.size] = h
+        state = {
+            "lv_templates": self._prototypes.astype(np.float32)[:, None, :],
+            "lv_means": self._sizes.astype(np.float64),
+            "lv_current": np.asarray(self.current, dtype=np.int64),
+            "lv_previous": np.asarray(self.previous, dtype=np.int64),
+            "lv_relative_rad": np.asarray(self.relative_rad, dtype=np.float64),
+            "nc_projection_digest": digest(self.projection),
+            "nc_history": history,
+            "nc_history_len": np.asarray([h.size for h in self.history], dtype=np.int64),
+            "nc_run": np.asarray(self.run, dtype=np.int64),
+        }
+        if self.projection.numel() <= STORED_PROJECTION_MAX:
+            state["nc_projection"] = self.projection.cpu().numpy().copy()
+        state.update(self.sp.snapshot("nc_sp_"))
+        state.update(self.tm.snapshot("nc_tm_"))
+        return state
+
+    @classmethod
+    def restore(cls, params: Params, state: Mapping[str, np.ndarray]) -> NeocortexViewCells:
+        """Rebuild the front-end from :meth:`snapshot` arrays so that it continues bit for bit."""
+        cells = cls(params)
+        if "nc_projection" in state:
+            stored = torch.from_numpy(np.array(state["nc_projection"], dtype=np.float32))
+            if tuple(stored.shape) != tuple(cells.projection.shape):
+                msg = f"nc_projection has shape {tuple(stored.shape)}, expected {tuple(cells.projection.shape)}"
+                raise ValueError(msg)
+            cells.projection = stored.to(cells.device)
+        if not np.array_equal(np.asarray(state["nc_projection_digest"]), digest(cells.projection)):
+            msg = "the stored LSBH projection differs from the one regenerated from lsbh_seed"
+            raise ValueError(msg)
+        templates = np.asarray(state["lv_templates"], dtype=np.float32)
+        cells.add_prototypes(templates.reshape(-1, params.sv_tm_topk).astype(np.int64), state["lv_means"])
+        cells.current = int(state["lv_current"])
+        cells.previous = int(state["lv_previous"])
+        cells.relative_rad = float(state["lv_relative_rad"])
+        history, lengths = np.asarray(state["nc_history"]), np.asarray(state["nc_history_len"])
+        cells.history = [history[i, : int(n)].astype(np.int64) for i, n in enumerate(lengths)]
+        cells.run = int(state["nc_run"])
+        cells.sp.load(state, "nc_sp_")
+        cells.tm.load(state, "nc_tm_")
+        return cells
+
+
+def tm_config(params: Params) -> TMConfig:
+    """Return the Temporal Memory configuration of ``params``."""
+    return TMConfig(
+        columns=params.sp_columns, cells_per_column=params.tm_cells_per_column,
+        activation_threshold=params.tm_activation_threshold, min_threshold=params.tm_min_threshold,
+        initial_permanence=params.tm_initial_permanence, connected_permanence=params.tm_connected_permanence,
+        max_new_synapse_count=params.tm_max_new_synapse_count,
+        max_synapses_per_segment=params.tm_max_synapses_per_segment,
+        permanence_increment=params.tm_permanence_increment, permanence_decrement=params.tm_permanence_decrement,
+        predicted_segment_decrement=params.tm_predicted_segment_decrement,
+    )

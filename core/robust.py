@@ -1,0 +1,354 @@
+"""Robust relaxation: find the loop links inconsistent with the rest of the graph and switch them off.
+
+Model: switchable constraints (Sünderhauf & Protzel, "Switchable Constraints for Robust Pose
+Graph SLAM", IROS 2012) with binary switches: every loop and merge link l carries a switch
+s_l ∈ {0, 1}; odometry and manual links are never switched. The switches minimise the
+truncated least squares (TLS) cost of Yang, Antonante, Tzoumas & Carlone ("Graduated
+Non-Convexity for Robust Spatial Perception", RA-L 2020, Eq. 2 with the TLS loss)
+
+    C(s) = γ·Σ_odometry z_l² + Σ_switchable min(z_l², c̄²),
+
+with the poses at the relaxation's least-squares fixed point over the links switched on
+(:func:`core.relaxation.solve`), so a link over the threshold costs a constant and stops
+pulling. γ = 1/4 (``ODOMETRY_WEIGHT``, chosen on the ``loop`` and ``cave3d`` simulations):
+with γ = 1 a true closure of a long cycle costs the whole cycle's spread misclosure, more than
+c̄², and switching it off looks cheaper (measured: ``cave3d`` loses its closure to the first
+experience); with γ = 0 the odometry no longer resists a bend and false links that bend it
+are kept (``loop``, 20 wrong links). It is minimised by greedy descent (:func:`switch_off_outliers`) rather than by
+GNC's continuation: on long odometry chains GNC's convex start down-weights every loop
+link at once, the loop opens and true closures are rejected with the false ones (measured
+on the ``loop`` simulation). Greedy: switch off the link with the largest normalised
+residual while it exceeds c̄, re-solving each time (a false link's error also shows,
+smaller, on its true neighbours, so one link at a time); then try to switch each
+switched-off link back on, kept on while the elimination re-runs from there, and keep the
+change when it lowers C: a switched-off link comes back on when later evidence makes it consistent,
+and a true closure removed early is swapped back for the false link it was mistaken for.
+
+Normalisation (the threshold rule). Odometry drifts by about ``drift`` metres and
+``yaw_drift`` radians per metre travelled. Least squares spreads a cycle's misclosure
+evenly over its links (unit weights), so a consistent link's residual is about the drift
+of one link length, whatever the cycle's length: with ``s`` the map's median odometry
+link length,
+
+    z_l = √( (‖r_xyz‖ / (drift·s))² + (r_ψ / (yaw_drift·s))² ),
+
+and a link is an outlier when ``z_l > c̄`` (``exp_robust_threshold``, 5 by default: 3 switched off a true link of the
+two-session ``cave3d`` map, largest z 3.48; drift
+0.1 m/m and 0.1 rad/m). The same ``z`` gives the map's health figure: the RMS of ``z``
+over the active links (0.5 on the simulator's clean ``loop`` map).
+
+Headings are dead-reckoned along a spanning forest of the never-switched links
+(:func:`chain_headings`) and the relaxation's heading windings are taken from them, so a
+false link that bent the current map cannot change how many turns a cycle makes. A
+switched-off link never disconnects the graph (:func:`keep_connected`). Everything is
+deterministic (no random numbers outside the test hook :func:`false_loop_links`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+from core.relaxation import residuals, roots, solve
+
+#: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
+SWITCHABLE_KINDS = (1, 2)
+#: γ, the weight of the never-switched links' terms in the TLS cost (module docstring)
+ODOMETRY_WEIGHT = 0.25
+
+
+@dataclass(frozen=True, slots=True)
+class Drift:
+    """The expected odometry drift that normalises link residuals (see the module docstring)."""
+
+    drift: float  # metres per metre travelled
+    yaw_drift: float  # radians per metre travelled
+    threshold: float  # c̄ of the truncated quadratic, in normalised units
+
+
+@dataclass(frozen=True, slots=True)
+class RobustResult:
+    """The outcome of one robust check over a link graph."""
+
+    active: np.ndarray  # (K,) bool: links that stay on
+    weight: np.ndarray  # (K,) the switches as weights: 1 on, 0 off
+    z: np.ndarray  # (K,) normalised residuals at the robust solution
+    iterations: int  # solves run (1 when every link was consistent at once)
+    pose: np.ndarray  # (E, 4) relaxed poses over the active links
+
+
+def switchable(kind: np.ndarray) -> np.ndarray:
+    """Return a mask (K,) of the links that may be switched off (loop closures and merges, never odometry)."""
+    return np.isin(np.asarray(kind), SWITCHABLE_KINDS)
+
+
+def link_length(distance: np.ndarray, kind: np.ndarray) -> float:
+    """Return ``s``: the median odometry link length (m), else the median positive link length, else 1 m."""
+    distance = np.asarray(distance, dtype=np.float64)
+    odometry = distance[(np.asarray(kind) == 0) & (distance > 0)]
+    if odometry.size:
+        return float(np.median(odometry))
+    positive = distance[distance > 0]
+    return float(np.median(positive)) if positive.size else 1.0
+
+
+def normalised_residuals(
+    pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, length: float, drift: Drift
+) -> np.ndarray:
+    """Return ``z_l`` (K,): each link's residual divided by the drift expected over one link length."""
+    res = residuals(pose, src, dst, transform)
+    scale_t = max(drift.drift * length, 1e-12)
+    scale_y = max(drift.yaw_drift * length, 1e-12)
+    zt = np.sqrt(np.einsum("ij,ij->i", res[:, :3], res[:, :3])) / scale_t
+    return np.hypot(zt, res[:, 3] / scale_y)
+
+
+def switch_off_outliers(
+    pose: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    transform: np.ndarray,
+    kind: np.ndarray,
+    distance: np.ndarray,
+    anchor: np.ndarray,
+    drift: Drift,
+    max_solves: int = 400,
+) -> RobustResult:
+    """Return which links stay on: binary switches minimising the TLS cost (module docstring).
+
+    ``pose`` gives the anchors' poses and the experiences' positions to start from; the
+    decision depends on the links only. When every switchable link is within ``c̄`` of the
+    plain least-squares solution, nothing is switched off after one solve. At most
+    ``max_solves`` relaxation solves are run (a bound on the work, never reached on the
+    simulator's maps).
+    """
+    k = src.size
+    can = switchable(kind)
+    start = pose.copy()
+    start[:, 3] = chain_headings(pose[:, 3], src, dst, transform, can, anchor)
+    problem = _Problem(start, src, dst, transform, can, anchor, link_length(distance, kind), drift, max_solves)
+    best = problem.eliminate(np.ones(k, dtype=bool))
+    improved = True
+    while improved and problem.solves < max_solves:
+        improved = False
+        off = np.flatnonzero(~best.active)
+        for link in off[np.argsort(best.z[off], kind="stable")].tolist():
+            if best.active[link] or problem.solves >= max_solves:
+                continue
+            trial_active = best.active.copy()
+            trial_active[link] = True
+            trial = problem.eliminate(trial_active, keep_on=link)
+            if _better(trial, best):
+                best, improved = trial, True
+    return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
+
+
+def _better(trial: _State, best: _State) -> bool:
+    """Return whether ``trial`` has the lower TLS cost."""
+    return trial.cost < best.cost - 1e-9 * max(1.0, best.cost)
+
+
+@dataclass(frozen=True, slots=True)
+class _State:
+    active: np.ndarray
+    pose: np.ndarray
+    z: np.ndarray
+    cost: float
+
+
+class _Problem:
+    """One robust check's fixed data, and the greedy elimination over it."""
+
+    def __init__(
+        self,
+        start: np.ndarray,
+        src: np.ndarray,
+        dst: np.ndarray,
+        transform: np.ndarray,
+        can: np.ndarray,
+        anchor: np.ndarray,
+        length: float,
+        drift: Drift,
+        max_solves: int,
+    ) -> None:
+        self.start, self.src, self.dst, self.transform = start, src, dst, transform
+        self.can, self.anchor, self.length, self.drift = can, anchor, length, drift
+        self.max_solves = max_solves
+        self.solves = 0
+
+    def state(self, active: np.ndarray) -> _State:
+        """Solve the relaxation over ``active`` (windings from the start headings) and score it."""
+        on = np.flatnonzero(active)
+        pose = solve(self.start, self.src[on], self.dst[on], self.transform[on], self.anchor, passes=1)
+        self.solves += 1
+        z = normalised_residuals(pose, self.src, self.dst, self.transform, self.length, self.drift)
+        c2 = self.drift.threshold**2
+        cost = float(ODOMETRY_WEIGHT * np.sum(z[~self.can] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
+        return _State(active, pose, z, cost)
+
+    def eliminate(self, active: np.ndarray, keep_on: int = -1) -> _State:
+        """Switch off the worst active switchable link while one exceeds ``c̄`` (never a bridge nor ``keep_on``)."""
+        current = self.state(active)
+        while self.solves < self.max_solves:
+            over = current.active & self.can & (current.z > self.drift.threshold)
+            if keep_on >= 0:
+                over[keep_on] = False
+            if not over.any():
+                break
+            candidates = np.flatnonzero(over)
+            trial = current.active.copy()
+            trial[candidates[np.argmax(current.z[candidates])]] = False
+            trial = keep_connected(self.start.shape[0], self.src, self.dst, trial, current.z)
+            if np.array_equal(trial, current.active):  # only bridges exceed the threshold
+                break
+            current = self.state(trial)
+        return current
+
+
+def chain_headings(
+    yaw: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, avoid: np.ndarray, anchor: np.ndarray
+) -> np.ndarray:
+    """Return unwrapped headings dead-reckoned from each anchor along a spanning forest of the links.
+
+    The forest prefers links not in ``avoid`` (odometry), so the headings are those the
+    odometry measured, however a false loop link has bent the current map; the
+    relaxation's heading windings (turns of 2π around each cycle) are then taken from
+    them (:func:`core.relaxation.solve` with ``passes=1``). Experiences not reached
+    (no links) keep ``yaw``; anchors keep theirs.
+    """
+    n = yaw.size
+    out = yaw.astype(np.float64).copy()
+    k = src.size
+    if k == 0:
+        return out
+    # unique costs (odometry first, then link id) make the spanning forest deterministic
+    cost = np.where(avoid, float(k + 1), 0.0) + np.arange(1, k + 1, dtype=np.float64)
+    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
+    forest = minimum_spanning_tree(sp.csr_matrix((cost, (lo, hi)), shape=(n, n))).tocoo()
+    link = (np.round(forest.data).astype(np.int64) - 1) % (k + 1)
+    rows = np.concatenate([forest.row, forest.col])
+    cols = np.concatenate([forest.col, forest.row])
+    which = sp.csr_matrix((np.tile(link + 1, 2), (rows, cols)), shape=(n, n))
+    parent = np.arange(n)
+    degree = np.bincount(np.concatenate([src, dst]), minlength=n)
+    for root in np.flatnonzero(anchor & (degree > 0)).tolist():
+        order, pred = breadth_first_order(which, root, directed=False, return_predecessors=True)
+        parent[order[1:]] = pred[order[1:]]
+    child = np.flatnonzero(parent != np.arange(n))
+    delta = np.zeros(n)
+    used = np.asarray(which[parent[child], child]).ravel().astype(np.int64) - 1
+    delta[child] = np.where(src[used] == parent[child], transform[used, 3], -transform[used, 3])
+    # heading = anchor heading + Σ of the steps up the tree: pointer jumping, O(n log depth)
+    total = delta
+    up = parent
+    while not np.array_equal(up[up], up):  # invariant: total[i] sums the steps from i up to up[i]
+        total = total + total[up]
+        up = up[up]
+    root_of = up
+    out[child] = out[root_of[child]] + total[child]
+    return out
+
+
+def keep_connected(n: int, src: np.ndarray, dst: np.ndarray, active: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Return ``active`` with switched-off links turned back on where needed to keep every component whole.
+
+    Kruskal's rule over the switched-off links in increasing ``z``: a link whose ends lie
+    in different components of the active graph is turned back on (a bridge has no
+    redundancy, so nothing can contradict it).
+    """
+    active = active.copy()
+    off = np.flatnonzero(~active)
+    if off.size == 0:
+        return active
+    on = np.flatnonzero(active)
+    graph = sp.csr_matrix((np.ones(on.size), (src[on], dst[on])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    parent = np.arange(int(labels.max()) + 1 if n else 0)
+    for link in off[np.argsort(z[off], kind="stable")].tolist():
+        a, b = _find(parent, int(labels[src[link]])), _find(parent, int(labels[dst[link]]))
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+            active[link] = True
+    return active
+
+
+def _find(parent: np.ndarray, node: int) -> int:
+    while parent[node] != node:
+        parent[node] = parent[parent[node]]
+        node = int(parent[node])
+    return node
+
+
+def health(
+    pose: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    transform: np.ndarray,
+    kind: np.ndarray,
+    distance: np.ndarray,
+    active: np.ndarray,
+    drift: Drift,
+) -> dict[str, float | int]:
+    """Return a map's health: RMS and largest ``z`` over its active links, links switched off, and links.
+
+    ``residual`` (RMS) ≈ 0.5 on the simulator's clean ``loop`` map, 1.2 on ``cave3d``; ``worst``
+    above ``drift.threshold`` means some active link contradicts the rest (both 0.0 for a
+    map without links).
+    """
+    src = np.asarray(src, dtype=np.int64)
+    active = np.asarray(active, dtype=bool)
+    on = np.flatnonzero(active)
+    residual = worst = 0.0
+    if on.size:
+        length = link_length(distance, kind)
+        z = normalised_residuals(pose, src[on], np.asarray(dst)[on], np.asarray(transform)[on], length, drift)
+        residual = float(np.sqrt(np.mean(z * z)))
+        worst = float(z.max())
+    return {"residual": residual, "worst": worst, "switched_off": int(src.size - on.size), "links": int(src.size)}
+
+
+def false_loop_links(
+    pose: np.ndarray, count: int, separation: float, seed: int, jitter: float = 0.2, min_gap: int = 5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return ``count`` wrong loop links (src, dst, transform (count, 4)): a test hook.
+
+    Each joins two experiences whose current poses lie between ``separation`` and
+    ``1.5·separation`` apart (about ``separation`` metres of error; small is the hard
+    case) and at least ``min_gap`` ids apart (not trajectory neighbours, which odometry
+    links already join), with the transform a true loop closure would carry — the target a few
+    centimetres to ``jitter`` metres from the source, heading change within ±0.2 rad —
+    so the link looks plausible on its own. Pairs are drawn with a seeded generator
+    (deterministic); fewer are returned when fewer pairs qualify.
+    """
+    rng = np.random.default_rng(seed)
+    n = pose.shape[0]
+    xyz = pose[:, :3]
+    gap = np.sqrt(((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(axis=2))
+    i, j = np.nonzero(np.triu((gap >= separation) & (gap <= 1.5 * separation), k=min_gap))
+    if i.size == 0 or count <= 0 or n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4))
+    pick = rng.choice(i.size, size=min(count, i.size), replace=False)
+    src, dst = i[pick].astype(np.int64), j[pick].astype(np.int64)
+    angle = rng.uniform(-math.pi, math.pi, src.size)
+    reach = rng.uniform(0.0, jitter, src.size)
+    transform = np.zeros((src.size, 4))
+    transform[:, 0] = reach * np.cos(angle)
+    transform[:, 1] = reach * np.sin(angle)
+    transform[:, 3] = rng.uniform(-0.2, 0.2, src.size)
+    return src, dst, transform
+
+
+def component_anchors(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Return a mask (n,) of each connected component's lowest-id experience (the relaxation anchors)."""
+    parent = np.arange(n, dtype=np.int64)
+    if src.size:
+        graph = sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n))
+        _, labels = connected_components(graph, directed=False)
+        first = np.full(int(labels.max()) + 1, n, dtype=np.int64)
+        np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
+        parent = first[labels]
+    return roots(parent) == np.arange(n)

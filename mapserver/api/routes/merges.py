@@ -1,0 +1,148 @@
+"""``/v1/merges``: merge events with their matched places located in today's maps; undo and redo (write)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query
+from sqlalchemy import Connection, select, tuple_
+from starlette.concurrency import run_in_threadpool
+
+from mapserver.api.deps import ReadAccess, ServicesDep, WriteAccess
+from mapserver.api.routes.maps import AUTH_ERRORS, MAX_ID
+from mapserver.api.schemas import ErrorPublic
+from mapserver.api.services import Services
+from mapserver.atlas import redo_merge, unmerge
+from mapserver.store import get_map
+from mapserver.store.merge_events import MergeEventRecord, get_merge_event, list_merge_events
+from mapserver.store.models import Experience, Map, Session, Template
+from mapserver.store.sessions import get_sessions
+
+router = APIRouter(prefix="/v1/merges", tags=["merges"])
+EVENT_ERRORS: dict[int | str, dict[str, Any]] = {**AUTH_ERRORS, 404: {"model": ErrorPublic}}
+WRITE_ERRORS: dict[int | str, dict[str, Any]] = {**EVENT_ERRORS, 409: {"model": ErrorPublic}}
+EventId = Annotated[int, Path(ge=1, le=MAX_ID, description="merge event id")]
+
+
+def _experiences_at(conn: Connection, uids: list[tuple[int, int]]) -> dict[tuple[int, int], list[dict[str, Any]]]:
+    """Return, per stable experience identity (session, index), where it lives now: map, id, session, pose."""
+    if not uids:
+        return {}
+    rows = conn.execute(
+        select(Experience.session_id, Experience.origin_index, Map.name, Experience.local_id, Session.name,
+               Experience.x, Experience.y, Experience.z)
+        .join(Map, Map.id == Experience.map_id).join(Session, Session.id == Experience.session_id)
+        .where(tuple_(Experience.session_id, Experience.origin_index).in_(uids))
+    ).all()  # fmt: skip
+    return {(int(r[0]), int(r[1])): [_node(r[2:])] for r in rows}
+
+
+def _node(row: Any) -> dict[str, Any]:
+    return {"map": row[0], "id": int(row[1]), "session": row[2], "x": row[3], "y": row[4], "z": row[5]}
+
+
+def _template_users(conn: Connection, uids: list[tuple[int, int]]) -> dict[tuple[int, int], list[dict[str, Any]]]:
+    """Return, per stable template identity, the experiences (any session) that use that template now."""
+    if not uids:
+        return {}
+    found = conn.execute(
+        select(Template.session_id, Template.origin_index, Template.map_id, Template.local_id)
+        .where(tuple_(Template.session_id, Template.origin_index).in_(uids), Template.map_id.is_not(None))
+    ).all()  # fmt: skip
+    out: dict[tuple[int, int], list[dict[str, Any]]] = {}
+    for sid, index, map_id, local in found:
+        rows = conn.execute(
+            select(Map.name, Experience.local_id, Session.name, Experience.x, Experience.y, Experience.z)
+            .join(Map, Map.id == Experience.map_id).join(Session, Session.id == Experience.session_id)
+            .where(Experience.map_id == map_id, Experience.template == local)
+            .order_by(Experience.local_id)
+        ).all()  # fmt: skip
+        out[(int(sid), int(index))] = [_node(r) for r in rows]
+    return out
+
+
+def _groups(conn: Connection, pairs: list[dict[str, Any]], what: str) -> list[dict[str, Any]]:
+    """Return one place per identified pair: the experiences that stand for it today (both sessions)."""
+    pairs = [p for p in pairs if "target_uid" in p and "source_uid" in p]
+    uids = sorted({(int(p[k][0]), int(p[k][1])) for p in pairs for k in ("target_uid", "source_uid")})
+    where = _template_users(conn, uids) if what == "template" else _experiences_at(conn, uids)
+    groups = []
+    for p in pairs:
+        nodes = {(n["map"], n["id"]): n for k in ("target_uid", "source_uid")
+                 for n in where.get((int(p[k][0]), int(p[k][1])), [])}  # fmt: skip
+        groups.append({"kind": what, "target_uid": p["target_uid"], "source_uid": p["source_uid"],
+                       "nodes": list(nodes.values())})  # fmt: skip
+    return groups
+
+
+def event_view(conn: Connection, event: MergeEventRecord) -> dict[str, Any]:
+    """Return a merge event for the viewer: status, sessions by name, transform, and its matched places.
+
+    ``places`` has one entry per identified template pair and per identified experience pair, with the
+    experiences that stand for that place today (in whichever map holds them: after an undo the two
+    sessions' experiences are in two maps again), so the viewer can mark the place in both sessions.
+    """
+    involved = sorted(event.sessions)
+    names = {s.id: s.name for s in get_sessions(conn=conn, session_ids=involved)} if involved else {}
+    matches = event.matches or {}
+    places = _groups(conn, matches.get("templates", []), "template") + _groups(
+        conn, matches.get("experiences", []), "experience"
+    )
+    details = event.details or {}
+    return {
+        "id": event.id, "map": event.map_name, "mode": event.mode, "status": event.status,
+        "confirmations": event.confirmations, "created_at": event.created_at.isoformat(),
+        "undone_at": None if event.undone_at is None else event.undone_at.isoformat(),
+        "sessions": {names.get(s, str(s)): role for s, role in event.sessions.items()},
+        "transform": list(event.transform), "yaw": event.yaw, "lattice_offset": list(event.lattice_offset),
+        "anchor": matches.get("anchor"), "places": places,
+        "reason": ((details.get("evidence") or {}).get("verification") or {}).get("reason"),
+        "evidence": details.get("evidence"),
+    }  # fmt: skip
+
+
+def _list(services: Services, map_name: str | None) -> list[dict[str, Any]]:
+    with services.db.read() as conn:
+        events = list_merge_events(conn=conn)
+        if map_name is not None:
+            record = get_map(conn=conn, name=map_name)
+            mine = {s for e in events if e.map_id == record.id or e.map_name == record.name for s in e.sessions}
+            events = [e for e in events if e.map_id == record.id or e.map_name == record.name or set(e.sessions) & mine]
+        return [event_view(conn, e) for e in events]
+
+
+@router.get("", operation_id="list_merges", responses=EVENT_ERRORS)
+async def read_merges(
+    services: ServicesDep,
+    _token: ReadAccess,
+    map: Annotated[str | None, Query(min_length=1, max_length=200, description="only this map's events")] = None,
+) -> dict[str, Any]:
+    """List merge events (applied, rejected, undone), oldest first, with their matched places."""
+    return {"merges": await run_in_threadpool(_list, services, map)}
+
+
+def _one(services: Services, event_id: int) -> dict[str, Any]:
+    with services.db.read() as conn:
+        return event_view(conn, get_merge_event(conn=conn, event_id=event_id))
+
+
+@router.get("/{event}", operation_id="get_merge", responses=EVENT_ERRORS)
+async def read_merge(event: EventId, services: ServicesDep, _token: ReadAccess) -> dict[str, Any]:
+    """Return one merge event with its matched places."""
+    return await run_in_threadpool(_one, services, event)
+
+
+@router.post("/{event}/undo", operation_id="undo_merge", responses=WRITE_ERRORS)
+async def undo_merge(event: EventId, services: ServicesDep, _token: WriteAccess) -> dict[str, Any]:
+    """Undo an applied merge: its maps are restored as they were before it (409 when that would lose work)."""
+    outcome = await run_in_threadpool(unmerge, services.db, event_id=event)
+    body = await run_in_threadpool(_one, services, event)
+    return {**body, "maps": outcome.maps, "session_rewound": outcome.session_rewound}
+
+
+@router.post("/{event}/redo", operation_id="redo_merge", responses=WRITE_ERRORS)
+async def redo(event: EventId, services: ServicesDep, _token: WriteAccess) -> dict[str, Any]:
+    """Apply an undone merge again, exactly as the first time (409 when its maps changed since the undo)."""
+    outcome = await run_in_threadpool(redo_merge, services.db, event_id=event)
+    body = await run_in_threadpool(_one, services, event)
+    return {**body, "maps": [outcome.map_name]}

@@ -1,0 +1,508 @@
+/* mapserver web viewer: plain JavaScript, no dependencies, no build step.
+ *
+ * Everything shown comes from the REST API with the token kept in sessionStorage. The map page keeps
+ * the last graph the server returned for a viewport (decimated to the zoom level's resolution) and
+ * redraws it from memory on every pan or zoom frame; when the view settles it asks for the new box.
+ */
+"use strict";
+
+const TOKEN_KEY = "mapserver-token";
+const JOBS_KEY = "mapserver-jobs";
+const SESSION_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"];
+const LINK_STYLES = {
+  odometry: { color: "#9e9e9e", width: 1, dash: [] },
+  loop: { color: "#d62728", width: 1, dash: [] },
+  merge: { color: "#6a1b9a", width: 2, dash: [6, 4] },
+  manual: { color: "#00838f", width: 1.5, dash: [2, 2] },
+  inactive: { color: "#cfcfcf", width: 1, dash: [1, 3] },
+};
+const PATH_COLOUR = "#00c853";
+const MERGE_COLOUR = "#e91e63";
+const MAX_NODES = 16000;
+
+const $ = (sel) => document.querySelector(sel);
+const el = (tag, attrs = {}, ...children) => {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "class") node.className = v; else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
+    else node.setAttribute(k, v);
+  }
+  for (const c of children) node.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  return node;
+};
+const fmt = (v, d = 3) => (v === null || v === undefined ? "–" : Number(v).toFixed(d));
+
+/* ------------------------------------------------------------------ API and token */
+function token() { return sessionStorage.getItem(TOKEN_KEY) || ""; }
+
+function banner(text, ok = false) {
+  const b = $("#banner");
+  b.textContent = text; b.hidden = !text; b.className = ok ? "ok" : "";
+}
+
+async function api(path, opts = {}) {
+  const headers = Object.assign({}, opts.headers || {});
+  if (token()) headers.Authorization = "Bearer " + token();
+  const resp = await fetch(path, Object.assign({}, opts, { headers }));
+  if (!resp.ok) {
+    let detail = resp.statusText;
+    try { detail = (await resp.json()).detail || detail; } catch (e) { /* not JSON */ }
+    if (resp.status === 401) detail += " — paste a token above";
+    const err = new Error(`${resp.status}: ${detail}`); err.status = resp.status; throw err;
+  }
+  return opts.raw ? resp : resp.json();
+}
+
+function showToken() {
+  $("#token-state").textContent = token() ? "token kept for this browser session" : "no token";
+}
+
+/* ------------------------------------------------------------------ routing */
+function route() {
+  const hash = decodeURIComponent(location.hash.replace(/^#/, "")) || "/";
+  for (const id of ["maps-view", "map-view", "jobs-view"]) $("#" + id).hidden = true;
+  banner("");
+  if (hash.startsWith("/map/")) { $("#map-view").hidden = false; openMap(hash.slice(5)); }
+  else if (hash === "/jobs") { $("#jobs-view").hidden = false; renderJobs(); }
+  else { $("#maps-view").hidden = false; loadMaps(); }
+}
+
+/* ------------------------------------------------------------------ maps table */
+const mapsState = { rows: [], key: "name", dir: 1 };
+
+async function loadMaps() {
+  try {
+    const { maps } = await api("/v1/maps");
+    const details = await Promise.all(maps.map((m) => api("/v1/maps/" + encodeURIComponent(m.name)).catch(() => ({}))));
+    mapsState.rows = maps.map((m, i) => Object.assign({}, m, { updated_at: details[i].updated_at || "" }));
+    renderMaps();
+  } catch (err) { banner(err.message); }
+}
+
+function healthText(h) {
+  if (h === undefined || h === null) return "–";
+  if (typeof h === "object") return h.status || h.state || JSON.stringify(h);
+  return String(h);
+}
+
+function renderMaps() {
+  const { rows, key, dir } = mapsState;
+  const sorted = rows.slice().sort((a, b) => {
+    const x = key === "health" ? healthText(a.health) : a[key], y = key === "health" ? healthText(b.health) : b[key];
+    return (x < y ? -1 : x > y ? 1 : 0) * dir;
+  });
+  const body = $("#maps-table tbody");
+  body.replaceChildren(...sorted.map((m) => el("tr", { "data-map": m.name },
+    el("td", {}, el("a", { href: "#/map/" + encodeURIComponent(m.name) }, m.name)),
+    el("td", { class: "num" }, m.sessions), el("td", { class: "num" }, m.experiences),
+    el("td", { class: "num" }, m.templates), el("td", { class: "num" }, m.links),
+    el("td", {}, healthText(m.health)),
+    el("td", {}, m.updated_at ? new Date(m.updated_at).toLocaleString() : "–"))));
+  $("#maps-empty").hidden = rows.length > 0;
+  for (const th of document.querySelectorAll("#maps-table th")) {
+    th.classList.toggle("asc", th.dataset.key === key && dir === 1);
+    th.classList.toggle("desc", th.dataset.key === key && dir === -1);
+  }
+}
+
+/* ------------------------------------------------------------------ map page state */
+const V = {
+  name: null, map: null, view: "xy", data: null, cam: { cx: 0, cy: 0, scale: 1 }, selected: null,
+  path: null, merge: null, pick: null, fetchTimer: null, drawPending: false, fetchSeq: 0,
+};
+window.viewerStats = { draws: [], sync: false, fetches: 0, lastDraw: null, pending: false };
+
+function canvas() { return $("#graph"); }
+function toScreen(x, y) {
+  const c = canvas(), cam = V.cam;
+  return [(x - cam.cx) * cam.scale + c.width / 2, c.height / 2 - (y - cam.cy) * cam.scale];
+}
+function toWorld(sx, sy) {
+  const c = canvas(), cam = V.cam;
+  return [(sx - c.width / 2) / cam.scale + cam.cx, (c.height / 2 - sy) / cam.scale + cam.cy];
+}
+function viewBox(margin = 0.5) {
+  const c = canvas();
+  const [x0, y1] = toWorld(-margin * c.width, -margin * c.height);
+  const [x1, y0] = toWorld((1 + margin) * c.width, (1 + margin) * c.height);
+  return [x0, y0, x1, y1];
+}
+
+async function openMap(name) {
+  V.name = name; V.data = null; V.selected = null; V.path = null; V.merge = null; V.pick = null;
+  $("#map-title").textContent = name;
+  $("#node-details").replaceChildren(); $("#path-result").replaceChildren();
+  try {
+    V.map = await api("/v1/maps/" + encodeURIComponent(name));
+  } catch (err) { banner(err.message); return; }
+  $("#map-info").textContent = `${V.map.sessions.length} sessions · ${V.map.experiences} experiences · ` +
+    `${V.map.templates} templates · ${V.map.links} links · version ${V.map.version}`;
+  await fetchGraph(null);
+  renderSessions();
+  fit();
+  loadMerges();
+}
+
+async function fetchGraph(box) {
+  const seq = ++V.fetchSeq;
+  // finer than ~2 screen pixels would not show: the server refines its grid down to this cell size
+  const q = new URLSearchParams({ max_nodes: MAX_NODES, view: V.view, resolution: (2 / V.cam.scale).toPrecision(4) });
+  if (box) q.set("bbox", box.map((v) => v.toFixed(4)).join(","));
+  try {
+    const data = await api(`/v1/maps/${encodeURIComponent(V.name)}/graph?${q}`);
+    if (seq !== V.fetchSeq) return;
+    window.viewerStats.fetches += 1;
+    if (box) window.viewerStats.pending = false;
+    if (box) data.box = box;
+    V.data = data;
+    $("#lod").textContent = `${data.nodes.id.length} of ${data.in_view} nodes in view drawn` +
+      (data.decimated ? ` (grid ${fmt(data.cell, 2)} m)` : "");
+    renderLegend();
+    requestDraw();
+  } catch (err) { banner(err.message); }
+}
+
+function scheduleFetch() {
+  clearTimeout(V.fetchTimer);
+  window.viewerStats.pending = true;
+  V.fetchTimer = setTimeout(() => fetchGraph(viewBox()), 200);
+}
+
+function fit() {
+  if (!V.data) return;
+  const [x0, y0, x1, y1] = V.data.bounds, c = canvas();
+  const w = Math.max(x1 - x0, 1e-6), h = Math.max(y1 - y0, 1e-6);
+  V.cam = { cx: (x0 + x1) / 2, cy: (y0 + y1) / 2, scale: 0.9 * Math.min(c.width / w, c.height / h) };
+  requestDraw();
+  if (V.data.decimated) scheduleFetch();
+}
+
+function renderLegend() {
+  const items = [];
+  (V.data ? V.data.sessions : []).forEach((s, i) => items.push(el("div", {},
+    el("span", { class: "sw", style: `background:${SESSION_COLOURS[i % SESSION_COLOURS.length]}` }), s)));
+  for (const [k, st] of Object.entries(LINK_STYLES)) {
+    items.push(el("div", {}, el("span", { class: "ln", style: `border-top:2px ${st.dash.length ? "dashed" : "solid"} ${st.color}` }),
+      k === "inactive" ? "switched off" : k));
+  }
+  $("#legend").replaceChildren(...items);
+}
+
+/* ------------------------------------------------------------------ drawing */
+function requestDraw() {
+  if (V.drawPending) return;
+  V.drawPending = true;
+  requestAnimationFrame(() => { V.drawPending = false; draw(); });
+}
+
+function drawLinks(ctx, d, xs, ys, w, h) {
+  const L = d.links;
+  const groups = {};
+  for (let k = 0; k < L.a.length; k++) {
+    const a = L.a[k], b = L.b[k];
+    // cull links with both ends beyond the same edge of the canvas
+    if ((xs[a] < 0 && xs[b] < 0) || (ys[a] < 0 && ys[b] < 0) || (xs[a] > w && xs[b] > w) || (ys[a] > h && ys[b] > h)) continue;
+    const style = L.active[k] ? d.kinds[L.kind[k]] : "inactive";
+    (groups[style] || (groups[style] = [])).push(k);
+  }
+  for (const [style, list] of Object.entries(groups)) {
+    const st = LINK_STYLES[style] || LINK_STYLES.manual;
+    ctx.strokeStyle = st.color; ctx.lineWidth = st.width; ctx.setLineDash(st.dash);
+    ctx.beginPath();
+    for (const k of list) { ctx.moveTo(xs[L.a[k]], ys[L.a[k]]); ctx.lineTo(xs[L.b[k]], ys[L.b[k]]); }
+    ctx.stroke();
+  }
+  ctx.setLineDash([]);
+}
+
+function drawNodes(ctx, d, xs, ys, w, h) {
+  const n = d.nodes.id.length;
+  const size = n > 5000 ? 2 : n > 500 ? 4 : 6, half = size / 2;
+  const bySession = d.sessions.map(() => []);
+  for (let i = 0; i < n; i++) {
+    if (xs[i] < -half || ys[i] < -half || xs[i] > w + half || ys[i] > h + half) continue;
+    bySession[d.nodes.session[i]].push(i);
+  }
+  bySession.forEach((list, s) => {
+    ctx.fillStyle = SESSION_COLOURS[s % SESSION_COLOURS.length];
+    for (const i of list) ctx.fillRect(Math.round(xs[i] - half), Math.round(ys[i] - half), size, size);
+  });
+}
+
+function drawOverlays(ctx) {
+  if (V.merge) {
+    ctx.strokeStyle = MERGE_COLOUR; ctx.lineWidth = 2;
+    for (const place of V.merge.places) {
+      const here = place.nodes.filter((n) => n.map === V.name);
+      const pts = here.map((n) => toScreen(n.x, V.view === "xz" ? n.z : n.y));
+      for (const [sx, sy] of pts) { ctx.beginPath(); ctx.arc(sx, sy, 8, 0, 2 * Math.PI); ctx.stroke(); }
+      for (let i = 1; i < here.length; i++) { // join the place's experiences across sessions
+        if (here[i].session === here[0].session) continue;
+        ctx.beginPath(); ctx.moveTo(...pts[0]); ctx.lineTo(...pts[i]); ctx.stroke();
+      }
+    }
+  }
+  if (V.path) {
+    ctx.strokeStyle = PATH_COLOUR; ctx.lineWidth = 4; ctx.lineJoin = "round";
+    ctx.beginPath();
+    V.path.poses.forEach((p, i) => {
+      const [sx, sy] = toScreen(p.x, V.view === "xz" ? p.z : p.y);
+      if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+    });
+    ctx.stroke();
+  }
+  if (V.selected) {
+    const [sx, sy] = toScreen(V.selected.x, V.view === "xz" ? V.selected.z : V.selected.y);
+    ctx.strokeStyle = "#000"; ctx.lineWidth = 2;
+    ctx.beginPath(); ctx.arc(sx, sy, 10, 0, 2 * Math.PI); ctx.stroke();
+  }
+}
+
+function drawScale(ctx, w, h) {
+  const target = 100 / V.cam.scale, p = Math.pow(10, Math.floor(Math.log10(target)));
+  const len = [1, 2, 5, 10].map((m) => m * p).find((v) => v >= target) || target;
+  const px = len * V.cam.scale;
+  ctx.strokeStyle = "#333"; ctx.lineWidth = 2;
+  ctx.beginPath(); ctx.moveTo(w - 20 - px, h - 20); ctx.lineTo(w - 20, h - 20); ctx.stroke();
+  ctx.fillStyle = "#333"; ctx.font = "12px sans-serif";
+  ctx.fillText(`${len >= 1 ? len : len.toPrecision(1)} m`, w - 20 - px, h - 26);
+}
+
+function draw() {
+  const t0 = performance.now();
+  const c = canvas(), ctx = c.getContext("2d");
+  const w = c.width, h = c.height;
+  ctx.clearRect(0, 0, w, h);
+  const d = V.data;
+  if (d) {
+    const n = d.nodes.id.length, xs = new Float64Array(n), ys = new Float64Array(n);
+    const cam = V.cam, ox = w / 2 - cam.cx * cam.scale, oy = h / 2 + cam.cy * cam.scale;
+    for (let i = 0; i < n; i++) { xs[i] = d.nodes.x[i] * cam.scale + ox; ys[i] = oy - d.nodes.y[i] * cam.scale; }
+    drawLinks(ctx, d, xs, ys, w, h);
+    drawNodes(ctx, d, xs, ys, w, h);
+    drawOverlays(ctx);
+    drawScale(ctx, w, h);
+  }
+  if (window.viewerStats.sync) ctx.getImageData(0, 0, 1, 1); // wait for the raster (measurement)
+  const ms = performance.now() - t0;
+  window.viewerStats.lastDraw = ms;
+  window.viewerStats.draws.push(ms);
+  if (window.viewerStats.draws.length > 1000) window.viewerStats.draws.shift();
+}
+
+/* ------------------------------------------------------------------ interaction */
+function setupCanvas() {
+  const c = canvas();
+  let drag = null;
+  c.addEventListener("pointerdown", (e) => {
+    drag = { x: e.offsetX, y: e.offsetY, cx: V.cam.cx, cy: V.cam.cy, moved: false };
+    c.setPointerCapture(e.pointerId);
+  });
+  c.addEventListener("pointermove", (e) => {
+    if (!drag) return;
+    const dx = e.offsetX - drag.x, dy = e.offsetY - drag.y;
+    if (Math.abs(dx) + Math.abs(dy) > 3) drag.moved = true;
+    V.cam.cx = drag.cx - dx / V.cam.scale; V.cam.cy = drag.cy + dy / V.cam.scale;
+    requestDraw();
+  });
+  c.addEventListener("pointerup", (e) => {
+    const was = drag; drag = null;
+    if (!was) return;
+    if (was.moved) scheduleFetch(); else clickAt(e.offsetX, e.offsetY);
+  });
+  c.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const [wx, wy] = toWorld(e.offsetX, e.offsetY);
+    const f = Math.exp(-e.deltaY * 0.0015);
+    V.cam.scale *= f;
+    V.cam.cx = wx - (wx - V.cam.cx) / f; V.cam.cy = wy - (wy - V.cam.cy) / f;
+    requestDraw(); scheduleFetch();
+  }, { passive: false });
+}
+
+async function clickAt(sx, sy) {
+  const [x, y] = toWorld(sx, sy);
+  try {
+    const q = new URLSearchParams({ x, y, view: V.view });
+    const found = await api(`/v1/maps/${encodeURIComponent(V.name)}/nearest?${q}`);
+    if (found.distance * V.cam.scale > 25) return; // nothing near the click
+    if (V.pick) {
+      $(V.pick === "from" ? "#path-from" : "#path-to").value = found.id;
+      $("#pick-" + V.pick).classList.remove("picking");
+      V.pick = null;
+      return;
+    }
+    await showNode(found.id);
+  } catch (err) { banner(err.message); }
+}
+
+async function showNode(id) {
+  const base = `/v1/maps/${encodeURIComponent(V.name)}/experiences/${id}`;
+  const node = await api(base);
+  V.selected = node; requestDraw();
+  selectTab("node");
+  const rows = [["id", node.id], ["session", node.session], ["stamp", fmt(node.stamp, 3) + " s"],
+    ["x, y, z", `${fmt(node.x)}, ${fmt(node.y)}, ${fmt(node.z)} m`], ["yaw", fmt(node.yaw) + " rad"],
+    ["template", `${node.template} (${node.template_new ? "new here" : "recognised"})`]];
+  const img = el("img", { id: "evidence", alt: "no evidence image" });
+  const box = $("#node-details");
+  box.replaceChildren(img, el("table", {}, ...rows.map(([k, v]) => el("tr", {}, el("th", {}, k), el("td", {}, v)))),
+    el("h3", {}, "links"),
+    el("table", { id: "node-links" }, ...node.links.map((l) => el("tr", { class: "link-" + l.kind },
+      el("td", {}, l.kind + (l.active ? "" : " (off)")), el("td", {}, `${l.from} → ${l.to}`),
+      el("td", {}, fmt(l.distance, 2) + " m"), el("td", {}, fmt(l.dt, 2) + " s")))));
+  try {
+    const resp = await api(base + "/evidence", { raw: true });
+    img.src = URL.createObjectURL(await resp.blob());
+  } catch (err) { img.replaceWith(el("p", { class: "hint", id: "no-evidence" }, "no evidence image: " + err.message)); }
+}
+
+async function findPath() {
+  const from = $("#path-from").value, to = $("#path-to").value, weight = $("#path-weight").value;
+  const out = $("#path-result");
+  if (from === "" || to === "") { out.textContent = "choose two nodes"; return; }
+  try {
+    const q = new URLSearchParams({ from, to, weight });
+    V.path = await api(`/v1/maps/${encodeURIComponent(V.name)}/path?${q}`);
+    const unit = weight === "time" ? "s" : "m";
+    out.replaceChildren(el("p", { id: "path-cost" }, `cost ${fmt(V.path.cost, 2)} ${unit} (${weight}), ` +
+      `${V.path.nodes.length} nodes`), el("p", { class: "hint" }, V.path.nodes.join(" → ")));
+  } catch (err) { V.path = null; out.textContent = err.message; }
+  requestDraw();
+}
+
+/* ------------------------------------------------------------------ merges and sessions */
+async function loadMerges() {
+  const box = $("#merge-list");
+  try {
+    const { merges } = await api("/v1/merges?map=" + encodeURIComponent(V.name));
+    if (!merges.length) { box.replaceChildren(el("p", { class: "hint" }, "no merge events")); return; }
+    box.replaceChildren(...merges.map(mergeItem));
+  } catch (err) { box.textContent = err.message; }
+}
+
+function mergeItem(m) {
+  const t = m.transform;
+  const sessions = Object.entries(m.sessions).map(([s, r]) => `${s} (${r})`).join(", ");
+  const item = el("div", { class: "merge", "data-event": m.id },
+    el("div", {}, `#${m.id} `, el("span", { class: "status-" + m.status }, m.status), ` · ${m.mode} · ${m.confirmations} confirmations`),
+    el("div", {}, sessions),
+    el("div", {}, `transform t = (${fmt(t[0], 2)}, ${fmt(t[1], 2)}, ${fmt(t[2], 2)}) m, yaw ${fmt(m.yaw * 180 / Math.PI, 1)}°`),
+    el("div", {}, `${m.places.length} matched places`),
+    m.reason ? el("div", { class: "hint" }, String(m.reason)) : "");
+  const buttons = el("div", {}, el("button", { class: "show", onclick: () => showMerge(m, item) }, "show on map"));
+  if (m.status === "applied") buttons.append(el("button", { class: "undo", onclick: () => mergeAction(m.id, "undo") }, "undo"));
+  if (m.status === "undone") buttons.append(el("button", { class: "redo", onclick: () => mergeAction(m.id, "redo") }, "redo"));
+  item.append(buttons);
+  return item;
+}
+
+function showMerge(m, item) {
+  V.merge = m;
+  for (const x of document.querySelectorAll(".merge")) x.classList.remove("shown");
+  item.classList.add("shown");
+  requestDraw();
+}
+
+async function mergeAction(id, action) {
+  try {
+    const res = await api(`/v1/merges/${id}/${action}`, { method: "POST" });
+    banner(`merge #${id}: ${res.status} (maps ${res.maps.join(", ")})`, true);
+    const stay = V.name;
+    try { await api("/v1/maps/" + encodeURIComponent(stay)); await openMap(stay); }
+    catch (e) { location.hash = "#/"; }
+  } catch (err) { banner(err.message); }
+}
+
+function renderSessions() {
+  const rows = V.map.sessions.map((s, i) => {
+    const k = V.data && V.data.sessions.includes(s.name) ? V.data.sessions.indexOf(s.name) : i;
+    return el("tr", {},
+    el("td", {}, el("span", { class: "sw", style: `display:inline-block;width:10px;height:10px;background:${SESSION_COLOURS[k % SESSION_COLOURS.length]}` })),
+    el("td", {}, s.name), el("td", {}, s.status), el("td", { class: "num" }, s.frames),
+    el("td", {}, `${fmt(s.first_stamp, 1)}–${fmt(s.last_stamp, 1)} s`));
+  });
+  $("#session-list").replaceChildren(el("table", {}, el("tr", {}, el("th", {}, ""), el("th", {}, "session"),
+    el("th", {}, "status"), el("th", {}, "frames"), el("th", {}, "stamps")), ...rows));
+}
+
+function selectTab(name) {
+  for (const b of document.querySelectorAll(".tabs button")) b.classList.toggle("on", b.dataset.tab === name);
+  for (const t of document.querySelectorAll(".tab")) t.hidden = t.id !== "tab-" + name;
+}
+
+/* ------------------------------------------------------------------ uploads and jobs */
+function jobs() { try { return JSON.parse(sessionStorage.getItem(JOBS_KEY) || "[]"); } catch (e) { return []; } }
+function saveJobs(list) { sessionStorage.setItem(JOBS_KEY, JSON.stringify(list)); }
+
+async function upload(e) {
+  e.preventDefault();
+  const file = $("#upload-file").files[0];
+  if (!file) return;
+  const form = new FormData();
+  form.append("file", file, file.name);
+  form.append("preset", $("#upload-preset").value);
+  if ($("#upload-map").value) form.append("map", $("#upload-map").value);
+  form.append("merge", $("#upload-merge").checked ? "true" : "false");
+  try {
+    const res = await api("/v1/sessions", { method: "POST", body: form });
+    saveJobs([{ job: res.job, upload: file.name, status: res.status, progress: 0 }, ...jobs().filter((j) => j.job !== res.job)]);
+    banner(`job ${res.job} ${res.duplicate ? "(already uploaded)" : "queued"}`, true);
+    renderJobs(); pollJobs();
+  } catch (err) { banner(err.message); }
+}
+
+let polling = null;
+async function pollJobs() {
+  clearTimeout(polling);
+  let open = false;
+  const list = jobs();
+  for (const j of list) {
+    if (j.status === "done" || j.status === "failed") continue;
+    try { Object.assign(j, await api("/v1/jobs/" + j.job)); } catch (err) { j.error = err.message; j.status = "failed"; }
+    open = open || !(j.status === "done" || j.status === "failed");
+  }
+  saveJobs(list); renderJobs();
+  if (open) polling = setTimeout(pollJobs, 400);
+}
+
+function renderJobs() {
+  $("#jobs-table tbody").replaceChildren(...jobs().map((j) => el("tr", { "data-job": j.job, class: "job-" + j.status },
+    el("td", {}, j.job), el("td", {}, j.upload || ""), el("td", { class: "status" }, j.status),
+    el("td", {}, el("progress", { max: "1", value: String(j.progress || 0) }), ` ${Math.round(100 * (j.progress || 0))} %`),
+    el("td", {}, j.session || ""),
+    el("td", {}, j.map ? el("a", { href: "#/map/" + encodeURIComponent(j.map) }, j.map) : ""),
+    el("td", {}, j.error || ""))));
+}
+
+/* ------------------------------------------------------------------ start */
+function start() {
+  showToken();
+  $("#token-form").addEventListener("submit", (e) => {
+    e.preventDefault();
+    sessionStorage.setItem(TOKEN_KEY, $("#token").value.trim()); $("#token").value = "";
+    showToken(); route();
+  });
+  $("#token-clear").addEventListener("click", () => { sessionStorage.removeItem(TOKEN_KEY); showToken(); route(); });
+  for (const th of document.querySelectorAll("#maps-table th[data-key]")) {
+    th.addEventListener("click", () => {
+      mapsState.dir = mapsState.key === th.dataset.key ? -mapsState.dir : 1;
+      mapsState.key = th.dataset.key; renderMaps();
+    });
+  }
+  for (const b of document.querySelectorAll(".tabs button")) b.addEventListener("click", () => selectTab(b.dataset.tab));
+  $("#view-select").addEventListener("change", async (e) => { V.view = e.target.value; await fetchGraph(null); fit(); });
+  $("#fit").addEventListener("click", fit);
+  for (const which of ["from", "to"]) {
+    $("#pick-" + which).addEventListener("click", (e) => { V.pick = which; e.target.classList.add("picking"); });
+  }
+  $("#path-go").addEventListener("click", findPath);
+  $("#upload-form").addEventListener("submit", upload);
+  setupCanvas();
+  window.addEventListener("hashchange", route);
+  route();
+  pollJobs();
+}
+
+window.viewer = { V, draw, fit, showNode, findPath, toScreen, fetchGraph, viewBox };
+start();

@@ -1,0 +1,204 @@
+"""The experience graph as a g2o file (read by g2o, GTSAM's ``readG2o``, Ceres' pose-graph examples).
+
+Writing (:func:`g2o_text`): one vertex per experience (id = experience id, pose = its map pose) and one edge
+per link (measurement = the link's transform, the pose of ``to`` in the frame of ``from``), then ``FIX 0``
+(the map's anchor, which relaxation never moves either).
+
+* Planar maps (3-DoF lattice): ``VERTEX_SE2 id x y yaw`` and ``EDGE_SE2 from to dx dy dyaw`` + the upper
+  triangle of the 3 × 3 information matrix (order x, y, θ).
+* 4-DoF maps: ``VERTEX_SE3:QUAT id x y z qx qy qz qw`` and ``EDGE_SE3:QUAT from to dx dy dz qx qy qz qw``
+  + the upper triangle of the 6 × 6 information matrix (order x, y, z, roll, pitch, yaw).
+
+**Information rule** (diagonal; a link's measured odometry drifts with the distance ``d`` it spans):
+σ_xy = σ_z = 0.02 m + 0.05 · d, σ_yaw = 0.01 rad + 0.05 rad/m · d, and, for SE3, σ_roll = σ_pitch =
+0.001 rad (RatSLAM maps hold no roll or pitch). Information = 1/σ², the rotation block on rotation angles
+as GTSAM's ``readG2o`` and Ceres' pose-graph example read it (checked: GTSAM 4 reads σ back from these
+files). g2o's own ``EdgeSE3`` applies that block to the quaternion's vector part, half the angle, so under
+g2o the rotation terms weigh 4 × more relative to translation; the poses' fixed point is unchanged for a
+graph whose links agree.
+
+A link switched off by relaxation (``em_link_active`` false, when the snapshot has that array) is
+written as a comment line ``# inactive EDGE_...``: g2o and GTSAM skip it, a reader of the file still sees it.
+
+Reading (:func:`read_g2o_vertices`): the vertices of a file (SE2 or SE3:QUAT) as poses ``[x, y, z, yaw]``;
+edges, ``FIX`` and comments are skipped. An SE3 vertex's yaw is that of its rotation; its roll and pitch
+(which a 4-DoF map cannot hold) are returned so the caller can report them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from mapserver.errors import InputError
+
+SIGMA_XY_M = 0.02
+SIGMA_XY_PER_M = 0.05
+SIGMA_YAW_RAD = 0.01
+SIGMA_YAW_PER_M = 0.05
+SIGMA_TILT_RAD = 0.001
+
+
+def link_sigmas(distance: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Return (σ_xy, σ_yaw) per link from its distance (the module docstring's rule)."""
+    d = np.abs(np.asarray(distance, dtype=np.float64))
+    return SIGMA_XY_M + SIGMA_XY_PER_M * d, SIGMA_YAW_RAD + SIGMA_YAW_PER_M * d
+
+
+def _upper(info: np.ndarray) -> np.ndarray:
+    """Rows of the upper triangles (row-major) of a stack of (n, k, k) matrices."""
+    rows, cols = np.triu_indices(info.shape[1])
+    return info[:, rows, cols]
+
+
+def information_se2(distance: npt.ArrayLike) -> np.ndarray:
+    """(L, 3, 3) information matrices of SE2 edges (order x, y, θ)."""
+    s_xy, s_yaw = link_sigmas(distance)
+    info = np.zeros((s_xy.shape[0], 3, 3))
+    info[:, 0, 0] = info[:, 1, 1] = 1.0 / s_xy**2
+    info[:, 2, 2] = 1.0 / s_yaw**2
+    return info
+
+
+def information_se3(distance: npt.ArrayLike) -> np.ndarray:
+    """(L, 6, 6) information matrices of SE3:QUAT edges (order x, y, z, roll, pitch, yaw)."""
+    s_xy, s_yaw = link_sigmas(distance)
+    info = np.zeros((s_xy.shape[0], 6, 6))
+    info[:, 0, 0] = info[:, 1, 1] = info[:, 2, 2] = 1.0 / s_xy**2
+    info[:, 3, 3] = info[:, 4, 4] = 1.0 / SIGMA_TILT_RAD**2
+    info[:, 5, 5] = 1.0 / s_yaw**2
+    return info
+
+
+def _numbers(values: np.ndarray) -> list[str]:
+    """Format each row of ``values`` as space-separated shortest round-trip floats."""
+    return [" ".join(repr(float(v)) for v in row) for row in values.tolist()]
+
+
+def g2o_text(snapshot: Mapping[str, npt.ArrayLike], *, planar: bool) -> str:
+    """Return the g2o file of a map snapshot (``em_pose``, ``em_link_*``; see the module docstring).
+
+    Args:
+        snapshot: engine snapshot arrays.
+        planar: write SE2 (3-DoF maps) instead of SE3:QUAT.
+    """
+    pose = np.asarray(snapshot["em_pose"], dtype=np.float64).reshape(-1, 4)
+    src = np.asarray(snapshot["em_link_from"], dtype=np.int64).reshape(-1)
+    dst = np.asarray(snapshot["em_link_to"], dtype=np.int64).reshape(-1)
+    tf = np.asarray(snapshot["em_link_transform"], dtype=np.float64).reshape(-1, 4)
+    dist = np.asarray(snapshot["em_link_distance"], dtype=np.float64).reshape(-1)
+    active = np.asarray(snapshot.get("em_link_active", np.ones(src.shape[0], dtype=bool)), dtype=bool)
+    ids = np.arange(pose.shape[0])
+    if planar:
+        vertices = _numbers(np.column_stack([pose[:, 0], pose[:, 1], pose[:, 3]]))
+        measurements = _numbers(np.column_stack([tf[:, 0], tf[:, 1], tf[:, 3], _upper(information_se2(dist))]))
+        vertex_tag, edge_tag = "VERTEX_SE2", "EDGE_SE2"
+    else:
+        half_v, half_e = 0.5 * pose[:, 3], 0.5 * tf[:, 3]
+        zeros_v, zeros_e = np.zeros_like(half_v), np.zeros_like(half_e)
+        vertices = _numbers(np.column_stack([pose[:, :3], zeros_v, zeros_v, np.sin(half_v), np.cos(half_v)]))
+        measurements = _numbers(
+            np.column_stack(
+                [tf[:, :3], zeros_e, zeros_e, np.sin(half_e), np.cos(half_e), _upper(information_se3(dist))]
+            )
+        )
+        vertex_tag, edge_tag = "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"
+    lines = [f"{vertex_tag} {i} {v}" for i, v in zip(ids.tolist(), vertices, strict=True)]
+    for s, t, m, on in zip(src.tolist(), dst.tolist(), measurements, active.tolist(), strict=True):
+        lines.append(f"{'' if on else '# inactive '}{edge_tag} {s} {t} {m}")
+    if pose.shape[0]:
+        lines.append("FIX 0")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class G2oVertices:
+    """The vertices of a g2o file: ids, poses ``[x, y, z, yaw]`` and (SE3) the largest roll/pitch seen."""
+
+    ids: np.ndarray
+    poses: np.ndarray
+    kind: str
+    max_tilt_rad: float
+
+
+def _yaw_and_tilt(q: np.ndarray) -> tuple[float, float]:
+    """Yaw (about z, ZYX convention) and the larger of |roll|, |pitch| of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = (q / np.linalg.norm(q)).tolist()
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    return yaw, max(abs(roll), abs(pitch))
+
+
+def _vertex(tag: str, fields: list[str], where: str) -> tuple[int, list[float], float]:
+    """Parse one vertex line's fields (after the tag) into (id, [x, y, z, yaw], tilt)."""
+    expected = 4 if tag == "VERTEX_SE2" else 8
+    if len(fields) != expected:
+        msg = f"{where}: {tag} needs {expected} values (id and pose), found {len(fields)}"
+        raise InputError(msg)
+    try:
+        ident = int(fields[0])
+        values = [float(v) for v in fields[1:]]
+    except ValueError:
+        msg = f"{where}: {tag} holds a value that is not a number"
+        raise InputError(msg) from None
+    if not all(math.isfinite(v) for v in values):
+        msg = f"{where}: {tag} holds a non-finite value"
+        raise InputError(msg)
+    if tag == "VERTEX_SE2":
+        return ident, [values[0], values[1], 0.0, values[2]], 0.0
+    q = np.asarray(values[3:7])
+    if np.linalg.norm(q) < 1e-9:
+        msg = f"{where}: {tag} has a zero quaternion"
+        raise InputError(msg)
+    yaw, tilt = _yaw_and_tilt(q)
+    return ident, [values[0], values[1], values[2], yaw], tilt
+
+
+def read_g2o_vertices(path: str | Path) -> G2oVertices:
+    """Read the vertices of a g2o file (see the module docstring).
+
+    Raises:
+        InputError: unreadable file, a malformed vertex line (named ``file:line``), a repeated id, SE2 and
+            SE3 vertices mixed, or no vertex at all.
+    """
+    file = Path(path)
+    try:
+        text = file.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        msg = f"cannot read g2o file {str(file)!r}: {err}"
+        raise InputError(msg) from None
+    ids: list[int] = []
+    poses: list[list[float]] = []
+    kinds: set[str] = set()
+    tilt = 0.0
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#") or not fields[0].startswith("VERTEX_"):
+            continue
+        tag = fields[0]
+        if tag not in ("VERTEX_SE2", "VERTEX_SE3:QUAT"):
+            msg = f"{file}:{number}: unsupported vertex type {tag!r} (VERTEX_SE2 or VERTEX_SE3:QUAT)"
+            raise InputError(msg)
+        ident, pose, vertex_tilt = _vertex(tag, fields[1:], f"{file}:{number}")
+        kinds.add(tag)
+        ids.append(ident)
+        poses.append(pose)
+        tilt = max(tilt, vertex_tilt)
+    if not ids:
+        msg = f"{file}: no VERTEX_SE2 or VERTEX_SE3:QUAT line"
+        raise InputError(msg)
+    if len(kinds) > 1:
+        msg = f"{file}: mixes VERTEX_SE2 and VERTEX_SE3:QUAT vertices"
+        raise InputError(msg)
+    id_array = np.asarray(ids, dtype=np.int64)
+    unique, counts = np.unique(id_array, return_counts=True)
+    if np.any(counts > 1):
+        msg = f"{file}: vertex id {int(unique[counts > 1][0])} appears more than once"
+        raise InputError(msg)
+    return G2oVertices(ids=id_array, poses=np.asarray(poses), kind=kinds.pop(), max_tilt_rad=tilt)

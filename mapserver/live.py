@@ -1,0 +1,147 @@
+"""A session being mapped with online merging: the per-frame bookkeeping between engine, merger and store.
+
+:func:`mapserver.pipeline.process_into_store` feeds every frame to :meth:`LiveSession.on_step`.
+It keeps what the store will need when the session is written: the map the session is in at the
+moment (its own, or the stored map it merged into), the stable row identities of that map, the
+merges made (:class:`PendingMerge`, each ``applied`` or ``rejected``), the frames' stamps, the
+dead reckoning and the evidence images. A merge swaps the engine for the merged one; a merge
+rolled back by its verification swaps it back for the session's own engine, restores the map
+it was in before and keeps the merge as ``rejected`` with its evidence.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+from core import Action, Engine, StepResult
+from mapserver.merge import MergeEvent, OnlineMerger, Rollback
+from mapserver.merge.identity import RowIdentities
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(eq=False)
+class Holder:
+    """The map a session is in at the moment: stored id and name (None: not stored yet), its other sessions."""
+
+    id: int | None
+    name: str
+    sessions: list[int]
+    engine: Engine
+    ids: RowIdentities
+
+
+@dataclass(eq=False)
+class PendingMerge:
+    """An online merge made during the run, stored in the session's write transaction.
+
+    ``status`` is ``applied``, or ``rejected`` when its verification rolled it back (the maps are then
+    as if it never happened; only the event with its evidence is stored).
+    """
+
+    event: MergeEvent
+    target: Any  # mapserver.atlas.AtlasMap
+    before: Holder  # the map the session was in before the merge (partial side; restored by a rollback)
+    frames_at: int
+    reckoning_pose: list[float]
+    host_id: int
+    host_name: str
+    status: str = "applied"
+    rejected_at: int | None = None
+
+    @property
+    def partial_ids(self) -> RowIdentities:
+        """Return the partial map's row identities right before the merge."""
+        return self.before.ids
+
+    @property
+    def partial_name(self) -> str:
+        """Return the partial map's name."""
+        return self.before.name
+
+    @property
+    def partial_map_id(self) -> int | None:
+        """Return the partial map's stored id (None: the session's new map)."""
+        return self.before.id
+
+    @property
+    def partial_sessions(self) -> list[int]:
+        """Return the stored sessions in the partial map besides the running one."""
+        return self.before.sessions
+
+
+@dataclass(eq=False)
+class LiveSession:
+    """The running session's bookkeeping (see the module docstring)."""
+
+    holder: Holder
+    tag: int
+    start: int
+    merger: OnlineMerger | None
+    targets: dict[int, Any]  # stored map id → AtlasMap (the merge candidates)
+    collector: Any  # mapserver.store.evidence.EvidenceCollector
+    reckoning: Any  # mapserver.pipeline.DeadReckoning
+    stamps: list[float] = field(default_factory=list)
+    pending: list[PendingMerge] = field(default_factory=list)
+
+    @property
+    def applied(self) -> list[PendingMerge]:
+        """Return the merges that stand."""
+        return [m for m in self.pending if m.status == "applied"]
+
+    def on_step(self, frame: Any, result: StepResult) -> Engine | None:
+        """Book one frame; return the engine to continue in when a merge or a rollback changed it."""
+        holder = self.holder
+        holder.ids.extend(holder.engine.template_count, holder.engine.experience_count, self.tag)
+        stamp = frame.stamp_ns * 1e-9
+        self.stamps.append(stamp)
+        self.collector.observe(stamp, frame.image)
+        if result.action == Action.CREATE_NODE:
+            self.collector.experience(int(holder.ids.experience_arrays()[1][result.experience]), stamp)
+        self.reckoning.add(stamp, result.motion)
+        if self.merger is None:
+            return None
+        event = self.merger.observe(holder.engine, result, frame)
+        if isinstance(event, MergeEvent):
+            return self._merged(event)
+        if isinstance(event, Rollback):
+            return self._rolled_back(event)
+        return None
+
+    def _merged(self, event: MergeEvent) -> Engine:
+        """Continue in the merged engine, in the map that hosts the merge (the oldest of the two)."""
+        holder, target = self.holder, self.targets[int(event.key)]  # type: ignore[call-overload]
+        before = Holder(holder.id, holder.name, list(holder.sessions), holder.engine, holder.ids.copy())
+        if holder.id is None or target.id < holder.id:
+            host_id, host_name = target.id, target.name
+        else:
+            host_id, host_name = holder.id, holder.name
+        self.pending.append(
+            PendingMerge(
+                event=event, target=target, before=before, frames_at=self.start + len(self.stamps),
+                reckoning_pose=[float(v) for v in self.reckoning.pose], host_id=host_id, host_name=host_name,
+            )
+        )  # fmt: skip
+        self.holder = Holder(
+            id=host_id, name=host_name, sessions=sorted(set(holder.sessions) | set(target.session_ids)),
+            engine=event.engine, ids=RowIdentities.merged(target.identities, holder.ids, event.record),
+        )  # fmt: skip
+        return event.engine
+
+    def _rolled_back(self, rollback: Rollback) -> Engine:
+        """Go back to the map the session was in before the merge, in the engine that never merged."""
+        merge = next(m for m in self.pending if m.event is rollback.event)
+        merge.status, merge.rejected_at = "rejected", self.start + len(self.stamps)
+        before = merge.before
+        ids = before.ids.copy()
+        first_new = ids.experiences
+        ids.extend(rollback.engine.template_count, rollback.engine.experience_count, self.tag)
+        index = ids.experience_arrays()[1]
+        self.collector.replace_from(
+            int(index[first_new]) if first_new < len(index) else 1 << 62,
+            [(int(index[e]), stamp, image) for e, stamp, image in rollback.created],
+        )
+        self.holder = Holder(before.id, before.name, list(before.sessions), rollback.engine, ids)
+        return rollback.engine

@@ -1,0 +1,129 @@
+"""The online merge driver's state between two frames, as plain arrays (``process --stop-after``, then resume)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mapserver.merge.confirm import Observation
+from mapserver.merge.hypotheses import Hypothesis, Track
+
+_HYPOTHESIS_COLUMNS = 13  # key, born, hit_m, miss_m, post_hit_m, post_miss_m, alignment (4), turn (3)
+_SUPPORT_COLUMNS = 15  # hypothesis row, frame, template, experience, error, relative, partial template, odometry, seen
+
+
+def _observation_row(row: int, o: Observation) -> np.ndarray:
+    head = [float(row), float(o.frame), float(o.stored_template), float(o.stored_experience), o.error,
+            o.relative_rad, float(o.partial_template)]  # fmt: skip
+    return np.concatenate([head, o.odometry, o.seen, o.packet]).astype(np.float64)
+
+
+def _observation(row: np.ndarray) -> Observation:
+    return Observation(
+        frame=int(row[1]), stored_template=int(row[2]), stored_experience=int(row[3]), error=float(row[4]),
+        relative_rad=float(row[5]), partial_template=int(row[6]), odometry=row[7:11].copy(),
+        seen=row[11:15].copy(), packet=row[_SUPPORT_COLUMNS:].copy(),
+    )  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class MergerState:
+    """The online driver's state between two frames, for resuming a session later.
+
+    Attributes:
+        odometry: (4,) the session's odometry pose so far (x, y, z, yaw).
+        absorbed: keys of the maps merged so far.
+        hypotheses: stored-map key → (live hypotheses, banned alignments).
+        track: the session's recent frames (None: none yet).
+    """
+
+    odometry: np.ndarray
+    absorbed: tuple[object, ...] = ()
+    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = field(default_factory=dict)
+    track: Track | None = None
+
+    def without(self, keys: Sequence[object]) -> MergerState:
+        """Return the state with the hypotheses of these maps dropped (maps that changed since)."""
+        gone = set(keys)
+        kept = {k: v for k, v in self.hypotheses.items() if k not in gone}
+        return MergerState(self.odometry, self.absorbed, kept, self.track)
+
+    def restore_into(self, candidates: Sequence[Any], track: Track) -> None:
+        """Put the hypotheses back into the candidates' sets and the frames into ``track``."""
+        for candidate in candidates:
+            live, banned = self.hypotheses.get(candidate.stored.key, ((), ()))
+            candidate.hypotheses.hypotheses = [_copy(h) for h in live]
+            candidate.hypotheses.banned = [b.copy() for b in banned]
+        if self.track is not None:
+            track.frames.extend(self.track.frames)
+            track.distance = self.track.distance
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Return the state as plain arrays (map keys must be integers).
+
+        Keys: ``odometry``, ``absorbed``, ``hypotheses`` (H, 13): key, born, hit_m, miss_m,
+        post_hit_m, post_miss_m, alignment (4), turn (3); ``support`` (S, 15 + D): hypothesis row, frame,
+        stored template, stored experience, error, relative_rad, partial template, odometry (4),
+        seen (4), packet (D); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
+        """
+        rows, support, banned = [], [], []
+        for key, (live, bans) in self.hypotheses.items():
+            for h in live:
+                rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
+                             *h.alignment, *h.turn])  # fmt: skip
+                support.extend(_observation_row(len(rows) - 1, o) for o in h.support)
+            banned.extend([float(int(key)), *b] for b in bans)  # type: ignore[call-overload]
+        width = max((r.size for r in support), default=_SUPPORT_COLUMNS)
+        frames = list(self.track.frames) if self.track is not None else []
+        views = np.stack([f[3] for f in frames]) if frames else np.zeros((0, 0, 0), dtype=np.float32)
+        return {
+            "odometry": np.asarray(self.odometry, dtype=np.float64).reshape(4).copy(),
+            "absorbed": np.asarray([int(k) for k in self.absorbed], dtype=np.int64),  # type: ignore[call-overload]
+            "hypotheses": np.asarray(rows, dtype=np.float64).reshape(-1, _HYPOTHESIS_COLUMNS),
+            "support": np.vstack(support) if support else np.zeros((0, width), dtype=np.float64),
+            "banned": np.asarray(banned, dtype=np.float64).reshape(-1, 5),
+            "track_frames": np.asarray([f[0] for f in frames], dtype=np.int64),
+            "track_odometry": np.asarray([f[1] for f in frames], dtype=np.float64).reshape(-1, 4),
+            "track_distance": np.asarray([f[2] for f in frames], dtype=np.float64),
+            "track_views": views.astype(np.float32),
+            "track_means": np.asarray([f[4] for f in frames], dtype=np.float64),
+            "track_total": np.asarray([0.0 if self.track is None else self.track.distance], dtype=np.float64),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> MergerState:
+        """Rebuild a state from :meth:`to_arrays` output."""
+        table = np.asarray(arrays["hypotheses"], dtype=np.float64).reshape(-1, _HYPOTHESIS_COLUMNS)
+        support = np.asarray(arrays["support"], dtype=np.float64)
+        made = [
+            Hypothesis(alignment=r[6:10].copy(), born=int(r[1]), hit_m=float(r[2]), miss_m=float(r[3]),
+                       post_hit_m=float(r[4]), post_miss_m=float(r[5]), turn=r[10:13].copy())
+            for r in table
+        ]  # fmt: skip
+        for row in support:
+            made[int(row[0])].support.append(_observation(row))
+        grouped: dict[int, tuple[list[Hypothesis], list[np.ndarray]]] = {}
+        for r, h in zip(table, made, strict=True):
+            grouped.setdefault(int(r[0]), ([], []))[0].append(h)
+        for r in np.asarray(arrays["banned"], dtype=np.float64).reshape(-1, 5):
+            grouped.setdefault(int(r[0]), ([], []))[1].append(r[1:].copy())
+        hypotheses = {k: (tuple(v[0]), tuple(v[1])) for k, v in sorted(grouped.items())}
+        track = Track(0.0)
+        views = np.asarray(arrays["track_views"], dtype=np.float32)
+        odometry, distance = np.asarray(arrays["track_odometry"]), np.asarray(arrays["track_distance"])
+        means = np.asarray(arrays["track_means"])
+        for i, frame in enumerate(np.asarray(arrays["track_frames"], dtype=np.int64)):
+            track.frames.append((int(frame), odometry[i].copy(), float(distance[i]), views[i].copy(), float(means[i])))
+        track.distance = float(np.asarray(arrays["track_total"]).reshape(-1)[0])
+        absorbed = tuple(int(k) for k in np.asarray(arrays["absorbed"], dtype=np.int64).reshape(-1))
+        return cls(np.asarray(arrays["odometry"], dtype=np.float64).reshape(4).copy(), absorbed, hypotheses, track)
+
+
+def _copy(h: Hypothesis) -> Hypothesis:
+    return Hypothesis(
+        alignment=h.alignment.copy(), born=h.born, support=list(h.support), hit_m=h.hit_m, miss_m=h.miss_m,
+        post_hit_m=h.post_hit_m, post_miss_m=h.post_miss_m, turn=h.turn.copy(),
+    )  # fmt: skip

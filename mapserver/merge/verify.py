@@ -1,0 +1,119 @@
+"""Every merge verifies itself: a probation distance after an online merge, and its rollback.
+
+After :func:`mapserver.merge.hypotheses.decide` merges the session into a stored map, the
+winning hypothesis keeps being tested for ``probation_m`` metres on two things:
+
+* **views where the merged map predicts them**: at every frame the alignment predicts the
+  robot's place in the stored map; where the stored map has been, the view must match one of
+  its templates there (the same hit/miss trials as before the merge, counted apart);
+* **new loop links agree with the merge transform**: a loop closure of the merged engine onto a
+  stored experience must land where the alignment puts the robot (within twice the position
+  tolerance).
+
+Meanwhile the session's engine *without* the merge (the *shadow*) is stepped on the same
+frames. A contradiction — the post-merge score (hits − miss_weight·misses) falling to
+``−reject_m`` metres, or two disagreeing loop links that outnumber the agreeing ones — rolls the
+merge back inside the running session: the session continues in the shadow, exactly the engine
+it would be had the merge never happened, and the merge is recorded as ``rejected`` with this
+evidence. Passing the probation drops the shadow.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from core import Action, Engine, StepResult
+from mapserver.merge.hypotheses import HIT, MISS, Hypothesis, HypothesisSet, Track
+
+PASSED, REJECTED = "passed", "rejected"
+
+
+@dataclass(eq=False)
+class Probation:
+    """A merge under verification.
+
+    Attributes:
+        key: the stored map merged into.
+        hypothesis: the alignment that won (tested on).
+        hset: its hypothesis set (the stored map's places and the rule).
+        shadow: the session's engine without the merge, stepped alongside.
+        start_m: the track distance at the merge.
+        loaded_experiences: experiences of the stored map (ids below this in the merged engine are its).
+        frames: frames verified so far.
+    """
+
+    key: object
+    hypothesis: Hypothesis
+    hset: HypothesisSet
+    shadow: Engine
+    start_m: float
+    loaded_experiences: int
+    frames: int = 0
+    hits: int = 0
+    misses: int = 0
+    links_agree: int = 0
+    links_disagree: int = 0
+    worst_link_m: float = 0.0
+    reason: str = ""
+    created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
+    """Experiences the shadow made (id, stamp, camera image): their evidence if the merge is rolled back."""
+
+    def step(self, track: Track, result: StepResult, frame: Any) -> str | None:
+        """Verify the newest frame (``result``: the merged engine's step); return PASSED, REJECTED or None.
+
+        ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is stepped through the shadow engine first.
+        """
+        stamp = frame.stamp_ns * 1e-9
+        shadow = self.shadow.step(frame.image, frame.motion, stamp)
+        if shadow.action == Action.CREATE_NODE:
+            self.created.append((shadow.experience, stamp, frame.image))
+        self.frames += 1
+        outcome = self.hset.test_after_merge(self.hypothesis, track)
+        self.hits += outcome == HIT
+        self.misses += outcome == MISS
+        self._check_link(track, result)
+        rule = self.hset.rule
+        post = self.hypothesis.post_hit_m - rule.miss_weight * self.hypothesis.post_miss_m
+        if post <= -rule.reject_m:
+            self.reason = (
+                f"views disagree with the merged map: {self.hypothesis.post_miss_m:.2f} m of mismatches against "
+                f"{self.hypothesis.post_hit_m:.2f} m of matches where it predicts its places"
+            )
+            return REJECTED
+        if self.links_disagree >= 2 and self.links_disagree > self.links_agree:
+            self.reason = (
+                f"{self.links_disagree} loop links disagree with the merge transform "
+                f"(worst {self.worst_link_m:.2f} m), {self.links_agree} agree"
+            )
+            return REJECTED
+        if track.distance - self.start_m >= rule.probation_m:
+            self.reason = "probation distance travelled without contradiction"
+            return PASSED
+        return None
+
+    def _check_link(self, track: Track, result: StepResult) -> None:
+        """Count a loop closure onto a stored experience as agreeing or not with the alignment."""
+        if result.action != Action.CREATE_EDGE or not 0 <= result.experience < self.loaded_experiences:
+            return
+        predicted = self.hypothesis.predict(track.last[1])
+        gap = float(np.linalg.norm(self.hset.places.poses[result.experience, :3] - predicted[:3]))
+        if gap <= 2.0 * self.hset.rule.position_tolerance:
+            self.links_agree += 1
+        else:
+            self.links_disagree += 1
+            self.worst_link_m = max(self.worst_link_m, gap)
+
+    def evidence(self, track: Track, status: str) -> dict[str, Any]:
+        """Return the verification's figures for the merge event (``status``: passed, rejected, incomplete)."""
+        rule = self.hset.rule
+        return {
+            "status": status, "reason": self.reason or "the log ended during the probation",
+            "distance_m": round(track.distance - self.start_m, 3), "probation_m": round(rule.probation_m, 3),
+            "frames": self.frames, "hit_frames": self.hits, "miss_frames": self.misses,
+            "post_hit_m": round(self.hypothesis.post_hit_m, 3), "post_miss_m": round(self.hypothesis.post_miss_m, 3),
+            "reject_m": round(rule.reject_m, 3), "links_agree": self.links_agree,
+            "links_disagree": self.links_disagree, "worst_link_m": round(self.worst_link_m, 3),
+        }  # fmt: skip

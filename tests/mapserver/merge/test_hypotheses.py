@@ -1,0 +1,169 @@
+"""The merge decision's pieces on hand-built maps: place predictions, scores, the decision rule, resume arrays."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core.localview import LocalViewCells
+from mapserver.merge.confirm import Observation
+from mapserver.merge.hypotheses import (
+    HIT,
+    MISS,
+    UNMAPPED,
+    EvidenceRule,
+    Hypothesis,
+    HypothesisSet,
+    StoredPlaces,
+    Track,
+    decide,
+)
+from mapserver.merge.resume import MergerState
+from mapserver.merge.se3 import compose
+from tests.mapserver.merge.sessions import PARAMS
+
+RULE = EvidenceRule.for_map(spacing=1.0, position_tolerance=1.5, yaw_tolerance=0.5, evidence_m=-1.0, probation_m=-1.0)
+RNG = np.random.default_rng(7)
+TEMPLATES = RNG.uniform(0.0, 1.0, size=(6, PARAMS.template_y_size, PARAMS.template_x_size)).astype(np.float32)
+OTHER = RNG.uniform(0.0, 1.0, size=(PARAMS.template_y_size, PARAMS.template_x_size)).astype(np.float32)
+
+
+def _places(panoramic: bool = False) -> StoredPlaces:
+    """Six stored experiences 1 m apart along x, heading east, each with its own template (0..5)."""
+    cells = LocalViewCells(PARAMS)
+    cells.add_templates(TEMPLATES, TEMPLATES.reshape(6, -1).mean(axis=1, dtype=np.float64))
+    poses = np.array([[float(i), 0.0, 0.0, 0.0] for i in range(6)])
+    return StoredPlaces(cells, poses, np.arange(6), PARAMS.vt_match_threshold, panoramic, RULE)
+
+
+def _view(i: int) -> tuple[np.ndarray, float]:
+    view = TEMPLATES[i] if i >= 0 else OTHER
+    return view, float(view.mean(dtype=np.float64))
+
+
+def test_the_rule_at_the_map_scale() -> None:
+    assert (RULE.evidence_m, RULE.probation_m, RULE.reject_m) == (4.0, 12.0, 2.0)  # 4, 12 spacings; max(2, 1.5)
+    assert RULE.coverage_radius == 1.0 and RULE.history_m == 12.0
+    off = EvidenceRule.for_map(1.0, 1.5, 0.5, evidence_m=0.0, probation_m=0.0)
+    assert (off.evidence_m, off.probation_m) == (0.0, 0.0)
+
+
+def test_a_place_predicts_its_templates_and_nothing_elsewhere() -> None:
+    places = _places()
+    outcome, seen = places.test(np.array([2.2, 0.1, 0.0, 0.1]), *_view(2))
+    assert outcome == HIT
+    np.testing.assert_allclose(seen, [2.0, 0.0, 0.0, 0.0])  # the matched experience (forward view: no offset)
+    assert places.test(np.array([2.2, 0.1, 0.0, 0.1]), *_view(-1))[0] == MISS  # mapped, the view is not there
+    assert places.test(np.array([3.0, 0.0, 0.0, 0.0]), *_view(1))[0] == MISS  # its place is 2 m off (> 1.5 m)
+    assert places.test(np.array([2.0, 5.0, 0.0, 0.0]), *_view(2))[0] == UNMAPPED  # nobody was there
+    assert places.test(np.array([2.0, 0.0, 0.0, math.pi]), *_view(2))[0] == UNMAPPED  # facing the other way
+    assert _places(panoramic=True).test(np.array([2.0, 0.0, 0.0, math.pi]), *_view(2))[0] == HIT
+
+
+def test_a_view_whose_best_match_has_no_place_says_nothing() -> None:
+    places = _places()
+    places.placed[5] = False  # template 5 kept by the stored session's gates without an experience
+    assert places.test(np.array([1.0, 0.0, 0.0, 0.0]), *_view(5))[0] == UNMAPPED
+    assert places.test(np.array([1.0, 0.0, 0.0, 0.0]), *_view(4))[0] == MISS  # 4 has its place, 3 m away
+
+
+def _observation(frame: int, odometry: np.ndarray, seen: np.ndarray, template: int) -> Observation:
+    return Observation(frame=frame, stored_template=template, stored_experience=template, error=0.0,
+                       relative_rad=0.0, partial_template=frame, odometry=odometry, packet=np.zeros(3),
+                       seen=seen)  # fmt: skip
+
+
+def _drive(hset: HypothesisSet, track: Track, start: int, offset: np.ndarray, views: list[int]) -> None:
+    """Drive east 1 m a frame from odometry x = start; the stored map sees the robot at ``offset ⊕ O``."""
+    for k, v in enumerate(views):
+        odometry = np.array([float(start + k), 0.0, 0.0, 0.0])
+        track.add(start + k, odometry, 1.0 if track.frames else 0.0, *_view(v))
+        seen = compose(offset, odometry)
+        found = _observation(start + k, odometry, np.array([float(v), 0, 0, 0]), v) if v >= 0 else None
+        hset.update(track, found, v)
+        assert np.isfinite(seen).all()
+
+
+def test_matches_along_the_map_build_one_hypothesis_that_wins_after_the_evidence_distance() -> None:
+    hset, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
+    _drive(hset, track, 0, np.zeros(4), [0, 1, 2, 3])
+    (h,) = hset.hypotheses
+    assert (h.hit_m, h.miss_m, len(h.support), h.stored_templates) == (3.0, 0.0, 4, 4)  # frame 0 moved 0 m
+    assert decide({1: hset}, needed=3) is None  # 3 m < 4 m of evidence
+    _drive(hset, track, 4, np.zeros(4), [4])
+    assert h.score() == 4.0 and h.turn_rad == 0.0
+    assert decide({1: hset}, needed=3) is None  # a straight stretch, however long, may be a look-alike street
+    h.record_turn(0.6)  # the robot turned 34° on agreeing ground
+    key, winner, rival = decide({1: hset}, needed=3)  # type: ignore[misc]
+    assert (key, winner, rival, winner.score()) == (1, h, 0.0, 4.0)
+
+
+def test_a_look_alike_entered_from_elsewhere_is_refuted_by_the_way_in() -> None:
+    """The session saw other views, then stored template 4 one metre ahead of where odometry puts it."""
+    hset, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
+    _drive(hset, track, 2, np.zeros(4), [-1])  # no stored map proposed yet: no hypothesis
+    assert hset.hypotheses == []
+    _drive(hset, track, 3, np.zeros(4), [4])  # proposes A: odometry x=3 is stored x=4
+    (h,) = hset.hypotheses
+    # the way in (odometry x=2 → stored x=3) is mapped and its view was not template 3: 1 m of misses
+    assert (h.hit_m, h.miss_m, h.score()) == (1.0, 1.0, -1.0)
+    assert decide({1: hset}, needed=1) is None
+    longer, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
+    _drive(longer, track, 0, np.zeros(4), [-1, -1, -1, 4])  # 3 m of mismatches on the way in: 1 − 2·3 < −2·2
+    assert longer.hypotheses == []  # refuted at once
+
+
+def test_two_alignments_that_tie_never_merge_and_one_that_leads_clearly_does() -> None:
+    def hset_with(*scores: tuple[float, float]) -> HypothesisSet:
+        hset = HypothesisSet(_places(), RULE)
+        for i, (hit, miss) in enumerate(scores):
+            support = [_observation(j, np.zeros(4), np.zeros(4), j) for j in range(3)]
+            hset.hypotheses.append(Hypothesis(np.array([float(i), 0, 0, 0]), born=i, support=support,
+                                              hit_m=hit, miss_m=miss, turn=np.array([0.0, 0.0, 1.0])))  # fmt: skip
+        return hset
+
+    assert decide({1: hset_with((10.0, 0.0), (10.0, 0.0))}, needed=3) is None  # symmetric world: a tie
+    assert decide({1: hset_with((10.0, 0.0)), 2: hset_with((9.0, 0.0))}, needed=3) is None  # across maps too
+    assert decide({1: hset_with((10.0, 0.0), (7.9, 0.0))}, needed=3)[2] == 7.9  # type: ignore[index]
+    assert decide({1: hset_with((10.0, 0.0), (8.1, 0.0))}, needed=3) is None  # leads by < evidence_m / 2
+    assert decide({1: hset_with((10.0, 3.1))}, needed=3) is None  # 10 − 2·3.1 = 3.8 < 4
+    assert decide({1: hset_with((10.0, 2.9))}, needed=3) is not None  # 4.2 ≥ 4
+    assert decide({1: hset_with((10.0, 0.0))}, needed=4) is None  # K = 4 supporting matches
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(0, 20), st.floats(0, 20)), min_size=1, max_size=4),
+    st.integers(1, 5),
+)
+def test_the_winner_beats_no_merge_and_every_rival(scores: list[tuple[float, float]], needed: int) -> None:
+    hset = HypothesisSet(_places(), RULE)
+    for i, (hit, miss) in enumerate(scores):
+        support = [_observation(j, np.zeros(4), np.zeros(4), j) for j in range(needed)]
+        hset.hypotheses.append(Hypothesis(np.array([float(i), 0, 0, 0]), born=i, support=support, hit_m=hit,
+                                          miss_m=miss, turn=np.array([0.0, 0.0, 1.0])))  # fmt: skip
+    decision = decide({1: hset}, needed=needed)
+    best = max(h.score() for h in hset.hypotheses)
+    others = sorted((h.score() for h in hset.hypotheses), reverse=True)[1:]
+    clear = best >= RULE.evidence_m and best - max([0.0, *others[:1]]) >= RULE.evidence_m / 2
+    assert (decision is not None) == clear  # K matches over distinct templates are there
+    if decision is not None:
+        assert decision[1].score() == best
+
+
+def test_the_resume_arrays_hold_hypotheses_bans_and_track_exactly() -> None:
+    hset, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
+    _drive(hset, track, 0, np.zeros(4), [0, 1, -1, 3])
+    hset.banned.append(np.array([9.0, 1.0, 0.0, 0.5]))
+    state = MergerState(np.array([3.0, 0.0, 0.0, 0.0]), (4,), {1: (tuple(hset.hypotheses), tuple(hset.banned))}, track)
+    arrays = state.to_arrays()
+    again = MergerState.from_arrays(arrays).to_arrays()
+    assert set(arrays) == set(again)
+    for key in arrays:
+        np.testing.assert_array_equal(arrays[key], again[key])
+    (h,) = MergerState.from_arrays(arrays).hypotheses[1][0]
+    assert (h.hit_m, h.miss_m, [o.frame for o in h.support]) == (hset.hypotheses[0].hit_m,
+                                                                  hset.hypotheses[0].miss_m, [0, 1, 3])  # fmt: skip

@@ -1,0 +1,67 @@
+"""Measuring robust relaxation on simulated maps (shared by tests/mapserver/test_robust_acceptance.py and
+bench/robust_relaxation.py): simulate, process, inject wrong loop links (the test hook), settle, APE."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from core import Engine, LinkKind, Params, preset
+from core.robust import false_loop_links
+from mapserver.cli import main
+from mapserver.evaluation import ape_positions, interpolate_poses
+from mapserver.formats import Trajectory, read_tum
+from mapserver.pipeline import process_log
+
+
+@dataclass(frozen=True)
+class Simulated:
+    """A settled single-session map of a simulated scenario and its ground truth."""
+
+    params: Params
+    state: dict[str, np.ndarray]
+    truth: Trajectory
+
+
+@dataclass(frozen=True)
+class Injected:
+    """The map after ``k`` wrong loop links were injected and the map settled."""
+
+    engine: Engine
+    injected: np.ndarray  # link indices of the wrong links
+    true_loops: int  # loop links of the clean map
+    true_loops_on: int  # of those, still active
+
+
+def simulate_single(out: Path, scenario: str, seed: int = 0) -> Simulated:
+    """Simulate ``scenario`` into ``out`` and process its single-session log with the scenario's preset."""
+    assert main(["simulate", scenario, "--out", str(out), "--seed", str(seed)]) == 0
+    info = json.loads((out / "scenario.json").read_text(encoding="utf-8"))
+    params = preset(info["preset"])
+    result = process_log(out / info["single"]["log"], params)
+    return Simulated(params, result.engine.snapshot(), read_tum(out / info["single"]["ground_truth"]))
+
+
+def inject(sim: Simulated, count: int, separation: float, seed: int, robust: bool = True) -> Injected:
+    """Add ``count`` wrong loop links (:func:`core.robust.false_loop_links`) to the stored map; settle it."""
+    params = sim.params if robust else sim.params.replace(exp_robust=False)
+    engine = Engine.restore(params, sim.state)
+    first = engine.map.link_count
+    src, dst, transform = false_loop_links(engine.map.poses, count, separation, seed)
+    for a, b, t in zip(src.tolist(), dst.tolist(), transform, strict=True):
+        engine.map.add_link_raw(a, b, t, 1.0, float(np.linalg.norm(t[:3])), LinkKind.LOOP)
+    engine.settle()
+    loops = np.flatnonzero(np.asarray(sim.state["em_link_kind"]) == int(LinkKind.LOOP))
+    on = int(np.count_nonzero(engine.map.link_active[loops]))
+    return Injected(engine, np.arange(first, engine.map.link_count), int(loops.size), on)
+
+
+def map_ape(pose: np.ndarray, stamps: np.ndarray, truth: Trajectory) -> float:
+    """Return the APE RMSE of experience positions after one rigid alignment (planar maps in xy)."""
+    ref = interpolate_poses(truth, stamps, max_diff_s=0.1)
+    keep = np.isfinite(ref).all(axis=1)
+    dims = 2 if not np.any(pose[:, 2]) else 3
+    return ape_positions(ref[keep, :dims], pose[keep, :dims]).rmse
