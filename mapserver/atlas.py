@@ -27,9 +27,8 @@ Store-level snapshot keys written beside the engine's (kept generically by the s
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -39,7 +38,8 @@ from core import Params, params_from_dict
 from mapserver.errors import ConflictError, InputError, MergeError
 from mapserver.merge import Match, MergeRecord, StoredMap, find_match, merge_snapshots, merge_states, restore_merged
 from mapserver.merge.identity import RowIdentities, next_index_from_table
-from mapserver.merge.online import MergerState
+from mapserver.merge.provenance import match_from_dict, match_to_dict, record_summary, transform7
+from mapserver.merge.resume import MergerState, merger_keys
 from mapserver.merge.snapshot import params_incompatibility
 from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, find_map, get_map
 from mapserver.store.archive import archive_map_state, archive_state, load_archive, restore_map_states
@@ -58,8 +58,6 @@ from mapserver.store.state import WriteResult, read_map_state, write_map_state
 logger = logging.getLogger(__name__)
 
 ID_NEXT_KEY = "st_next_index"
-MERGER_PREFIX = "mg_"
-_RECORD_ARRAYS = ("template_map", "experience_map", "merge_links")
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -123,9 +121,7 @@ def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
     )
 
 
-def _eligible_maps(
-    conn: Connection, *, params: Params, exclude: int | None
-) -> tuple[dict[int, int], dict[str, str]]:
+def _eligible_maps(conn: Connection, *, params: Params, exclude: int | None) -> tuple[dict[int, int], dict[str, str]]:
     """Return {map id: version} of the stored maps a session with ``params`` may merge into, and why not the others."""
     rows = conn.execute(select(Map.id, Map.name, Map.params, Map.version).order_by(Map.id)).all()
     eligible: dict[int, int] = {}
@@ -181,37 +177,6 @@ def ensure_candidates_unchanged(
     changed = sorted(names.get(k, str(k)) for k in differing)
     msg = f"the maps this session may merge into changed while it was processed ({', '.join(map(repr, changed))})"
     raise StaleMapError(msg)
-
-
-def resume_merger_state(stored: AtlasMap, session_id: int, candidates: Sequence[AtlasMap]) -> MergerState | None:
-    """Return the merge driver's state a partial session left in its map (None: none stored).
-
-    Hypotheses are kept only when the map is still at the version the session wrote and the candidate
-    map is at the version they were built against; otherwise they restart (the odometry and track stay).
-    """
-    snap = stored.snapshot
-    if "mg_session" not in snap or "mg_hypotheses" not in snap or int(snap["mg_session"]) != session_id:
-        return None
-    arrays = {k[len(MERGER_PREFIX) :]: v for k, v in snap.items() if k.startswith(MERGER_PREFIX)}
-    state = MergerState.from_arrays(arrays)
-    if int(snap["mg_map_version"]) != stored.version:
-        return state.without(list(state.hypotheses))
-    versions = {int(k): int(v) for k, v in np.asarray(snap.get("mg_versions", np.zeros((0, 2))), np.int64)}
-    current = {c.id: c.version for c in candidates}
-    stale = [k for k in state.hypotheses if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
-    return state.without(stale)
-
-
-def merger_keys(
-    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[AtlasMap]
-) -> dict[str, np.ndarray]:
-    """Return the ``mg_*`` snapshot keys that let a partial session resume its merge driver."""
-    arrays = state.to_arrays()
-    out = {MERGER_PREFIX + k: v for k, v in arrays.items()}
-    out["mg_session"] = np.asarray(session_id, dtype=np.int64)
-    out["mg_map_version"] = np.asarray(map_version, dtype=np.int64)
-    out["mg_versions"] = np.asarray([[c.id, c.version] for c in candidates], dtype=np.int64).reshape(-1, 2)
-    return out
 
 
 # ------------------------------------------------------------------------------------------------ writing
@@ -308,43 +273,6 @@ def matches_json(target: AtlasMap, partial_ids: RowIdentities, record: MergeReco
     }  # fmt: skip
 
 
-def record_summary(record: MergeRecord) -> dict[str, Any]:
-    """Return a merge record as JSON without its per-row arrays (they are recomputed by a redo)."""
-    data = record.to_dict()
-    for key in _RECORD_ARRAYS:
-        data.pop(key, None)
-    data["merge_links"] = int(np.asarray(record.merge_links).size)
-    return data
-
-
-def match_to_dict(match: Match) -> dict[str, Any]:
-    """Return a match as JSON (see :func:`match_from_dict`)."""
-    data = asdict(match)
-    data["partial_pose"] = [float(v) for v in match.partial_pose]
-    data["partial_packet"] = [float(v) for v in match.partial_packet]
-    data["pairs"] = [[int(a), int(b)] for a, b in match.pairs]
-    return data
-
-
-def match_from_dict(data: Mapping[str, Any]) -> Match:
-    """Rebuild a :class:`Match` from :func:`match_to_dict` output."""
-    return Match(
-        stored_template=int(data["stored_template"]),
-        stored_experience=int(data["stored_experience"]),
-        partial_template=int(data["partial_template"]),
-        partial_pose=tuple(float(v) for v in data["partial_pose"]),  # type: ignore[arg-type]
-        partial_packet=tuple(float(v) for v in data["partial_packet"]),
-        relative_rad=float(data["relative_rad"]),
-        confirmations=int(data["confirmations"]),
-        pairs=tuple((int(a), int(b)) for a, b in data["pairs"]),
-    )
-
-
-def _transform7(record: MergeRecord) -> tuple[float, ...]:
-    x, y, z, yaw = record.transform
-    return (x, y, z, 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
-
-
 def _claim_all(conn: Connection, claimed: Mapping[int, int]) -> dict[int, int]:
     """Claim every map at the version it was read; return the new versions (a vanished map is stale)."""
     out: dict[int, int] = {}
@@ -398,7 +326,7 @@ def write_merges(
             mode=merge.mode,
             confirmations=merge.record.confirmations,
             lattice_offset=list(merge.record.lattice_offset),
-            transform=_transform7(merge.record),
+            transform=transform7(merge.record),
             yaw=merge.record.transform[3],
             matches=matches_json(merge.target, partial_ids, merge.record),
             target_sessions=merge.target.session_ids,
@@ -437,9 +365,7 @@ def write_merges(
     return WrittenMerges(event_ids, host_id, host.name, result)
 
 
-def write_rejected_merges(
-    conn: Connection, *, merges: Sequence[MergeToWrite], tags: Mapping[int, int]
-) -> list[int]:
+def write_rejected_merges(conn: Connection, *, merges: Sequence[MergeToWrite], tags: Mapping[int, int]) -> list[int]:
     """Record online merges rolled back by their verification (status ``rejected``); return their event ids.
 
     No map changed (the session went on as its own map), so nothing is archived or claimed: the event
@@ -452,7 +378,7 @@ def write_rejected_merges(
         spec = MergeEventSpec(
             map_id=merge.target.id, map_name=merge.target.name, mode=merge.mode,
             confirmations=merge.record.confirmations, lattice_offset=list(merge.record.lattice_offset),
-            transform=_transform7(merge.record), yaw=merge.record.transform[3],
+            transform=transform7(merge.record), yaw=merge.record.transform[3],
             matches=matches_json(merge.target, partial_ids, merge.record), target_sessions=merge.target.session_ids,
             source_sessions=merge.partial.session_ids, details=dict(merge.details), status="rejected",
         )  # fmt: skip
@@ -740,10 +666,8 @@ __all__ = [
     "merge_candidates",
     "merge_stored_maps",
     "merge_summary",
-    "merger_keys",
     "read_atlas_map",
     "redo_merge",
-    "resume_merger_state",
     "unmerge",
     "write_merges",
 ]

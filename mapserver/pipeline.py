@@ -365,6 +365,7 @@ def _process_session(
     from mapserver.live import Holder, LiveSession
     from mapserver.merge import OnlineMerger
     from mapserver.merge.identity import RowIdentities
+    from mapserver.merge.resume import resume_merger_state
     from mapserver.store import find_map, find_session, get_map_by_id
     from mapserver.store.evidence import EvidenceCollector
     from mapserver.store.sessions import get_reckoning
@@ -422,7 +423,7 @@ def _process_session(
         start = session.frames_processed
         if stored_pose is not None:
             reckoning.pose = np.asarray(stored_pose, dtype=np.float64)
-        resume = atlas.resume_merger_state(own, session.id, candidates)
+        resume = resume_merger_state(own, session.id, candidates)
     else:
         tag = NEW_SESSION_ORIGIN
         try:
@@ -494,6 +495,7 @@ def _store_session(
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction."""
     from mapserver import atlas
+    from mapserver.merge.resume import merger_keys
     from mapserver.store import evidence as evidence_store
     from mapserver.store import get_map_by_id, lock_atlas
     from mapserver.store.maps import create_map
@@ -545,7 +547,7 @@ def _store_session(
         extra: dict[str, np.ndarray] = {}
         if merger is not None:
             expected = claimed[host_id] + 1  # the version this write gives the map
-            extra = atlas.merger_keys(
+            extra = merger_keys(
                 merger.export_state(), session_id=session_id, map_version=expected, candidates=candidates
             )
         frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
@@ -599,6 +601,7 @@ def _store_session(
 def _merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
     """Return the store's view of one online merge (:class:`mapserver.live.PendingMerge`) with its provenance."""
     from mapserver import atlas
+    from mapserver.merge.provenance import match_to_dict, record_summary
 
     ev = m.event
     partial = atlas.PartialSide(
@@ -608,7 +611,7 @@ def _merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params,
     details = {
         "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
         "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
-        "match": atlas.match_to_dict(ev.match), "record": atlas.record_summary(ev.record),
+        "match": match_to_dict(ev.match), "record": record_summary(ev.record),
         "target": {"name": m.target.name, "map_id": m.target.id},
         "source": {"name": m.partial_name, "map_id": m.partial_map_id},
         "absorbed": [e.target.name for e in pending[: pending.index(m)] if e.status == "applied"],

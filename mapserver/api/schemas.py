@@ -78,6 +78,9 @@ class MapSummaryPublic(BaseModel):
     experiences: int
     links: int
     health: MapHealthPublic | None = None
+    merges: dict[str, int] = Field(
+        default_factory=dict, description="merge events of this map by status: applied, rejected, undone"
+    )
 
 
 class MapsPublic(BaseModel):

@@ -127,3 +127,38 @@ def _copy(h: Hypothesis) -> Hypothesis:
         alignment=h.alignment.copy(), born=h.born, support=list(h.support), hit_m=h.hit_m, miss_m=h.miss_m,
         post_hit_m=h.post_hit_m, post_miss_m=h.post_miss_m, turn=h.turn.copy(),
     )  # fmt: skip
+
+
+MERGER_PREFIX = "mg_"
+"""Snapshot keys of the merge driver's state (stored with a partial session's map)."""
+
+
+def resume_merger_state(stored: Any, session_id: int, candidates: Sequence[Any]) -> MergerState | None:
+    """Return the merge driver's state a partial session left in its map (None: none stored).
+
+    Hypotheses are kept only when the map is still at the version the session wrote and the candidate
+    map is at the version they were built against; otherwise they restart (the odometry and track stay).
+    """
+    snap = stored.snapshot
+    if "mg_session" not in snap or "mg_hypotheses" not in snap or int(snap["mg_session"]) != session_id:
+        return None
+    arrays = {k[len(MERGER_PREFIX) :]: v for k, v in snap.items() if k.startswith(MERGER_PREFIX)}
+    state = MergerState.from_arrays(arrays)
+    if int(snap["mg_map_version"]) != stored.version:
+        return state.without(list(state.hypotheses))
+    versions = {int(k): int(v) for k, v in np.asarray(snap.get("mg_versions", np.zeros((0, 2))), np.int64)}
+    current = {c.id: c.version for c in candidates}
+    stale = [k for k in state.hypotheses if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
+    return state.without(stale)
+
+
+def merger_keys(
+    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[Any]
+) -> dict[str, np.ndarray]:
+    """Return the ``mg_*`` snapshot keys that let a partial session resume its merge driver."""
+    arrays = state.to_arrays()
+    out = {MERGER_PREFIX + k: v for k, v in arrays.items()}
+    out["mg_session"] = np.asarray(session_id, dtype=np.int64)
+    out["mg_map_version"] = np.asarray(map_version, dtype=np.int64)
+    out["mg_versions"] = np.asarray([[c.id, c.version] for c in candidates], dtype=np.int64).reshape(-1, 2)
+    return out

@@ -12,8 +12,10 @@ winning hypothesis keeps being tested for ``probation_m`` metres on two things:
 
 Meanwhile the session's engine *without* the merge (the *shadow*) is stepped on the same
 frames. A contradiction — the post-merge score (hits − miss_weight·misses) falling to
-``−reject_m`` metres, or two disagreeing loop links that outnumber the agreeing ones — rolls the
-merge back inside the running session: the session continues in the shadow, exactly the engine
+``−reject_m`` metres, two disagreeing loop links that outnumber the agreeing ones, or, when the
+probation distance is travelled, a post-merge score below half the decision's ``evidence_m`` (the
+probation did not confirm the merge) — rolls the merge back inside the running session: the session
+continues in the shadow, exactly the engine
 it would be had the merge never happened, and the merge is recorded as ``rejected`` with this
 evidence. Passing the probation drops the shadow.
 """
@@ -29,6 +31,7 @@ from core import Action, Engine, StepResult
 from mapserver.merge.hypotheses import HIT, MISS, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
+
 
 
 @dataclass(eq=False)
@@ -90,9 +93,31 @@ class Probation:
             )
             return REJECTED
         if track.distance - self.start_m >= rule.probation_m:
-            self.reason = "probation distance travelled without contradiction"
-            return PASSED
+            return self._conclude()
         return None
+
+    def _conclude(self) -> str:
+        """The pass test at the end of the probation distance: the probation must confirm the merge.
+
+        Its own net evidence (matches − ``miss_weight`` · mismatches where the merged map predicts views)
+        must reach half the decision's ``evidence_m``: a merge that the session cannot confirm on the
+        stored map's ground after it was made — a look-alike left for ground the stored map never saw, or
+        a place that matches two times in three — is rolled back (measured: the false merges of the
+        look-alike sweep ended their probation at −0.9 to +1.1 m, the true ones of ``chain5``, ``bridge``
+        and the sweep's overlap rows at +2.9 m and more, with ``evidence_m`` 4 m).
+        """
+        hit, miss = self.hypothesis.post_hit_m, self.hypothesis.post_miss_m
+        rule = self.hset.rule
+        needed = 0.5 * rule.evidence_m
+        if hit - rule.miss_weight * miss < needed:
+            self.reason = (
+                f"the probation did not confirm the merge: {hit:.2f} m of matches and {miss:.2f} m of mismatches "
+                f"where the merged map predicts views (net {hit - rule.miss_weight * miss:.2f} m, "
+                f"needed {needed:.2f} m)"
+            )
+            return REJECTED
+        self.reason = "probation distance travelled without contradiction"
+        return PASSED
 
     def _check_link(self, track: Track, result: StepResult) -> None:
         """Count a loop closure onto a stored experience as agreeing or not with the alignment."""

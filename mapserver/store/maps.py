@@ -10,7 +10,18 @@ from typing import Any
 from sqlalchemy import Connection, func, insert, select, update
 
 from mapserver.store.errors import MapExistsError, StaleMapError, UnknownMapError
-from mapserver.store.models import Experience, Link, Map, MapState, PoseCellLink, Session, Template, utcnow
+from mapserver.store.models import (
+    MERGE_STATUSES,
+    Experience,
+    Link,
+    Map,
+    MapState,
+    MergeEvent,
+    PoseCellLink,
+    Session,
+    Template,
+    utcnow,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,9 +56,11 @@ class MapSummary:
     links: int
     #: {"residual", "switched_off", "links"} (mapserver.store.health); None for a state stored before it existed
     health: dict[str, Any] | None = None
+    #: merge events that produced this map (or were rolled back in it), by status: applied, rejected, undone
+    merges: dict[str, int] | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """Return ``{"name", "sessions", "templates", "experiences", "links", "health"}``."""
+        """Return ``{"name", "sessions", "templates", "experiences", "links", "health", "merges"}``."""
         return {
             "name": self.name,
             "sessions": self.sessions,
@@ -55,6 +68,7 @@ class MapSummary:
             "experiences": self.experiences,
             "links": self.links,
             "health": self.health,
+            "merges": dict(self.merges) if self.merges is not None else dict.fromkeys(MERGE_STATUSES, 0),
         }
 
 
@@ -160,12 +174,13 @@ def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
 
 
 def list_maps(*, conn: Connection) -> list[MapSummary]:
-    """Return every map with its session, template, experience and link counts and its health, by name."""
+    """Return every map with its session, template, experience and link counts, health and merges, by name."""
     sessions = (
         select(Session.map_id, func.count().label("n")).where(Session.map_id.is_not(None)).group_by(Session.map_id)
     ).subquery()
     rows = conn.execute(
         select(
+            Map.id,
             Map.name,
             func.coalesce(sessions.c.n, 0),
             func.coalesce(MapState.n_templates, 0),
@@ -177,7 +192,15 @@ def list_maps(*, conn: Connection) -> list[MapSummary]:
         .outerjoin(MapState, MapState.map_id == Map.id)
         .order_by(Map.name)
     ).all()
-    return [MapSummary(str(r[0]), int(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5]) for r in rows]
+    merges: dict[int, dict[str, int]] = {}
+    counted = select(MergeEvent.map_id, MergeEvent.status, func.count()).where(MergeEvent.map_id.is_not(None))
+    for map_id, status, n in conn.execute(counted.group_by(MergeEvent.map_id, MergeEvent.status)):
+        merges.setdefault(int(map_id), dict.fromkeys(MERGE_STATUSES, 0))[str(status)] = int(n)
+    return [
+        MapSummary(str(r[1]), int(r[2]), int(r[3]), int(r[4]), int(r[5]), r[6],
+                   merges.get(int(r[0]), dict.fromkeys(MERGE_STATUSES, 0)))
+        for r in rows
+    ]  # fmt: skip
 
 
 def clear_map(*, conn: Connection, map_id: int) -> None:

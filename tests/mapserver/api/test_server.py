@@ -90,7 +90,8 @@ def test_server_killed_during_a_job_reruns_it(server: Server, tmp_path: Path) ->
     expected = pipeline.process_log(log, resolve_params("irat"))
     health = maps[0].pop("health")
     assert maps == [{"name": "long", "sessions": 1, "templates": expected.templates,
-                     "experiences": expected.experiences, "links": expected.links}]  # fmt: skip
+                     "experiences": expected.experiences, "links": expected.links,
+                     "merges": {"applied": 0, "undone": 0, "rejected": 0}}]  # fmt: skip
     # the resumed job switched off what an uninterrupted run switches off (30 laps: one link 24 → 26)
     off = int(np.count_nonzero(~expected.engine.map.link_active))
     assert health["switched_off"] == off and health["links"] == expected.links

@@ -16,15 +16,23 @@ The other scenarios run at the simulator's scale too (they are small). Full figu
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from core import preset
 from mapserver.store import open_database
 from mapserver.store.merge_events import list_merge_events
-from tests.mapserver.merge.scenario_metrics import cli_json, experiences, load_doc, measure_ellipse
+from tests.mapserver.merge.scenario_metrics import (
+    cli_json,
+    experiences,
+    load_doc,
+    measure_ellipse,
+    true_alignment,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -173,3 +181,43 @@ def test_aliased_places_merge_only_without_confirmation(scenario: Any, tmp_path:
     assert eager[1]["merges"][0]["confirmations"] == 1 and eager[1]["map"] == "session1"
     one_match = _process_all(directory, info, _db(tmp_path, "one"), "--confirm", "1")  # K = 1, evidence decides
     assert [r["merges"] for r in one_match] == [[], []]
+
+
+def test_symmetric_false_merge_is_rolled_back_stored_as_rejected_and_the_true_one_stands(
+    scenario: Any, tmp_path: Path
+) -> None:
+    """Issue 12: in the point-symmetric world session 2 first meets the mirror of session 1's ground and
+    merges there 180° off; its probation rolls that back, and the session merges later where it truly
+    overlaps (seed 0). Both events are stored, with their status and evidence, and counted by ``maps``."""
+    directory, info = scenario("symmetric")
+    db = _db(tmp_path)
+    results = _process_all(directory, info, db)
+    merges = sorted(results[1]["merges"], key=lambda m: m["frame"])
+    assert [m["status"] for m in merges] == ["rejected", "applied"]
+    rejected, applied = merges
+    assert rejected["evidence"]["verification"]["status"] == "rejected"
+    assert applied["evidence"]["verification"]["status"] == "passed"
+    turn = abs(np.angle(np.exp(1j * (rejected["transform"]["yaw"] - applied["transform"]["yaw"]))))
+    assert turn > 2.5  # the rolled-back alignment was the half-turned one (sweep: 155–180° off the truth)
+    (listed,) = cli_json("maps", "--db", db)["maps"]
+    assert (listed["sessions"], listed["merges"]) == (2, {"applied": 1, "rejected": 1, "undone": 0})
+
+
+@pytest.mark.parametrize("lookalike_m", [10.0, 40.0])
+def test_a_twin_look_alike_never_merges_and_the_same_stretch_in_one_world_does(
+    scenario: Any, tmp_path: Path, lookalike_m: float
+) -> None:
+    """Issue 12: two places sharing a copied stretch never merge; the same stretch driven in one world
+    (``twin-overlap``: after it session 2 keeps to session 1's ground) still merges, once, at its true place.
+    ``bench/lookalike_sweep.py`` runs the same over 10 seeds and more lengths."""
+    directory, info = scenario("twin", lookalike_m=lookalike_m)
+    twin = _process_all(directory, info, _db(tmp_path, "twin"))
+    assert [m for m in twin[1]["merges"] if m["status"] == "applied"] == []
+    directory, info = scenario("twin-overlap", lookalike_m=lookalike_m)
+    overlap = _process_all(directory, info, _db(tmp_path, "overlap"))
+    applied = [m for m in overlap[1]["merges"] if m["status"] == "applied"]
+    assert [m["into"] for m in applied] == ["session1"]
+    initial_yaw = math.radians(preset(info["preset"]).exp_initial_em_deg)
+    truth = true_alignment(directory, info["sessions"][0], info["sessions"][1], initial_yaw)
+    x, y, _z, yaw = (applied[0]["transform"][k] for k in ("x", "y", "z", "yaw"))
+    assert math.hypot(x - truth[0], y - truth[1]) < 5.0 and abs(math.remainder(yaw - truth[3], math.tau)) < 0.35

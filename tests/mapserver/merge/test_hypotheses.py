@@ -96,7 +96,9 @@ def test_matches_along_the_map_build_one_hypothesis_that_wins_after_the_evidence
     _drive(hset, track, 4, np.zeros(4), [4])
     assert h.score() == 4.0 and h.turn_rad == 0.0
     assert decide({1: hset}, needed=3) is None  # a straight stretch, however long, may be a look-alike street
-    h.record_turn(0.6)  # the robot turned 34° on agreeing ground
+    h.record_turn(0.6)  # 34°: a look-alike structure can hold such a turn (the twin sweep's false merges: 30–36°)
+    assert decide({1: hset}, needed=3) is None
+    h.record_turn(0.85)  # the robot turned 49° on agreeing ground (MIN_TURN_RAD: 45°)
     key, winner, rival = decide({1: hset}, needed=3)  # type: ignore[misc]
     assert (key, winner, rival, winner.score()) == (1, h, 0.0, 4.0)
 

@@ -9,6 +9,7 @@ import pytest
 
 from core import Engine, Params, preset
 from mapserver.merge import OnlineMerger, StoredMap
+from mapserver.merge.hypotheses import MIN_TURN_RAD
 from mapserver.merge.se3 import compose, wrap_angle
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, run_session, true_alignment
 from tests.mapserver.merge.world import LoopWorld
@@ -88,8 +89,8 @@ def test_known_start_activates_the_stored_experience(first_half: StoredMap) -> N
     stored_count = int(np.shape(first_half.state["em_pose"])[0])
     run = run_session(WORLD, 5.0, 30.0, [first_half])
     assert len(run.events) == 1
-    # the merge waits for the evidence distance (0.5 m a frame), no longer
-    needed = run.events[0].evidence["rule"]["evidence_m"]
+    # the merge waits for the evidence distance and the turn of MIN_TURN_RAD on the circle (0.5 m a frame), no longer
+    needed = max(run.events[0].evidence["rule"]["evidence_m"], MIN_TURN_RAD * WORLD.perimeter / (2 * math.pi))
     assert needed / 0.5 <= run.merged_frames[0] <= needed / 0.5 + 2
     record = run.events[0].record
     assert record.experiences == stored_count  # everything the session had made was identified
