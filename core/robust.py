@@ -32,7 +32,7 @@ link length,
 
     z_l = √( (‖r_xyz‖ / (drift·s))² + (r_ψ / (yaw_drift·s))² ),
 
-and a link is an outlier when ``z_l > c̄`` (``exp_robust_threshold``, 5 by default: 3 switched off a true link of the
+and a link is an outlier when ``z_l > c̄`` (``exp_robust_threshold``, 4 by default: 3 switched off a true link of the
 two-session ``cave3d`` map, largest z 3.48; drift
 0.1 m/m and 0.1 rad/m). The same ``z`` gives the map's health figure: the RMS of ``z``
 over the active links (0.5 on the simulator's clean ``loop`` map).

@@ -61,7 +61,7 @@ class Params:
     exp_robust: bool = True
     exp_robust_drift: float = 0.1  # expected odometry drift, metres per metre travelled
     exp_robust_yaw_drift: float = 0.1  # radians per metre travelled
-    exp_robust_threshold: float = 5.0  # outlier when the normalised residual exceeds this
+    exp_robust_threshold: float = 4.0  # outlier when the normalised residual exceeds this
     # visual odometry
     vtrans_image_x_min: int = 0
     vtrans_image_x_max: int = -1

@@ -18,7 +18,7 @@ def map_health(params: Any, snapshot: Mapping[str, Any]) -> dict[str, float | in
     odometry drift expected over one link length (``exp_robust_drift`` m/m and
     ``exp_robust_yaw_drift`` rad/m times the median odometry link length): 0.5–1.2 on the
     simulator's consistent maps; ``worst`` (the largest) is above ``exp_robust_threshold``
-    (5 by default) when an active link contradicts the rest. ``params`` is a ``core.Params`` or its dict
+    (4 by default) when an active link contradicts the rest. ``params`` is a ``core.Params`` or its dict
     (missing keys take the defaults).
     """
     values = params.to_dict() if hasattr(params, "to_dict") else dict(params or {})
