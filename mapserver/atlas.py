@@ -36,8 +36,9 @@ from sqlalchemy import Connection, func, select
 
 from core import Params, params_from_dict
 from mapserver.errors import ConflictError, InputError, MergeError
-from mapserver.merge import Match, MergeRecord, StoredMap, find_match, merge_snapshots, merge_states, restore_merged
+from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots, merge_states, restore_merged
 from mapserver.merge.identity import RowIdentities, next_index_from_table
+from mapserver.merge.offline_evidence import confirmed_offline_match
 from mapserver.merge.provenance import match_from_dict, match_to_dict, record_summary, transform7
 from mapserver.merge.resume import MergerState, merger_keys
 from mapserver.merge.snapshot import params_incompatibility
@@ -437,7 +438,8 @@ def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | No
     Raises:
         NotFoundError: a map does not exist.
         InputError: the same map twice, or ``confirm`` < 1.
-        NoConfirmedMatchError: no confirmed template match (exit 2).
+        NoConfirmedMatchError: no confirmed template match, or its alignment not confirmed by the rest of A
+            (:func:`mapserver.merge.offline_evidence.weigh_offline_match`; exit 2).
         MergeError: incompatible maps, or a map holds a session still being processed.
         StaleMapError: a map changed while merging (nothing written).
     """
@@ -457,8 +459,8 @@ def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | No
                 "again) before merging"
             )
             raise MergeError(msg)
-    match = find_match(StoredMap(a.name, a.params, a.snapshot), StoredMap(b.name, b.params, b.snapshot),
-                       confirm=confirm)  # fmt: skip
+    stored_a, stored_b = StoredMap(a.name, a.params, a.snapshot), StoredMap(b.name, b.params, b.snapshot)
+    match, evidence = confirmed_offline_match(stored_a, stored_b, confirm)
     engine, record = merge_snapshots(b.stored(), a.stored(), match)
     identities = RowIdentities.merged(b.identities, a.identities, record)
     host = a if a.id < b.id else b
@@ -467,7 +469,7 @@ def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | No
         mode="offline", target=b, partial=partial, match=match, record=record, host_id=host.id, host_name=host.name,
         details={"match": match_to_dict(match), "record": record_summary(record), "settle": True,
                  "source": {"name": a.name, "map_id": a.id}, "target": {"name": b.name, "map_id": b.id},
-                 "session_frames": {}},
+                 "session_frames": {}, "evidence": {"offline": evidence.as_dict()}},
     )  # fmt: skip
     with db.write() as conn:
         sessions = sorted(set(a.session_ids) | set(b.session_ids))

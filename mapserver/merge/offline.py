@@ -14,6 +14,7 @@ anchored at the run's best-matching template, every pair of the run identified.
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 
@@ -43,6 +44,25 @@ def find_match(
     yaw_tolerance: float = DEFAULT_YAW_TOLERANCE,
 ) -> Match:
     """Return the best-supported confirmed match of map ``partial``'s templates in map ``loaded``.
+
+    The first of :func:`candidate_matches` (same arguments and errors).
+    """
+    return candidate_matches(
+        partial, loaded, confirm=confirm, position_tolerance=position_tolerance, yaw_tolerance=yaw_tolerance
+    )[0]
+
+
+def candidate_matches(
+    partial: StoredMap,
+    loaded: StoredMap,
+    *,
+    confirm: int | None = None,
+    position_tolerance: float | None = None,
+    yaw_tolerance: float = DEFAULT_YAW_TOLERANCE,
+) -> list[Match]:
+    """Return one match per confirmed run of map ``partial``'s templates in map ``loaded``, best first.
+
+    Runs are ranked by agreeing templates, then by mean error; each is anchored at its best template.
 
     Args:
         partial: map A (merged into ``loaded``).
@@ -82,17 +102,14 @@ def find_match(
     b_pose = np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4)
 
     streak = Streak(needed, tolerance, yaw_tolerance)
-    best: list[Observation] = []
-    best_pairs: tuple[tuple[int, int], ...] = ()
-    matched = longest = 0
-
-    def score(entries: list[Observation]) -> tuple[int, float]:
-        return (len(entries), -float(np.mean([e.error for e in entries])) if entries else 0.0)
+    runs: dict[int, tuple[list[Observation], tuple[tuple[int, int], ...]]] = {}  # run → its best confirmed state
+    run = matched = longest = 0
 
     for i in range(n_a):
         u, error, relative = cells.match(a_templates[i], float(a_means[i]), limit=threshold)
         if u < 0 or error > threshold:
             streak.reset()
+            run += 1
             continue
         matched += 1
         mine = _experience_for(a_order, a_starts, i)
@@ -117,12 +134,13 @@ def find_match(
             packet=a_pc[exp_a] if exp_a >= 0 else np.zeros(a_pc.shape[1]),
             seen=seen,
         )
+        before = len(streak.entries)
         streak.add(observation)
+        run += len(streak.entries) <= before  # the streak restarted: a new run
         longest = max(longest, len(streak.entries))
-        if streak.confirmed and score(streak.entries) > score(best):
-            best = list(streak.entries)
-            best_pairs = streak.pairs()
-    if not best:
+        if streak.confirmed and _score(streak.entries) > _score(runs.get(run, ([], ()))[0]):
+            runs[run] = (list(streak.entries), streak.pairs())
+    if not runs:
         if matched == 0:
             msg = f"no template of map {partial.key!r} matches map {loaded.key!r} (threshold {threshold!r})"
         else:
@@ -131,7 +149,20 @@ def find_match(
                 f"the longest agreeing run has {longest} (needs {needed}, along two distinct stored templates)"
             )
         raise NoConfirmedMatchError(msg)
-    anchor = min(reversed(best), key=lambda e: e.error)
+    ranked = sorted(runs.values(), key=lambda r: _score(r[0]), reverse=True)
+    return [_match_of(a, a_order, a_starts, entries, pairs) for entries, pairs in ranked]
+
+
+def _score(entries: list[Observation]) -> tuple[int, float]:
+    """A run's rank: the most agreeing templates, then the lowest mean error."""
+    return (len(entries), -float(np.mean([e.error for e in entries])) if entries else 0.0)
+
+
+def _match_of(
+    a: Any, a_order: np.ndarray, a_starts: np.ndarray, entries: list[Observation], pairs: tuple[tuple[int, int], ...]
+) -> Match:
+    """The match of one confirmed run, anchored at its best-matching (latest on ties) template."""
+    anchor = min(reversed(entries), key=lambda e: e.error)
     exp_a = int(_experience_for(a_order, a_starts, anchor.partial_template)[0])
     return Match.at_experience(
         a,
@@ -139,8 +170,8 @@ def find_match(
         anchor.stored_template,
         anchor.stored_experience,
         relative_rad=anchor.relative_rad,
-        confirmations=len(best),
-        pairs=best_pairs,
+        confirmations=len(entries),
+        pairs=pairs,
     )
 
 

@@ -221,3 +221,23 @@ def test_a_twin_look_alike_never_merges_and_the_same_stretch_in_one_world_does(
     truth = true_alignment(directory, info["sessions"][0], info["sessions"][1], initial_yaw)
     x, y, _z, yaw = (applied[0]["transform"][k] for k in ("x", "y", "z", "yaw"))
     assert math.hypot(x - truth[0], y - truth[1]) < 5.0 and abs(math.remainder(yaw - truth[3], math.tau)) < 0.35
+
+
+def test_offline_merge_weighs_the_rest_of_the_map(scenario: Any, tmp_path: Path, capsys: Any) -> None:
+    """``mapserver merge`` offline: the twin's look-alike run is refused (the paper's K-template rule took it,
+    10 of 10 seeds), the same stretch in one world merges (sweep: twin 40 of 40 refused, twin-overlap 18 of 20
+    merged)."""
+    from mapserver.cli import main
+
+    outcomes = {}
+    for name in ("twin", "twin-overlap"):
+        directory, info = scenario(name)
+        db = _db(tmp_path, name)
+        for s in info["sessions"]:
+            cli_json("process", str(directory / s["log"]), "--db", db, "--no-merge")
+        capsys.readouterr()
+        code = main(["merge", "--db", db, "--map", "session2", "--into", "session1", "--json"])
+        outcomes[name] = (code, capsys.readouterr().err)
+    code, err = outcomes["twin"]
+    assert code == 2 and "none whose alignment the rest of the map confirms" in err
+    assert outcomes["twin-overlap"][0] == 0
