@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy.engine import make_url as sa_url
 
 from core import preset
 from mapserver import atlas, pipeline
@@ -24,6 +25,7 @@ from mapserver.ingest.simulator import simulate
 from mapserver.store import load_map, open_database, save_map
 from mapserver.store.merge_events import get_merge_event, list_merge_events
 from mapserver.store.sessions import get_reckoning
+from tests.mapserver.api.logs import write_strip_log
 from tests.mapserver.merge.scenario_metrics import cli_code, cli_json
 from tests.mapserver.store.conftest import assert_same_arrays, db_url, make_url, row_counts  # noqa: F401
 
@@ -260,3 +262,29 @@ def test_no_confirmed_match_exits_2_while_other_refused_merges_exit_1() -> None:
     assert (NoConfirmedMatchError.exit_code, NoConfirmedMatchError.http_status) == (2, 409)
     assert issubclass(NoConfirmedMatchError, MergeError) and issubclass(MergeError, ConflictError)
     assert (MergeError.exit_code, ConflictError.exit_code) == (1, 1)
+
+
+def test_the_last_stale_retry_holds_the_commit_gate(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A session whose candidate maps keep changing (CI: six uploads over three maps, two worker threads) is
+    processed a last time holding this process's commit gate, so other threads' commits wait and it is not
+    starved; the earlier tries run without it."""
+    from mapserver import pipeline
+    from mapserver.store import StaleMapError
+
+    log = tmp_path / "strip.bag"
+    write_strip_log(log)
+    held: list[bool] = []
+
+    def attempt(db: Any, *_args: Any) -> Any:
+        gate = pipeline.commit_gate(db)
+        held.append(gate._is_owned())  # type: ignore[attr-defined]
+        if len(held) < pipeline.STALE_ATTEMPTS:
+            raise StaleMapError("the maps this session may merge into changed while it was processed")
+        return "stored"
+
+    monkeypatch.setattr(pipeline, "_process_session", attempt)
+    url = f"sqlite:///{tmp_path / 'gate.db'}"
+    assert pipeline.process_into_store(log, preset("irat"), db_url=url) == "stored"
+    assert held == [False] * (pipeline.STALE_ATTEMPTS - 1) + [True]
+    same = [pipeline.commit_gate(type("Db", (), {"url": sa_url(u)})()) for u in (url, url, url + "x")]
+    assert same[0] is same[1] and same[0] is not same[2]  # one gate per database
