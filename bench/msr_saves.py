@@ -10,14 +10,14 @@ with the parameters of the tool's configuration that its ``TEMPLATE_SIZE`` names
 tool's ``_globals_*.py``; 600 and 640 match none of them and are read as 60 × 10 and 64 × 10 with the
 lattice the saved pose-cell coordinates span).
 
-Then ``mapserver merge --map circle_partial --into circle_loaded --confirm 1`` (the tool merges on one
-matching frame) and the merged map is compared with the tool's own ``circle_merged``, experience by
-experience (both number the loaded map's experiences first, then the partial map's): counts, and the
-position RMSE after rigid alignment (Umeyama, no scale, xy) as a share of the diagonal of
-``circle_merged``'s bounding box. The tool saved ``circle_merged`` while it went on mapping after the
-merge (main-circle.py saves at frames 138–394 of its video): its one link that our merged map lacks is
-the loop closure it made then. A second figure adds that one link (its measured transform, read from
-``circle_merged``) to our merged map and settles the graph. Last line of stdout: one JSON object.
+Then ``mapserver merge --map circle_partial --into circle_loaded --confirm 1 --merge-evidence 0`` (the tool
+merges on one matching frame: the paper's rule, without our evidence test) and the merged map is compared with
+the tool's own ``circle_merged``, experience by experience (both number the loaded map's experiences first,
+then the partial map's): counts, and the position RMSE after rigid alignment (Umeyama, no scale, xy) as a
+share of the diagonal of ``circle_merged``'s bounding box. The tool saved ``circle_merged`` while it went on
+mapping after the merge (main-circle.py saves at frames 138–394 of its video): its one link that our merged
+map lacks is the loop closure it made then. A second figure adds that one link (its measured transform, read
+from ``circle_merged``) to our merged map and settles the graph. Last line of stdout: one JSON object.
 """
 
 from __future__ import annotations
@@ -88,7 +88,8 @@ def _rmse_share(reference: np.ndarray, estimate: np.ndarray, extent: float) -> d
 
 def compare_circle(db_url: str) -> dict[str, Any]:
     """Merge circle_partial into circle_loaded and compare with the tool's circle_merged."""
-    argv = ["merge", "--db", db_url, "--map", "circle_partial", "--into", "circle_loaded", "--confirm", "1"]
+    argv = ["merge", "--db", db_url, "--map", "circle_partial", "--into", "circle_loaded", "--confirm", "1",
+            "--merge-evidence", "0"]  # fmt: skip
     if main(argv) != 0:
         return {"merged": False}
     with open_database(db_url) as db:

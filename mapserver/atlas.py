@@ -432,8 +432,13 @@ class MergeOutcome:
     sessions: list[str] = field(default_factory=list)
 
 
-def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | None = None) -> MergeOutcome:
+def merge_stored_maps(
+    db: Database, *, source: str, into: str, confirm: int | None = None, evidence_m: float | None = None
+) -> MergeOutcome:
     """Merge stored map ``source`` (A) into stored map ``into`` (B) offline, with its event and archives.
+
+    ``evidence_m``: metres of net agreement the alignment needs along A (None: A's ``merge_evidence_m``;
+    0: the confirmed match alone, the paper's rule); see :func:`confirmed_offline_match`.
 
     Raises:
         NotFoundError: a map does not exist.
@@ -449,6 +454,9 @@ def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | No
     if confirm is not None and confirm < 1:
         msg = f"--confirm must be at least 1, got {confirm!r}"
         raise InputError(msg)
+    if evidence_m is not None and not (evidence_m == -1 or evidence_m >= 0):
+        msg = f"--merge-evidence must be -1 (the map's scale) or at least 0, got {evidence_m!r}"
+        raise InputError(msg)
     with db.read() as conn:
         a = read_atlas_map(conn, get_map(conn=conn, name=source).id)
         b = read_atlas_map(conn, get_map(conn=conn, name=into).id)
@@ -460,7 +468,7 @@ def merge_stored_maps(db: Database, *, source: str, into: str, confirm: int | No
             )
             raise MergeError(msg)
     stored_a, stored_b = StoredMap(a.name, a.params, a.snapshot), StoredMap(b.name, b.params, b.snapshot)
-    match, evidence = confirmed_offline_match(stored_a, stored_b, confirm)
+    match, evidence = confirmed_offline_match(stored_a, stored_b, confirm, evidence_m)
     engine, record = merge_snapshots(b.stored(), a.stored(), match)
     identities = RowIdentities.merged(b.identities, a.identities, record)
     host = a if a.id < b.id else b

@@ -1,4 +1,4 @@
-"""``mapserver merge --db URL --map A --into B [--confirm K]``: merge stored map A into stored map B (offline).
+"""``mapserver merge --db URL --map A --into B [--confirm K] [--merge-evidence M]``: merge stored map A into B.
 
 ``--redo EVENT`` re-applies an undone merge event instead (its recorded match on its archived states).
 """
@@ -25,6 +25,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--confirm", type=int, metavar="K",
         help="consecutive matching templates of A needed (default: A's merge_confirm parameter; 1 = the paper)",
     )  # fmt: skip
+    parser.add_argument(
+        "--merge-evidence", type=float, metavar="M",
+        help="metres of net agreeing views along A that the alignment needs (default: A's merge_evidence_m; "
+             "-1: 4 spacings of B; 0: the confirmed match alone, the paper's rule)",
+    )  # fmt: skip
     parser.add_argument("--redo", type=int, metavar="EVENT", help="re-apply an undone merge event instead")
     parser.add_argument("--json", action="store_true", help="print the JSON result as the last line of stdout")
     parser.set_defaults(func=run)
@@ -33,8 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     """Merge (or redo), then report the event and the map."""
     if args.redo is not None:
-        if args.source or args.into or args.confirm is not None:
-            msg = "--redo EVENT takes no --map, --into or --confirm (the event says what to merge)"
+        if args.source or args.into or args.confirm is not None or args.merge_evidence is not None:
+            msg = "--redo EVENT takes no --map, --into, --confirm or --merge-evidence (the event says what to merge)"
             raise InputError(msg)
         with open_database(args.db) as db:
             outcome = atlas.redo_merge(db, event_id=args.redo)
@@ -44,7 +49,9 @@ def run(args: argparse.Namespace) -> int:
             msg = "merge needs --map A and --into B (or --redo EVENT)"
             raise InputError(msg)
         with open_database(args.db) as db:
-            outcome = atlas.merge_stored_maps(db, source=args.source, into=args.into, confirm=args.confirm)
+            outcome = atlas.merge_stored_maps(
+                db, source=args.source, into=args.into, confirm=args.confirm, evidence_m=args.merge_evidence
+            )
         r = outcome.record
         info(
             f"merged map {args.source!r} into {args.into!r}: event {outcome.event_id}, map {outcome.map_name!r} "

@@ -175,7 +175,9 @@ def _walk(
             transform = alignment(seen, a_pose[e])
 
 
-def confirmed_offline_match(a: StoredMap, b: StoredMap, confirm: int | None) -> tuple[Match, OfflineEvidence]:
+def confirmed_offline_match(
+    a: StoredMap, b: StoredMap, confirm: int | None, evidence_m: float | None = None
+) -> tuple[Match, OfflineEvidence]:
     """Return the confirmed run of A in B whose alignment the rest of A confirms best (offline evidence test).
 
     Every confirmed run (best 20) proposes an alignment; each is weighed on A's experiences
@@ -188,7 +190,9 @@ def confirmed_offline_match(a: StoredMap, b: StoredMap, confirm: int | None) -> 
         NoConfirmedMatchError: no confirmed run, none whose alignment stands, or no clear winner.
     """
     candidates = candidate_matches(a, b, confirm=confirm)[:20]
-    weighed = sorted(((weigh_offline_match(a, b, m), m) for m in candidates), key=lambda t: -t[0].score_m)
+    weighed = sorted(
+        ((weigh_offline_match(a, b, m, evidence_m=evidence_m), m) for m in candidates), key=lambda t: -t[0].score_m
+    )
     best, match = weighed[0]
     if not best.passed:
         msg = (
@@ -198,6 +202,8 @@ def confirmed_offline_match(a: StoredMap, b: StoredMap, confirm: int | None) -> 
         )
         raise NoConfirmedMatchError(msg)
     a_pose = np.asarray(a.state["em_pose"], dtype=np.float64).reshape(-1, 4)
+    if best.evidence_m <= 0:  # the paper's rule: the best confirmed run merges
+        return match, best
     rivals = [ev.score_m for ev, m in weighed[1:] if _anchor_experience(a_pose, m) not in best.agreeing]
     lead = best.score_m - max(rivals, default=0.0)
     if lead < 0.5 * best.evidence_m:
