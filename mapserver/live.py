@@ -15,6 +15,8 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from core import Action, Engine, StepResult
 from mapserver.merge import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.identity import RowIdentities
@@ -50,6 +52,8 @@ class PendingMerge:
     host_name: str
     status: str = "applied"
     rejected_at: int | None = None
+    activations_before: list[tuple[float, int, int, float]] = field(default_factory=list, repr=False)
+    """The activation timeline as booked when the merge was made (a rollback restores it)."""
 
     @property
     def partial_ids(self) -> RowIdentities:
@@ -85,6 +89,8 @@ class LiveSession:
     reckoning: Any  # mapserver.pipeline.DeadReckoning
     stamps: list[float] = field(default_factory=list)
     pending: list[PendingMerge] = field(default_factory=list)
+    activations: list[tuple[float, int, int, float]] = field(default_factory=list)
+    """Per frame: stamp, the active template's identity (origin tag, origin index; −1, −1 for none), created."""
 
     @property
     def applied(self) -> list[PendingMerge]:
@@ -97,6 +103,7 @@ class LiveSession:
         holder.ids.extend(holder.engine.template_count, holder.engine.experience_count, self.tag)
         stamp = frame.stamp_ns * 1e-9
         self.stamps.append(stamp)
+        self._activate(holder.ids, stamp, result.template, result.template_created)
         self.collector.observe(stamp, frame.image)
         if result.action == Action.CREATE_NODE:
             self.collector.experience(int(holder.ids.experience_arrays()[1][result.experience]), stamp)
@@ -110,6 +117,18 @@ class LiveSession:
             return self._rolled_back(event)
         return None
 
+    def _activate(self, ids: RowIdentities, stamp: float, template: int, created: bool) -> None:
+        """Book the frame's active template by its stable identity (renumbering by merges cannot change it)."""
+        tag, index = ids.template_identity(template)
+        self.activations.append((stamp, tag, index, float(created)))
+
+    def activation_rows(self, tags: dict[int, int]) -> np.ndarray:
+        """Return the activations (N, 4) with origin tags replaced by ``tags`` (the new session's id)."""
+        rows = np.asarray(self.activations, dtype=np.float64).reshape(-1, 4)
+        for old, new in tags.items():
+            rows[rows[:, 1] == old, 1] = new
+        return rows
+
     def _merged(self, event: MergeEvent) -> Engine:
         """Continue in the merged engine, in the map that hosts the merge (the oldest of the two)."""
         holder, target = self.holder, self.targets[int(event.key)]  # type: ignore[call-overload]
@@ -122,13 +141,26 @@ class LiveSession:
             PendingMerge(
                 event=event, target=target, before=before, frames_at=self.start + len(self.stamps),
                 reckoning_pose=[float(v) for v in self.reckoning.pose], host_id=host_id, host_name=host_name,
+                activations_before=list(self.activations),
             )
         )  # fmt: skip
         self.holder = Holder(
             id=host_id, name=host_name, sessions=sorted(set(holder.sessions) | set(target.session_ids)),
             engine=event.engine, ids=RowIdentities.merged(target.identities, holder.ids, event.record),
         )  # fmt: skip
+        self._reidentify(before.ids, self.holder.ids, np.asarray(event.record.template_map, dtype=np.int64))
         return event.engine
+
+    def _reidentify(self, before: RowIdentities, after: RowIdentities, template_map: np.ndarray) -> None:
+        """Rename the booked frames' templates through a merge: an identified template takes the stored one's name."""
+        tags, index = before.template_arrays()
+        row_of = {(int(t), int(i)): k for k, (t, i) in enumerate(zip(tags.tolist(), index.tolist(), strict=True))}
+        new_tags, new_index = after.template_arrays()
+        for n, (stamp, tag, idx, created) in enumerate(self.activations):
+            k = row_of.get((tag, idx))
+            if k is not None and k < template_map.size:
+                m = int(template_map[k])
+                self.activations[n] = (stamp, int(new_tags[m]), int(new_index[m]), created)
 
     def _rolled_back(self, rollback: Rollback) -> Engine:
         """Go back to the map the session was in before the merge, in the engine that never merged."""
@@ -144,4 +176,7 @@ class LiveSession:
             [(int(index[e]), stamp, image) for e, stamp, image in rollback.created],
         )
         self.holder = Holder(before.id, before.name, list(before.sessions), rollback.engine, ids)
+        self.activations = list(merge.activations_before)  # then the probation's frames as its engine saw them
+        for stamp, template, created in rollback.seen:
+            self._activate(ids, stamp, template, created)
         return rollback.engine

@@ -368,7 +368,7 @@ def _process_session(
     from mapserver.merge.resume import resume_merger_state
     from mapserver.store import find_map, find_session, get_map_by_id
     from mapserver.store.evidence import EvidenceCollector
-    from mapserver.store.sessions import get_reckoning
+    from mapserver.store.sessions import get_activations, get_reckoning
     from mapserver.store.state import plain_params
 
     wanted = plain_params(params)
@@ -376,6 +376,7 @@ def _process_session(
     total = int(identity["total"])
     own = session = None
     stored_rows, stored_pose = np.zeros((0, 4)), None
+    stored_activations: np.ndarray | None = np.zeros((0, 4))
     candidates: list[Any] = []
     skipped: dict[str, str] = {}
     with db.read() as conn:
@@ -407,6 +408,7 @@ def _process_session(
                 return _existing_result(db, session, record.id, opts.started, opts.out)
             own = atlas.read_atlas_map(conn, record.id)
             stored_rows, stored_pose = get_reckoning(conn=conn, session_id=session.id)
+            stored_activations = get_activations(conn=conn, session_id=session.id)  # None: stored before 0005
         elif find_map(conn=conn, name=name) is not None:
             msg = f"a map named {name!r} already exists and this log is not one of its sessions; choose --map NAME"
             raise InputError(msg)
@@ -466,7 +468,7 @@ def _process_session(
         session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
         merger=merger if not complete else None, candidates=candidates, processed=processed, total=total,
         stamps=live.stamps, collector=live.collector, stored_rows=stored_rows, reckoning=reckoning,
-        frames_run=run.frames,
+        frames_run=run.frames, activations=(stored_activations, live.activation_rows),
     )  # fmt: skip
 
 
@@ -492,14 +494,19 @@ def _store_session(
     stored_rows: np.ndarray,
     reckoning: DeadReckoning,
     frames_run: int,
+    activations: tuple[np.ndarray | None, Any],
 ) -> ProcessResult:
-    """Write the session, its map (merged or not), its merge events and evidence in one transaction."""
+    """Write the session, its map (merged or not), its merge events and evidence in one transaction.
+
+    ``activations``: the stored timeline (None when the session was stored before it existed) and the
+    live session's ``activation_rows``.
+    """
     from mapserver import atlas
     from mapserver.merge.resume import merger_keys
     from mapserver.store import evidence as evidence_store
     from mapserver.store import get_map_by_id, lock_atlas
     from mapserver.store.maps import create_map
-    from mapserver.store.sessions import NewSession, create_session, get_sessions, update_session
+    from mapserver.store.sessions import NewSession, create_session, get_sessions, set_activations, update_session
     from mapserver.store.state import plain_params
 
     snapshot = engine.snapshot()
@@ -534,6 +541,10 @@ def _store_session(
             )  # fmt: skip
             session_id = created.id
         tags = {NEW_SESSION_ORIGIN: session_id} if session is None else {}
+        stored_activations, live_activations = activations
+        if stored_activations is not None:
+            rows_now = np.concatenate([stored_activations, live_activations({NEW_SESSION_ORIGIN: session_id})])
+            set_activations(conn=conn, session_id=session_id, rows=rows_now)
         claimed: dict[int, int] = {} if own is None else {own.id: own.version}
         applied = [m for m in pending if m.status == "applied"]
         claimed.update({m.target.id: m.target.version for m in applied})

@@ -5,10 +5,11 @@ A report holds:
 * the experience map drawn to scale, coloured by session, links by kind (odometry, loop, merge, switched
   off), with each merge's matched places marked (the experiences that stand for each identified
   template pair, in both sessions);
-* the activation timeline (OpenRatSLAM2 Fig. 6): template id against time, each experience's template
-  marked *new* (the first experience that used it) or *recognised* (a later one), and experience id
-  against time. The store keeps experiences, not every frame, so the timeline has one point per
-  experience (each is created when the engine's active template or pose moves to a new place);
+* the activation timeline (OpenRatSLAM2 Fig. 6): template id against time for every frame, *new* (the
+  frame created its template) or *recognised* (it matched a stored one), from the session's stored
+  timeline (``sessions.activations``: each frame's template by its stable identity, resolved to the map's
+  ids now); and experience id against time. Sessions stored before the timeline existed get one point
+  per experience instead (its template new when no earlier experience used it);
 * per session with ground truth, the trajectory against ground truth and the APE/Hausdorff figures of
   :func:`mapserver.evaluation.evaluate_map`. Ground truth comes from a TUM file given by the caller, the
   ground-truth topic of a log given by the caller, or the log the server stored for the session's upload.
@@ -33,7 +34,7 @@ from mapserver.store import Database, find_map, get_map_by_id, load_map
 from mapserver.store.export import map_document
 from mapserver.store.merge_events import MergeEventRecord, list_merge_events
 from mapserver.store.models import Job, Session, Template
-from mapserver.store.sessions import get_reckoning
+from mapserver.store.sessions import get_activations, get_reckoning
 
 COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 LINK_STYLE = {"odometry": ("#9e9e9e", "-"), "loop": ("#d62728", "-"), "merge": ("#6a1b9a", "--"),
@@ -51,6 +52,9 @@ class ReportInputs:
     merge_places: list[list[int]]
     ground_truth: dict[str, Trajectory] = field(default_factory=dict)
     odometry: dict[str, Trajectory] = field(default_factory=dict)
+    #: per session with a stored timeline: (N, 2) ``[stamp, template id in this map]`` per frame (−1: none)
+    #: and (N,) whether the frame created its template
+    activations: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 def resolve_target(db: Database, name: str) -> tuple[str, str | None]:
@@ -144,6 +148,7 @@ def gather(
             odo = odometry_trajectory({"odometry": rows.tolist()}) if rows.shape[0] else None
             if odo is not None:
                 odometry[s.name] = odo
+        activations = _activations(conn, record.id, content.meta.sessions)
     default = session or (names[0] if len(names) == 1 else None)
     truth: dict[str, Trajectory] = {}
     for key, source in [*(ground_truth or {}).items(), *((k, v) for k, v in (logs or {}).items())]:
@@ -158,7 +163,27 @@ def gather(
         if s not in truth and (kept := stored_log(db, s)) is not None and (found := log_ground_truth(kept)):
             truth[s] = found
     places = _template_places(db, record.id, events)
-    return ReportInputs(map_name, session, doc, events, places, truth, odometry)
+    return ReportInputs(map_name, session, doc, events, places, truth, odometry, activations)
+
+
+def _activations(conn: Any, map_id: int, sessions: list[Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Return each session's stored per-frame timeline with template identities resolved to this map's ids.
+
+    A frame's template is named by its stable identity (origin session, origin index); merges renumber
+    templates, the ``templates`` table says what each identity is called in the map now.
+    """
+    rows = conn.execute(
+        select(Template.session_id, Template.origin_index, Template.local_id).where(Template.map_id == map_id)
+    ).all()
+    ids = {(int(r[0]), int(r[1])): int(r[2]) for r in rows if r[2] is not None}
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for s in sessions:
+        stored = get_activations(conn=conn, session_id=s.id)
+        if stored is None or stored.shape[0] == 0:
+            continue
+        local = np.array([ids.get((int(a), int(b)), -1) for a, b in stored[:, 1:3]], dtype=np.float64)
+        out[s.name] = (np.column_stack([stored[:, 0], local]), stored[:, 3] > 0)
+    return out
 
 
 def _png(fig: Any) -> bytes:
@@ -249,14 +274,25 @@ def timeline_figure(inputs: ReportInputs) -> bytes:
     for k in np.unique(who):
         t[who == k] -= t[who == k].min()
     fig = _figure((9.0, 6.5))
-    ax, ax2 = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
+    ax = fig.add_subplot(2, 1, 1)
+    ax2 = fig.add_subplot(2, 1, 2, sharex=ax)
     new = series["new"]
     for k in np.unique(who).tolist():
         mine, colour, name = who == k, COLOURS[k % len(COLOURS)], sessions[k]
-        ax.scatter(t[mine & new], series["template"][mine & new], s=12, color=colour,
-                   label=f"{name}: new template ({int((mine & new).sum())})")  # fmt: skip
-        ax.scatter(t[mine & ~new], series["template"][mine & ~new], s=30, marker="x", color=colour,
-                   label=f"{name}: recognised ({int((mine & ~new).sum())})")  # fmt: skip
+        if name in inputs.activations:  # every frame (stored timeline): the active template, new or recognised
+            frames, created = inputs.activations[name]
+            ft, ftemplate = frames[:, 0] - float(series["stamp"][mine].min()), frames[:, 1]
+            shown = ftemplate >= 0
+            ax.scatter(ft[shown & created], ftemplate[shown & created], s=12, color=colour,
+                       label=f"{name}: new template ({int((shown & created).sum())} frames)")  # fmt: skip
+            recognised = shown & ~created
+            ax.scatter(ft[recognised], ftemplate[recognised], s=14, marker="x", color=colour, linewidths=0.7,
+                       label=f"{name}: recognised ({int(recognised.sum())} frames)")  # fmt: skip
+        else:  # stored before the timeline existed: one point per experience
+            ax.scatter(t[mine & new], series["template"][mine & new], s=12, color=colour,
+                       label=f"{name}: new template ({int((mine & new).sum())})")  # fmt: skip
+            ax.scatter(t[mine & ~new], series["template"][mine & ~new], s=30, marker="x", color=colour,
+                       label=f"{name}: recognised ({int((mine & ~new).sum())})")  # fmt: skip
         ax2.plot(t[mine], series["id"][mine], ".", color=colour, markersize=4, label=f"{name}: experience created")
     stamp_of = {e["id"]: e["stamp"] for e in inputs.doc["experiences"]}
     start = {sessions[k]: float(series["stamp"][who == k].min()) for k in np.unique(who).tolist()}

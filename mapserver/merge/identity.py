@@ -92,6 +92,12 @@ class RowIdentities:
         """Return (session tags, indices) of the template rows, int64."""
         return np.asarray(self._t_session, dtype=np.int64), np.asarray(self._t_index, dtype=np.int64)
 
+    def template_identity(self, row: int) -> tuple[int, int]:
+        """Return (session tag, index) of template row ``row`` (constant time; (−1, −1) outside the rows)."""
+        if 0 <= row < len(self._t_index):
+            return self._t_session[row], self._t_index[row]
+        return -1, -1
+
     def experience_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Return (session tags, indices) of the experience rows, int64."""
         return np.asarray(self._e_session, dtype=np.int64), np.asarray(self._e_index, dtype=np.int64)

@@ -105,12 +105,14 @@ class Rollback:
         engine: the session's engine as if the merge had never happened.
         frame: the frame that contradicted the merge.
         created: experiences ``engine`` made during the probation: (id, stamp, camera image).
+        seen: ``engine``'s active template at each probation frame: (stamp, template, created).
     """
 
     event: MergeEvent
     engine: Engine
     frame: int
     created: tuple[tuple[int, float, Any], ...] = field(default=(), repr=False)
+    seen: tuple[tuple[float, int, bool], ...] = field(default=(), repr=False)
 
 
 @dataclass(eq=False)
@@ -386,7 +388,7 @@ class OnlineMerger:
         for candidate in self._candidates:
             candidate.hypotheses.hypotheses.clear()
         probation.hset.ban(probation.hypothesis)
-        rollback = Rollback(event, probation.shadow, result.frame, tuple(probation.created))
+        rollback = Rollback(event, probation.shadow, result.frame, tuple(probation.created), tuple(probation.seen))
         self.rollbacks.append(rollback)
         return rollback
 

@@ -62,6 +62,8 @@ class Probation:
     worst_link_m: float = 0.0
     reason: str = ""
     created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
+    seen: list[tuple[float, int, bool]] = field(default_factory=list, repr=False)
+    """The shadow's active template per frame (stamp, template, created): the session's timeline on a rollback."""
     """Experiences the shadow made (id, stamp, camera image): their evidence if the merge is rolled back."""
 
     def step(self, track: Track, result: StepResult, frame: Any) -> str | None:
@@ -73,6 +75,7 @@ class Probation:
         shadow = self.shadow.step(frame.image, frame.motion, stamp)
         if shadow.action == Action.CREATE_NODE:
             self.created.append((shadow.experience, stamp, frame.image))
+        self.seen.append((stamp, shadow.template, shadow.template_created))
         self.frames += 1
         outcome = self.hset.test_after_merge(self.hypothesis, track)
         self.hits += outcome == HIT

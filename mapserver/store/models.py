@@ -159,6 +159,9 @@ class Session(Base):
     last_stamp: Mapped[float | None] = mapped_column(Double)
     reckoning: Mapped[bytes | None] = mapped_column(LargeBinary)
     reckoning_pose: Mapped[list[float] | None] = mapped_column(JSON)
+    #: per frame ``[stamp, template session, template origin index, created]`` (float64 LE, N × 4): the
+    #: activation timeline (mapserver.store.sessions.get_activations); NULL before migration 0005
+    activations: Mapped[bytes | None] = mapped_column(LargeBinary)
     started_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)

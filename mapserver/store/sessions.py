@@ -268,3 +268,21 @@ def get_reckoning(*, conn: Connection, session_id: int) -> tuple[np.ndarray, tup
     rows = np.zeros((0, 4)) if row[0] is None else np.frombuffer(row[0], dtype="<f8").reshape(-1, 4).astype(float)
     pose = None if row[1] is None else tuple(float(v) for v in row[1])
     return rows, pose
+
+
+ACTIVATION_COLUMNS = 4
+"""``[stamp, template session id, template origin index, created (0/1)]``; template −1/−1 when none."""
+
+
+def set_activations(*, conn: Connection, session_id: int, rows: npt.ArrayLike) -> None:
+    """Store a session's per-frame activations (N, 4), replacing what was stored (see :data:`ACTIVATION_COLUMNS`)."""
+    array = np.ascontiguousarray(rows, dtype="<f8").reshape(-1, ACTIVATION_COLUMNS)
+    conn.execute(update(Session).where(Session.id == session_id).values(activations=array.tobytes()))
+
+
+def get_activations(*, conn: Connection, session_id: int) -> np.ndarray | None:
+    """Return a session's per-frame activations (N, 4), or None when none were stored (before migration 0005)."""
+    blob = conn.execute(select(Session.activations).where(Session.id == session_id)).scalar_one_or_none()
+    if blob is None:
+        return None
+    return np.frombuffer(blob, dtype="<f8").reshape(-1, ACTIVATION_COLUMNS).astype(np.float64)

@@ -63,3 +63,38 @@ def test_timeline_marks_the_first_use_of_each_template_as_new() -> None:
     only_a = timeline(ReportInputs("m", "a", doc, [], []))
     assert only_a["id"].tolist() == [0, 1, 2, 3] and only_a["new"].tolist() == [True, False, False, True]
     assert np.all(np.diff(only_a["stamp"]) > 0)
+
+
+def test_the_stored_timeline_has_every_frame_by_template_identity_and_resumes_exactly(tmp_path: Path) -> None:
+    """Issue 16 (OpenRatSLAM2 Fig. 6): every frame's active template is stored with the session and resolved
+    to the map's ids after the merge; session 2 recognises session 1's templates; a split run stores the same
+    timeline as one run."""
+    from core import Engine
+    from mapserver.report import gather
+    from mapserver.store import open_database
+
+    scenario = simulate(DEMO_SCENARIO, tmp_path / "sim", seed=DEMO_SEED, params=DEMO_PARAMS)
+    params = resolve_params(scenario["preset"])
+    logs = [tmp_path / "sim" / s["log"] for s in scenario["sessions"]]
+    db = f"sqlite:///{tmp_path / 't.db'}"
+    results = [pipeline.process_into_store(log, params, db_url=db) for log in logs]
+    assert len(results[1].merges) == 1
+    with open_database(db) as handle:
+        inputs = gather(handle, results[1].map_name)
+    first, second = (inputs.activations[s["name"]] for s in scenario["sessions"])
+    assert first[0].shape[0] == results[0].frames and second[0].shape[0] == results[1].frames
+    # independent: session 1 alone through the engine, frame by frame (its map's ids are the engine's)
+    seen: list[tuple[int, bool]] = []
+    pipeline.run_engine(Engine(params), logs[0], on_step=lambda _f, r: seen.append((r.template, r.template_created)))
+    assert first[0][:, 1].astype(int).tolist() == [t for t, _ in seen]
+    assert first[1].tolist() == [c for _, c in seen]
+    stored_templates = int(first[1].sum())
+    recognised = (~second[1]) & (second[0][:, 1] >= 0) & (second[0][:, 1] < stored_templates)
+    assert recognised.sum() > 0.5 * second[0].shape[0]  # session 2 re-drives session 1's ground
+    # the timeline of a split run equals one run
+    split = f"sqlite:///{tmp_path / 's.db'}"
+    pipeline.process_into_store(logs[0], params, db_url=split, stop_after=results[0].frames // 2)
+    pipeline.process_into_store(logs[0], params, db_url=split)
+    with open_database(split) as handle:
+        again = gather(handle, results[0].map_name).activations[scenario["sessions"][0]["name"]]
+    assert np.array_equal(again[0], first[0]) and np.array_equal(again[1], first[1])
