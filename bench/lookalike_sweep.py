@@ -8,7 +8,10 @@ symmetric). Per seed it runs the contract's commands: ``mapserver simulate SCENA
 D/session2.bag --db sqlite:///D/db.sqlite --json``, then classifies session 2's merges against the ground
 truth: in ``twin`` every merge is false (the places never overlap); elsewhere a merge is false when its
 transform is more than ``--tol-m`` metres or ``--tol-deg`` degrees from the true alignment of the two
-sessions' map frames. Prints one line per row and, last, one JSON object with every figure.
+sessions' map frames, except that an applied merge is judged where it put the robot: false when session 2's
+experiences within 10 s of it lie, in the final map, more than ``--tol-m`` metres (median) from their true
+positions in session 1's map frame (the error at the map origin grows with the drift before the merge).
+Prints one line per row and, last, one JSON object with every figure.
 """
 
 from __future__ import annotations
@@ -56,6 +59,31 @@ def _ape(directory: Path, db: str, map_name: str, sessions: list[dict], tag: str
     return float(cli_json("evaluate", str(doc), "--ground-truth", str(gt))["ape_rmse"])
 
 
+def _local_error(directory: Path, doc: dict, s1: dict, s2: dict, stamp: float, window_s: float = 10.0) -> float | None:
+    """Median distance (m) from session 2's experiences within ``window_s`` of ``stamp`` in the final map to
+    their true positions in session 1's map frame (None: no such experience).
+
+    The transform's error at the map origin (``error_m``) grows with session 2's odometry drift before the
+    merge; this says whether the merge put the robot in the right place.
+    """
+    from mapserver.formats import yaw_from_quaternion
+    from mapserver.merge.se3 import compose, inverse
+
+    final = json.loads((directory / "final.json").read_text())
+    near = [e for e in final["experiences"] if e["session"] == s2["name"] and abs(e["stamp"] - stamp) <= window_s]
+    if not near:
+        return None
+    gt1, gt2 = (np.loadtxt(directory / s["ground_truth"]).reshape(-1, 8) for s in (s1, s2))
+    start = np.array([*gt1[0, 1:4], yaw_from_quaternion(*gt1[0, 4:8])])
+    frame = compose(np.array([0.0, 0.0, 0.0, math.radians(preset(doc["preset"]).exp_initial_em_deg)]), inverse(start))
+    errors = []
+    for e in near:
+        row = gt2[int(np.argmin(np.abs(gt2[:, 0] - e["stamp"])))]
+        true = compose(frame, np.array([*row[1:4], yaw_from_quaternion(*row[4:8])]))
+        errors.append(math.hypot(e["x"] - true[0], e["y"] - true[1]))
+    return round(float(np.median(errors)), 3)
+
+
 def run_once(out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float) -> dict:
     """Simulate one seed of a row, process its two sessions into one database, classify the merges.
 
@@ -86,6 +114,10 @@ def run_once(out: Path, scenario: str, strength: float | None, seed: int, tol_m:
     shared = _shared_distance(directory, s1, s2, applied[0]["stamp"]) if applied else None
     in_map = [s1, s2] if applied else [s2]
     ape = _ape(directory, db, result["map"], in_map, "final")
+    for m in applied:  # where the merge put session 2, judged in the final map near the merge
+        m["local_error_m"] = _local_error(directory, doc, s1, s2, m["stamp"])
+        if scenario != "twin" and m["local_error_m"] is not None:
+            m["false"] = m["local_error_m"] > tol_m
     alone_db = f"sqlite:///{directory / 'alone.sqlite'}"
     reference = doc["single"] if scenario != "twin" and doc.get("single") else s2
     cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge")
