@@ -106,7 +106,7 @@ class LiveSession:
         self._activate(holder.ids, stamp, result.template, result.template_created)
         self.collector.observe(stamp, frame.image)
         if result.action == Action.CREATE_NODE:
-            self.collector.experience(int(holder.ids.experience_arrays()[1][result.experience]), stamp)
+            self.collector.experience(holder.ids.experience_identity(result.experience)[1], stamp)
         self.reckoning.add(stamp, result.motion)
         if self.merger is None:
             return None

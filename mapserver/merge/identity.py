@@ -98,6 +98,12 @@ class RowIdentities:
             return self._t_session[row], self._t_index[row]
         return -1, -1
 
+    def experience_identity(self, row: int) -> tuple[int, int]:
+        """Return (session tag, index) of experience row ``row`` (constant time; (−1, −1) outside the rows)."""
+        if 0 <= row < len(self._e_index):
+            return self._e_session[row], self._e_index[row]
+        return -1, -1
+
     def experience_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Return (session tags, indices) of the experience rows, int64."""
         return np.asarray(self._e_session, dtype=np.int64), np.asarray(self._e_index, dtype=np.int64)
