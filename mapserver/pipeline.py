@@ -498,23 +498,22 @@ def _store_session(
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
-    ``activations``: the stored timeline (None when the session was stored before it existed) and the
-    live session's ``activation_rows``.
+    The steps: check that the candidate maps did not change (else :class:`StaleMapError`), write the
+    session row (:func:`_write_session_row`), claim the maps and the host (:func:`_claim_host`), write the
+    merged map with its merge events (applied and rejected), the session's evidence; then answer
+    (:func:`_answer`). ``activations``: the stored timeline (None when the session was stored before it
+    existed) and the live session's ``activation_rows``.
     """
     from mapserver import atlas
     from mapserver.merge.resume import merger_keys
     from mapserver.store import evidence as evidence_store
     from mapserver.store import get_map_by_id, lock_atlas
-    from mapserver.store.maps import create_map
-    from mapserver.store.sessions import NewSession, create_session, get_sessions, set_activations, update_session
-    from mapserver.store.state import plain_params
+    from mapserver.store.sessions import get_sessions
 
     snapshot = engine.snapshot()
     images = collector.finish()
     rows = np.concatenate([stored_rows, reckoning.array()])
-    pose = tuple(float(v) for v in reckoning.pose)
-    status = "complete" if processed >= total else "partial"
-    wanted = plain_params(params)
+    progress = _Progress(processed, total, stamps, rows, tuple(float(v) for v in reckoning.pose))
     with commit_gate(db), db.write() as conn:
         if opts.merge:
             lock_atlas(conn=conn)
@@ -522,39 +521,9 @@ def _store_session(
                 conn, params=params, exclude=None if own is None else own.id,
                 seen={c.id: c.version for c in candidates},
             )  # fmt: skip
-        if session is not None:
-            session_id = session.id
-            update_session(
-                conn=conn, session_id=session_id, status=status, frames_processed=processed,
-                last_stamp=stamps[-1] if stamps else session.last_stamp, reckoning=rows, reckoning_pose=pose,
-            )  # fmt: skip
-        else:
-            created = create_session(
-                conn=conn,
-                spec=NewSession(
-                    name=_log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity["sha256"],
-                    topics=identity["mapping"], params=wanted, status=status, frames_processed=processed,
-                    frames_total=total, first_stamp=stamps[0] if stamps else None,
-                    last_stamp=stamps[-1] if stamps else None, origin=NEW_SESSION_ORIGIN, reckoning=rows,
-                    reckoning_pose=pose,  # type: ignore[arg-type]
-                ),
-            )  # fmt: skip
-            session_id = created.id
+        session_id = _write_session_row(conn, log_path, params, identity, session, progress, activations)
         tags = {NEW_SESSION_ORIGIN: session_id} if session is None else {}
-        stored_activations, live_activations = activations
-        if stored_activations is not None:
-            rows_now = np.concatenate([stored_activations, live_activations({NEW_SESSION_ORIGIN: session_id})])
-            set_activations(conn=conn, session_id=session_id, rows=rows_now)
-        claimed: dict[int, int] = {} if own is None else {own.id: own.version}
-        applied = [m for m in pending if m.status == "applied"]
-        claimed.update({m.target.id: m.target.version for m in applied})
-        if claimed:
-            host_id = min(claimed)
-        else:
-            host_id = create_map(conn=conn, name=name, params=wanted).id
-            claimed = {host_id: 0}
-        session_ids = sorted({session_id, *(own.session_ids if own is not None else [])}
-                             | {s for m in applied for s in m.target.session_ids})  # fmt: skip
+        claimed, host_id, session_ids = _claim_host(conn, session_id, own, pending, name, params)
         extra: dict[str, np.ndarray] = {}
         if merger is not None:
             expected = claimed[host_id] + 1  # the version this write gives the map
@@ -579,34 +548,110 @@ def _store_session(
     applied_writes = [w for w, m in zip(writes, pending, strict=True) if m.status == "applied"]
     merges = [atlas.merge_summary(e, w, w.host_name) for e, w in zip(written.event_ids, applied_writes, strict=True)]
     merges += [atlas.merge_summary(e, w, w.host_name) for e, w in zip(rejected_ids, rejected, strict=True)]
+    return _answer(opts, engine, snapshot, written.result, sessions_now, progress, merges, session_id,
+                   map_record.name, frames_run)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Progress:
+    """Where the session stands after this run: frames, stamps, dead-reckoning rows and final pose."""
+
+    processed: int
+    total: int
+    stamps: list[float]
+    rows: np.ndarray
+    pose: tuple[float, ...]
+
+    @property
+    def status(self) -> str:
+        """``complete`` once the last frame is processed, else ``partial``."""
+        return "complete" if self.processed >= self.total else "partial"
+
+
+def _write_session_row(
+    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], session: Any, progress: _Progress,
+    activations: tuple[np.ndarray | None, Any],
+) -> int:  # fmt: skip
+    """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
+    from mapserver.store.sessions import NewSession, create_session, set_activations, update_session
+    from mapserver.store.state import plain_params
+
+    stamps = progress.stamps
+    if session is not None:
+        session_id = int(session.id)
+        update_session(
+            conn=conn, session_id=session_id, status=progress.status, frames_processed=progress.processed,
+            last_stamp=stamps[-1] if stamps else session.last_stamp, reckoning=progress.rows,
+            reckoning_pose=progress.pose,  # type: ignore[arg-type]
+        )  # fmt: skip
+    else:
+        created = create_session(
+            conn=conn,
+            spec=NewSession(
+                name=_log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity["sha256"],
+                topics=identity["mapping"], params=plain_params(params), status=progress.status,
+                frames_processed=progress.processed, frames_total=progress.total,
+                first_stamp=stamps[0] if stamps else None, last_stamp=stamps[-1] if stamps else None,
+                origin=NEW_SESSION_ORIGIN, reckoning=progress.rows, reckoning_pose=progress.pose,  # type: ignore[arg-type]
+            ),
+        )  # fmt: skip
+        session_id = int(created.id)
+    stored, live = activations
+    if stored is not None:
+        set_activations(conn=conn, session_id=session_id,
+                        rows=np.concatenate([stored, live({NEW_SESSION_ORIGIN: session_id})]))  # fmt: skip
+    return session_id
+
+
+def _claim_host(
+    conn: Any, session_id: int, own: Any, pending: list[Any], name: str, params: Params
+) -> tuple[dict[int, int], int, list[int]]:
+    """Return the maps this write claims (id → version read), the host map and the map's sessions.
+
+    The host is the oldest map involved; a new map (named ``name``) when the session joined none.
+    """
+    from mapserver.store.maps import create_map
+    from mapserver.store.state import plain_params
+
+    claimed: dict[int, int] = {} if own is None else {own.id: own.version}
+    applied = [m for m in pending if m.status == "applied"]
+    claimed.update({m.target.id: m.target.version for m in applied})
+    if claimed:
+        host_id = min(claimed)
+    else:
+        host_id = create_map(conn=conn, name=name, params=plain_params(params)).id
+        claimed = {host_id: 0}
+    session_ids = sorted({session_id, *(own.session_ids if own is not None else [])}
+                         | {s for m in applied for s in m.target.session_ids})  # fmt: skip
+    return claimed, host_id, session_ids
+
+
+def _answer(
+    opts: _Options, engine: Engine, snapshot: Mapping[str, np.ndarray], result: Any, sessions_now: list[Any],
+    progress: _Progress, merges: list[dict[str, Any]], session_id: int, map_name: str, frames_run: int,
+) -> ProcessResult:  # fmt: skip
+    """Log the merges, write the map JSON when asked (``--out``) and return the summary."""
+    from mapserver.store.state import plain_params
+
     for entry in merges:
         logger.info("merged into map %r at frame %s (event %d)", entry["into"], entry["frame"], entry["event"])
     document = None
     if opts.out is not None:
-        result = written.result
         stored_snapshot = {**snapshot, "lv_origin": result.template_session, "em_origin": result.experience_session}
         document = map_json(
             params=plain_params(engine.params),
             snapshot=stored_snapshot,
             sessions=[SessionInfo(s.name, s.log_sha256, s.frames_processed) for s in sessions_now],
             session_name_by_origin={s.id: s.name for s in sessions_now},
-            odometry=rows if len(sessions_now) == 1 else None,
+            odometry=progress.rows if len(sessions_now) == 1 else None,
         )
         write_map_json(opts.out, document)
     return ProcessResult(
-        frames=processed,
-        templates=engine.template_count,
-        experiences=engine.experience_count,
-        links=int(snapshot["em_link_from"].shape[0]),
-        loop_closures=engine.loop_closures,
-        map_name=map_record.name,
-        seconds=time.perf_counter() - opts.started,
-        merges=merges,
-        session_id=session_id,
-        engine=engine,
-        document=document,
-        frames_run=frames_run,
-    )
+        frames=progress.processed, templates=engine.template_count, experiences=engine.experience_count,
+        links=int(snapshot["em_link_from"].shape[0]), loop_closures=engine.loop_closures, map_name=map_name,
+        seconds=time.perf_counter() - opts.started, merges=merges, session_id=session_id, engine=engine,
+        document=document, frames_run=frames_run,
+    )  # fmt: skip
 
 
 def _merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
