@@ -12,14 +12,16 @@ it was in before and keeps the merge as ``rejected`` with its evidence.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from core import Action, Engine, StepResult
+from core import Action, Engine, Params, StepResult
 from mapserver.merge import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.identity import RowIdentities
+from mapserver.merge.provenance import match_to_dict, record_summary
 
 logger = logging.getLogger(__name__)
 
@@ -86,7 +88,7 @@ class LiveSession:
     merger: OnlineMerger | None
     targets: dict[int, Any]  # stored map id → AtlasMap (the merge candidates)
     collector: Any  # mapserver.store.evidence.EvidenceCollector
-    reckoning: Any  # mapserver.pipeline.DeadReckoning
+    reckoning: Any  # mapserver.reckoning.DeadReckoning
     stamps: list[float] = field(default_factory=list)
     pending: list[PendingMerge] = field(default_factory=list)
     activations: list[tuple[float, int, int, float]] = field(default_factory=list)
@@ -180,3 +182,30 @@ class LiveSession:
         for stamp, template, created in rollback.seen:
             self._activate(ids, stamp, template, created)
         return rollback.engine
+
+
+def merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
+    """Return the store's view of one online merge (:class:`mapserver.live.PendingMerge`) with its provenance."""
+    from mapserver import atlas
+
+    ev = m.event
+    partial = atlas.PartialSide(
+        name=m.partial_name, map_id=m.partial_map_id, snapshot=ev.partial, identities=m.partial_ids,
+        params=params, session_ids=sorted({session_id, *m.partial_sessions}),
+    )  # fmt: skip
+    details = {
+        "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
+        "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
+        "match": match_to_dict(ev.match), "record": record_summary(ev.record),
+        "target": {"name": m.target.name, "map_id": m.target.id},
+        "source": {"name": m.partial_name, "map_id": m.partial_map_id},
+        "absorbed": [e.target.name for e in pending[: pending.index(m)] if e.status == "applied"],
+        "session_frames": {str(k): int(v) for k, v in frames_now.items()},
+        "evidence": ev.evidence, "status": m.status,
+    }  # fmt: skip
+    if m.rejected_at is not None:
+        details["rejected_at_frame"] = m.rejected_at
+    return atlas.MergeToWrite(
+        mode="online", target=m.target, partial=partial, match=ev.match, record=ev.record,
+        host_id=m.host_id, host_name=m.host_name, details=details,
+    )  # fmt: skip

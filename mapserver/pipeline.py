@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -20,10 +19,10 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from core import ConfigError, Engine, ImageError, Params, StepResult
-from core.motion import Motion
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import MissionLog, open_log
+from mapserver.reckoning import DeadReckoning
 
 logger = logging.getLogger(__name__)
 
@@ -68,27 +67,6 @@ class ProcessResult:
             "seconds": round(self.seconds, 3),
             "frames_per_s": round(run / self.seconds, 1) if self.seconds > 0 else None,
         }
-
-
-class DeadReckoning:
-    """Integrates the frames' motions into raw odometry positions (for evaluation against ground truth)."""
-
-    def __init__(self, initial_yaw: float) -> None:
-        self.pose = np.array([0.0, 0.0, 0.0, initial_yaw])
-        self.rows: list[tuple[float, float, float, float]] = []
-
-    def add(self, stamp: float, motion: Motion) -> None:
-        """Compose one body-frame motion and record the position at ``stamp``."""
-        x, y, z, yaw = self.pose
-        c, s = math.cos(yaw), math.sin(yaw)
-        self.pose = np.array(
-            [x + c * motion.dx - s * motion.dy, y + s * motion.dx + c * motion.dy, z + motion.dz, yaw + motion.dyaw]
-        )
-        self.rows.append((stamp, float(self.pose[0]), float(self.pose[1]), float(self.pose[2])))
-
-    def array(self) -> np.ndarray:
-        """Return the (N, 4) ``[stamp, x, y, z]`` rows."""
-        return np.asarray(self.rows, dtype=np.float64).reshape(-1, 4)
 
 
 @dataclass
@@ -304,6 +282,7 @@ def process_into_store(
             each of ``STALE_ATTEMPTS`` runs.
     """
     from mapserver.store import StaleMapError, open_database
+    from mapserver.store.db import commit_gate
 
     if stop_after is not None and stop_after < 1:
         msg = f"--stop-after must be at least 1, got {stop_after!r}"
@@ -326,23 +305,6 @@ def process_into_store(
                     raise
                 logger.warning("%s; processing the log again", err)
     raise AssertionError("unreachable")  # pragma: no cover
-
-
-_GATES: dict[str, threading.RLock] = {}
-_GATES_GUARD = threading.Lock()
-
-
-def commit_gate(db: Any) -> threading.RLock:
-    """Return this process's commit gate of ``db``'s database (one re-entrant lock per URL).
-
-    Every session commit of this process passes the gate; the last of the ``STALE_ATTEMPTS`` runs of a
-    session holds it from start to commit, so sessions committed by other threads (the embedded job
-    engine's workers, parallel ``process`` calls in one program) cannot make it stale and a long
-    session is not starved by a stream of short ones. Writers in other processes are not held back.
-    """
-    key = db.url.render_as_string(hide_password=False)
-    with _GATES_GUARD:
-        return _GATES.setdefault(key, threading.RLock())
 
 
 @dataclass(frozen=True)
@@ -505,9 +467,11 @@ def _store_session(
     existed) and the live session's ``activation_rows``.
     """
     from mapserver import atlas
+    from mapserver.live import merge_to_write
     from mapserver.merge.resume import merger_keys
     from mapserver.store import evidence as evidence_store
     from mapserver.store import get_map_by_id, lock_atlas
+    from mapserver.store.db import commit_gate
     from mapserver.store.sessions import get_sessions
 
     snapshot = engine.snapshot()
@@ -531,7 +495,7 @@ def _store_session(
                 merger.export_state(), session_id=session_id, map_version=expected, candidates=candidates
             )
         frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
-        writes = [_merge_to_write(m, pending, session_id, params, frames_now) for m in pending]
+        writes = [merge_to_write(m, pending, session_id, params, frames_now) for m in pending]
         written = atlas.write_merges(
             conn, merges=[w for w, m in zip(writes, pending, strict=True) if m.status == "applied"], claimed=claimed,
             host_id=host_id, params=engine.params, snapshot=snapshot, identities=ids, tags=tags,
@@ -654,29 +618,3 @@ def _answer(
     )  # fmt: skip
 
 
-def _merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
-    """Return the store's view of one online merge (:class:`mapserver.live.PendingMerge`) with its provenance."""
-    from mapserver import atlas
-    from mapserver.merge.provenance import match_to_dict, record_summary
-
-    ev = m.event
-    partial = atlas.PartialSide(
-        name=m.partial_name, map_id=m.partial_map_id, snapshot=ev.partial, identities=m.partial_ids,
-        params=params, session_ids=sorted({session_id, *m.partial_sessions}),
-    )  # fmt: skip
-    details = {
-        "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
-        "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
-        "match": match_to_dict(ev.match), "record": record_summary(ev.record),
-        "target": {"name": m.target.name, "map_id": m.target.id},
-        "source": {"name": m.partial_name, "map_id": m.partial_map_id},
-        "absorbed": [e.target.name for e in pending[: pending.index(m)] if e.status == "applied"],
-        "session_frames": {str(k): int(v) for k, v in frames_now.items()},
-        "evidence": ev.evidence, "status": m.status,
-    }  # fmt: skip
-    if m.rejected_at is not None:
-        details["rejected_at_frame"] = m.rejected_at
-    return atlas.MergeToWrite(
-        mode="online", target=m.target, partial=partial, match=ev.match, record=ev.record,
-        host_id=m.host_id, host_name=m.host_name, details=details,
-    )  # fmt: skip

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import sqlite3
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -278,3 +279,20 @@ def open_database(url: str | URL | None = None, *, upgrade: bool = True, **kwarg
         db.dispose()
         raise
     return db
+
+
+_GATES: dict[str, threading.RLock] = {}
+_GATES_GUARD = threading.Lock()
+
+
+def commit_gate(db: Any) -> threading.RLock:
+    """Return this process's commit gate of ``db``'s database (one re-entrant lock per URL).
+
+    Every session commit of this process passes the gate; the last of ``mapserver.pipeline.STALE_ATTEMPTS`` runs
+    of a session holds it from start to commit, so sessions committed by other threads (the embedded job
+    engine's workers, parallel ``process`` calls in one program) cannot make it stale and a long
+    session is not starved by a stream of short ones. Writers in other processes are not held back.
+    """
+    key = db.url.render_as_string(hide_password=False)
+    with _GATES_GUARD:
+        return _GATES.setdefault(key, threading.RLock())

@@ -270,13 +270,14 @@ def test_the_last_stale_retry_holds_the_commit_gate(monkeypatch: pytest.MonkeyPa
     starved; the earlier tries run without it."""
     from mapserver import pipeline
     from mapserver.store import StaleMapError
+    from mapserver.store.db import commit_gate
 
     log = tmp_path / "strip.bag"
     write_strip_log(log)
     held: list[bool] = []
 
     def attempt(db: Any, *_args: Any) -> Any:
-        gate = pipeline.commit_gate(db)
+        gate = commit_gate(db)
         held.append(gate._is_owned())  # type: ignore[attr-defined]
         if len(held) < pipeline.STALE_ATTEMPTS:
             raise StaleMapError("the maps this session may merge into changed while it was processed")
@@ -286,5 +287,5 @@ def test_the_last_stale_retry_holds_the_commit_gate(monkeypatch: pytest.MonkeyPa
     url = f"sqlite:///{tmp_path / 'gate.db'}"
     assert pipeline.process_into_store(log, preset("irat"), db_url=url) == "stored"
     assert held == [False] * (pipeline.STALE_ATTEMPTS - 1) + [True]
-    same = [pipeline.commit_gate(type("Db", (), {"url": sa_url(u)})()) for u in (url, url, url + "x")]
+    same = [commit_gate(type("Db", (), {"url": sa_url(u)})()) for u in (url, url, url + "x")]
     assert same[0] is same[1] and same[0] is not same[2]  # one gate per database
