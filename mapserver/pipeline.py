@@ -1,186 +1,39 @@
 """The one place that runs a mission log through the engine, the store and the merger.
 
-Both faces (``mapserver process`` and the REST API's jobs) call :func:`process_log`, or
-:func:`process_into_store` to keep the session in a database.
+Both faces (``mapserver process`` and the REST API's jobs) call :func:`process_log` (from
+:mod:`mapserver.run`), or :func:`process_into_store` to keep the session in a database.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
-from core import ConfigError, Engine, ImageError, Params, StepResult
+from core import ConfigError, Engine, Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import MissionLog, open_log
 from mapserver.reckoning import DeadReckoning
+from mapserver.run import (  # re-exported: the pipeline is where callers find them
+    EngineRun,
+    ProcessResult,
+    ProgressCallback,
+    StepHook,
+    process_log,
+    run_engine,
+)
 
 logger = logging.getLogger(__name__)
 
 STALE_ATTEMPTS = 3
 """Runs of one log before giving up when concurrent writers keep changing the maps it merges with."""
-
-ProgressCallback = Callable[[int, int], None]
-
-
-@dataclass
-class ProcessResult:
-    """What processing one log produced (the CLI's JSON summary is :meth:`summary`)."""
-
-    frames: int
-    templates: int
-    experiences: int
-    links: int
-    loop_closures: int
-    map_name: str
-    seconds: float
-    merges: list[dict[str, Any]] = field(default_factory=list)
-    session_id: int | None = None
-    engine: Engine | None = None
-    document: dict[str, Any] | None = None
-    frames_run: int | None = None
-
-    def summary(self) -> dict[str, Any]:
-        """Return the contract's ``process --json`` object.
-
-        ``frames`` counts the session's frames so far; ``frames_per_s`` is this run's rate (frames run
-        now, a resumed session's earlier frames not counted).
-        """
-        run = self.frames if self.frames_run is None else self.frames_run
-        return {
-            "frames": self.frames,
-            "templates": self.templates,
-            "experiences": self.experiences,
-            "links": self.links,
-            "loop_closures": self.loop_closures,
-            "merges": self.merges,
-            "map": self.map_name,
-            "seconds": round(self.seconds, 3),
-            "frames_per_s": round(run / self.seconds, 1) if self.seconds > 0 else None,
-        }
-
-
-@dataclass
-class EngineRun:
-    """What :func:`run_engine` did: the engine the log ended in, frames run, dead reckoning, log identity."""
-
-    engine: Engine
-    frames: int
-    reckoning: DeadReckoning
-    info: dict[str, Any]
-
-
-StepHook = Callable[[Any, StepResult], "Engine | None"]
-"""``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
-
-
-def run_engine(
-    engine: Engine,
-    log: str | Path | MissionLog,
-    *,
-    topics: Mapping[str, str] | None = None,
-    start: int = 0,
-    stop: int | None = None,
-    progress: ProgressCallback | None = None,
-    on_step: StepHook | None = None,
-) -> EngineRun:
-    """Feed frames ``[start, stop)`` of a log through ``engine`` and return the run.
-
-    ``log`` is a path (opened here) or a log opened by the caller (its SHA-256 is then computed at
-    most once, whoever asks first). ``on_step(frame, result)`` is called after every frame (the
-    merger and the evidence collector hook in here); when it returns an engine, the next frames go
-    to that one (an online merge replaced the map the session maps in).
-    """
-    # The engine's matrices are small: multi-threaded BLAS only adds contention (2-5x slower on a busy machine).
-    with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
-        opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
-        total = opened.count_frames()
-        end = total if stop is None else min(stop, total)
-        reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
-        count = 0
-        for frame in opened.frames(start, end):
-            stamp = frame.stamp_ns * 1e-9
-            try:
-                result = engine.step(frame.image, frame.motion, stamp)
-            except ImageError as err:  # images smaller than the preset's template or crop
-                msg = f"{opened.path}: frame {start + count} cannot be processed with these parameters: {err}"
-                raise InputError(msg) from err
-            reckoning.add(stamp, result.motion)
-            if on_step is not None:
-                swapped = on_step(frame, result)
-                if swapped is not None:
-                    engine = swapped
-            count += 1
-            if progress is not None:
-                progress(count, end - start)
-        info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total}
-    return EngineRun(engine, count, reckoning, info)
-
-
-def process_log(
-    log_path: str | Path,
-    params: Params,
-    *,
-    topics: Mapping[str, str] | None = None,
-    out: str | Path | None = None,
-    progress: ProgressCallback | None = None,
-) -> ProcessResult:
-    """Run the engine over one log without a database; optionally write the map JSON to ``out``.
-
-    Raises:
-        InputError: the log cannot be read (``IngestError``) or the parameters are invalid.
-    """
-    started = time.perf_counter()
-    name = Path(log_path).name.split(".")[0] or "map"
-    try:
-        engine = Engine(params, origin=0)
-    except ConfigError as err:
-        raise InputError(str(err)) from err
-    frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
-
-    def record(frame: Any, result: StepResult) -> None:
-        frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
-
-    run = run_engine(engine, log_path, topics=topics, progress=progress, on_step=record)
-    frames, reckoning, info = run.frames, run.reckoning, run.info
-    if frames == 0:
-        msg = f"{log_path}: the camera topic has no frames"
-        raise InputError(msg)
-    engine.settle()
-    snapshot = engine.snapshot()
-    document = map_json(
-        params=params.to_dict(),
-        snapshot=snapshot,
-        sessions=[SessionInfo(name=name, log_sha256=info["sha256"], frames=frames)],
-        session_name_by_origin={0: name},
-        odometry=reckoning.array(),
-        frames=frame_rows,
-    )
-    if out is not None:
-        write_map_json(out, document)
-    src = snapshot["em_link_from"]
-    return ProcessResult(
-        frames=frames,
-        templates=engine.template_count,
-        experiences=engine.experience_count,
-        links=int(src.shape[0]),
-        loop_closures=engine.loop_closures,
-        map_name=name,
-        seconds=time.perf_counter() - started,
-        engine=engine,
-        document=document,
-        frames_run=frames,
-    )
-
 
 # ----------------------------------------------------------------------------------------------- store
 
@@ -322,81 +175,18 @@ class _Options:
 def _process_session(
     db: Any, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
 ) -> ProcessResult:
-    """One attempt of :func:`process_into_store` (redone once when a map changed meanwhile)."""
-    from mapserver import atlas
+    """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
     from mapserver.live import Holder, LiveSession
     from mapserver.merge import OnlineMerger
-    from mapserver.merge.identity import RowIdentities
-    from mapserver.merge.resume import resume_merger_state
-    from mapserver.store import find_map, find_session, get_map_by_id
     from mapserver.store.evidence import EvidenceCollector
-    from mapserver.store.sessions import get_activations, get_reckoning
-    from mapserver.store.state import plain_params
 
-    wanted = plain_params(params)
     name = opts.map_name or _log_stem(log_path)
     total = int(identity["total"])
-    own = session = None
-    stored_rows, stored_pose = np.zeros((0, 4)), None
-    stored_activations: np.ndarray | None = np.zeros((0, 4))
-    candidates: list[Any] = []
-    skipped: dict[str, str] = {}
-    with db.read() as conn:
-        session = find_session(conn=conn, log_sha256=identity["sha256"], topics=identity["mapping"])
-        if session is not None:
-            if session.params != wanted:
-                keys = sorted(k for k in set(wanted) | set(session.params) if wanted.get(k) != session.params.get(k))
-                msg = (
-                    f"{str(log_path)!r} is stored already as session {session.name!r} with other parameters "
-                    f"({', '.join(keys[:5])}{', ...' if len(keys) > 5 else ''} differ); use the same preset/config"
-                )
-                raise InputError(msg)
-            if session.map_id is None:
-                msg = f"session {session.name!r} belongs to no map at the moment (an unmerge in progress?)"
-                raise InputError(msg)
-            record = get_map_by_id(conn=conn, map_id=session.map_id)
-            if opts.map_name is not None and opts.map_name != record.name:
-                msg = (
-                    f"{str(log_path)!r} is session {session.name!r} of map {record.name!r}; "
-                    f"it cannot be stored in map {opts.map_name!r}"
-                )
-                raise InputError(msg)
-            done = session.frames_processed
-            if session.complete or (opts.stop_after is not None and done >= opts.stop_after):
-                logger.warning(
-                    "%s is stored already as session %r of map %r (%d of %d frames): answering with it",
-                    log_path, session.name, record.name, done, total,
-                )  # fmt: skip
-                return _existing_result(db, session, record.id, opts.started, opts.out)
-            own = atlas.read_atlas_map(conn, record.id)
-            stored_rows, stored_pose = get_reckoning(conn=conn, session_id=session.id)
-            stored_activations = get_activations(conn=conn, session_id=session.id)  # None: stored before 0005
-        elif find_map(conn=conn, name=name) is not None:
-            msg = f"a map named {name!r} already exists and this log is not one of its sessions; choose --map NAME"
-            raise InputError(msg)
-        if opts.merge:
-            candidates, skipped = atlas.merge_candidates(conn, params=params, exclude=None if own is None else own.id)
-    for other, reason in skipped.items():
-        logger.warning("map %r is not a merge candidate: %s", other, reason)
-
-    reckoning = DeadReckoning(math.radians(params.exp_initial_em_deg))
-    if own is not None and session is not None:
-        tag = session.id
-        engine = Engine.restore(own.params, own.snapshot, origin=tag)
-        ids = own.identities.copy()
-        start = session.frames_processed
-        if stored_pose is not None:
-            reckoning.pose = np.asarray(stored_pose, dtype=np.float64)
-        resume = resume_merger_state(own, session.id, candidates)
-    else:
-        tag = NEW_SESSION_ORIGIN
-        try:
-            engine = Engine(params, origin=tag)
-        except ConfigError as err:
-            raise InputError(str(err)) from err
-        ids = RowIdentities()
-        start = 0
-        resume = None
+    read = _read_atlas(db, log_path, params, identity, opts, name)
+    if isinstance(read, ProcessResult):
+        return read
+    session, own, candidates = read.session, read.own, read.candidates
+    engine, ids, tag, start, reckoning, resume = _start_engine(params, read)
     stop = total if opts.stop_after is None else min(opts.stop_after, total)
     merger = (
         OnlineMerger([c.stored() for c in candidates], confirm=opts.confirm, shift_lattice=opts.shift_lattice,
@@ -429,9 +219,109 @@ def _process_session(
         db, log_path, params, identity, opts,
         session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
         merger=merger if not complete else None, candidates=candidates, processed=processed, total=total,
-        stamps=live.stamps, collector=live.collector, stored_rows=stored_rows, reckoning=reckoning,
-        frames_run=run.frames, activations=(stored_activations, live.activation_rows),
+        stamps=live.stamps, collector=live.collector, stored_rows=read.rows, reckoning=reckoning,
+        frames_run=run.frames, activations=(read.activations, live.activation_rows),
     )  # fmt: skip
+
+
+@dataclass
+class _AtlasRead:
+    """What a run starts from: the session stored already (resumed) and its map, and the merge candidates."""
+
+    session: Any = None
+    own: Any = None  # the resumed session's map (mapserver.atlas.AtlasMap)
+    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # stored dead reckoning
+    pose: Any = None  # its final pose
+    activations: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 4)))  # None: stored before 0005
+    candidates: list[Any] = field(default_factory=list)
+
+
+def _read_atlas(
+    db: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, name: str
+) -> _AtlasRead | ProcessResult:
+    """Read the stored session of this log (if any), its map and the merge candidates, in one read.
+
+    Returns the stored session's summary instead when it is complete (or has the frames asked for).
+
+    Raises:
+        InputError: the log is stored with other parameters, its session is in no map or in another map
+            than ``--map``, or a map of that name holds other sessions.
+    """
+    from mapserver import atlas
+    from mapserver.store import find_map, find_session, get_map_by_id
+    from mapserver.store.sessions import get_activations, get_reckoning
+
+    read = _AtlasRead()
+    with db.read() as conn:
+        session = find_session(conn=conn, log_sha256=identity["sha256"], topics=identity["mapping"])
+        if session is not None:
+            record = get_map_by_id(conn=conn, map_id=_check_stored_session(log_path, params, session))
+            if opts.map_name is not None and opts.map_name != record.name:
+                msg = (
+                    f"{str(log_path)!r} is session {session.name!r} of map {record.name!r}; "
+                    f"it cannot be stored in map {opts.map_name!r}"
+                )
+                raise InputError(msg)
+            done, total = session.frames_processed, int(identity["total"])
+            if session.complete or (opts.stop_after is not None and done >= opts.stop_after):
+                logger.warning(
+                    "%s is stored already as session %r of map %r (%d of %d frames): answering with it",
+                    log_path, session.name, record.name, done, total,
+                )  # fmt: skip
+                return _existing_result(db, session, record.id, opts.started, opts.out)
+            read.session, read.own = session, atlas.read_atlas_map(conn, record.id)
+            read.rows, read.pose = get_reckoning(conn=conn, session_id=session.id)
+            read.activations = get_activations(conn=conn, session_id=session.id)
+        elif find_map(conn=conn, name=name) is not None:
+            msg = f"a map named {name!r} already exists and this log is not one of its sessions; choose --map NAME"
+            raise InputError(msg)
+        if opts.merge:
+            exclude = None if read.own is None else read.own.id
+            read.candidates, skipped = atlas.merge_candidates(conn, params=params, exclude=exclude)
+            for other, reason in skipped.items():
+                logger.warning("map %r is not a merge candidate: %s", other, reason)
+    return read
+
+
+def _check_stored_session(log_path: str | Path, params: Params, session: Any) -> int:
+    """Check that a stored session can be continued with ``params``; return its map's id."""
+    from mapserver.store.state import plain_params
+
+    wanted = plain_params(params)
+    if session.params != wanted:
+        keys = sorted(k for k in set(wanted) | set(session.params) if wanted.get(k) != session.params.get(k))
+        msg = (
+            f"{str(log_path)!r} is stored already as session {session.name!r} with other parameters "
+            f"({', '.join(keys[:5])}{', ...' if len(keys) > 5 else ''} differ); use the same preset/config"
+        )
+        raise InputError(msg)
+    if session.map_id is None:
+        msg = f"session {session.name!r} belongs to no map at the moment (an unmerge in progress?)"
+        raise InputError(msg)
+    return int(session.map_id)
+
+
+def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, int, DeadReckoning, Any]:
+    """Return (engine, row identities, origin tag, first frame, dead reckoning, merge driver state) to run from.
+
+    A resumed session continues its map's stored engine from its next frame; a new one starts empty.
+    """
+    from mapserver.merge.identity import RowIdentities
+    from mapserver.merge.resume import resume_merger_state
+
+    reckoning = DeadReckoning(math.radians(params.exp_initial_em_deg))
+    own, session = read.own, read.session
+    if own is not None and session is not None:
+        if read.pose is not None:
+            reckoning.pose = np.asarray(read.pose, dtype=np.float64)
+        engine = Engine.restore(own.params, own.snapshot, origin=session.id)
+        resume = resume_merger_state(own, session.id, read.candidates)
+        return engine, own.identities.copy(), session.id, session.frames_processed, reckoning, resume
+    try:
+        engine = Engine(params, origin=NEW_SESSION_ORIGIN)
+    except ConfigError as err:
+        raise InputError(str(err)) from err
+    return engine, RowIdentities(), NEW_SESSION_ORIGIN, 0, reckoning, None
 
 
 def _store_session(
@@ -618,3 +508,14 @@ def _answer(
     )  # fmt: skip
 
 
+__all__ = [
+    "NEW_SESSION_ORIGIN",
+    "STALE_ATTEMPTS",
+    "EngineRun",
+    "ProcessResult",
+    "ProgressCallback",
+    "StepHook",
+    "process_into_store",
+    "process_log",
+    "run_engine",
+]

@@ -1,0 +1,179 @@
+"""Running a mission log through the engine alone: frames in, the map out (no store, no merging).
+
+:func:`run_engine` feeds a log's frames to an engine (the per-frame hook is where the pipeline books a
+live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.pipeline`
+re-exports both.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from threadpoolctl import threadpool_limits
+
+from core import ConfigError, Engine, ImageError, Params, StepResult
+from mapserver.errors import InputError
+from mapserver.formats import SessionInfo, map_json, write_map_json
+from mapserver.ingest import MissionLog, open_log
+from mapserver.reckoning import DeadReckoning
+
+logger = logging.getLogger(__name__)
+
+ProgressCallback = Callable[[int, int], None]
+
+
+@dataclass
+class ProcessResult:
+    """What processing one log produced (the CLI's JSON summary is :meth:`summary`)."""
+
+    frames: int
+    templates: int
+    experiences: int
+    links: int
+    loop_closures: int
+    map_name: str
+    seconds: float
+    merges: list[dict[str, Any]] = field(default_factory=list)
+    session_id: int | None = None
+    engine: Engine | None = None
+    document: dict[str, Any] | None = None
+    frames_run: int | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """Return the contract's ``process --json`` object.
+
+        ``frames`` counts the session's frames so far; ``frames_per_s`` is this run's rate (frames run
+        now, a resumed session's earlier frames not counted).
+        """
+        run = self.frames if self.frames_run is None else self.frames_run
+        return {
+            "frames": self.frames,
+            "templates": self.templates,
+            "experiences": self.experiences,
+            "links": self.links,
+            "loop_closures": self.loop_closures,
+            "merges": self.merges,
+            "map": self.map_name,
+            "seconds": round(self.seconds, 3),
+            "frames_per_s": round(run / self.seconds, 1) if self.seconds > 0 else None,
+        }
+
+
+@dataclass
+class EngineRun:
+    """What :func:`run_engine` did: the engine the log ended in, frames run, dead reckoning, log identity."""
+
+    engine: Engine
+    frames: int
+    reckoning: DeadReckoning
+    info: dict[str, Any]
+
+
+StepHook = Callable[[Any, StepResult], "Engine | None"]
+"""``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
+
+
+def run_engine(
+    engine: Engine,
+    log: str | Path | MissionLog,
+    *,
+    topics: Mapping[str, str] | None = None,
+    start: int = 0,
+    stop: int | None = None,
+    progress: ProgressCallback | None = None,
+    on_step: StepHook | None = None,
+) -> EngineRun:
+    """Feed frames ``[start, stop)`` of a log through ``engine`` and return the run.
+
+    ``log`` is a path (opened here) or a log opened by the caller (its SHA-256 is then computed at
+    most once, whoever asks first). ``on_step(frame, result)`` is called after every frame (the
+    merger and the evidence collector hook in here); when it returns an engine, the next frames go
+    to that one (an online merge replaced the map the session maps in).
+    """
+    # The engine's matrices are small: multi-threaded BLAS only adds contention (2-5x slower on a busy machine).
+    with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
+        opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
+        total = opened.count_frames()
+        end = total if stop is None else min(stop, total)
+        reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
+        count = 0
+        for frame in opened.frames(start, end):
+            stamp = frame.stamp_ns * 1e-9
+            try:
+                result = engine.step(frame.image, frame.motion, stamp)
+            except ImageError as err:  # images smaller than the preset's template or crop
+                msg = f"{opened.path}: frame {start + count} cannot be processed with these parameters: {err}"
+                raise InputError(msg) from err
+            reckoning.add(stamp, result.motion)
+            if on_step is not None:
+                swapped = on_step(frame, result)
+                if swapped is not None:
+                    engine = swapped
+            count += 1
+            if progress is not None:
+                progress(count, end - start)
+        info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total}
+    return EngineRun(engine, count, reckoning, info)
+
+
+def process_log(
+    log_path: str | Path,
+    params: Params,
+    *,
+    topics: Mapping[str, str] | None = None,
+    out: str | Path | None = None,
+    progress: ProgressCallback | None = None,
+) -> ProcessResult:
+    """Run the engine over one log without a database; optionally write the map JSON to ``out``.
+
+    Raises:
+        InputError: the log cannot be read (``IngestError``) or the parameters are invalid.
+    """
+    started = time.perf_counter()
+    name = Path(log_path).name.split(".")[0] or "map"
+    try:
+        engine = Engine(params, origin=0)
+    except ConfigError as err:
+        raise InputError(str(err)) from err
+    frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
+
+    def record(frame: Any, result: StepResult) -> None:
+        frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
+
+    run = run_engine(engine, log_path, topics=topics, progress=progress, on_step=record)
+    frames, reckoning, info = run.frames, run.reckoning, run.info
+    if frames == 0:
+        msg = f"{log_path}: the camera topic has no frames"
+        raise InputError(msg)
+    engine.settle()
+    snapshot = engine.snapshot()
+    document = map_json(
+        params=params.to_dict(),
+        snapshot=snapshot,
+        sessions=[SessionInfo(name=name, log_sha256=info["sha256"], frames=frames)],
+        session_name_by_origin={0: name},
+        odometry=reckoning.array(),
+        frames=frame_rows,
+    )
+    if out is not None:
+        write_map_json(out, document)
+    src = snapshot["em_link_from"]
+    return ProcessResult(
+        frames=frames,
+        templates=engine.template_count,
+        experiences=engine.experience_count,
+        links=int(src.shape[0]),
+        loop_closures=engine.loop_closures,
+        map_name=name,
+        seconds=time.perf_counter() - started,
+        engine=engine,
+        document=document,
+        frames_run=frames,
+    )
