@@ -104,39 +104,58 @@ def weigh_offline_match(
         position_tolerance: metres (None: 3 spacings of B).
         yaw_tolerance: radians.
     """
-    a, b = partial.state, loaded.state
-    tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
-    spacing = map_spacing(loaded)
-    wanted = partial.params.merge_evidence_m if evidence_m is None else evidence_m
-    rule = EvidenceRule.for_map(spacing, tolerance, yaw_tolerance, wanted, 0.0)
-    cells = LocalViewCells.restore(partial.params, b)  # A's matcher over B's templates
-    b_pose = np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4)
-    places = StoredPlaces(cells, b_pose, np.asarray(b["em_template"], dtype=np.int64),
-                          partial.params.vt_match_threshold, partial.params.vt_panoramic, rule)  # fmt: skip
-    transform = offline_alignment(loaded, match)
-    a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
-    a_templates = np.asarray(a["lv_templates"], dtype=np.float32)
-    a_means = np.asarray(a["lv_means"], dtype=np.float64)
-    a_template_of = np.asarray(a["em_template"], dtype=np.int64)
-    steps = np.zeros(a_pose.shape[0])
-    if a_pose.shape[0] > 1:
-        steps[1:] = np.linalg.norm(np.diff(a_pose[:, :3], axis=0), axis=1)
-        steps[steps > 3.0 * spacing] = 0.0  # a jump between A's sessions is no distance driven
-    views = (a_templates, a_means, a_template_of)
-    outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
-    anchor = _anchor_experience(a_pose, match)
-    for chain in (np.arange(anchor, a_pose.shape[0]), np.arange(anchor, -1, -1)):
-        _walk(places, transform, a_pose, views, chain, outcomes)
-    hit, miss = outcomes == HIT, outcomes == MISS
-    turn = 0.0
-    if hit.any():
-        offsets = wrap_angle(a_pose[hit, 3] - a_pose[hit, 3][0])
-        turn = float(np.max(offsets) - np.min(offsets))
-    return OfflineEvidence(
-        hit_m=float(steps[hit].sum()), miss_m=float(steps[miss].sum()), unmapped_m=float(steps[~hit & ~miss].sum()),
-        turn_rad=turn, evidence_m=rule.evidence_m, miss_weight=rule.miss_weight,
-        hits=int(hit.sum()), misses=int(miss.sum()), agreeing=frozenset(np.flatnonzero(hit).tolist()),
-    )  # fmt: skip
+    return _OfflineTest(partial, loaded, evidence_m, position_tolerance, yaw_tolerance).weigh(match)
+
+
+class _OfflineTest:
+    """A's experience chain and B's places, built once for every match weighed between the two maps."""
+
+    def __init__(
+        self, partial: StoredMap, loaded: StoredMap, evidence_m: float | None, position_tolerance: float | None,
+        yaw_tolerance: float,
+    ) -> None:  # fmt: skip
+        a, b = partial.state, loaded.state
+        tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
+        spacing = map_spacing(loaded)
+        wanted = partial.params.merge_evidence_m if evidence_m is None else evidence_m
+        self.rule = EvidenceRule.for_map(spacing, tolerance, yaw_tolerance, wanted, 0.0)
+        cells = LocalViewCells.restore(partial.params, b)  # A's matcher over B's templates
+        b_pose = np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4)
+        p = partial.params
+        templates = np.asarray(b["em_template"], dtype=np.int64)
+        self.places = StoredPlaces(cells, b_pose, templates, p.vt_match_threshold, p.vt_panoramic, self.rule)
+        self.loaded = loaded
+        self.a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
+        self.views = (np.asarray(a["lv_templates"], dtype=np.float32), np.asarray(a["lv_means"], dtype=np.float64),
+                      np.asarray(a["em_template"], dtype=np.int64))  # fmt: skip
+        self.steps = np.zeros(self.a_pose.shape[0])
+        if self.a_pose.shape[0] > 1:
+            self.steps[1:] = np.linalg.norm(np.diff(self.a_pose[:, :3], axis=0), axis=1)
+            self.steps[self.steps > 3.0 * spacing] = 0.0  # a jump between A's sessions is no distance driven
+
+    def anchor(self, match: Match) -> int:
+        """Return A's experience nearest to where ``match``'s view was seen (the walk starts there)."""
+        return _anchor_experience(self.a_pose, match)
+
+    def weigh(self, match: Match) -> OfflineEvidence:
+        """Walk A's chain both ways from the match's anchor under its alignment; return the evidence."""
+        a_pose, steps = self.a_pose, self.steps
+        transform = offline_alignment(self.loaded, match)
+        outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
+        anchor = self.anchor(match)
+        for chain in (np.arange(anchor, a_pose.shape[0]), np.arange(anchor, -1, -1)):
+            _walk(self.places, transform, a_pose, self.views, chain, outcomes)
+        hit, miss = outcomes == HIT, outcomes == MISS
+        turn = 0.0
+        if hit.any():
+            offsets = wrap_angle(a_pose[hit, 3] - a_pose[hit, 3][0])
+            turn = float(np.max(offsets) - np.min(offsets))
+        return OfflineEvidence(
+            hit_m=float(steps[hit].sum()), miss_m=float(steps[miss].sum()),
+            unmapped_m=float(steps[~hit & ~miss].sum()), turn_rad=turn, evidence_m=self.rule.evidence_m,
+            miss_weight=self.rule.miss_weight, hits=int(hit.sum()), misses=int(miss.sum()),
+            agreeing=frozenset(np.flatnonzero(hit).tolist()),
+        )  # fmt: skip
 
 
 def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
@@ -190,9 +209,8 @@ def confirmed_offline_match(
         NoConfirmedMatchError: no confirmed run, none whose alignment stands, or no clear winner.
     """
     candidates = candidate_matches(a, b, confirm=confirm)[:20]
-    weighed = sorted(
-        ((weigh_offline_match(a, b, m, evidence_m=evidence_m), m) for m in candidates), key=lambda t: -t[0].score_m
-    )
+    test = _OfflineTest(a, b, evidence_m, None, DEFAULT_YAW_TOLERANCE)
+    weighed = sorted(((test.weigh(m), m) for m in candidates), key=lambda t: -t[0].score_m)
     best, match = weighed[0]
     if not best.passed:
         msg = (
@@ -201,10 +219,9 @@ def confirmed_offline_match(
             f"{match.confirmations} agreeing): {best.reason()}"
         )
         raise NoConfirmedMatchError(msg)
-    a_pose = np.asarray(a.state["em_pose"], dtype=np.float64).reshape(-1, 4)
     if best.evidence_m <= 0:  # the paper's rule: the best confirmed run merges
         return match, best
-    rivals = [ev.score_m for ev, m in weighed[1:] if _anchor_experience(a_pose, m) not in best.agreeing]
+    rivals = [ev.score_m for ev, m in weighed[1:] if test.anchor(m) not in best.agreeing]
     lead = best.score_m - max(rivals, default=0.0)
     if lead < 0.5 * best.evidence_m:
         msg = (

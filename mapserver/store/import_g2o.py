@@ -23,6 +23,7 @@ import numpy as np
 from mapserver.errors import InputError
 from mapserver.formats_g2o import read_g2o_vertices
 from mapserver.store.db import Database
+from mapserver.store.import_msr import ImportResult
 from mapserver.store.mapio import load_map, save_map
 
 FORMAT = "g2o"
@@ -30,26 +31,14 @@ MAX_TILT_RAD = 0.01
 
 
 @dataclass(frozen=True)
-class PosesImport:
+class PosesImport(ImportResult):
     """What ``import --format g2o`` changed: the map, its experience count and the largest move (m)."""
 
-    map: str
-    experiences: int
-    links: int
-    templates: int
-    max_shift_m: float
-    notes: tuple[str, ...]
+    max_shift_m: float = 0.0
 
     def summary(self) -> dict[str, Any]:
         """Return the ``import --json`` object (contract keys plus ``max_shift_m`` and ``notes``)."""
-        return {
-            "map": self.map,
-            "templates": self.templates,
-            "experiences": self.experiences,
-            "links": self.links,
-            "max_shift_m": self.max_shift_m,
-            "notes": list(self.notes),
-        }
+        return {**super().summary(), "max_shift_m": self.max_shift_m}
 
 
 def _poses_for_map(path: Path, stored: np.ndarray) -> tuple[np.ndarray, list[str]]:

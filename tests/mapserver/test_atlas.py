@@ -289,3 +289,12 @@ def test_the_last_stale_retry_holds_the_commit_gate(monkeypatch: pytest.MonkeyPa
     assert held == [False] * (pipeline.STALE_ATTEMPTS - 1) + [True]
     same = [commit_gate(type("Db", (), {"url": sa_url(u)})()) for u in (url, url, url + "x")]
     assert same[0] is same[1] and same[0] is not same[2]  # one gate per database
+
+
+def test_merge_evidence_must_be_minus_one_or_metres(tmp_path: Path) -> None:
+    """``merge --merge-evidence`` takes the parameter's values only: -1 (the map's scale) or ≥ 0 metres."""
+    db = f"sqlite:///{tmp_path / 'e.db'}"
+    code, err = cli_code("merge", "--db", db, "--map", "a", "--into", "b", "--merge-evidence", "-3")
+    assert code == 2 and "--merge-evidence must be -1 (the map's scale) or at least 0" in err
+    code, err = cli_code("merge", "--db", db, "--map", "a", "--into", "b", "--merge-evidence", "0")
+    assert code == 2 and "no map named 'a'" in err  # a valid value gets as far as reading the maps
