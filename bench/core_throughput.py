@@ -6,7 +6,7 @@ Pre-fills the engine with N templates (and one experience chain of N experiences
 one pose-cell link per template), then feeds synthetic camera frames of a textured
 corridor revisited every lap, with odometry, through ``Engine.step`` on one core
 (BLAS threads pinned to 1). The pre-filled templates are per-pixel noise around a
-level: the hardest case for the matcher's column-sum bound (real, spatially smooth
+level: the hardest case for the matcher's early break (real, spatially smooth
 templates are pruned sooner), so the figure is conservative. frames_per_s covers
 ``Engine.step`` only; the end-of-log ``settle()`` is timed separately.
 The last line of stdout is one JSON object:

@@ -7,15 +7,11 @@ optional global normalisation and patch normalisation. Matching compares the
 current view with every stored template at once (vectorised over templates),
 after the template-mean prefilter.
 
-Speed without changing the result: when a caller only needs to know whether
-some template is within a limit (``process`` asks for ``vt_match_threshold``),
-each (template, offset) pair is first bounded from below by its column sums,
-``Σ_x |Σ_y v − Σ_y t| ≤ Σ_x Σ_y |v − t|`` (triangle inequality), then the pairs
-that pass by the same bound over horizontal bands of rows (up to
-``BOUND_BANDS`` bands: ``Σ_b Σ_x |Σ_{y∈b} v − Σ_{y∈b} t|``, tighter and still a
-lower bound), and only pairs whose bounds are within the limit get the full
-comparison. OpenRatSLAM's early break inside the difference loop plays the same
-role there.
+Speed without changing the result: the comparison is OpenRatSLAM's own loop with its early break,
+compiled (:mod:`core._match_kernel`): a (template, offset) pair is abandoned as soon as its running
+sum exceeds the best so far (or ``vt_match_threshold`` when the caller only needs a match within it),
+after a column-sum lower bound ``Σ_x |Σ_y v − Σ_y t| ≤ Σ_x Σ_y |v − t|`` that rejects most pairs
+with one row's work. Neither shortcut changes the answer.
 
 Deliberate deviations from OpenRatSLAM (documented, not accidental):
 
@@ -36,14 +32,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from core._buffers import GrowBuffer, Scratch
+from core._buffers import GrowBuffer
+from core._match_kernel import best_pair, fixed_point_bits, quantise
 
 if TYPE_CHECKING:
     from core.config import Params
 
-BOUND_BANDS = 4  # row bands of the second matching bound (more bands: tighter bound, more work)
-FLOAT32_UNIT = 2.0**-24  # unit roundoff of float32
-SPLIT_MIN_ROWS = 16  # fewer templates than this left after the bounds: compare all rows in one pass
 
 
 class ImageError(ValueError):
@@ -104,41 +98,6 @@ def patch_normalise(values: np.ndarray, radius: int, min_std: float, flat: float
     return out
 
 
-def band_edges(rows: int, bands: int) -> np.ndarray:
-    """Return the row boundaries [0, …, rows] splitting ``rows`` into ``min(bands, rows)`` near-equal bands."""
-    count = max(1, min(bands, rows))
-    return (np.arange(count + 1) * rows) // count
-
-
-def band_sums(templates: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Return (N, bands, tx) float64: each template's column sums over the row bands ``edges[b]:edges[b+1]``."""
-    sizes = np.diff(edges)
-    if np.all(sizes == sizes[0]):  # equal bands: one reduction over a reshaped view
-        n, tx = templates.shape[0], templates.shape[2]
-        return templates.reshape(n, sizes.size, int(sizes[0]), tx).sum(axis=2, dtype=np.float64)
-    out = np.empty((templates.shape[0], edges.size - 1, templates.shape[2]), dtype=np.float64)
-    for band in range(edges.size - 1):  # a handful of bands, each summed over every template at once
-        templates[:, edges[band] : edges[band + 1], :].sum(axis=1, dtype=np.float64, out=out[:, band, :])
-    return out
-
-
-def offset_windows(a: np.ndarray, width: int, offsets: np.ndarray) -> np.ndarray:
-    """Return a read-only (…, len(offsets), width) view: window k is ``a[..., o_k : o_k + width]``.
-
-    ``offsets`` must be evenly spaced and ``a`` C-contiguous (a scratch buffer); the
-    same as ``sliding_window_view(a, width, axis=-1)[..., offsets, :]`` without its
-    per-call overhead, which dominates on the matcher's small arrays.
-    """
-    first = int(offsets[0])
-    stride = int(offsets[1] - offsets[0]) if offsets.size > 1 else 1
-    step = a.strides[-1]
-    shape = (*a.shape[:-1], int(offsets.size), width)
-    strides = (*a.strides[:-1], step * stride, step)
-    view = np.ndarray(shape, dtype=a.dtype, buffer=a, offset=first * step, strides=strides)
-    view.flags.writeable = False
-    return view
-
-
 class LocalViewCells:
     """Template store and matcher (OpenRatSLAM ``LocalViewMatch`` semantics)."""
 
@@ -146,12 +105,10 @@ class LocalViewCells:
         self.params = params
         self._templates = GrowBuffer((params.template_y_size, params.template_x_size), np.float32)
         self._means = GrowBuffer((), np.float64)
-        self._colsums = GrowBuffer((params.template_x_size,), np.float32)  # Σ_y per column (match bound)
-        self._band_edges = band_edges(params.template_y_size, BOUND_BANDS)
-        bands = self._band_edges.size - 1
-        self._bandsums = GrowBuffer((bands, params.template_x_size), np.float32)  # Σ_{y∈band} per column
-        self._peak = 0.0  # the largest |value| of any stored template (float32 slack of the bounds)
-        self._scratch = Scratch()
+        tx = params.template_x_size
+        self._span = 2 * tx - 1 if params.vt_panoramic else tx  # panoramic: first tx − 1 columns repeated
+        self._bits = fixed_point_bits(self._span, 1.0)
+        self._fixed = GrowBuffer((params.template_y_size, self._span), np.int32)  # the matcher's fixed point
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
@@ -176,15 +133,25 @@ class LocalViewCells:
         return self._means.view
 
     def add_templates(self, templates: np.ndarray, means: np.ndarray) -> None:
-        """Append templates with their means, column and band sums (new views, merge, restore, benchmarks)."""
+        """Append templates with their means and column sums (new views, merge, restore, benchmarks)."""
         stored = np.asarray(templates, dtype=np.float32)
         self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
-        bands = band_sums(stored, self._band_edges)
-        self._colsums.extend(bands.sum(axis=1))
-        self._bandsums.extend(bands)
-        if stored.size:
-            self._peak = max(self._peak, float(stored.max()), -float(stored.min()))
+        if stored.size and float(np.abs(stored).max()) > 1.0:  # values beyond [−1, 1]: fewer fixed-point bits
+            bits = fixed_point_bits(self._span, float(np.abs(stored).max()))
+            if bits < self._bits:
+                self._bits = bits
+                everything = self._templates.view
+                self._fixed = GrowBuffer(self._fixed.view.shape[1:], np.int32)
+                self._fixed.extend(self._to_fixed(everything[: len(everything) - len(stored)]))
+        self._fixed.extend(self._to_fixed(stored))
+
+    def _to_fixed(self, templates: np.ndarray) -> np.ndarray:
+        """Return templates (n, ty, tx) in the matcher's fixed point, panoramic ones widened to wrap."""
+        fixed = quantise(templates, self._bits)
+        if self._span > fixed.shape[-1]:
+            fixed = np.concatenate([fixed, fixed[..., : self._span - fixed.shape[-1]]], axis=-1)
+        return fixed
 
     # ------------------------------------------------------------- templates
     def make_template(self, image: np.ndarray) -> tuple[np.ndarray, float]:
@@ -261,23 +228,15 @@ class LocalViewCells:
             offsets = np.arange(0, 2 * shift + 1, step)
             width, start = tx - 2 * shift, shift
         norm = float(ty * width)
-        if limit is None:
-            rows = candidates
-            keep = np.ones((rows.size, offsets.size), dtype=bool)
-            limit_sum = math.inf
-        else:
-            limit_sum = limit * norm
-            limit_sum += 1e-5 * (1.0 + limit_sum)  # float32 sums: never drop a pair that could be within the limit
-            keep = self._bounded_pairs(view, candidates, offsets, width, start, limit_sum)
-            kept_rows = keep.any(axis=1)
-            rows = candidates[kept_rows]
-            keep = keep[kept_rows]
-            if rows.size == 0:
-                return -1, math.inf, 0.0
-        errors = self._errors(view, rows, keep, offsets, width, start, limit_sum) / norm  # (rows, offsets)
-        flat = int(np.argmin(errors))  # row-major (id, offset) order: the first minimum wins ties
-        row, col = divmod(flat, offsets.size)
-        error = float(errors[row, col])
+        unit = float(2**self._bits)
+        limit_sum = np.iinfo(np.int64).max
+        if limit is not None:  # plus one unit per value: the fixed point never drops a pair within the limit
+            limit_sum = math.floor(limit * norm * unit) + ty * width
+        fixed_view = quantise(view, self._bits)
+        row, col, total = best_pair(self._fixed.view, candidates, fixed_view, offsets, width, start, limit_sum)
+        if row < 0:
+            return -1, math.inf, 0.0
+        error = total / unit / norm
         if limit is not None and error > limit:
             return -1, math.inf, 0.0
         relative = 0.0
@@ -285,117 +244,7 @@ class LocalViewCells:
             relative = float(offsets[col]) / tx * 2.0 * math.pi
             if relative > math.pi:
                 relative -= 2.0 * math.pi
-        return int(rows[row]), error, relative
-
-    def _bounded_pairs(
-        self, view: np.ndarray, candidates: np.ndarray, offsets: np.ndarray, width: int, start: int, limit_sum: float
-    ) -> np.ndarray:
-        """Return the (candidates, offsets) mask of pairs whose lower bounds are ≤ ``limit_sum``.
-
-        First the column-sum bound ``Σ_x |Σ_y v − Σ_y t|``, then, for the templates
-        with a pair left, the band bound ``Σ_b Σ_x |Σ_{y∈b} v − Σ_{y∈b} t|``; neither
-        exceeds the summed absolute difference (triangle inequality). Both run in
-        float32 with the limit widened by a bound on float32 rounding, so a pair is
-        never dropped that exact arithmetic would keep.
-        """
-        view_cols = view.sum(axis=0, dtype=np.float64)[start : start + width]
-        keep = self._bound_below(self._colsums.view, candidates, view_cols, offsets, width, limit_sum, "col")
-        rows = np.flatnonzero(keep.any(axis=1))
-        if rows.size == 0:
-            return keep
-        view_bands = band_sums(view[None], self._band_edges)[0, :, start : start + width]
-        band_keep = self._bound_below(
-            self._bandsums.view, candidates[rows], view_bands, offsets, width, limit_sum, "band"
-        )
-        keep[rows] &= band_keep
-        return keep
-
-    def _bound_below(
-        self,
-        sums: np.ndarray,
-        rows: np.ndarray,
-        view_sums: np.ndarray,
-        offsets: np.ndarray,
-        width: int,
-        limit_sum: float,
-        name: str,
-    ) -> np.ndarray:
-        """Return the (rows, offsets) mask ``Σ |windows(sums[rows]) − view_sums| ≤ limit_sum`` (float32 sums).
-
-        ``sums`` holds per-template float32 partial sums (N, …, tx) over rows (one
-        band: column sums; several: band sums); ``view_sums`` the view's same sums over
-        the compared columns (…, width), float64. Panoramic templates wrap around by
-        repeating their first ``width − 1`` columns. Each of the m summed terms is
-        off by at most 2u·(|v| + |t|) (u = 2⁻²⁴: the two roundings to float32 and the
-        subtraction) and the summation by m·u·Σ more, so the limit is widened by
-        ``4(m + 2)·u·(Σ|v| + ty·width·peak)`` (peak: the largest stored |value|).
-        """
-        tx = self.params.template_x_size
-        inner = sums.shape[1:-1]
-        span = tx + width - 1 if self.params.vt_panoramic else tx
-        stored = self._scratch.get(name + "sums", (rows.size, *inner, span), np.float32)
-        np.take(sums, rows, axis=0, out=stored[..., :tx] if self.params.vt_panoramic else stored)
-        if self.params.vt_panoramic:
-            stored[..., tx:] = stored[..., : width - 1]
-        windows = offset_windows(stored, width, offsets)  # (n, …, offsets, width) view
-        diff = self._scratch.get(name + "diff", windows.shape, np.float32)
-        np.subtract(windows, view_sums.astype(np.float32)[..., None, :], out=diff)
-        np.abs(diff, out=diff)
-        bound = diff.sum(axis=-1).sum(axis=tuple(range(1, 1 + len(inner))))
-        terms = math.prod(inner) * width
-        magnitude = float(np.abs(view_sums).sum()) + self.params.template_y_size * width * self._peak
-        slack = 4.0 * (terms + 2) * FLOAT32_UNIT * magnitude
-        return bound <= limit_sum + slack
-
-    def _errors(
-        self,
-        view: np.ndarray,
-        rows: np.ndarray,
-        keep: np.ndarray,
-        offsets: np.ndarray,
-        width: int,
-        start: int,
-        limit_sum: float,
-    ) -> np.ndarray:
-        """Return Σ|view − template| (len(rows), len(offsets)) for the ``keep`` pairs; inf for the others.
-
-        With a finite ``limit_sum`` and more than ``SPLIT_MIN_ROWS`` templates the rows
-        are compared in two bands: a pair whose first-band sum already exceeds the
-        limit is dropped (its error is inf), the vectorised counterpart of
-        OpenRatSLAM's early break.
-        """
-        ty, tx = view.shape
-        panoramic = self.params.vt_panoramic
-        span = tx + width - 1 if panoramic else tx
-        # two bands pay off only when many rows reach this stage; for a few the second pass is pure overhead
-        split = ty // 2 if math.isfinite(limit_sum) and ty >= 2 and rows.size > SPLIT_MIN_ROWS else ty
-        bands = [(0, split), (split, ty)] if split < ty else [(0, ty)]
-        total = np.zeros(keep.shape, dtype=np.float64)
-        alive = keep.copy()
-        active = np.arange(rows.size)
-        for y0, y1 in bands:
-            h = y1 - y0
-            chunk = max(1, (1 << 19) // (h * offsets.size * width))  # ≤ 2 MB of differences at a time
-            for lo in range(0, active.size, chunk):
-                part = active[lo : lo + chunk]
-                n = part.size
-                stored = self._scratch.get("templates", (n, h, span), np.float32)
-                stored[:, :, :tx] = self._templates.view[rows[part], y0:y1, :]
-                if panoramic:
-                    stored[:, :, tx:] = stored[:, :, : width - 1]
-                # every offset at once: a (n, h, offsets, width) view of sliding windows, no copy
-                windows = offset_windows(stored, width, offsets)
-                diff = self._scratch.get("diff", (n, h, offsets.size, width), np.float32)
-                np.subtract(windows, view[y0:y1, None, start : start + width], out=diff)
-                np.abs(diff, out=diff)
-                row_sums = self._scratch.get("rowsums", (n, h, offsets.size), np.float32)
-                np.sum(diff, axis=3, out=row_sums)
-                total[part] += row_sums.sum(axis=1, dtype=np.float64)
-            alive[active] &= total[active] <= limit_sum
-            active = active[alive[active].any(axis=1)]
-            if active.size == 0:
-                break
-        return np.where(alive, total, math.inf)
+        return int(candidates[row]), error, relative
 
     def process(self, image: np.ndarray) -> tuple[int, float, bool]:
         """Match ``image`` or store it as a new template; return (id, relative_rad, created)."""

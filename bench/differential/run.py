@@ -12,7 +12,9 @@ feeds the same images and per-frame odometry to both engines: ours through ``Eng
 OpenRatSLAM's through our driver (``driver.cpp``: the ROS nodes' call order, see its header). It prints
 per-frame agreement (template id, experience id, action, pose-cell peak), the final experience poses'
 difference, both APEs against ground truth (xy; OpenRatSLAM has no z), and both engines' SLAM frames/s.
-``--compat`` runs our engine with ``openratslam_compat = true``; ``--record DIR`` writes OpenRatSLAM's
+``--compat`` runs our engine with ``openratslam_compat = true``; ``--from-ini`` runs it with the parameters
+of the INI file that OpenRatSLAM reads and our defaults for everything else (what ``mapserver process LOG
+--config ratslam.ini`` does: a user's OpenRatSLAM config, unchanged); ``--record DIR`` writes OpenRatSLAM's
 trace and final poses as CSV (ids and numbers) for the tests. The script fetches nothing.
 """
 
@@ -32,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cxx import CxxRun, FrameWriter, HarnessError, angle_diff, build_driver, run_driver, wrapped, write_ini
 
 from core import Engine, Params, preset
+from core.config import load_config
 from mapserver.evaluation import ape_positions, interpolate_poses
 from mapserver.formats import read_tum
 from mapserver.ingest.reader import open_log
@@ -140,13 +143,15 @@ def one(scenario: str, args: argparse.Namespace, binary: Path, work: Path) -> No
     folder = work / scenario
     meta = simulate(scenario, folder)
     params = preset(meta["preset"]).replace(**dict(item.split("=", 1) for item in args.param))
-    if args.compat:
-        params = params.replace(openratslam_compat=True)
     log, gt = folder / "single.bag", folder / "single.tum"
-    writer = FrameWriter(folder / "frames.bin", _count(log))
-    ours, engine, ours_fps = run_ours(log, params, writer)
     ini = folder / "ratslam.ini"
     write_ini(params, ini)
+    if args.from_ini:
+        params = load_config(ini)
+    if args.compat:
+        params = params.replace(openratslam_compat=True)
+    writer = FrameWriter(folder / "frames.bin", _count(log))
+    ours, engine, ours_fps = run_ours(log, params, writer)
     cxx = run_driver(binary, ini, folder / "frames.bin", folder / "cxx")
     stats = compare(ours, cxx, engine, params)
     if not args.compat:
@@ -155,7 +160,7 @@ def one(scenario: str, args: argparse.Namespace, binary: Path, work: Path) -> No
     stamps = np.asarray(engine.snapshot()["em_stamp"])
     ape_ours = ape_xy(stamps, poses[:, :2], gt)
     ape_cxx = ape_xy(cxx_stamps(cxx, ours["stamp"]), cxx.experiences[:, :2], gt)
-    mode = "compat" if args.compat else "default"
+    mode = ("compat" if args.compat else "default") + (", from the INI" if args.from_ini else "")
     print(f"== {scenario} ({meta['preset']}, {mode}, {stats['frames']} frames)")
     for key, value in stats.items():
         print(f"   {key}: {value:.6g}" if isinstance(value, float) else f"   {key}: {value}")
@@ -177,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", default=",".join(SCENARIOS))
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--compat", action="store_true", help="our engine with openratslam_compat = true")
+    parser.add_argument("--from-ini", action="store_true", help="our engine from OpenRatSLAM's INI (our defaults)")
     parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="override a parameter")
     parser.add_argument("--record", default=None, help="write OpenRatSLAM's traces as CSV here")
     args = parser.parse_args(argv)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.config import Params
-from core.localview import LocalViewCells, band_edges, offset_windows, patch_normalise
+from core.localview import LocalViewCells, patch_normalise
 
 # grey levels of a 4 × 6 test image; the RGB version is (g − 9, g, g + 9), whose channel mean is g
 GREY = np.array(
@@ -249,23 +249,19 @@ def test_process_matches_or_creates() -> None:
     assert back.process(other) == (1, 0.0, False)  # the restored store (and its match bound) matches as before
 
 
-def test_band_edges_split_rows_into_near_equal_bands() -> None:
-    assert band_edges(20, 4).tolist() == [0, 5, 10, 15, 20]
-    assert band_edges(10, 4).tolist() == [0, 2, 5, 7, 10]
-    assert band_edges(3, 4).tolist() == [0, 1, 2, 3]  # never more bands than rows
-    assert band_edges(1, 4).tolist() == [0, 1]
-
-
-@settings(max_examples=25, deadline=None)
-@given(rows=st.integers(1, 4), cols=st.integers(3, 12), data=st.data())
-def test_offset_windows_equal_sliding_windows(rows: int, cols: int, data: st.DataObject) -> None:
-    width = data.draw(st.integers(1, cols))
-    stride = data.draw(st.integers(1, 3))
-    first = data.draw(st.integers(0, cols - width))
-    offsets = np.arange(first, cols - width + 1, stride)
-    a = np.arange(rows * cols, dtype=np.float64).reshape(rows, cols)
-    want = np.lib.stride_tricks.sliding_window_view(a, width, axis=1)[:, offsets, :]
-    got = offset_windows(a, width, offsets)
-    assert got.shape == want.shape
-    assert np.array_equal(got, want)
-    assert not got.flags.writeable
+def test_templates_beyond_unit_range_are_matched_after_a_fixed_point_rescale() -> None:
+    """A template with values up to 3 (an imported map, not ours) lowers the fixed point's bits for all."""
+    rng = np.random.default_rng(7)
+    cells = _cells(template_x_size=60, template_y_size=2, vt_shift_match=2, vt_step_match=1, vt_match_threshold=0.05)
+    small = rng.uniform(0.2, 0.8, (2, 60)).astype(np.float32)
+    _store(cells, [small])
+    assert cells._bits == 24
+    large = (3.0 * rng.uniform(0.2, 0.9, (2, 60))).astype(np.float32)
+    _store(cells, [large])
+    assert cells._bits == 22  # 60 columns of differences up to 2·2.7 must fit a row sum in int32
+    for index, stored in ((0, small), (1, large)):
+        view = stored.copy()
+        view[:, 2:58] += 0.01  # every compared value off by 0.01
+        best, error, _ = cells.match(view, float(stored.mean()))
+        assert best == index
+        assert error == pytest.approx(0.01, abs=1e-5)

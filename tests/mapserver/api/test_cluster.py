@@ -100,7 +100,7 @@ def test_a_worker_killed_mid_job_is_replaced_and_the_job_stored_once(cluster: Cl
     cluster.start_api("api")
     cluster.wait_api("api")
     cluster.wait_workers("api", ["w1", "w2"])
-    log = write_strip_log(tmp_path / "logs" / "long.bag", laps=14.0)
+    log = write_strip_log(tmp_path / "logs" / "long.bag", laps=40.0)
     job = cluster.upload("api", log, preset="irat")["job"]
     deadline = time.monotonic() + 60
     state: dict[str, Any] = {}

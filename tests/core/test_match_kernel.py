@@ -1,0 +1,54 @@
+"""The compiled matching kernel against its numpy twin and a plain loop (core._match_kernel)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core._match_kernel import _best_pair_numpy, _compiled, fixed_point_bits, quantise
+
+
+def _loop_reference(templates, rows, view, offsets, width, start, limit_sum):  # type: ignore[no-untyped-def]
+    """Every pair summed in Python integers; the first strict minimum within the limit wins."""
+    best, where = None, (-1, -1, -1)
+    for i, r in enumerate(rows.tolist()):
+        for j, o in enumerate(offsets.tolist()):
+            total = int(np.abs(view[:, start : start + width].astype(np.int64)
+                               - templates[r, :, o : o + width].astype(np.int64)).sum())
+            if total <= limit_sum and (best is None or total < best):
+                best, where = total, (i, j, total)
+    return where
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 12), ty=st.integers(1, 5), tx=st.integers(3, 14),
+       limit=st.sampled_from([0, 5, 40, 10**12]), duplicates=st.booleans())  # fmt: skip
+def test_kernel_numpy_and_loop_give_the_same_pair(seed: int, n: int, ty: int, tx: int, limit: int,
+                                                  duplicates: bool) -> None:  # fmt: skip
+    rng = np.random.default_rng(seed)
+    templates = rng.integers(0, 6, (n, ty, tx)).astype(np.int32)  # small values: many exact ties
+    if duplicates:
+        templates[n // 2 :] = templates[0]
+    shift = (tx - 1) // 2 if tx > 2 else 0
+    shift = min(shift, 2)
+    width = tx - 2 * shift
+    offsets = np.arange(0, 2 * shift + 1)
+    rows = np.sort(rng.choice(n, size=rng.integers(1, n + 1), replace=False)).astype(np.int64)
+    view = templates[int(rng.integers(n))].copy()
+    view += rng.integers(-1, 2, view.shape).astype(np.int32)
+    want = _loop_reference(templates, rows, view, offsets, width, shift, limit)
+    assert _best_pair_numpy(templates, rows, view, offsets, width, shift, limit) == want
+    assert tuple(int(v) for v in _compiled()(templates, rows, view, offsets, width, shift, limit)) == want
+
+
+def test_fixed_point_keeps_float32_precision_and_fits_int32_rows() -> None:
+    assert fixed_point_bits(60, 1.0) == 24  # 60 columns of differences ≤ 1: 60·2^25 < 2^31
+    assert fixed_point_bits(200, 1.0) == 22
+    assert fixed_point_bits(60, 8.0) == 21  # values up to 8 (not from our templates): fewer bits
+    values = np.array([0.0, 1.0, 0.5, 2.0**-24, 0.123456789], dtype=np.float32)
+    q = quantise(values, 24)
+    assert q.tolist()[:4] == [0, 2**24, 2**23, 1]
+    assert abs(q[4] / 2**24 - float(values[4])) <= 2.0**-25
+    worst = 2**24 * 60 * 2  # |difference| ≤ 2^24 per value over 60 columns twice over: still int32
+    assert worst < 2**31
