@@ -40,6 +40,7 @@ from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots, merg
 from mapserver.merge.identity import RowIdentities, next_index_from_table
 from mapserver.merge.offline_evidence import confirmed_offline_match
 from mapserver.merge.provenance import match_from_dict, match_to_dict, record_summary, transform7
+from mapserver.merge.relevance import ViewLog
 from mapserver.merge.resume import MergerState, merger_keys
 from mapserver.merge.snapshot import params_incompatibility
 from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, find_map, get_map
@@ -159,25 +160,47 @@ def merge_candidates(
 
 
 def ensure_candidates_unchanged(
-    conn: Connection, *, params: Params, exclude: int | None, seen: Mapping[int, int]
+    conn: Connection,
+    *,
+    params: Params,
+    exclude: int | None,
+    seen: Mapping[int, int],
+    relevance: tuple[set[object], ViewLog] | None = None,
 ) -> None:
-    """Raise ``StaleMapError`` when the maps a session may merge into are no longer those it was matched against.
+    """Raise ``StaleMapError`` when the maps a session may merge into changed in a way that can matter to it.
 
     Call it in the session's write transaction after :func:`mapserver.store.lock_atlas`. A session is
     matched, frame by frame, against the candidates read when it started (``seen``: map id → version).
     If since then a map became a candidate (another session finished concurrently: its map is new, or
     its partial session completed) or a candidate changed, the session may connect to maps it never
     saw; the pipeline processes it again against the atlas as it is now, so sessions processed in
-    parallel still merge with each other.
+    parallel still merge with each other. With ``relevance`` (the session's observed map ids and its
+    views, :mod:`mapserver.merge.relevance`), changes to maps it never observed and whose templates none
+    of its views meets are let through: its run is what it would have been against the atlas as it is now.
     """
     now, _skipped = _eligible_maps(conn, params=params, exclude=exclude)
     if now == dict(seen):
         return
     differing = {k for k in now.keys() | seen.keys() if now.get(k) != seen.get(k)}
+    if relevance is not None and not any(_matters(conn, k, k in now, params, *relevance) for k in sorted(differing)):
+        logger.info("maps %s changed while the session ran; none of its views meets them: stored without a rerun",
+                    sorted(differing))  # fmt: skip
+        return
     names = dict(conn.execute(select(Map.id, Map.name).where(Map.id.in_(differing))).all())
     changed = sorted(names.get(k, str(k)) for k in differing)
     msg = f"the maps this session may merge into changed while it was processed ({', '.join(map(repr, changed))})"
     raise StaleMapError(msg)
+
+
+def _matters(
+    conn: Connection, map_id: int, exists: bool, params: Params, observed: set[object], views: ViewLog
+) -> bool:
+    """Return whether a changed map can change the session's run: observed by it, or met by one of its views."""
+    if map_id in observed:
+        return True
+    if not exists:  # it left the candidates: a map the session never observed cannot have steered it
+        return False
+    return views.any_match(np.asarray(read_map_state(conn=conn, map_id=map_id).snapshot["lv_templates"]), params)
 
 
 # ------------------------------------------------------------------------------------------------ writing

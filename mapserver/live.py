@@ -22,6 +22,7 @@ from core import Action, Engine, Params, StepResult
 from mapserver.merge import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.identity import RowIdentities
 from mapserver.merge.provenance import match_to_dict, record_summary
+from mapserver.merge.relevance import ViewLog
 
 logger = logging.getLogger(__name__)
 
@@ -93,6 +94,8 @@ class LiveSession:
     pending: list[PendingMerge] = field(default_factory=list)
     activations: list[tuple[float, int, int, float]] = field(default_factory=list)
     """Per frame: stamp, the active template's identity (origin tag, origin index; −1, −1 for none), created."""
+    views: ViewLog | None = None
+    """Every frame's view, when merging (the stale check's relevance test, :mod:`mapserver.merge.relevance`)."""
 
     @property
     def applied(self) -> list[PendingMerge]:
@@ -110,6 +113,8 @@ class LiveSession:
         if result.action == Action.CREATE_NODE:
             self.collector.experience(holder.ids.experience_identity(result.experience)[1], stamp)
         self.reckoning.add(stamp, result.motion)
+        if self.views is not None:
+            self.views.add(holder.engine.local_view.last_view)
         if self.merger is None:
             return None
         event = self.merger.observe(holder.engine, result, frame)

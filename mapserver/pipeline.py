@@ -178,6 +178,7 @@ def _process_session(
     """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
     from mapserver.live import Holder, LiveSession
     from mapserver.merge import OnlineMerger
+    from mapserver.merge.relevance import ViewLog
     from mapserver.store.evidence import EvidenceCollector
 
     name = opts.map_name or _log_stem(log_path)
@@ -200,6 +201,7 @@ def _process_session(
     live = LiveSession(
         holder=holder, tag=tag, start=start, merger=merger, targets={c.id: c for c in candidates},
         collector=EvidenceCollector(params.sync_stale_sec), reckoning=reckoning,
+        views=ViewLog(complete=start == 0) if opts.merge else None,
     )  # fmt: skip
     run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step)
     engine, ids = run.engine, live.holder.ids
@@ -221,6 +223,7 @@ def _process_session(
         merger=merger if not complete else None, candidates=candidates, processed=processed, total=total,
         stamps=live.stamps, collector=live.collector, stored_rows=read.rows, reckoning=reckoning,
         frames_run=run.frames, activations=(read.activations, live.activation_rows),
+        relevance=(set() if merger is None else merger.observed, live.views),
     )  # fmt: skip
 
 
@@ -347,6 +350,7 @@ def _store_session(
     reckoning: DeadReckoning,
     frames_run: int,
     activations: tuple[np.ndarray | None, Any],
+    relevance: tuple[set[object], Any],
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
@@ -374,6 +378,7 @@ def _store_session(
             atlas.ensure_candidates_unchanged(
                 conn, params=params, exclude=None if own is None else own.id,
                 seen={c.id: c.version for c in candidates},
+                relevance=relevance if relevance[1] is not None and processed >= total else None,
             )  # fmt: skip
         session_id = _write_session_row(conn, log_path, params, identity, session, progress, activations)
         tags = {NEW_SESSION_ORIGIN: session_id} if session is None else {}

@@ -185,6 +185,9 @@ class OnlineMerger:
         self._before_merge: list[_Candidate] = []
         self.skipped: dict[object, str] = {}
         self.absorbed: list[object] = []
+        self.observed: set[object] = set()
+        """Keys of the stored maps a frame's view matched (or that were merged into): the maps whose changes
+        can change this session's decisions (:mod:`mapserver.merge.relevance`)."""
         self.events: list[MergeEvent] = []
         self.rollbacks: list[Rollback] = []
         self.probation: Probation | None = None
@@ -268,6 +271,7 @@ class OnlineMerger:
             found = None
             if u >= 0 and error <= threshold:
                 found = self._observation(candidate, engine, result.frame, u, error, rel)
+                self.observed.add(candidate.stored.key)
             candidate.hypotheses.update(self._track, found, u if error <= threshold else -1)
         needed = self._confirm if self._confirm is not None else engine.params.merge_confirm
         decision = decide({c.stored.key: c.hypotheses for c in self._candidates}, needed)
@@ -316,6 +320,7 @@ class OnlineMerger:
         self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult, frame: Any
     ) -> MergeEvent:
         """Apply Algorithm 1 with the winning hypothesis's anchor and pairs; start its probation."""
+        self.observed.add(candidate.stored.key)
         anchor = winner.anchor
         pose = self._robot_pose(engine, anchor.odometry)
         match = Match(

@@ -244,6 +244,34 @@ def test_two_sessions_processed_at_once_still_merge(tour: Path, db_url: str) -> 
     assert [(e.mode, e.status) for e in events] == [("online", "applied")]
 
 
+def test_sessions_of_unrelated_worlds_processed_at_once_are_stored_without_a_rerun(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The pair of the test above: the second writer finds a new map, but none of its views meets that map's
+    templates (two strip worlds of different textures), so its run stands (mapserver.merge.relevance)."""
+    logs = [write_strip_log(tmp_path / f"w{seed}.bag", seed=seed) for seed in (11, 19)]
+    url = f"sqlite:///{tmp_path / 'atlas.db'}"
+    barrier = threading.Barrier(2, timeout=60)
+
+    def run(log: Path) -> Any:
+        met: list[bool] = []
+
+        def meet(_done: int, _total: int) -> None:
+            if not met:
+                met.append(True)
+                barrier.wait()
+
+        return pipeline.process_into_store(log, preset("irat"), db_url=url, progress=meet)
+
+    with caplog.at_level(logging.INFO), ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(run, logs))
+    assert "processing the log again" not in caplog.text
+    assert "none of its views meets them: stored without a rerun" in caplog.text
+    assert [len(r.merges) for r in results] == [0, 0]
+    with open_database(url) as db:
+        assert row_counts(db)["maps"] == 2 and row_counts(db)["sessions"] == 2
+
+
 def test_a_processed_log_is_hashed_once(tour: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     original = MissionLog.sha256
     hashed: list[str] = []
