@@ -55,7 +55,7 @@ from mapserver.store.merge_events import (
 )
 from mapserver.store.models import Evidence, Experience, Map, Template
 from mapserver.store.sessions import get_reckoning, get_sessions, sessions_of_map, update_session
-from mapserver.store.state import WriteResult, read_map_state, write_map_state
+from mapserver.store.state import WriteResult, read_map_state, read_map_templates, write_map_state
 
 logger = logging.getLogger(__name__)
 
@@ -200,7 +200,7 @@ def _matters(
         return True
     if not exists:  # it left the candidates: a map the session never observed cannot have steered it
         return False
-    return views.any_match(np.asarray(read_map_state(conn=conn, map_id=map_id).snapshot["lv_templates"]), params)
+    return views.any_match(read_map_templates(conn=conn, map_id=map_id), params)
 
 
 # ------------------------------------------------------------------------------------------------ writing

@@ -741,6 +741,19 @@ def _column_block(rows: Sequence[Any], columns: int) -> np.ndarray:
     return np.array(rows, dtype=np.float64).reshape(-1, columns)
 
 
+def read_map_templates(*, conn: Connection, map_id: int) -> np.ndarray:
+    """Return a stored map's templates (N, ty, tx) float32 in id order, without the rest of its state."""
+    rows = fetch_tuples(
+        conn,
+        select(Template.height, Template.width, Template.data).where(Template.map_id == map_id)
+        .order_by(Template.local_id),
+    )  # fmt: skip
+    if not rows:
+        return np.zeros((0, 0, 0), dtype=np.float32)
+    h, w = int(rows[0][0]), int(rows[0][1])
+    return np.frombuffer(b"".join(r[2] for r in rows), dtype="<f4").reshape(len(rows), h, w)
+
+
 def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     """Load a map's state exactly as :func:`write_map_state` stored it.
 

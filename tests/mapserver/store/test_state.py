@@ -63,6 +63,17 @@ def test_engine_snapshot_round_trip_is_exact(db: Database, engine: Engine) -> No
     assert_same_arrays(original.snapshot(), restored.snapshot(), skip=("lv_origin", "em_origin"))
 
 
+def test_templates_alone_read_as_in_the_whole_state(db: Database, engine: Engine) -> None:
+    """``read_map_templates`` (the stale check's relevance test reads only these) equals the state's lv_templates."""
+    from mapserver.store.state import read_map_templates
+
+    written = save_map(db, name="lab", params=engine.params, snapshot=engine.snapshot(), sessions=[_session()])
+    with db.read() as conn:
+        templates = read_map_templates(conn=conn, map_id=written.map_id)
+    assert templates.shape[0] == engine.template_count > 1
+    assert np.array_equal(templates, engine.snapshot()["lv_templates"])
+
+
 def test_saving_a_loaded_map_again_is_the_identity(db: Database, engine: Engine) -> None:
     save_map(db, name="lab", params=engine.params, snapshot=engine.snapshot(), sessions=[_session()])
     first = load_map(db, name="lab")
