@@ -119,7 +119,8 @@ def process_into_store(
             exists and the log is not one of its sessions).
         topics: topic overrides.
         merge: merge online into the stored maps the session connects to; False keeps it a separate map.
-        stop_after: stop when the session has processed this many frames in total (resume later).
+        stop_after: stop when the session has processed this many frames in total (resume later); a merge
+            on probation then is verified first (the session stops when its probation concludes).
         out: also write the map JSON here.
         progress: ``progress(done, total)`` callback.
         confirm: K, consecutive matching frames that confirm a merge (None: ``params.merge_confirm``).
@@ -203,7 +204,9 @@ def _process_session(
         collector=EvidenceCollector(params.sync_stale_sec), reckoning=reckoning,
         views=ViewLog(complete=start == 0) if opts.merge else None,
     )  # fmt: skip
-    run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step)
+    on_probation = None if merger is None or opts.stop_after is None else lambda: merger.probation is not None
+    run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step,
+                     overrun=on_probation)  # fmt: skip
     engine, ids = run.engine, live.holder.ids
     if run.frames == 0 and own is None:
         msg = f"{log_path}: the camera topic has no frames"

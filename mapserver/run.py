@@ -89,8 +89,13 @@ def run_engine(
     stop: int | None = None,
     progress: ProgressCallback | None = None,
     on_step: StepHook | None = None,
+    overrun: Callable[[], bool] | None = None,
 ) -> EngineRun:
     """Feed frames ``[start, stop)`` of a log through ``engine`` and return the run.
+
+    ``overrun()``, when given, is asked at ``stop`` and after every later frame: while it answers True the run
+    goes on past ``stop`` (to the log's end at most) — a session stopped during a merge's probation runs on
+    until the probation concludes, so that no stored merge is left unverified.
 
     ``log`` is a path (opened here) or a log opened by the caller (its SHA-256 is then computed at
     most once, whoever asks first). ``on_step(frame, result)`` is called after every frame (the
@@ -104,7 +109,9 @@ def run_engine(
         end = total if stop is None else min(stop, total)
         reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
         count = 0
-        for frame in opened.frames(start, end):
+        for frame in opened.frames(start, total if overrun is not None else end):
+            if start + count >= end and (overrun is None or not overrun()):
+                break
             stamp = frame.stamp_ns * 1e-9
             try:
                 result = engine.step(frame.image, frame.motion, stamp)
@@ -118,7 +125,7 @@ def run_engine(
                     engine = swapped
             count += 1
             if progress is not None:
-                progress(count, end - start)
+                progress(count, max(end - start, count))
         info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total}
     return EngineRun(engine, count, reckoning, info)
 

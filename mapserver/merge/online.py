@@ -33,8 +33,10 @@ map remains.
 Resume: :meth:`OnlineMerger.export_state` returns what the driver carries from frame to frame
 (the session's odometry, the maps absorbed, the recent track, the hypotheses) as a
 :class:`MergerState`; ``OnlineMerger(..., resume=state)`` continues from it, so a session
-stopped after frame k and continued gives the merges of one run. A probation still running when
-the session stops ends there (its merge stays, recorded with verification ``incomplete``).
+stopped after frame k and continued gives the merges of one run. ``process --stop-after`` runs on
+past k while a probation runs (``mapserver.run.run_engine``'s ``overrun``), so a stored merge is
+always verified; a probation still running when the log ends ends there (its merge stays, recorded
+with verification ``incomplete``: the log holds no more evidence).
 """
 
 from __future__ import annotations

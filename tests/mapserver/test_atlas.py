@@ -63,7 +63,11 @@ def test_resuming_a_merging_session_equals_one_run(tour: Path, db_url: str, make
     second = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=split)
     assert [m["frame"] for m in first.merges + second.merges] == [merge_frame]
     assert first.map_name == ("session2" if stop <= merge_frame else "session1") and second.map_name == "session1"
-    assert second.summary()["frames_per_s"] is not None and second.frames_run == whole.frames - stop
+    assert first.frames_run >= stop and second.frames_run == whole.frames - first.frames_run
+    assert second.summary()["frames_per_s"] is not None
+    # a stop inside the probation moves to its end: the stored merge is verified as in one run, never "incomplete"
+    verified = [m["evidence"]["verification"]["status"] for m in first.merges + second.merges]
+    assert verified == [whole.merges[0]["evidence"]["verification"]["status"]] == ["passed"]
     assert_same_arrays(_snapshot(db_url, "session1"), _snapshot(split, "session1"))
     with open_database(db_url) as a, open_database(split) as b:
         assert row_counts(a)["experiences"] == row_counts(b)["experiences"]
