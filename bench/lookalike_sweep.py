@@ -1,6 +1,6 @@
 """False and true merges of the merge decision on the look-alike scenarios (issue 12), swept over strength.
 
-Usage: python bench/lookalike_sweep.py [--out DIR] [--seeds 3] [--rows twin:5,twin:10,...]
+Usage: python bench/lookalike_sweep.py [--out DIR] [--seeds 3] [--rows twin:5,twin:10,...] [--param K=V,...]
 
 Each row is ``SCENARIO`` or ``SCENARIO:STRENGTH`` (``lookalike_m`` for twin, ``symmetric_deg`` for
 symmetric). Per seed it runs the contract's commands: ``mapserver simulate SCENARIO --out D --seed N
@@ -84,7 +84,9 @@ def _local_error(directory: Path, doc: dict, s1: dict, s2: dict, stamp: float, w
     return round(float(np.median(errors)), 3)
 
 
-def run_once(out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float) -> dict:
+def run_once(
+    out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float, extra: str = ""
+) -> dict:
     """Simulate one seed of a row, process its two sessions into one database, classify the merges.
 
     A merge counts as surviving when its status is ``applied``; ``rejected`` ones were rolled back by their
@@ -94,8 +96,10 @@ def run_once(out: Path, scenario: str, strength: float | None, seed: int, tol_m:
     """
     directory = out / f"{scenario}-{strength if strength is not None else 'default'}-seed{seed}"
     argv = ["simulate", scenario, "--out", str(directory), "--seed", str(seed)]
-    if strength is not None:
-        argv += ["--param", f"{STRENGTH[scenario]}={strength}"]
+    given = [f"{STRENGTH[scenario]}={strength}"] if strength is not None else []
+    given += [extra] if extra else []
+    if given:
+        argv += ["--param", ",".join(given)]
     doc = cli_json(*argv)
     db = f"sqlite:///{directory / 'db.sqlite'}"
     s1, s2 = doc["sessions"][:2]
@@ -135,13 +139,14 @@ def main() -> None:
     parser.add_argument("--rows", default=DEFAULT_ROWS)
     parser.add_argument("--tol-m", type=float, default=5.0)
     parser.add_argument("--tol-deg", type=float, default=30.0)
+    parser.add_argument("--param", default="", help="more simulator parameters for every row, e.g. lookalike_turns=1")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="lookalike-"))
     figures: dict[str, Any] = {}
     for row in args.rows.split(","):
         scenario, _, value = row.partition(":")
         strength = float(value) if value else None
-        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg)
+        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param)
                 for seed in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
         surviving = sum(any(m["false"] and m["status"] == "applied" for m in r["merges"]) for r in runs)
         rolled = sum(any(m["false"] and m["status"] == "rejected" for m in r["merges"]) for r in runs)

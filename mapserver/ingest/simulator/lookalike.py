@@ -5,7 +5,12 @@
 "H", :func:`~.scenarios._alias_structure`: the same walls with the same textures) that holds a straight
 look-alike stretch ``lookalike_m`` metres long, driven eastwards in both places. Along the stretch the two
 places look the same up to the per-visit noise, and the odometry of a straight drive agrees; outside the
-structure the places differ (their own scattered walls and boxes, their own loop shapes). ``session1``
+structure the places differ (their own scattered walls and boxes, their own loop shapes). By default place 2
+is driven clockwise: it enters the structure by the other legs, so only the straight stretch looks alike.
+``lookalike_turns = 1`` drives place 2 counter-clockwise like place 1: both come down the same leg, turn
+left onto the stretch and left again up the other leg, so the look-alike part holds two quarter turns
+(180° of heading change) — the case the merge decision's turn rule cannot tell apart, where only the
+probation can. ``session1``
 maps place 1: it starts ``lead_m`` before its stretch and drives ``session1_laps`` of a lap, so its map
 begins with the stretch. ``session2`` starts ``approach_m`` before a stretch and drives ``session2_laps``
 laps: in ``twin`` it drives place 2 (every merge with session 1 is false); in ``twin-overlap`` it drives
@@ -67,6 +72,7 @@ TWIN_SEPARATION_M = 20.0
 
 TWIN_DEFAULTS = {
     "lookalike_m": 20.0,
+    "lookalike_turns": 0.0,
     "lead_m": 2.0,
     "approach_m": 30.0,
     "session1_laps": 0.6,
@@ -77,7 +83,7 @@ TWIN_DEFAULTS = {
 def _twin_layout(
     seed: int, scale: float, params: dict[str, float]
 ) -> tuple[WorldBuilder, Route, Route, dict[str, Any]]:
-    """Build the twin world: place 1 (west, counter-clockwise loop) and place 2 (east, clockwise).
+    """Build the twin world: place 1 (west, counter-clockwise loop), place 2 (east, clockwise or, turns alike, ccw).
 
     Returns:
         The world builder, the routes of place 1 and place 2 (each starting at the middle of its stretch,
@@ -93,12 +99,16 @@ def _twin_layout(
         if params[key] <= 0:
             msg = f"{key} must be > 0, got {params[key]!r}"
             raise InputError(msg)
+    if params["lookalike_turns"] not in (0.0, 1.0):
+        msg = f"lookalike_turns must be 0 or 1, got {params['lookalike_turns']!r}"
+        raise InputError(msg)
+    same_turns = params["lookalike_turns"] == 1.0
     half_span = (stretch / 2 + 2 * ALIAS_TURN_RADIUS + ALIAS_EXIT) * scale
     centre_1 = (-(half_span + TWIN_SEPARATION_M * scale), 0.0)
     centre_2 = (half_span + TWIN_SEPARATION_M * scale, 0.0)
     notch = {"corner": 3.0 * scale, "notch_depth": ALIAS_LEG * scale, "notch_radius": ALIAS_TURN_RADIUS * scale}
     place_1 = routes.notched_loop(centre_1, stretch, side=6.0 * scale, height=8.0 * scale, ccw=True, **notch)
-    place_2 = routes.notched_loop(centre_2, stretch, side=5.0 * scale, height=11.0 * scale, ccw=False,
+    place_2 = routes.notched_loop(centre_2, stretch, side=5.0 * scale, height=11.0 * scale, ccw=same_turns,
                                   **notch)
     reach = half_span + 1.5 * scale
     discs = ((centre_1[0], centre_1[1], reach), (centre_2[0], centre_2[1], reach))

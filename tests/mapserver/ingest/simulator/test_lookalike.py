@@ -67,6 +67,22 @@ def test_twin_places_look_the_same_exactly_along_the_stretch(stretch: float) -> 
     assert diff[outside].min() > DIFFERENT
 
 
+def test_twin_with_turns_alike_looks_the_same_through_both_turns() -> None:
+    """``lookalike_turns = 1``: both places turn onto and off the stretch the same way, so the identical views
+    reach into the legs; the route's heading changes by ≥ 90° over them (the decision's turn rule needs 45°)."""
+    stretch = 5.0
+    plan = _plan("twin", 1, lookalike_m=stretch, lookalike_turns=1.0)
+    offsets = np.arange(-6.0, stretch + 6.0 + 1e-9, STEP)
+    diff = _stretch_differences(plan, stretch, offsets)
+    same = offsets[diff < ALIKE]
+    assert same.min() < -2.0 and same.max() > stretch + 2.0  # well beyond the straight stretch (±1.5 m above)
+    route = plan.sessions[0].spec.route
+    headings = np.unwrap([route.heading(-stretch / 2 + float(u)) for u in same])
+    assert headings.max() - headings.min() >= math.radians(90)
+    with pytest.raises(InputError, match="lookalike_turns"):
+        plan_scenario("twin", params={"lookalike_turns": 0.5})
+
+
 def test_twin_places_differ_away_from_the_stretch_and_never_overlap() -> None:
     plan = _plan("twin", 2, lookalike_m=10.0)
     drives = [simulate_session(plan, s, i, 2) for i, s in enumerate(plan.sessions)]
