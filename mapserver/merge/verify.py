@@ -10,11 +10,17 @@ winning hypothesis keeps being tested for ``probation_m`` metres on two things:
   stored experience must land where the alignment puts the robot (within twice the position
   tolerance).
 
+The probation lasts ``probation_m`` metres and, after that, as long as the matches that began with the
+merge go on (it ends ``evidence_m`` metres after the newest match, at most ``PROBATION_CAP`` probation
+distances): a look-alike place that holds turns keeps matching until the robot leaves it, and only what
+comes after it can tell.
+
 Meanwhile the session's engine *without* the merge (the *shadow*) is stepped on the same
-frames. A contradiction — the post-merge score (hits − miss_weight·misses) falling to
-``−reject_m`` metres, two disagreeing loop links that outnumber the agreeing ones, or, when the
-probation distance is travelled, a post-merge score below half the decision's ``evidence_m`` (the
-probation did not confirm the merge) — rolls the merge back inside the running session: the session
+frames. A contradiction — ``evidence_m`` metres of mismatches in a row (no match between them: the
+look-alike's own matches no longer outweigh what follows it), the post-merge score (hits −
+miss_weight·misses) falling to ``−reject_m`` metres, two disagreeing loop links that outnumber the
+agreeing ones, or, when the probation ends, a post-merge score below half the decision's ``evidence_m``
+(the probation did not confirm the merge) — rolls the merge back inside the running session: the session
 continues in the shadow, exactly the engine
 it would be had the merge never happened, and the merge is recorded as ``rejected`` with this
 evidence. Passing the probation drops the shadow.
@@ -31,6 +37,8 @@ from core import Action, Engine, StepResult
 from mapserver.merge.hypotheses import HIT, MISS, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
+PROBATION_CAP = 4.0
+"""A probation whose matches never stop ends after this many probation distances."""
 
 
 
@@ -60,6 +68,10 @@ class Probation:
     links_agree: int = 0
     links_disagree: int = 0
     worst_link_m: float = 0.0
+    last_hit_m: float = -1.0
+    """Track distance at the newest hit (−1: none yet; the merge's own frame counts as the streak's start)."""
+    miss_run_m: float = 0.0
+    """Metres of misses since the newest hit."""
     reason: str = ""
     created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
     seen: list[tuple[float, int, bool]] = field(default_factory=list, repr=False)
@@ -77,12 +89,23 @@ class Probation:
             self.created.append((shadow.experience, stamp, frame.image))
         self.seen.append((stamp, shadow.template, shadow.template_created))
         self.frames += 1
+        missed_before = self.hypothesis.post_miss_m
         outcome = self.hset.test_after_merge(self.hypothesis, track)
         self.hits += outcome == HIT
         self.misses += outcome == MISS
+        if outcome == HIT:
+            self.last_hit_m, self.miss_run_m = track.distance, 0.0
+        elif outcome == MISS:
+            self.miss_run_m += self.hypothesis.post_miss_m - missed_before
         self._check_link(track, result)
         rule = self.hset.rule
         post = self.hypothesis.post_hit_m - rule.miss_weight * self.hypothesis.post_miss_m
+        if self.miss_run_m >= rule.evidence_m > 0.0:
+            self.reason = (
+                f"{self.miss_run_m:.2f} m of mismatches in a row where the merged map predicts its places "
+                f"(after {self.hypothesis.post_hit_m:.2f} m of matches)"
+            )
+            return REJECTED
         if post <= -rule.reject_m:
             self.reason = (
                 f"views disagree with the merged map: {self.hypothesis.post_miss_m:.2f} m of mismatches against "
@@ -95,9 +118,25 @@ class Probation:
                 f"(worst {self.worst_link_m:.2f} m), {self.links_agree} agree"
             )
             return REJECTED
-        if track.distance - self.start_m >= rule.probation_m:
+        if self._may_conclude(track.distance):
             return self._conclude()
         return None
+
+    def _may_conclude(self, distance: float) -> bool:
+        """Whether the probation has run long enough to be judged.
+
+        At least ``probation_m`` metres, and then not while the matches that began with the merge go on: a
+        look-alike place holding turns matches until the robot leaves it (measured: ``twin`` with
+        ``lookalike_turns = 1`` kept 3–9 of 10 false merges whose probation ended inside the look-alike),
+        so the probation ends ``evidence_m`` metres after the newest match, or at ``PROBATION_CAP``
+        probation distances when the matches never stop (a robot that stays on the stored map's ground).
+        """
+        rule = self.hset.rule
+        travelled = distance - self.start_m
+        if travelled < rule.probation_m:
+            return False
+        since_hit = distance - (self.last_hit_m if self.last_hit_m >= 0.0 else self.start_m)
+        return since_hit >= rule.evidence_m or travelled >= PROBATION_CAP * rule.probation_m
 
     def _conclude(self) -> str:
         """The pass test at the end of the probation distance: the probation must confirm the merge.
@@ -144,4 +183,5 @@ class Probation:
             "post_hit_m": round(self.hypothesis.post_hit_m, 3), "post_miss_m": round(self.hypothesis.post_miss_m, 3),
             "reject_m": round(rule.reject_m, 3), "links_agree": self.links_agree,
             "links_disagree": self.links_disagree, "worst_link_m": round(self.worst_link_m, 3),
+            "miss_run_m": round(self.miss_run_m, 3),
         }  # fmt: skip

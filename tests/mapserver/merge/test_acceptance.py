@@ -230,6 +230,22 @@ def test_a_twin_look_alike_never_merges_and_the_same_stretch_in_one_world_does(
     assert math.hypot(x - truth[0], y - truth[1]) < 5.0 and abs(math.remainder(yaw - truth[3], math.tau)) < 0.35
 
 
+def test_a_look_alike_holding_turns_is_rolled_back_once_the_robot_leaves_it(scenario: Any, tmp_path: Path) -> None:
+    """Issue 12: with ``lookalike_turns = 1`` the look-alike holds two quarter turns, so the 45° turn rule lets
+    the false merge through (frame 68, as the true one of the overlap); its probation runs on while the matches
+    last and rolls it back after the structure (seed 0; sweep: 0, 1, 0, 3 of 10 survive at 5, 10, 20, 40 m,
+    against 3, 5, 9, 8 with a fixed probation). The same world's true overlap still merges and passes."""
+    directory, info = scenario("twin", lookalike_m=20.0, lookalike_turns=1.0)
+    twin = _process_all(directory, info, _db(tmp_path, "twin"))
+    assert [m["status"] for m in twin[1]["merges"]] == ["rejected"]
+    assert twin[1]["merges"][0]["evidence"]["verification"]["status"] == "rejected"
+    directory, info = scenario("twin-overlap", lookalike_m=20.0, lookalike_turns=1.0)
+    overlap = _process_all(directory, info, _db(tmp_path, "overlap"))
+    applied = [m for m in overlap[1]["merges"] if m["status"] == "applied"]
+    assert [m["into"] for m in applied] == ["session1"]
+    assert applied[0]["evidence"]["verification"]["status"] == "passed"
+
+
 def test_offline_merge_weighs_the_rest_of_the_map(scenario: Any, tmp_path: Path, capsys: Any) -> None:
     """``mapserver merge`` offline: the twin's look-alike run is refused (the paper's K-template rule took it,
     10 of 10 seeds), the same stretch in one world merges (sweep: twin 40 of 40 refused, twin-overlap 18 of 20

@@ -1,0 +1,29 @@
+"""When a probation may end (mapserver.merge.verify.Probation._may_conclude), by hand."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+from mapserver.merge.verify import PROBATION_CAP, Probation
+
+
+def _probation(last_hit_m: float) -> Probation:
+    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0)
+    return Probation(key=1, hypothesis=None, hset=SimpleNamespace(rule=rule), shadow=None,  # type: ignore[arg-type]
+                     start_m=100.0, loaded_experiences=0, last_hit_m=last_hit_m)  # fmt: skip
+
+
+def test_not_before_the_probation_distance() -> None:
+    assert not _probation(last_hit_m=-1.0)._may_conclude(111.9)  # 11.9 m < 12 m, no match at all
+    assert _probation(last_hit_m=-1.0)._may_conclude(112.0)  # 12 m travelled, 12 m since the merge's frame
+
+
+def test_not_while_the_matches_go_on() -> None:
+    assert not _probation(last_hit_m=120.0)._may_conclude(123.9)  # 3.9 m after the newest match
+    assert _probation(last_hit_m=120.0)._may_conclude(124.0)  # 4 m (evidence_m) after it
+
+
+def test_a_probation_that_keeps_matching_ends_at_the_cap() -> None:
+    cap = 100.0 + PROBATION_CAP * 12.0
+    assert not _probation(last_hit_m=cap - 0.5)._may_conclude(cap - 0.1)
+    assert _probation(last_hit_m=cap - 0.5)._may_conclude(cap)
