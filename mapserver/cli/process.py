@@ -47,7 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--backbone", choices=("none", "shufflenetv2", "alexnet"),
                         help="CNN of the sdr-htm front-end (none: the weight-free encoder)")
     parser.add_argument("--weights", help="torchvision state-dict file of the --backbone (never downloaded)")
-    parser.add_argument("--stop-after", type=int, help="process only this many frames (resume later with --db)")
+    parser.add_argument("--stop-after", type=int, help="process only this many frames (resume later with --db); "
+                        "a merge then on probation is verified first: the run stops when its probation ends")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line of stdout")
     parser.set_defaults(func=run)
 
