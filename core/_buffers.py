@@ -61,30 +61,3 @@ class GrowBuffer:
         buffer = cls(tuple(rows.shape[1:]), dtype, capacity=max(64, 2 * rows.shape[0]))
         buffer.extend(rows)
         return buffer
-
-
-class Scratch:
-    """Named work arrays reused from call to call.
-
-    Hot paths that need a temporary of varying size take it from here instead of
-    allocating: a fresh array of more than ~128 kB comes from new pages that the
-    kernel must zero on first touch, which costs more than the arithmetic. Each
-    name keeps the largest buffer asked for so far; callers get a view of the
-    requested shape, valid until the next request for the same name.
-    """
-
-    def __init__(self) -> None:
-        self._buffers: dict[str, np.ndarray] = {}
-
-    def get(self, name: str, shape: tuple[int, ...], dtype: npt.DTypeLike) -> np.ndarray:
-        """Return an uninitialised C-contiguous array of ``shape`` backed by the buffer ``name``."""
-        dtype = np.dtype(dtype)
-        size = 1
-        for dim in shape:
-            size *= int(dim)
-        buffer = self._buffers.get(name)
-        if buffer is None or buffer.dtype != dtype or buffer.size < size:
-            capacity = max(size, 2 * buffer.size) if buffer is not None and buffer.dtype == dtype else size
-            buffer = np.empty(max(capacity, 1), dtype=dtype)
-            self._buffers[name] = buffer
-        return buffer[:size].reshape(shape)

@@ -4,14 +4,12 @@ Template construction (anchors §1.1): crop, greyscale (mean of the channels),
 block-average into ``template_x_size × template_y_size`` cells (integer block
 sizes; pixels past the last full block are ignored), values divided by 255,
 optional global normalisation and patch normalisation. Matching compares the
-current view with every stored template at once (vectorised over templates),
-after the template-mean prefilter.
+current view with every stored template that passes the template-mean prefilter.
 
-Speed without changing the result: the comparison is OpenRatSLAM's own loop with its early break,
+Speed: the comparison is OpenRatSLAM's own loop with its early break,
 compiled (:mod:`core._match_kernel`): a (template, offset) pair is abandoned as soon as its running
-sum exceeds the best so far (or ``vt_match_threshold`` when the caller only needs a match within it),
-after a column-sum lower bound ``Σ_x |Σ_y v − Σ_y t| ≤ Σ_x Σ_y |v − t|`` that rejects most pairs
-with one row's work. Neither shortcut changes the answer.
+sum exceeds the best so far (or ``vt_match_threshold`` when the caller only needs a match within it).
+Values are compared in fixed point, exact in any summation order (a deviation, below).
 
 Deliberate deviations from OpenRatSLAM (documented, not accidental):
 
@@ -20,7 +18,10 @@ Deliberate deviations from OpenRatSLAM (documented, not accidental):
 * ``vt_shift_match`` larger than the template is narrowed to ``(tx − 1)//2``
   (OpenRatSLAM reads past the template);
 * templates are stored as float32 (OpenRatSLAM: double); the mean is taken
-  from the stored values so the prefilter sees what is stored.
+  from the stored values so the prefilter sees what is stored;
+* the matcher sums |differences| of values rounded to 2^-24 (integers): a pair's sum moves by at most
+  one unit per value against float arithmetic, so only errors within ~1e-7 of each other can order
+  differently.
 """
 
 from __future__ import annotations
@@ -133,12 +134,13 @@ class LocalViewCells:
         return self._means.view
 
     def add_templates(self, templates: np.ndarray, means: np.ndarray) -> None:
-        """Append templates with their means and column sums (new views, merge, restore, benchmarks)."""
+        """Append templates with their means and fixed-point copies (new views, merge, restore, benchmarks)."""
         stored = np.asarray(templates, dtype=np.float32)
         self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
-        if stored.size and float(np.abs(stored).max()) > 1.0:  # values beyond [−1, 1]: fewer fixed-point bits
-            bits = fixed_point_bits(self._span, float(np.abs(stored).max()))
+        peak = float(np.abs(stored).max()) if stored.size else 0.0
+        if peak > 1.0:  # values beyond [−1, 1]: fewer fixed-point bits
+            bits = fixed_point_bits(self._span, peak)
             if bits < self._bits:
                 self._bits = bits
                 everything = self._templates.view
