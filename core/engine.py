@@ -89,6 +89,10 @@ class Engine:
         self.map = ExperienceMap(params, self.pose_cells.rank)
         self.gate = EventGate(params)
         self.lv_origin: list[int] = []
+        self.lv_place: list[int] = []
+        """Per template: the experience current when it was made (−1: none yet)."""
+        self.lv_place_offset: list[np.ndarray] = []
+        """Per template: the odometry accumulated since that experience then (x, y, z in the map frame, heading)."""
         self.frames = 0
         self.last_stamp = math.nan
         self.loop_closures = 0
@@ -128,6 +132,9 @@ class Engine:
             loop_closure = self.map.create_link(self.map.current, target, relative_rad, LinkKind.LOOP)
             self.map.set_experience(target, relative_rad)
             self.loop_closures += int(loop_closure)
+        if created:
+            self.lv_place.append(self.map.current)
+            self.lv_place_offset.append(self.map.accum[:4].copy())
         if not self.params.openratslam_compat:
             self.map.relax_step()
         elif action != Action.NONE:  # OpenRatSLAM relaxes after every published action
@@ -203,6 +210,8 @@ class Engine:
         state: dict[str, np.ndarray] = {}
         state.update(self.local_view.snapshot())
         state["lv_origin"] = np.asarray(self.lv_origin, dtype=np.int64)
+        state["lv_place"] = np.asarray(self.lv_place, dtype=np.int64)
+        state["lv_place_offset"] = np.asarray(self.lv_place_offset, dtype=np.float64).reshape(-1, 4)
         state.update(self.odometry.snapshot())
         state.update(self.pose_cells.snapshot())
         state.update(self.map.snapshot())
@@ -218,6 +227,7 @@ class Engine:
         engine = cls(params, origin)
         engine.local_view = view_cells_class(params).restore(params, state)
         engine.lv_origin = np.asarray(state["lv_origin"], dtype=np.int64).tolist()
+        engine.lv_place, engine.lv_place_offset = _places(state, len(engine.lv_origin))
         engine.odometry = VisualOdometry.restore(params, state)
         engine.pose_cells = PoseCellNetwork.restore(params, state)
         engine.map = ExperienceMap.restore(params, engine.pose_cells.rank, state)
@@ -226,3 +236,14 @@ class Engine:
         engine.last_stamp = float(state["eng_last_stamp"])
         engine.loop_closures = int(state.get("eng_loop_closures", np.asarray(0)))
         return engine
+
+
+def _places(state: Mapping[str, np.ndarray], n: int) -> tuple[list[int], list[np.ndarray]]:
+    """Return the templates' places of a snapshot (``lv_place``, optional: missing rows have none, −1)."""
+    place = np.full(n, -1, dtype=np.int64)
+    offset = np.zeros((n, 4), dtype=np.float64)
+    if "lv_place" in state:
+        stored = np.asarray(state["lv_place"], dtype=np.int64).reshape(-1)[:n]
+        place[: stored.size] = stored
+        offset[: stored.size] = np.asarray(state["lv_place_offset"], dtype=np.float64).reshape(-1, 4)[: stored.size]
+    return place.tolist(), list(offset)

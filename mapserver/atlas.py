@@ -39,6 +39,7 @@ from mapserver.errors import ConflictError, InputError, MergeError
 from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots, merge_states, restore_merged
 from mapserver.merge.identity import RowIdentities, next_index_from_table
 from mapserver.merge.offline_evidence import confirmed_offline_match
+from mapserver.merge.places import merged_template_places
 from mapserver.merge.provenance import match_from_dict, match_to_dict, record_summary, transform7
 from mapserver.merge.relevance import ViewLog
 from mapserver.merge.resume import MergerState, merger_keys
@@ -132,7 +133,7 @@ def _eligible_maps(conn: Connection, *, params: Params, exclude: int | None) -> 
         if exclude is not None and int(map_id) == exclude:
             continue
         try:
-            reason = params_incompatibility(params_from_dict(dict(map_params)), params)
+            reason = params_incompatibility(params_from_dict(dict(map_params)), params, reads_frames=True)
         except Exception as err:  # parameters stored by another version: not mergeable, say why
             reason = f"its parameters cannot be read ({err})"
         if reason is None:
@@ -656,7 +657,12 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
             )  # fmt: skip
             params = t_params
         else:
+            if s_params.frontend == "sdr-htm":
+                msg = ("an online merge of sdr-htm maps cannot be redone: its view cells were read by the stored "
+                       "map's cortex from the session's frames (unmerge keeps both maps; process the log again)")
+                raise MergeError(msg)
             state, record = merge_states(target.snapshot, source.snapshot, match, shift_lattice=shift)
+            state.update(merged_template_places(target.snapshot, source.snapshot, record))
             sid = int(details["session"])
             engine = restore_merged(s_params, state, record, origin=sid)
             engine.loop_closures = int(source.snapshot.get("eng_loop_closures", np.asarray(0)))

@@ -88,6 +88,9 @@ class Params:
     merge_confirm: int = 3
     merge_evidence_m: float = -1.0  # net agreeing metres before a merge; −1: the map's scale; 0: K matches only
     merge_probation_m: float = -1.0  # metres a merge keeps verifying itself; −1: auto (map scale); 0: no verification
+    merge_miss_weight: float = -1.0  # a miss on mapped ground counts this many hits; −1: by front-end (Params docs)
+    merge_sv_min_intersection: int = 8  # sdr-htm merge evidence: I_min of a stored map's cortex reading the session
+    merge_sv_enable_f1_gate: bool = False  # sdr-htm merge evidence: the F1 gate of that reading
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False
     # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"
@@ -132,6 +135,20 @@ class Params:
 
     def __post_init__(self) -> None:
         _validate(self)
+
+    @property
+    def miss_weight(self) -> float:
+        """Return the merge test's miss weight: ``merge_miss_weight``, or for −1 the front-end's own.
+
+        Wald's log-likelihood ratios of a frame on mapped ground, log((1 − p₀)/(1 − p₁)) / log(p₁/p₀), with
+        p₁ the chance that a true alignment's predicted place is recognised and p₀ that a look-alike is:
+        ``lvc`` p₁ = 0.9, p₀ = 0.25 → 2.0; ``sdr-htm`` (a stored map's cortex reading another session, at
+        the merge gates ``merge_sv_*``) p₁ = 0.4 (measured on ``cave3d``, 0.31–0.55 over 4 seeds),
+        p₀ = 0.02 (no false match in 121 on ``aliased``, bounded) → 0.16.
+        """
+        if self.merge_miss_weight > 0:
+            return self.merge_miss_weight
+        return 0.16 if self.frontend == "sdr-htm" else 2.0
 
     @property
     def lattice_rank(self) -> int:
@@ -238,6 +255,10 @@ def _validate(p: Params) -> None:
         fail("vpr_leak_rate", "must be ≥ 1")
     if p.merge_confirm < 1:
         fail("merge_confirm", "must be ≥ 1")
+    if not (p.merge_miss_weight > 0 or p.merge_miss_weight == -1.0):
+        fail("merge_miss_weight", "must be > 0, or -1 for the front-end's own")
+    if p.merge_sv_min_intersection < 1:
+        fail("merge_sv_min_intersection", "must be ≥ 1")
     for key in ("merge_evidence_m", "merge_probation_m"):
         if getattr(p, key) < 0 and getattr(p, key) != -1.0:
             fail(key, "must be ≥ 0 metres, or -1 for the map's scale")

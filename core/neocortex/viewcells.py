@@ -125,9 +125,32 @@ class NeocortexViewCells:
         self.current = self.count - 1
         return self.current, 0.0, True
 
+    def read(self, image: np.ndarray) -> np.ndarray:
+        """Return D_t of ``image`` through this cortex without learning and without making a view cell.
+
+        Inference only (spatial pooler and temporal memory with learning off): a stored map's cortex reads
+        another session's frames in its own cell space, so that its prototypes can be matched (the merge's
+        observations, ``mapserver.merge.cortex``). The sequence state (active cells, winners, the descriptor
+        window) advances as in :meth:`process`; the learnt state (permanences, segments) does not change.
+        """
+        columns = self.sp.compute(self.sdr(image), learn=False)
+        _, winners = self.tm.compute(columns, learn=False)
+        source = columns if self.params.sv_descriptor_source == "sp" else winners
+        d = self.descriptor(source.cpu().numpy().astype(np.int64))
+        self.last_view, self.last_mean = d, float(d.size)
+        return d
+
     def match(self, descriptor: np.ndarray) -> Match | None:
         """Return the best prototype for ``descriptor`` with the Eq. 4.9 verdict (no state change)."""
         return best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes, self._sizes, self.gates)
+
+    def match_among(self, descriptor: np.ndarray, ids: np.ndarray) -> Match | None:
+        """Return :meth:`match`'s answer restricted to the prototypes ``ids`` (``index`` is a prototype id)."""
+        ids = np.unique(np.asarray(ids, dtype=np.int64))
+        found = best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes[ids], self._sizes[ids], self.gates)
+        if found is None:
+            return None
+        return Match(int(ids[found.index]), found.intersection, found.recall, found.f1, found.iou, found.accepted)
 
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:

@@ -10,6 +10,7 @@ import numpy as np
 
 from core import Engine, LinkKind
 from mapserver.errors import MergeError
+from mapserver.merge.places import merged_template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.snapshot import params_incompatibility
 from mapserver.merge.states import merge_states
@@ -74,6 +75,7 @@ def merge_engine(
     shift_lattice: bool = True,
     identify_within: float | None = None,
     partial: Mapping[str, np.ndarray] | None = None,
+    cortex: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[Engine, MergeRecord]:
     """Merge a running engine (the partial map) into a stored map and return the engine to continue in.
 
@@ -81,22 +83,24 @@ def merge_engine(
     count carries over. Relaxation starts at the merge links (:func:`restore_merged`) and
     proceeds with the engine's per-frame relaxation; the partial's own pending relaxation
     work, if any, is not carried (its ids changed). ``partial``: the engine's snapshot when
-    the caller has taken it already (it is not taken again).
+    the caller has taken it already (it is not taken again); for ``sdr-htm`` maps, with its view
+    cells as the stored map's prototypes, and ``cortex`` the ``nc_*`` arrays the merged engine
+    continues in (:mod:`mapserver.merge.cortex`).
 
     Raises:
         MergeError: the two maps cannot be merged (parameters or shapes differ, bad ids).
     """
-    reason = params_incompatibility(stored.params, engine.params)
+    reason = params_incompatibility(stored.params, engine.params, reads_frames=cortex is not None)
     if reason:
         msg = f"cannot merge into map {stored.key!r}: {reason}"
         raise MergeError(msg)
+    partial = engine.snapshot() if partial is None else partial
     state, record = merge_states(
-        stored.state,
-        engine.snapshot() if partial is None else partial,
-        match,
-        shift_lattice=shift_lattice,
-        identify_within=identify_within,
+        stored.state, partial, match, shift_lattice=shift_lattice, identify_within=identify_within
     )
+    state.update(merged_template_places(stored.state, partial, record))
+    if cortex is not None:
+        state.update(cortex)
     merged = restore_merged(engine.params, state, record, origin=engine.origin)
     merged.loop_closures = engine.loop_closures
     return merged, record
@@ -126,6 +130,7 @@ def merge_snapshots(
     state, record = merge_states(
         loaded.state, partial.state, match, shift_lattice=shift_lattice, identify_within=identify_within
     )
+    state.update(merged_template_places(loaded.state, partial.state, record))
     merged = restore_merged(loaded.params, state, record)
     if settle:
         merged.settle()

@@ -84,7 +84,13 @@ class EvidenceRule:
 
     @classmethod
     def for_map(
-        cls, spacing: float, position_tolerance: float, yaw_tolerance: float, evidence_m: float, probation_m: float
+        cls,
+        spacing: float,
+        position_tolerance: float,
+        yaw_tolerance: float,
+        evidence_m: float,
+        probation_m: float,
+        miss_weight: float = MISS_WEIGHT,
     ) -> EvidenceRule:
         """Resolve the rule for a stored map whose experiences lie ``spacing`` metres apart (median link).
 
@@ -102,6 +108,7 @@ class EvidenceRule:
             yaw_tolerance=yaw_tolerance,
             coverage_radius=max(spacing, 0.5 * position_tolerance),
             history_m=max(3.0 * evidence, probation, 6.0 * spacing),
+            miss_weight=miss_weight,
         )
 
 
@@ -293,12 +300,14 @@ class HypothesisSet:
         for hypothesis in self.hypotheses:
             self._test(hypothesis, odometry, view, mean, step, after_merge=False, matched=matched)
         if observation is None or not observation.has_geometry:
+            self._fold(odometry)
             return
         agreeing = [h for h in self.hypotheses if h.agrees(observation, self.rule)]
         for hypothesis in agreeing:
             hypothesis.support.append(observation)
             hypothesis.alignment = observation.alignment
         if agreeing or self._is_banned(observation):
+            self._fold(odometry)
             return
         born = Hypothesis(alignment=observation.alignment, born=frame, support=[observation])
         if self.rule.evidence_m > 0:  # 0: the paper's decision on matches alone
@@ -306,6 +315,29 @@ class HypothesisSet:
         self._test(born, odometry, view, mean, step, after_merge=False, matched=matched)
         self.hypotheses.append(born)
         self._prune()
+
+    def _fold(self, odometry: np.ndarray) -> None:
+        """Fold hypotheses that now put the robot at the same place (within the tolerances) into the best one.
+
+        Re-anchoring at every hit can bring two hypotheses born apart onto one alignment: they are then one
+        candidate alignment, not rivals; the best-scoring keeps its evidence (the earliest on ties), the
+        others go (their evidence counted the same frames).
+        """
+        if len(self.hypotheses) < 2:
+            return
+        rule = self.rule
+        ranked = sorted(self.hypotheses, key=lambda h: (-h.score(rule.miss_weight), h.born))
+        kept: list[tuple[Hypothesis, np.ndarray]] = []
+        for hypothesis in ranked:
+            p = hypothesis.predict(odometry)
+            if not any(
+                np.linalg.norm(p[:3] - q[:3]) <= rule.position_tolerance
+                and abs(float(wrap_angle(p[3] - q[3]))) <= rule.yaw_tolerance
+                for _, q in kept
+            ):
+                kept.append((hypothesis, p))
+        survivors = {id(h) for h, _ in kept}
+        self.hypotheses = [h for h in self.hypotheses if id(h) in survivors]
 
     def _test(
         self,

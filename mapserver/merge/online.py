@@ -53,6 +53,7 @@ from core.localview import LocalViewCells
 from mapserver.merge.confirm import Observation
 from mapserver.merge.engines import StoredMap, merge_engine
 from mapserver.merge.hypotheses import EvidenceRule, Hypothesis, HypothesisSet, StoredPlaces, Track, decide
+from mapserver.merge.places import template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.resume import MergerState
 from mapserver.merge.se3 import compose, relative
@@ -120,10 +121,13 @@ class Rollback:
 @dataclass(eq=False)
 class _Candidate:
     stored: StoredMap
-    cells: LocalViewCells
+    cells: Any  # LocalViewCells, or mapserver.merge.cortex.CortexReader for sdr-htm maps
     order: np.ndarray
     starts: np.ndarray
     hypotheses: HypothesisSet
+    anchors: np.ndarray
+    """Per place of ``hypotheses.places``: the stored experience a merge anchors on (places are the
+    experiences, and for sdr-htm maps also the view cells' places, :mod:`mapserver.merge.places`)."""
 
 
 def map_spacing(stored: StoredMap) -> float:
@@ -184,6 +188,8 @@ class OnlineMerger:
         self._evidence_m = evidence_m
         self._probation_m = probation_m
         self._candidates: list[_Candidate] | None = None
+        self._readers: list[Any] = []
+        """sdr-htm maps: every prepared candidate's :class:`mapserver.merge.cortex.CortexReader` (rows of the views)."""
         self._before_merge: list[_Candidate] = []
         self.skipped: dict[object, str] = {}
         self.absorbed: list[object] = []
@@ -214,31 +220,63 @@ class OnlineMerger:
             tolerance = default_position_tolerance(stored)
         evidence = params.merge_evidence_m if self._evidence_m is None else self._evidence_m
         probation = params.merge_probation_m if self._probation_m is None else self._probation_m
-        return EvidenceRule.for_map(map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation)
+        return EvidenceRule.for_map(
+            map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation, params.miss_weight
+        )
 
     def _prepare(self, engine: Engine) -> list[_Candidate]:
         candidates: list[_Candidate] = []
         for stored in self._stored:
-            reason = params_incompatibility(stored.params, engine.params)
+            reason = params_incompatibility(stored.params, engine.params, reads_frames=True)
             if reason:
                 self.skipped[stored.key] = reason
                 logger.info("map %r is not a merge candidate: %s", stored.key, reason)
                 continue
             state = stored.state
-            templates = np.asarray(state["em_template"], dtype=np.int64)
+            poses, templates, anchors = _places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
-            cells = LocalViewCells.restore(engine.params, state)  # the session's matcher
+            cells = self._matcher(engine, state)
             rule = self._rule(stored, engine.params)
-            poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
             places = StoredPlaces(
                 cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic, rule
             )
-            candidates.append(_Candidate(stored, cells, order, starts, HypothesisSet(places, rule)))
+            candidates.append(_Candidate(stored, cells, order, starts, HypothesisSet(places, rule), anchors))
         self._track.keep_m = max((c.hypotheses.rule.history_m for c in candidates), default=0.0)
         if self._resume is not None:
             self._resume.restore_into(candidates, self._track)
             self._resume = None
         return candidates
+
+    def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray]) -> Any:
+        """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader."""
+        if engine.params.frontend != "sdr-htm":
+            return LocalViewCells.restore(engine.params, state)
+        from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm sessions
+
+        reader = CortexReader(engine.params, state, row=len(self._readers))
+        self._readers.append(reader)
+        return reader
+
+    def _view(self, engine: Engine, result: StepResult, frame: Any) -> tuple[np.ndarray, float]:
+        """Return the frame's view for the candidates: the engine's template, or every reader's descriptor."""
+        lv = engine.local_view
+        if not self._readers or (not self._candidates and self.probation is None):
+            return lv.last_view, lv.last_mean
+        if frame is None:
+            msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
+            raise ValueError(msg)
+        view = np.stack([reader.read(frame.image) for reader in self._readers])
+        if result.template_created and not self.absorbed:  # a view cell of the session's own cortex
+            for reader in self._readers:
+                reader.remember(result.template, view)
+        return view, 0.0
+
+    def _remember_shadow(self, probation: Probation) -> None:
+        """During a probation the session's own cortex is the shadow's: keep its new view cells' descriptors."""
+        if self._readers and probation.seen and probation.seen[-1][2]:
+            view = self._track.last[3]
+            for reader in self._readers:
+                reader.remember(probation.seen[-1][1], view)
 
     def observe(self, engine: Engine, result: StepResult, frame: Any = None) -> MergeEvent | Rollback | None:
         """Match the frame just processed against the candidates; merge, verify or roll back.
@@ -258,18 +296,21 @@ class OnlineMerger:
         m = result.motion
         step = np.array([m.dx, m.dy, m.dz, m.dyaw])
         self._odometry = compose(self._odometry, step)
-        view = engine.local_view.last_view
-        if view is None:
+        if engine.local_view.last_view is None:
             return None
+        view, mean = self._view(engine, result, frame)
         moved = float(np.linalg.norm(step[:3]))
-        self._track.add(result.frame, self._odometry, moved, view, engine.local_view.last_mean)
+        self._track.add(result.frame, self._odometry, moved, view, mean)
         if self.probation is not None:
-            return self._verify(result, frame)
+            probation = self.probation
+            verdict = self._verify(result, frame)
+            self._remember_shadow(probation)
+            return verdict
         if not self._candidates:
             return None
         threshold = engine.params.vt_match_threshold
         for candidate in self._candidates:
-            u, error, rel = candidate.cells.match(view, engine.local_view.last_mean, limit=threshold)
+            u, error, rel = candidate.cells.match(view, mean, limit=threshold)
             found = None
             if u >= 0 and error <= threshold:
                 found = self._observation(candidate, engine, result.frame, u, error, rel)
@@ -289,19 +330,20 @@ class OnlineMerger:
         """Return the frame's match of stored template u (its experience: the one a hypothesis expects)."""
         mine = candidate.order[candidate.starts[u] : candidate.starts[u + 1]]
         places = candidate.hypotheses.places
-        experience = -1
+        place = -1
         if mine.size == 1:
-            experience = int(mine[0])
+            place = int(mine[0])
         elif mine.size > 1:
             predictions = [h.predict(self._odometry) for h in candidate.hypotheses.hypotheses]
             if not predictions:
-                experience = int(mine[0])
+                place = int(mine[0])
             else:
                 gaps = [np.linalg.norm(places.poses[mine, :3] - p[:3], axis=1) for p in predictions]
-                experience = int(mine[int(np.argmin(np.min(gaps, axis=0)))])
+                place = int(mine[int(np.argmin(np.min(gaps, axis=0)))])
         seen = np.zeros(4)
-        if experience >= 0:
-            seen = compose(places.poses[experience], np.array([0.0, 0.0, 0.0, rel]))
+        experience = -1 if place < 0 else int(candidate.anchors[place])
+        if place >= 0:
+            seen = compose(places.poses[place], np.array([0.0, 0.0, 0.0, rel]))
         return Observation(
             frame=frame, stored_template=u, stored_experience=experience, error=float(error), relative_rad=float(rel),
             partial_template=int(engine.local_view.current), odometry=self._odometry.copy(),
@@ -325,6 +367,9 @@ class OnlineMerger:
         self.observed.add(candidate.stored.key)
         anchor = winner.anchor
         pose = self._robot_pose(engine, anchor.odometry)
+        if self._readers:  # the anchor may be a view cell's place: T must take the robot there, not onto its experience
+            experience = candidate.hypotheses.places.poses[anchor.stored_experience]  # experiences come first
+            pose = compose(pose, relative(anchor.seen, compose(experience, _heading(anchor.relative_rad))))
         match = Match(
             stored_template=anchor.stored_template, stored_experience=anchor.stored_experience,
             partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),  # type: ignore[arg-type]
@@ -332,9 +377,12 @@ class OnlineMerger:
             confirmations=len(winner.support), pairs=winner.pairs(),
         )  # fmt: skip
         partial = engine.snapshot()
+        reader = candidate.cells if self._readers else None
         merged, record = merge_engine(
-            candidate.stored, engine, match, shift_lattice=self.shift_lattice, partial=partial
-        )
+            candidate.stored, engine, match, shift_lattice=self.shift_lattice,
+            partial=partial if reader is None else reader.translated(partial),
+            cortex=None if reader is None else reader.cortex(),
+        )  # fmt: skip
         rule = candidate.hypotheses.rule
         evidence = {
             "decision": {**winner.evidence(rule), "rival_score_m": round(rival, 3)},
@@ -357,6 +405,11 @@ class OnlineMerger:
         self.events.append(event)
         self._before_merge = list(self._candidates or [])
         self._candidates = [c for c in self._candidates or [] if c is not candidate]
+        if self._readers:  # the merged map's cells are the first map's: no other cortex can read them
+            for other in self._candidates:
+                self.skipped[other.stored.key] = "the session joined sdr-htm map " f"{candidate.stored.key!r}" \
+                    " (a session joins one sdr-htm map: another map's cortex cannot read the merged map's cells)"
+            self._candidates = []
         for other in self._candidates:  # their pairs and packets refer to the engine before the merge
             other.hypotheses.hypotheses.clear()
         if rule.probation_m > 0:
@@ -394,6 +447,7 @@ class OnlineMerger:
         self._candidates = self._before_merge
         for candidate in self._candidates:
             candidate.hypotheses.hypotheses.clear()
+            self.skipped.pop(candidate.stored.key, None)
         probation.hset.ban(probation.hypothesis)
         rollback = Rollback(event, probation.shadow, result.frame, tuple(probation.created), tuple(probation.seen))
         self.rollbacks.append(rollback)
@@ -409,6 +463,8 @@ class OnlineMerger:
     def export_state(self) -> MergerState:
         """Return what the driver carries to the next frame (see the module docstring, "Resume")."""
         self.finish()
+        if self._readers:  # the readers' sequence state is not kept: they and the hypotheses restart on resume
+            return MergerState(self._odometry.copy(), tuple(self.absorbed))
         hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:
@@ -419,3 +475,27 @@ class OnlineMerger:
             hypotheses = dict(self._resume.hypotheses)
         track = self._resume.track if self._candidates is None and self._resume is not None else self._track
         return MergerState(self._odometry.copy(), tuple(self.absorbed), hypotheses, track)
+
+
+def _heading(rad: float) -> np.ndarray:
+    return np.array([0.0, 0.0, 0.0, rad])
+
+
+def _places(state: Mapping[str, np.ndarray], *, with_views: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (poses (P, 4), templates (P,), anchor experiences (P,)) of the places a stored map predicts views at.
+
+    The experiences; with ``with_views`` (sdr-htm maps) also every view cell's own place
+    (:func:`mapserver.merge.places.template_places`), anchored on the experience it was made after.
+    """
+    poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
+    templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
+    anchors = np.arange(poses.shape[0], dtype=np.int64)
+    if not with_views:
+        return poses, templates, anchors
+    view_poses, view_anchor = template_places(state)
+    placed = np.flatnonzero(view_anchor >= 0)
+    return (
+        np.concatenate([poses, view_poses[placed]]),
+        np.concatenate([templates, placed]),
+        np.concatenate([anchors, view_anchor[placed]]),
+    )

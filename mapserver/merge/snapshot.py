@@ -62,18 +62,25 @@ def incompatibility(loaded: State, partial: State) -> str | None:
     return None
 
 
-def params_incompatibility(loaded: Params, partial: Params) -> str | None:
+def params_incompatibility(loaded: Params, partial: Params, *, reads_frames: bool = False) -> str | None:
     """Return why maps built with these parameters cannot be merged, None if they can.
 
     The lattice shape, the template size and the matcher's geometry (panoramic or not)
-    must agree; the rest (thresholds, energies) may differ between sessions.
+    must agree; the rest (thresholds, energies) may differ between sessions. Maps of the
+    ``sdr-htm`` front-end merge only while the stored map's cortex reads the session's frames
+    (``reads_frames``: the online merge, :mod:`mapserver.merge.cortex`), with the same cortex structure.
     """
     if loaded.lattice_shape != partial.lattice_shape:
         return f"pose-cell lattices differ: {loaded.lattice_shape!r} and {partial.lattice_shape!r}"
     if loaded.frontend != partial.frontend:
         return f"view front-ends differ: {loaded.frontend!r} and {partial.frontend!r}"
-    if loaded.frontend == "sdr-htm":  # issue 17 part 5, not done: see core/neocortex/viewcells.py
-        return "maps of the sdr-htm front-end are not merged yet (each session's view cells are its own HTM's cells)"
+    if loaded.frontend == "sdr-htm":
+        if not reads_frames:
+            return ("maps of the sdr-htm front-end merge only online, while the stored map's cortex reads the "
+                    "session's frames (each map's view cells are its own HTM's cells): process the log instead")
+        from mapserver.merge.cortex import structural_difference
+
+        return structural_difference(loaded, partial)
     a = (loaded.template_y_size, loaded.template_x_size)
     b = (partial.template_y_size, partial.template_x_size)
     if a != b:

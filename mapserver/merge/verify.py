@@ -17,7 +17,10 @@ comes after it can tell.
 
 Meanwhile the session's engine *without* the merge (the *shadow*) is stepped on the same
 frames. A contradiction — ``evidence_m`` metres of mismatches in a row (no match between them: the
-look-alike's own matches no longer outweigh what follows it), the post-merge score (hits −
+look-alike's own matches no longer outweigh what follows it; for a front-end whose misses weigh less than
+LVC's, ``miss_weight`` below 2 (``sdr-htm``), a run needs proportionally more, and Page's CUSUM of the
+mismatches against the matches reaching ``CUSUM_EVIDENCE`` · ``evidence_m`` decides instead, because such a
+front-end misses long runs of true places), the post-merge score (hits −
 miss_weight·misses) falling to ``−reject_m`` metres, two disagreeing loop links that outnumber the
 agreeing ones, or, when the probation ends, a post-merge score below half the decision's ``evidence_m``
 (the probation did not confirm the merge) — rolls the merge back inside the running session: the session
@@ -34,11 +37,13 @@ from typing import Any
 import numpy as np
 
 from core import Action, Engine, StepResult
-from mapserver.merge.hypotheses import HIT, MISS, Hypothesis, HypothesisSet, Track
+from mapserver.merge.hypotheses import HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
 PROBATION_CAP = 4.0
 """A probation whose matches never stop ends after this many probation distances."""
+CUSUM_EVIDENCE = 3.0
+"""A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
 
 
 
@@ -72,6 +77,8 @@ class Probation:
     """Track distance at the newest hit (−1: none yet; the merge's own frame counts as the streak's start)."""
     miss_run_m: float = 0.0
     """Metres of misses since the newest hit."""
+    cusum_m: float = 0.0
+    """Page's CUSUM against the merge, in miss metres (front-ends with weak misses, :meth:`_cusum`)."""
     reason: str = ""
     created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
     seen: list[tuple[float, int, bool]] = field(default_factory=list, repr=False)
@@ -89,7 +96,7 @@ class Probation:
             self.created.append((shadow.experience, stamp, frame.image))
         self.seen.append((stamp, shadow.template, shadow.template_created))
         self.frames += 1
-        missed_before = self.hypothesis.post_miss_m
+        missed_before, hit_before = self.hypothesis.post_miss_m, self.hypothesis.post_hit_m
         outcome = self.hset.test_after_merge(self.hypothesis, track)
         self.hits += outcome == HIT
         self.misses += outcome == MISS
@@ -97,12 +104,19 @@ class Probation:
             self.last_hit_m, self.miss_run_m = track.distance, 0.0
         elif outcome == MISS:
             self.miss_run_m += self.hypothesis.post_miss_m - missed_before
+        self._cusum(self.hypothesis.post_hit_m - hit_before, self.hypothesis.post_miss_m - missed_before)
         self._check_link(track, result)
         rule = self.hset.rule
         post = self.hypothesis.post_hit_m - rule.miss_weight * self.hypothesis.post_miss_m
-        if self.miss_run_m >= rule.evidence_m > 0.0:
+        if self.miss_run_m >= self.miss_run_limit() > 0.0:
             self.reason = (
                 f"{self.miss_run_m:.2f} m of mismatches in a row where the merged map predicts its places "
+                f"(after {self.hypothesis.post_hit_m:.2f} m of matches)"
+            )
+            return REJECTED
+        if self._weak_misses() and self.cusum_m >= CUSUM_EVIDENCE * rule.evidence_m > 0.0:
+            self.reason = (
+                f"mismatches outweigh matches where the merged map predicts its places: CUSUM {self.cusum_m:.2f} m "
                 f"(after {self.hypothesis.post_hit_m:.2f} m of matches)"
             )
             return REJECTED
@@ -121,6 +135,35 @@ class Probation:
         if self._may_conclude(track.distance):
             return self._conclude()
         return None
+
+    def _weak_misses(self) -> bool:
+        """Whether a miss weighs less than LVC's (``sdr-htm``): runs of misses then say little, the CUSUM decides."""
+        return self.hset.rule.miss_weight < MISS_WEIGHT
+
+    def _cusum(self, hit_m: float, miss_m: float) -> None:
+        """Page's CUSUM of the evidence against the merge, in miss metres: a hit metre cancels 1/miss_weight.
+
+        ``miss_weight`` is the ratio of a miss's log-likelihood to a hit's (Wald), so this is the one-sided
+        CUSUM of the per-metre log-likelihood ratio "look-alike (p₀)" against "true place (p₁)", scaled to
+        miss metres: S ← max(0, S + miss − hit / miss_weight). A front-end that misses many true places
+        (``sdr-htm``: 60 %) shows runs of misses on true ground that a lone match ends; after a look-alike the
+        matches stop and S climbs. Measured with the ``sdr-htm`` front-end (probation run to the log's end):
+        the largest S of 14 true merges (``twin-overlap`` 20 m with and without turns, ``cave3d``, 4–5 seeds)
+        was 2.65 ``evidence_m``; false ones of ``twin`` turns alike 20 m that drove on past the look-alike
+        reached 3.7–4.6 ``evidence_m`` (two of five ended the log inside it: 1.45, 0.7).
+        """
+        if self._weak_misses():
+            self.cusum_m = max(0.0, self.cusum_m + miss_m - hit_m / self.hset.rule.miss_weight)
+
+    def miss_run_limit(self) -> float:
+        """Return the metres of mismatches in a row that reject the merge.
+
+        ``evidence_m`` for LVC's miss weight (2); a front-end whose misses weigh less needs proportionally
+        more for the same log-likelihood ratio (``sdr-htm``, weight 0.16: 12.5 × ``evidence_m``; measured on
+        ``cave3d``: a true merge's probation met 5.95 m of mismatches in a row between two matches).
+        """
+        rule = self.hset.rule
+        return rule.evidence_m * max(1.0, MISS_WEIGHT / rule.miss_weight)
 
     def _may_conclude(self, distance: float) -> bool:
         """Whether the probation has run long enough to be judged.
@@ -183,5 +226,5 @@ class Probation:
             "post_hit_m": round(self.hypothesis.post_hit_m, 3), "post_miss_m": round(self.hypothesis.post_miss_m, 3),
             "reject_m": round(rule.reject_m, 3), "links_agree": self.links_agree,
             "links_disagree": self.links_disagree, "worst_link_m": round(self.worst_link_m, 3),
-            "miss_run_m": round(self.miss_run_m, 3),
+            "miss_run_m": round(self.miss_run_m, 3), "cusum_m": round(self.cusum_m, 3),
         }  # fmt: skip

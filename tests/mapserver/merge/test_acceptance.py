@@ -27,6 +27,7 @@ from core import preset
 from mapserver.store import open_database
 from mapserver.store.merge_events import list_merge_events
 from tests.mapserver.merge.scenario_metrics import (
+    cli_code,
     cli_json,
     experiences,
     load_doc,
@@ -264,3 +265,40 @@ def test_offline_merge_weighs_the_rest_of_the_map(scenario: Any, tmp_path: Path,
     code, err = outcomes["twin"]
     assert code == 2 and "none whose alignment the rest of the map confirms" in err
     assert outcomes["twin-overlap"][0] == 0
+
+
+def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
+    scenario: Any, tmp_path: Path
+) -> None:
+    """Issue 17 part 5: the neocortical front-end's maps merge through the same decision and probation.
+
+    Session 2 of ``cave3d`` merges into session 1 (poseidon-sdr) at its true place and the stored merged
+    map has one cortex: it restores as an engine whose every prototype is in that cortex's cells. The same
+    session 2 never merges into session 1 of another cave (seed 1: the same shape, other rocks)."""
+    from core import Engine
+    from mapserver.store.mapio import load_map
+
+    directory, info = scenario("cave3d")
+    db = _db(tmp_path)
+    results = _process_all(directory, info, db, "--preset", "poseidon-sdr")
+    applied = [m for m in results[1]["merges"] if m["status"] == "applied"]
+    assert [m["into"] for m in applied] == ["session1"]
+    initial_yaw = math.radians(preset("poseidon-sdr").exp_initial_em_deg)
+    truth = true_alignment(directory, info["sessions"][0], info["sessions"][1], initial_yaw)
+    x, y, _z, yaw = (applied[0]["transform"][k] for k in ("x", "y", "z", "yaw"))
+    assert math.hypot(x - truth[0], y - truth[1]) < 3.0 and abs(math.remainder(yaw - truth[3], math.tau)) < 0.5
+    stored = load_map(open_database(db), name="session1")
+    engine = Engine.restore(preset("poseidon-sdr"), stored.snapshot)
+    cells, sizes = engine.local_view.prototypes
+    assert engine.local_view.tm.cells > int(cells.max())  # every prototype names cells of the one cortex
+    assert (sizes > 0).mean() > 0.95 and engine.template_count == results[1]["templates"]
+    event = str(applied[0]["event"])  # undone as any merge; a redo would need the session's frames read again
+    assert cli_json("unmerge", "--db", db, "--event", event)["frames"] == applied[0]["frame"] + 1
+    code, err = cli_code("merge", "--db", db, "--redo", event)
+    assert code != 0 and "cannot be redone" in err
+    other = tmp_path / "other"
+    cli_json("simulate", "cave3d", "--out", str(other), "--seed", "1")
+    alien = _db(tmp_path, "alien")
+    cli_json("process", str(other / "session1.bag"), "--db", alien, "--preset", "poseidon-sdr")
+    result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon-sdr")
+    assert [m for m in result["merges"] if m["status"] == "applied"] == []

@@ -136,6 +136,24 @@ def test_two_alignments_that_tie_never_merge_and_one_that_leads_clearly_does() -
     assert decide({1: hset_with((10.0, 0.0))}, needed=4) is None  # K = 4 supporting matches
 
 
+def test_hypotheses_that_come_to_one_alignment_fold_and_distinct_ones_stay_rivals() -> None:
+    """Re-anchoring brought a and b within the 1.5 m tolerance: one alignment; c (3 m) and d (1 rad) differ."""
+    hset, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
+    track.add(0, np.array([0.0, 5.0, 0.0, 0.0]), 0.0, *_view(-1))  # unmapped place: no test changes a score
+    a = Hypothesis(np.array([0.0, 0.0, 0.0, 0.0]), born=0, hit_m=3.0)
+    b = Hypothesis(np.array([1.0, 0.0, 0.0, 0.2]), born=1, hit_m=4.0)
+    c = Hypothesis(np.array([3.0, 0.0, 0.0, 0.0]), born=2, hit_m=5.0)
+    d = Hypothesis(np.array([0.0, 0.0, 0.0, 1.0]), born=3, hit_m=1.0)
+    hset.hypotheses = [a, b, c, d]
+    hset.update(track, None)
+    assert hset.hypotheses == [b, c, d]  # a folded into b (the better score keeps its evidence)
+    assert (b.hit_m, c.hit_m, d.hit_m) == (4.0, 5.0, 1.0)
+    tied = HypothesisSet(_places(), RULE)
+    tied.hypotheses = [Hypothesis(np.zeros(4), born=5, hit_m=2.0), Hypothesis(np.full(4, 0.1), born=4, hit_m=2.0)]
+    tied.update(track, None)
+    assert [h.born for h in tied.hypotheses] == [4]  # equal scores: the earliest stays
+
+
 @settings(max_examples=30, deadline=None)
 @given(
     st.lists(st.tuples(st.floats(0, 20), st.floats(0, 20)), min_size=1, max_size=4),

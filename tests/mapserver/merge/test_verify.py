@@ -8,7 +8,7 @@ from mapserver.merge.verify import PROBATION_CAP, Probation
 
 
 def _probation(last_hit_m: float) -> Probation:
-    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0)
+    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0)
     return Probation(key=1, hypothesis=None, hset=SimpleNamespace(rule=rule), shadow=None,  # type: ignore[arg-type]
                      start_m=100.0, loaded_experiences=0, last_hit_m=last_hit_m)  # fmt: skip
 
@@ -27,3 +27,26 @@ def test_a_probation_that_keeps_matching_ends_at_the_cap() -> None:
     cap = 100.0 + PROBATION_CAP * 12.0
     assert not _probation(last_hit_m=cap - 0.5)._may_conclude(cap - 0.1)
     assert _probation(last_hit_m=cap - 0.5)._may_conclude(cap)
+
+
+def test_a_run_of_mismatches_weighs_by_the_front_ends_miss_weight() -> None:
+    lvc = _probation(last_hit_m=-1.0)
+    assert lvc.miss_run_limit() == 4.0  # evidence_m: LVC's misses weigh 2 hits
+    sdr = _probation(last_hit_m=-1.0)
+    sdr.hset.rule.miss_weight = 0.16  # the sdr-htm reader misses 60 % of true places: 12.5 × the run
+    assert sdr.miss_run_limit() == 50.0
+    heavier = _probation(last_hit_m=-1.0)
+    heavier.hset.rule.miss_weight = 4.0  # never shorter than evidence_m
+    assert heavier.miss_run_limit() == 4.0
+
+
+def test_the_cusum_of_a_weak_miss_front_end_by_hand() -> None:
+    sdr = _probation(last_hit_m=-1.0)
+    sdr.hset.rule.miss_weight = 0.25  # a hit metre cancels 4 miss metres
+    for hit, miss in ((0.0, 3.0), (0.0, 2.0), (0.5, 0.0), (0.0, 1.0), (1.0, 0.0), (0.0, 0.5)):
+        sdr._cusum(hit, miss)
+    # 3, 5, 5 − 2 = 3, 4, max(0, 4 − 4) = 0, 0.5
+    assert sdr.cusum_m == 0.5
+    lvc = _probation(last_hit_m=-1.0)  # LVC's misses weigh 2: its run rule decides, no CUSUM
+    lvc._cusum(0.0, 10.0)
+    assert lvc.cusum_m == 0.0

@@ -1,0 +1,104 @@
+"""Online merges of sdr-htm maps on the look-alike and overlap scenarios, judged against the ground truth.
+
+Usage: python bench/sdr_merge_sweep.py SCENARIO [--seeds 0,1,2] [--sim K=V,...] [--preset circle] [--set K=V,...]
+
+Per seed: simulate SCENARIO (``--sim``: simulator parameters, e.g. ``lookalike_m=20,lookalike_turns=1``),
+map session 1 alone with the preset (``--set``: parameter changes; default ``frontend=sdr-htm``), then run
+session 2 through the online merge driver against it (``mapserver.merge.online.OnlineMerger``, the
+driver ``process`` uses, without the database). Every merge is printed with its transform's error against
+the true alignment of the two map frames (at the map origin: it grows with session 2's drift before the
+merge), every rollback with its reason, and the surviving merges with their verification status
+(``passed``, or ``incomplete`` when the log ended during the probation). In ``twin`` every merge is false.
+Last stdout line: one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
+
+from core import Engine, preset
+from mapserver.ingest.simulator.output import simulate
+from mapserver.merge.engines import StoredMap
+from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
+from mapserver.run import run_engine
+from tests.mapserver.merge.scenario_metrics import true_alignment
+
+
+def _pairs(text: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in filter(None, text.split(",")):
+        key, value = item.split("=", 1)
+        out[key] = value if not value.replace(".", "", 1).lstrip("-").isdigit() else float(value)
+    return out
+
+
+def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: Any) -> dict[str, Any]:
+    """Simulate one seed, map session 1, run session 2 through the merge driver; return its merges."""
+    info = simulate(scenario, out, seed=seed, params=sim)
+    s1, s2 = info["sessions"][:2]
+    stored = Engine(params, origin=1)
+    run_engine(stored, out / s1["log"])
+    stored.settle()
+    merger = OnlineMerger([StoredMap(1, params, stored.snapshot())])
+    truth = true_alignment(out, s1, s2, math.radians(params.exp_initial_em_deg))
+    events: list[dict[str, Any]] = []
+
+    def hook(frame: Any, result: Any) -> Engine | None:
+        event = merger.observe(current[0], result, frame)
+        if isinstance(event, MergeEvent):
+            t = event.record.transform
+            error_m = float(np.hypot(t[0] - truth[0], t[1] - truth[1]))
+            error_deg = abs(math.degrees(math.remainder(t[3] - truth[3], math.tau)))
+            events.append({"frame": result.frame, "error_m": round(error_m, 2), "error_deg": round(error_deg, 1)})
+            current[0] = event.engine
+            return event.engine
+        if isinstance(event, Rollback):
+            events[-1]["rolled_back_at"] = result.frame
+            events[-1]["reason"] = event.event.evidence["verification"]["reason"]
+            current[0] = event.engine
+            return event.engine
+        return None
+
+    current = [Engine(params, origin=2)]
+    run_engine(current[0], out / s2["log"], on_step=hook)
+    merger.finish()
+    statuses = [e.evidence.get("verification", {}).get("status") for e in merger.events]
+    surviving = [e for e in events if "rolled_back_at" not in e]
+    for event, status in zip(surviving, statuses, strict=False):
+        event["status"] = status
+    return {"seed": seed, "merges": events}
+
+
+def main() -> None:
+    """Run the seeds and print one line each, then the JSON."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scenario")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--sim", default="")
+    parser.add_argument("--preset", default="circle")
+    parser.add_argument("--set", default="frontend=sdr-htm")
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+    params = preset(args.preset).replace(**_pairs(args.set))
+    root = args.out or Path(tempfile.mkdtemp(prefix="sdr-merge-"))
+    rows = []
+    for seed in (int(s) for s in args.seeds.split(",")):
+        row = run_seed(root / f"{args.scenario}-{seed}", args.scenario, seed, _pairs(args.sim), params)
+        rows.append(row)
+        print(f"{args.scenario} {args.sim or '-'} seed {seed}: {json.dumps(row['merges'])}", flush=True)
+    print(json.dumps({"scenario": args.scenario, "sim": args.sim, "preset": args.preset, "set": args.set,
+                      "runs": rows}))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
