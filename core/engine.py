@@ -98,13 +98,20 @@ class Engine:
         self.loop_closures = 0
 
     # ------------------------------------------------------------------ step
-    def step(self, image: np.ndarray, motion: Motion | None, stamp: float) -> StepResult:
+    def step(
+        self, image: np.ndarray, motion: Motion | None, stamp: float, sonar: np.ndarray | None = None
+    ) -> StepResult:
         """Process one camera frame with the motion since the previous one.
 
         Args:
             image: uint8 pixels (H, W) grey or (H, W, 3) RGB.
             motion: odometry since the previous frame, or None to use visual odometry.
             stamp: log time of the frame in seconds.
+            sonar: the frame's sonar image, a second modality of the ``sdr-htm`` front-end (PoseidonSLAM
+                Eq. 4.3); None: camera only.
+
+        Raises:
+            ValueError: a sonar image for the ``lvc`` front-end (intensity templates have one modality).
 
         Returns:
             The template, action and current experience after this frame.
@@ -113,7 +120,13 @@ class Engine:
             dt = 0.0 if math.isnan(self.last_stamp) else max(stamp - self.last_stamp, 0.0)
             vtrans, vrot = self.odometry.process(image, dt)
             motion = Motion(vtrans * dt, 0.0, 0.0, vrot * dt, dt) if dt > 0 else ZERO_MOTION
-        template, relative_rad, created = self.local_view.process(image)
+        if sonar is None:
+            template, relative_rad, created = self.local_view.process(image)
+        elif self.params.frontend == "sdr-htm":
+            template, relative_rad, created = self.local_view.process(image, sonar)
+        else:
+            msg = "a sonar modality needs the sdr-htm front-end (--preset poseidon-sdr or neoslam)"
+            raise ValueError(msg)
         if created:
             self.lv_origin.append(self.origin)
         self.pose_cells.on_view_template(template, relative_rad, self.local_view.count, created)

@@ -105,6 +105,10 @@ def run_engine(
     # The engine's matrices are small: multi-threaded BLAS only adds contention (2-5x slower on a busy machine).
     with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
         opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
+        if opened.mapping.sonar is not None and engine.params.frontend != "sdr-htm":
+            msg = (f"{opened.path}: a sonar topic ({opened.mapping.sonar}) is a modality of the sdr-htm front-end "
+                   f"only: use --preset poseidon-sdr or neoslam, or leave out sonar= in --topics")
+            raise InputError(msg)
         total = opened.count_frames()
         end = total if stop is None else min(stop, total)
         reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
@@ -114,7 +118,7 @@ def run_engine(
                 break
             stamp = frame.stamp_ns * 1e-9
             try:
-                result = engine.step(frame.image, frame.motion, stamp)
+                result = engine.step(frame.image, frame.motion, stamp, frame.sonar)
             except ImageError as err:  # images smaller than the preset's template or crop
                 msg = f"{opened.path}: frame {start + count} cannot be processed with these parameters: {err}"
                 raise InputError(msg) from err

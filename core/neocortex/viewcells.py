@@ -33,6 +33,7 @@ if TYPE_CHECKING:
 
 STORED_PROJECTION_MAX = 1 << 22  # projections up to 4 Mi entries (16 MB) are stored; larger ones by digest
 FLOAT32_EXACT = 1 << 24
+SONAR_SEED = 1000  # the sonar modality's projection: seed lsbh_seed + SONAR_SEED (the camera's: lsbh_seed)
 
 
 class NeocortexViewCells:
@@ -47,6 +48,7 @@ class NeocortexViewCells:
         half = params.lsbh_bits // 2
         self.k = int(params.lsbh_s * half)
         self.projection = projection(self.encoder.dims, half, params.lsbh_seed).to(self.device)
+        self.sonar_projection: torch.Tensor | None = None
         self.sp = SpatialPooler(
             params.lsbh_bits, params.sp_columns, params.sp_num_active_columns,
             potential_radius=params.sp_potential_radius, potential_pct=params.sp_potential_pct,
@@ -88,11 +90,20 @@ class NeocortexViewCells:
         self._sizes = np.concatenate([self._sizes, np.asarray(sizes, dtype=np.int64).reshape(-1)])
 
     # ------------------------------------------------------------------ step
-    def sdr(self, image: np.ndarray) -> torch.Tensor:
-        """Return the fused SDR (lsbh_bits,) bool of ``image`` (Eqs 4.1–4.3, camera modality)."""
-        y = self.encoder(image)
-        v = (y @ self.projection)[0]
-        return fuse([lsbh_bits(v, self.k)])
+    def sdr(self, image: np.ndarray, sonar: np.ndarray | None = None) -> torch.Tensor:
+        """Return the fused SDR (lsbh_bits,) bool of ``image`` and ``sonar`` (Eqs 4.1–4.3).
+
+        Each modality has its own fixed projection P_m (the sonar's seeded ``lsbh_seed`` + ``SONAR_SEED``,
+        made on its first image) and its own top/bottom-k bits; the SDRs are fused by bitwise OR.
+        """
+        bits = [lsbh_bits((self.encoder(image) @ self.projection)[0], self.k)]
+        if sonar is not None:
+            if self.sonar_projection is None:
+                half = self.params.lsbh_bits // 2
+                seed = self.params.lsbh_seed + SONAR_SEED
+                self.sonar_projection = projection(self.encoder.dims, half, seed).to(self.device)
+            bits.append(lsbh_bits((self.encoder(sonar) @ self.sonar_projection)[0], self.k))
+        return fuse(bits)
 
     def descriptor(self, winners: np.ndarray) -> np.ndarray:
         """Push this step's winner cells and return D_t (see :mod:`core.neocortex.descriptor`)."""
@@ -107,9 +118,9 @@ class NeocortexViewCells:
         span = interval_length(self.run, p.sv_tm_window, p.theta_rho, p.interval_mode)
         return cap_topk(self.history[-span:], p.sv_tm_topk)
 
-    def process(self, image: np.ndarray) -> tuple[int, float, bool]:
-        """Encode, pool, sequence and match ``image``; return (view cell id, 0.0, created)."""
-        columns = self.sp.compute(self.sdr(image), learn=self.params.sp_learn)
+    def process(self, image: np.ndarray, sonar: np.ndarray | None = None) -> tuple[int, float, bool]:
+        """Encode, pool, sequence and match ``image`` (and ``sonar``); return (view cell id, 0.0, created)."""
+        columns = self.sp.compute(self.sdr(image, sonar), learn=self.params.sp_learn)
         _, winners = self.tm.compute(columns, learn=True)
         source = columns if self.params.sv_descriptor_source == "sp" else winners  # sp: no sequence memory
         d = self.descriptor(source.cpu().numpy().astype(np.int64))
@@ -125,7 +136,7 @@ class NeocortexViewCells:
         self.current = self.count - 1
         return self.current, 0.0, True
 
-    def read(self, image: np.ndarray) -> np.ndarray:
+    def read(self, image: np.ndarray, sonar: np.ndarray | None = None) -> np.ndarray:
         """Return D_t of ``image`` through this cortex without learning and without making a view cell.
 
         Inference only (spatial pooler and temporal memory with learning off): a stored map's cortex reads
@@ -133,7 +144,7 @@ class NeocortexViewCells:
         observations, ``mapserver.merge.cortex``). The sequence state (active cells, winners, the descriptor
         window) advances as in :meth:`process`; the learnt state (permanences, segments) does not change.
         """
-        columns = self.sp.compute(self.sdr(image), learn=False)
+        columns = self.sp.compute(self.sdr(image, sonar), learn=False)
         _, winners = self.tm.compute(columns, learn=False)
         source = columns if self.params.sv_descriptor_source == "sp" else winners
         d = self.descriptor(source.cpu().numpy().astype(np.int64))
@@ -172,6 +183,8 @@ class NeocortexViewCells:
         }
         if self.projection.numel() <= STORED_PROJECTION_MAX:
             state["nc_projection"] = self.projection.cpu().numpy().copy()
+        if self.sonar_projection is not None:  # regenerated from the seed on restore, checked by its digest
+            state["nc_sonar_projection_digest"] = digest(self.sonar_projection)
         state.update(self.sp.snapshot("nc_sp_"))
         state.update(self.tm.snapshot("nc_tm_"))
         return state
@@ -189,6 +202,12 @@ class NeocortexViewCells:
         if not np.array_equal(np.asarray(state["nc_projection_digest"]), digest(cells.projection)):
             msg = "the stored LSBH projection differs from the one regenerated from lsbh_seed"
             raise ValueError(msg)
+        if "nc_sonar_projection_digest" in state:
+            half, seed = params.lsbh_bits // 2, params.lsbh_seed + SONAR_SEED
+            cells.sonar_projection = projection(cells.encoder.dims, half, seed).to(cells.device)
+            if not np.array_equal(np.asarray(state["nc_sonar_projection_digest"]), digest(cells.sonar_projection)):
+                msg = "the stored sonar LSBH projection differs from the one regenerated from lsbh_seed"
+                raise ValueError(msg)
         templates = np.asarray(state["lv_templates"], dtype=np.float32)
         cells.add_prototypes(templates.reshape(-1, params.sv_tm_topk).astype(np.int64), state["lv_means"])
         cells.current = int(state["lv_current"])

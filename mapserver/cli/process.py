@@ -21,7 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", help="parameter preset (irat, stlucia, newcollege, lake, circle, poseidon)")
     group.add_argument("--config", help="OpenRatSLAM config_*.txt or OpenRatSLAM2 YAML file")
-    parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt")
+    parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt (none: off); "
+                        "sonar=/t adds a sonar image topic (sdr-htm front-end)")
     parser.add_argument("--out", help="write the map JSON here")
     parser.add_argument("--db", help="store the session in this database (SQLAlchemy URL)")
     parser.add_argument("--map", dest="map_name", help="name of the new map when the session connects to none")

@@ -19,11 +19,14 @@ class Frame:
         image: uint8 pixels, shape (H, W) for grey or (H, W, 3) RGB.
         motion: motion since the previous frame from the log's odometry, or None
             when the log has no odometry (the engine then uses visual odometry).
+        sonar: the newest image of the sonar topic at or before the stamp (``--topics sonar=/t``), None
+            without one (no sonar topic, or none received yet).
     """
 
     stamp_ns: int
     image: npt.NDArray[np.uint8]
     motion: Motion | None
+    sonar: npt.NDArray[np.uint8] | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -62,6 +62,34 @@ LOG_SUFFIXES = (".bag", ".db3", ".mcap")
 _HASH_CHUNK = 1 << 20
 
 
+class _Newest:
+    """The newest image of a topic at or before a stamp, decoded once (the sonar modality of a frame)."""
+
+    def __init__(self, log: Any, reader: AnyReader, topic: str) -> None:
+        self._log, self._reader, self._topic = log, reader, topic
+        self._stream = iter(log._ordered(reader, topic))
+        self._ahead: tuple[int, Any] | None = self._next()
+        self._newest: Any = None
+        self._image: np.ndarray | None = None
+
+    def _next(self) -> tuple[int, Any] | None:
+        item = next(self._stream, None)
+        if item is None:
+            return None
+        conn, receive_ns, raw = item
+        msg = self._log._deserialize(self._reader, raw, conn)
+        return _header_stamp(msg, receive_ns), msg
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """Return the newest image stamped at or before ``stamp_ns`` (None before the first)."""
+        while self._ahead is not None and self._ahead[0] <= stamp_ns:
+            self._newest, self._image = self._ahead[1], None
+            self._ahead = self._next()
+        if self._newest is not None and self._image is None:
+            self._image = decode_image(self._newest, self._topic)
+        return self._image
+
+
 def _header_stamp(msg: Any, receive_ns: int) -> int:
     """Return the header stamp in ns, or the receive time when the header stamp is zero."""
     header = getattr(msg, "header", None)
@@ -295,6 +323,11 @@ class MissionLog:
                 stack.callback(odom_reader.close)
                 states = self._odometry_states(odom_reader)
                 track = OdometryTrack(mode)
+            sonar = None
+            if self.mapping.sonar is not None:
+                sonar_reader = _new_reader(self.path)
+                stack.callback(sonar_reader.close)
+                sonar = _Newest(self, sonar_reader, self.mapping.sonar)
             cursor: int | None = None
             for index, (conn, receive_ns, raw) in enumerate(self._ordered(reader, topic)):
                 if stop is not None and index >= stop:
@@ -315,7 +348,8 @@ class MissionLog:
                         motion = track.motion(cursor, stamp)
                 cursor = stamp if cursor is None else max(cursor, stamp)
                 if index >= start:
-                    yield Frame(stamp_ns=stamp, image=decode_image(msg, topic), motion=motion)
+                    extra = None if sonar is None else sonar.at(stamp)
+                    yield Frame(stamp_ns=stamp, image=decode_image(msg, topic), motion=motion, sonar=extra)
 
     def ground_truth(self) -> Iterator[PoseSample]:
         """Yield the ground-truth poses in stamp order (nothing when the log has no ground-truth topic).

@@ -16,9 +16,14 @@ are never chosen:
   topics, the one with the most messages (ties: alphabetical); if there is none, the only
   ``PoseStamped``/``PoseWithCovarianceStamped`` topic when there is exactly one; otherwise none.
 
-Overrides (``--topics image=/a,odometry=/b``) name keys ``image``, ``odometry`` and ``ground_truth``; the
-value ``none`` (or an empty value) switches ``odometry`` or ``ground_truth`` off. An unknown key, a topic
-missing from the log or a topic of the wrong type is an :class:`~mapserver.errors.IngestError`.
+* **sonar**: never chosen automatically; ``--topics sonar=/topic`` names a ``sensor_msgs/Image`` or
+  ``CompressedImage`` topic (not the camera's) whose images are the second modality of the ``sdr-htm``
+  front-end (PoseidonSLAM Eq. 4.3).
+
+Overrides (``--topics image=/a,odometry=/b``) name keys ``image``, ``odometry``, ``ground_truth`` and
+``sonar``; the value ``none`` (or an empty value) switches ``odometry``, ``ground_truth`` or ``sonar``
+off. An unknown key, a topic missing from the log or a topic of the wrong type is an
+:class:`~mapserver.errors.IngestError`.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedIma
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 POSE_TYPES = frozenset({"geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped"})
 GROUND_TRUTH_TYPES = POSE_TYPES | {ODOMETRY_TYPE}
-TOPIC_KEYS = ("image", "odometry", "ground_truth")
+TOPIC_KEYS = ("image", "odometry", "ground_truth", "sonar")
 TRUTH_WORDS = ("ground_truth", "groundtruth", "truth", "overhead", "mocap", "vicon")
 TRUTH_TOKENS = ("gt",)
 _OFF_VALUES = frozenset({"", "none"})
@@ -66,16 +71,24 @@ class TopicMapping:
         image: camera topic (always present).
         odometry: odometry topic, or None (the engine then runs visual odometry).
         ground_truth: ground-truth pose topic, or None.
+        sonar: second image topic (the sdr-htm front-end's sonar modality), or None.
 
     """
 
     image: str
     odometry: str | None
     ground_truth: str | None
+    sonar: str | None = None
 
     def as_dict(self) -> dict[str, str | None]:
-        """Return the mapping as ``{"image", "odometry", "ground_truth"}``."""
-        return {"image": self.image, "odometry": self.odometry, "ground_truth": self.ground_truth}
+        """Return the mapping as ``{"image", "odometry", "ground_truth"}``, and ``"sonar"`` when there is one.
+
+        (Without a sonar topic the dict is the one logs were identified by before the key existed.)
+        """
+        out = {"image": self.image, "odometry": self.odometry, "ground_truth": self.ground_truth}
+        if self.sonar is not None:
+            out["sonar"] = self.sonar
+        return out
 
 
 def is_truth_like(name: str) -> bool:
@@ -167,14 +180,21 @@ def choose_topics(
         "image": IMAGE_TYPES,
         "odometry": frozenset({ODOMETRY_TYPE}),
         "ground_truth": GROUND_TRUTH_TYPES,
+        "sonar": IMAGE_TYPES,
     }
     chosen: dict[str, str | None] = {
         "image": _pick_image(topics),
         "odometry": _pick_odometry(topics),
         "ground_truth": _pick_ground_truth(topics),
+        "sonar": None,
     }
     for key, value in overrides.items():
         chosen[key] = _override(key, value, by_name, allowed[key], source)
+    if chosen["sonar"] is None:
+        del chosen["sonar"]  # no sonar: the mapping reads as before the key existed
+    elif chosen["sonar"] == chosen["image"]:
+        msg = f"{source}: the sonar topic {chosen['sonar']!r} is the camera topic: name another image topic"
+        raise IngestError(msg)
     return chosen
 
 
@@ -195,7 +215,8 @@ def map_topics(
     if next(t.count for t in topics if t.name == image) == 0:
         msg = f"{source}: camera topic {image!r} has no messages"
         raise IngestError(msg)
-    return TopicMapping(image=image, odometry=chosen["odometry"], ground_truth=chosen["ground_truth"])
+    return TopicMapping(image=image, odometry=chosen["odometry"], ground_truth=chosen["ground_truth"],
+                        sonar=chosen.get("sonar"))
 
 
 def parse_topics_arg(text: str) -> dict[str, str]:

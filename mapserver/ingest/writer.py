@@ -223,12 +223,14 @@ def _merged(
     images: Iterable[tuple[int, npt.NDArray[Any]]],
     odometry: Iterable[OdomSample],
     ground_truth: Iterable[PoseSample],
+    sonar: Iterable[tuple[int, npt.NDArray[Any]]] = (),
 ) -> Iterator[tuple[int, int, Any]]:
-    """Merge the three streams lazily by stamp: ``(stamp_ns, kind, item)``, kind 0 odom, 1 gt, 2 image."""
+    """Merge the streams lazily by stamp: ``(stamp_ns, kind, item)``, kind 0 odom, 1 gt, 2 image, 3 sonar."""
     odom_stream = ((int(s.stamp_ns), 0, s) for s in odometry)
     gt_stream = ((int(s.stamp_ns), 1, s) for s in ground_truth)
     image_stream = ((int(stamp), 2, pixels) for stamp, pixels in images)
-    return heapq.merge(odom_stream, gt_stream, image_stream, key=lambda e: (e[0], e[1]))
+    sonar_stream = ((int(stamp), 3, pixels) for stamp, pixels in sonar)
+    return heapq.merge(odom_stream, gt_stream, image_stream, sonar_stream, key=lambda e: (e[0], e[1]))
 
 
 def _target_path(path: Path, fmt: LogFormat, directory: bool) -> Path:
@@ -265,6 +267,8 @@ def write_log(
     gt_type: GroundTruthType = "pose",
     pose_only_odometry: bool = False,
     directory: bool = False,
+    sonar: Iterable[tuple[int, npt.NDArray[Any]]] = (),
+    sonar_topic: str = "/robot/sonar/image",
 ) -> Path:
     """Write a mission log.
 
@@ -285,6 +289,8 @@ def write_log(
         pose_only_odometry: write zero twist (pose only), as many robots do.
         directory: for ``db3``/``mcap``, keep the rosbag2 directory (``metadata.yaml`` + storage file) at
             ``path`` instead of a standalone file.
+        sonar: ``(stamp_ns, pixels)`` of a second image stream (mono8 ``sensor_msgs/Image``), in stamp order.
+        sonar_topic: its topic name (not written when ``sonar`` is empty).
 
     Returns:
         The path written.
@@ -307,12 +313,13 @@ def write_log(
             0: (odom_topic, "nav_msgs/msg/Odometry"),
             1: (gt_topic, _GT_TYPES[gt_type]),
             2: (image_topic, _image_type(image_encoding)),
+            3: (sonar_topic, "sensor_msgs/msg/Image"),
         },
         image_encoding=image_encoding,
         gt_type=gt_type,
         pose_only=pose_only_odometry,
     )
-    stream = _merged(images, odometry, ground_truth)
+    stream = _merged(images, odometry, ground_truth, sonar)
     try:
         if fmt == "bag":
             _write_ros1(temp, stream, options)
@@ -353,7 +360,7 @@ def _build(messages: _Messages, stamp: int, kind: int, item: Any, options: _Opti
         return messages.odom_sample(item, options.pose_only)
     if kind == 1:
         return messages.ground_truth(item, options.gt_type)
-    return messages.image(stamp, item, options.image_encoding)
+    return messages.image(stamp, item, options.image_encoding if kind == 2 else "mono8")
 
 
 def _write_ros1(temp: Path, stream: Iterator[tuple[int, int, Any]], options: _Options) -> None:

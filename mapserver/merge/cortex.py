@@ -88,9 +88,9 @@ class CortexReader:
         """Return the number of the stored map's view cells."""
         return self.cells.count
 
-    def read(self, image: np.ndarray) -> np.ndarray:
-        """Step the cortex on ``image`` (no learning) and return its descriptor, ``-1`` padded to ``sv_tm_topk``."""
-        d = self.cells.read(image)
+    def read(self, image: np.ndarray, sonar: np.ndarray | None = None) -> np.ndarray:
+        """Step the cortex on ``image`` (and ``sonar``; no learning); return its descriptor, −1 padded to top-k."""
+        d = self.cells.read(image, sonar)
         out = np.full(self.topk, -1, dtype=np.int64)
         out[: d.size] = d
         return out

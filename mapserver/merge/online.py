@@ -265,7 +265,8 @@ class OnlineMerger:
         if frame is None:
             msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
-        view = np.stack([reader.read(frame.image) for reader in self._readers])
+        sonar = getattr(frame, "sonar", None)
+        view = np.stack([reader.read(frame.image, sonar) for reader in self._readers])
         if result.template_created and not self.absorbed:  # a view cell of the session's own cortex
             for reader in self._readers:
                 reader.remember(result.template, view)

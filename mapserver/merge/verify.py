@@ -91,7 +91,7 @@ class Probation:
         ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is stepped through the shadow engine first.
         """
         stamp = frame.stamp_ns * 1e-9
-        shadow = self.shadow.step(frame.image, frame.motion, stamp)
+        shadow = self.shadow.step(frame.image, frame.motion, stamp, getattr(frame, "sonar", None))
         if shadow.action == Action.CREATE_NODE:
             self.created.append((shadow.experience, stamp, frame.image))
         self.seen.append((stamp, shadow.template, shadow.template_created))
