@@ -243,6 +243,18 @@ class TemporalMemory:
         perm = np.array(state[prefix + "syn_perm"], np.float32).reshape(-1, m)
         self.syn_pre[ids] = torch.from_numpy(pre).to(self.device)
         self.syn_perm[ids] = torch.from_numpy(perm).to(self.device)
+        self.load_sequence(state, prefix)
+
+    def sequence_snapshot(self, prefix: str = "tm_") -> dict[str, np.ndarray]:
+        """Return the sequence state alone (a′, the previous winners, the step), not the learnt segments."""
+        return {
+            prefix + "prev_active": torch.nonzero(self.prev_active).flatten().cpu().numpy().astype(np.int64),
+            prefix + "prev_winners": self.prev_winners.cpu().numpy().astype(np.int64),
+            prefix + "step": np.asarray(self.step_count, dtype=np.int64),
+        }
+
+    def load_sequence(self, state: Mapping[str, np.ndarray], prefix: str = "tm_") -> None:
+        """Overwrite the sequence state with :meth:`sequence_snapshot` arrays."""
         self.prev_active = torch.zeros(self.cells, dtype=torch.bool, device=self.device)
         self.prev_active[torch.from_numpy(np.array(state[prefix + "prev_active"], np.int64)).to(self.device)] = True
         self.prev_winners = torch.from_numpy(np.array(state[prefix + "prev_winners"], np.int64)).to(self.device)

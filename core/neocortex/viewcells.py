@@ -166,10 +166,6 @@ class NeocortexViewCells:
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:
         """Return the whole front-end state as plain arrays (keys ``lv_*`` and ``nc_*``)."""
-        p = self.params
-        history = np.full((p.sv_tm_window, max((h.size for h in self.history), default=0)), -1, np.int64)
-        for i, h in enumerate(self.history):
-            history[i, : h.size] = h
         state = {
             "lv_templates": self._prototypes.astype(np.float32)[:, None, :],
             "lv_means": self._sizes.astype(np.float64),
@@ -177,9 +173,7 @@ class NeocortexViewCells:
             "lv_previous": np.asarray(self.previous, dtype=np.int64),
             "lv_relative_rad": np.asarray(self.relative_rad, dtype=np.float64),
             "nc_projection_digest": digest(self.projection),
-            "nc_history": history,
-            "nc_history_len": np.asarray([h.size for h in self.history], dtype=np.int64),
-            "nc_run": np.asarray(self.run, dtype=np.int64),
+            **self.sequence_state(),
         }
         if self.projection.numel() <= STORED_PROJECTION_MAX:
             state["nc_projection"] = self.projection.cpu().numpy().copy()
@@ -188,6 +182,29 @@ class NeocortexViewCells:
         state.update(self.sp.snapshot("nc_sp_"))
         state.update(self.tm.snapshot("nc_tm_"))
         return state
+
+    def sequence_state(self) -> dict[str, np.ndarray]:
+        """Return the state that changes from frame to frame in a cortex that does not learn.
+
+        The TM's sequence state and the descriptor window: ``nc_tm_prev_*``, ``nc_tm_step``, ``nc_history*``,
+        ``nc_run``.
+        """
+        history = np.full((self.params.sv_tm_window, max((h.size for h in self.history), default=0)), -1, np.int64)
+        for i, h in enumerate(self.history):
+            history[i, : h.size] = h
+        return {
+            "nc_history": history,
+            "nc_history_len": np.asarray([h.size for h in self.history], dtype=np.int64),
+            "nc_run": np.asarray(self.run, dtype=np.int64),
+            **self.tm.sequence_snapshot("nc_tm_"),
+        }
+
+    def load_sequence_state(self, state: Mapping[str, np.ndarray]) -> None:
+        """Overwrite the sequence state with :meth:`sequence_state` arrays."""
+        history, lengths = np.asarray(state["nc_history"]), np.asarray(state["nc_history_len"])
+        self.history = [history[i, : int(n)].astype(np.int64) for i, n in enumerate(lengths)]
+        self.run = int(state["nc_run"])
+        self.tm.load_sequence(state, "nc_tm_")
 
     @classmethod
     def restore(cls, params: Params, state: Mapping[str, np.ndarray]) -> NeocortexViewCells:
@@ -213,11 +230,9 @@ class NeocortexViewCells:
         cells.current = int(state["lv_current"])
         cells.previous = int(state["lv_previous"])
         cells.relative_rad = float(state["lv_relative_rad"])
-        history, lengths = np.asarray(state["nc_history"]), np.asarray(state["nc_history_len"])
-        cells.history = [history[i, : int(n)].astype(np.int64) for i, n in enumerate(lengths)]
-        cells.run = int(state["nc_run"])
         cells.sp.load(state, "nc_sp_")
         cells.tm.load(state, "nc_tm_")
+        cells.load_sequence_state(state)
         return cells
 
 

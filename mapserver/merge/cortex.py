@@ -24,9 +24,9 @@ sequence state) and learns from then on, so the merged map has one cortex and ev
 
 Limits (stated in the README): a session joins at most one ``sdr-htm`` map (the first map's prototypes
 were never read by a second map's cortex, so no bridge); maps merge only online, while the frames are
-read (offline ``merge`` and ``--redo`` refuse them); a session resumed after ``--stop-after`` restarts its
-readers and its hypotheses at the resume frame, and its view cells made before the stop join a later merge
-without a prototype in the map's cells (their experiences and links are kept).
+read (offline ``merge`` and ``--redo`` refuse them). A session stopped with ``--stop-after`` keeps its
+readers' sequence state and translations with its merge driver's state (``MergerState.readers``), so it
+resumes as one run; when a candidate map changed meanwhile, its readers and hypotheses restart instead.
 """
 
 from __future__ import annotations
@@ -73,11 +73,12 @@ class CortexReader:
         row: this reader's row in the stacked views.
     """
 
-    def __init__(self, params: Params, state: Mapping[str, np.ndarray], row: int) -> None:
+    def __init__(self, params: Params, state: Mapping[str, np.ndarray], row: int, key: object = None) -> None:
         gates = {"sv_min_intersection": min(params.merge_sv_min_intersection, params.sv_tm_topk),
                  "sv_enable_f1_gate": params.merge_sv_enable_f1_gate}  # fmt: skip
         self.cells = NeocortexViewCells.restore(params.replace(**gates), state)
         self.params = params
+        self.key = key
         self.row = row
         self.topk = params.sv_tm_topk
         self.limit = params.vt_match_threshold
@@ -134,6 +135,18 @@ class CortexReader:
                 rows[template] = d
         sizes = (rows >= 0).sum(axis=1)
         return {**partial, "lv_templates": rows.astype(np.float32)[:, None, :], "lv_means": sizes.astype(np.float64)}
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Return what the reader changed since it was restored: the sequence state and the translations."""
+        ids = np.asarray(sorted(self.translations), dtype=np.int64)
+        rows = np.asarray([self.translations[int(i)] for i in ids], dtype=np.int64).reshape(-1, self.topk)
+        return {**self.cells.sequence_state(), "tr_ids": ids, "tr_rows": rows}
+
+    def load(self, state: Mapping[str, np.ndarray]) -> None:
+        """Continue from :meth:`state` arrays (a session resumed after ``--stop-after``)."""
+        self.cells.load_sequence_state(state)
+        rows = np.asarray(state["tr_rows"], dtype=np.int64).reshape(-1, self.topk)
+        self.translations = {int(i): rows[n].copy() for n, i in enumerate(np.asarray(state["tr_ids"]))}
 
     def cortex(self) -> dict[str, np.ndarray]:
         """Return the reader's cortex as snapshot arrays (``nc_*``): the merged engine continues in it."""

@@ -228,6 +228,8 @@ class OnlineMerger:
         candidates: list[_Candidate] = []
         for stored in self._stored:
             reason = params_incompatibility(stored.params, engine.params, reads_frames=True)
+            if reason is None and engine.params.frontend == "sdr-htm" and self.absorbed:
+                reason = "the session joined an sdr-htm map already (a session joins one sdr-htm map)"
             if reason:
                 self.skipped[stored.key] = reason
                 logger.info("map %r is not a merge candidate: %s", stored.key, reason)
@@ -235,7 +237,7 @@ class OnlineMerger:
             state = stored.state
             poses, templates, anchors = _places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
-            cells = self._matcher(engine, state)
+            cells = self._matcher(engine, state, stored.key)
             rule = self._rule(stored, engine.params)
             places = StoredPlaces(
                 cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic, rule
@@ -243,17 +245,27 @@ class OnlineMerger:
             candidates.append(_Candidate(stored, cells, order, starts, HypothesisSet(places, rule), anchors))
         self._track.keep_m = max((c.hypotheses.rule.history_m for c in candidates), default=0.0)
         if self._resume is not None:
+            if self._readers and not self._restore_readers(self._resume):
+                self._resume = MergerState(self._resume.odometry, self._resume.absorbed)  # readers restart
             self._resume.restore_into(candidates, self._track)
             self._resume = None
         return candidates
 
-    def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray]) -> Any:
+    def _restore_readers(self, state: MergerState) -> bool:
+        """Continue the readers from a resumed state; False when its readers are not these (maps changed)."""
+        if [int(k) for k, _ in state.readers] != [int(r.key) for r in self._readers]:  # type: ignore[call-overload]
+            return False
+        for reader, (_, arrays) in zip(self._readers, state.readers, strict=True):
+            reader.load(arrays)
+        return True
+
+    def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray], key: object) -> Any:
         """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader."""
         if engine.params.frontend != "sdr-htm":
             return LocalViewCells.restore(engine.params, state)
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm sessions
 
-        reader = CortexReader(engine.params, state, row=len(self._readers))
+        reader = CortexReader(engine.params, state, row=len(self._readers), key=key)
         self._readers.append(reader)
         return reader
 
@@ -464,8 +476,6 @@ class OnlineMerger:
     def export_state(self) -> MergerState:
         """Return what the driver carries to the next frame (see the module docstring, "Resume")."""
         self.finish()
-        if self._readers:  # the readers' sequence state is not kept: they and the hypotheses restart on resume
-            return MergerState(self._odometry.copy(), tuple(self.absorbed))
         hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:
@@ -475,7 +485,11 @@ class OnlineMerger:
         elif self._resume is not None:
             hypotheses = dict(self._resume.hypotheses)
         track = self._resume.track if self._candidates is None and self._resume is not None else self._track
-        return MergerState(self._odometry.copy(), tuple(self.absorbed), hypotheses, track)
+        if self._candidates is None and self._resume is not None:
+            readers = self._resume.readers
+        else:
+            readers = tuple((r.key, r.state()) for r in self._readers)
+        return MergerState(self._odometry.copy(), tuple(self.absorbed), hypotheses, track, readers)
 
 
 def _heading(rad: float) -> np.ndarray:

@@ -44,12 +44,19 @@ class MergerState:
     absorbed: tuple[object, ...] = ()
     hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = field(default_factory=dict)
     track: Track | None = None
+    readers: tuple[tuple[object, Mapping[str, np.ndarray]], ...] = ()
+    """sdr-htm sessions: every candidate's cortex reader (key, :meth:`CortexReader.state`), in view-row order."""
 
     def without(self, keys: Sequence[object]) -> MergerState:
-        """Return the state with the hypotheses of these maps dropped (maps that changed since)."""
+        """Return the state with the hypotheses of these maps dropped (maps that changed since).
+
+        With cortex readers, one changed map restarts them all (the track's views hold every reader's row).
+        """
         gone = set(keys)
+        if self.readers and gone & {k for k, _ in self.readers}:
+            return MergerState(self.odometry, self.absorbed)
         kept = {k: v for k, v in self.hypotheses.items() if k not in gone}
-        return MergerState(self.odometry, self.absorbed, kept, self.track)
+        return MergerState(self.odometry, self.absorbed, kept, self.track, self.readers)
 
     def restore_into(self, candidates: Sequence[Any], track: Track) -> None:
         """Put the hypotheses back into the candidates' sets and the frames into ``track``."""
@@ -91,6 +98,8 @@ class MergerState:
             "track_views": views.astype(np.float32),
             "track_means": np.asarray([f[4] for f in frames], dtype=np.float64),
             "track_total": np.asarray([0.0 if self.track is None else self.track.distance], dtype=np.float64),
+            "readers": np.asarray([int(k) for k, _ in self.readers], dtype=np.int64),  # type: ignore[call-overload]
+            **{f"reader{r}_{name}": v for r, (_, state) in enumerate(self.readers) for name, v in state.items()},
         }
 
     @classmethod
@@ -119,7 +128,13 @@ class MergerState:
             track.frames.append((int(frame), odometry[i].copy(), float(distance[i]), views[i].copy(), float(means[i])))
         track.distance = float(np.asarray(arrays["track_total"]).reshape(-1)[0])
         absorbed = tuple(int(k) for k in np.asarray(arrays["absorbed"], dtype=np.int64).reshape(-1))
-        return cls(np.asarray(arrays["odometry"], dtype=np.float64).reshape(4).copy(), absorbed, hypotheses, track)
+        keys = np.asarray(arrays.get("readers", np.zeros(0)), dtype=np.int64).reshape(-1)
+        readers = tuple(
+            (int(k), {name[len(f"reader{r}_"):]: v for name, v in arrays.items() if name.startswith(f"reader{r}_")})
+            for r, k in enumerate(keys)
+        )
+        odometry = np.asarray(arrays["odometry"], dtype=np.float64).reshape(4).copy()
+        return cls(odometry, absorbed, hypotheses, track, readers)
 
 
 def _copy(h: Hypothesis) -> Hypothesis:

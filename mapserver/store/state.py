@@ -351,6 +351,49 @@ def _identities(
 # ------------------------------------------------------------------------------------------------ writing
 
 
+def _frontend(params: Any) -> str:
+    """Return the view front-end named by engine parameters (``core.Params`` or its dict)."""
+    value = params.get("frontend", "lvc") if isinstance(params, Mapping) else getattr(params, "frontend", "lvc")
+    return str(value)
+
+
+def _rewrite_reexpressed_templates(
+    conn: Connection, templates: np.ndarray, means: np.ndarray, sessions: np.ndarray, indices: np.ndarray
+) -> None:
+    """Rewrite stored template rows whose content the snapshot changed (``sdr-htm`` view cells only).
+
+    Templates are otherwise immutable (:func:`_sync_templates` refuses a row stored with other data). An
+    ``sdr-htm`` view cell is re-expressed when its session merges into a stored map: its prototype becomes the
+    stored map's cortex's cells (``mapserver.merge.cortex``), so a session stored partially before its merge
+    (``--stop-after``) holds rows whose content the merged snapshot replaces.
+    """
+    n = templates.shape[0]
+    if n == 0:
+        return
+    data = np.ascontiguousarray(templates, dtype="<f4")
+    stored = conn.execute(
+        select(Template.session_id, Template.origin_index, Template.mean, Template.data).where(
+            Template.session_id.in_(np.unique(sessions).tolist())
+        )
+    ).all()
+    by_key = {(int(r[0]), int(r[1])): (float(r[2]), bytes(r[3])) for r in stored}
+    changed = []
+    for i in range(n):
+        key = (int(sessions[i]), int(indices[i]))
+        row = by_key.get(key)
+        if row is not None and (row[0] != float(means[i]) or row[1] != data[i].tobytes()):
+            changed.append({"b_s": key[0], "b_i": key[1], "b_mean": float(means[i]), "b_data": data[i].tobytes(),
+                            "b_h": int(templates.shape[1]), "b_w": int(templates.shape[2])})  # fmt: skip
+    if changed:
+        conn.execute(
+            update(Template)
+            .where(Template.session_id == bindparam("b_s"), Template.origin_index == bindparam("b_i"))
+            .values(mean=bindparam("b_mean"), data=bindparam("b_data"), height=bindparam("b_h"),
+                    width=bindparam("b_w")),
+            changed,
+        )  # fmt: skip
+
+
 def _sync_templates(
     conn: Connection, map_id: int, templates: np.ndarray, means: np.ndarray, sessions: np.ndarray, indices: np.ndarray
 ) -> None:
@@ -660,6 +703,10 @@ def write_map_state(
     for table in (Link, PoseCellLink, Experience):
         conn.execute(table.__table__.delete().where(table.map_id == map_id))
     _check_experience_owners(conn, map_id, experience_sessions, e_index)
+    if _frontend(params) == "sdr-htm":
+        _rewrite_reexpressed_templates(
+            conn, np.asarray(snapshot["lv_templates"]), np.asarray(snapshot["lv_means"]), template_sessions, t_index
+        )
     _sync_templates(
         conn,
         map_id,

@@ -302,3 +302,24 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     cli_json("process", str(other / "session1.bag"), "--db", alien, "--preset", "poseidon-sdr")
     result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon-sdr")
     assert [m for m in result["merges"] if m["status"] == "applied"] == []
+
+
+def test_an_sdr_htm_session_stopped_before_its_merge_resumes_as_one_run(scenario: Any, tmp_path: Path) -> None:
+    """The readers' sequence state and translations travel with the merge driver's state (``--stop-after``)."""
+    from mapserver.pipeline import process_into_store
+    from mapserver.store.mapio import load_map
+    from tests.mapserver.store.conftest import assert_same_arrays
+
+    directory, info = scenario("cave3d")
+    params = preset("poseidon-sdr")
+    s1, s2 = (directory / s["log"] for s in info["sessions"])
+    whole, split = _db(tmp_path, "whole"), _db(tmp_path, "split")
+    for db in (whole, split):
+        process_into_store(s1, params, db_url=db)
+    one = process_into_store(s2, params, db_url=whole)
+    (frame,) = [m["frame"] for m in one.merges if m["status"] == "applied"]
+    first = process_into_store(s2, params, db_url=split, stop_after=frame - 30)
+    second = process_into_store(s2, params, db_url=split)
+    assert first.merges == [] and [m["frame"] for m in second.merges] == [frame]
+    a, b = (load_map(open_database(db), name="session1").snapshot for db in (whole, split))
+    assert_same_arrays(a, b, skip=("st_next_index",))

@@ -261,3 +261,22 @@ def test_any_snapshot_round_trips_bit_for_bit(db: Database, snap: dict[str, np.n
     sid = loaded.meta.sessions[0].id
     assert set(loaded.snapshot["lv_origin"].tolist()) <= {sid}
     assert set(loaded.snapshot["em_origin"].tolist()) <= {sid}
+
+
+def test_view_cells_a_merge_reexpressed_are_rewritten_for_sdr_maps_only(db: Database, engine: Engine) -> None:
+    """An sdr-htm merge re-expresses a stored session's view cells in another cortex (mapserver.merge.cortex):
+    their rows take the new content. Intensity templates stay immutable: the same change is refused."""
+    save_map(db, name="lab", params=engine.params, snapshot=engine.snapshot(), sessions=[_session()])
+    first = load_map(db, name="lab")
+    ids = [s.id for s in first.meta.sessions]
+    changed = dict(first.snapshot)
+    changed["lv_templates"] = first.snapshot["lv_templates"][::-1].copy()
+    changed["lv_means"] = first.snapshot["lv_means"][::-1].copy()
+    with pytest.raises(StoreError, match="stored with other data"):
+        save_map(db, name="lab", params=engine.params, snapshot=changed, sessions=ids, expected_version=1)
+    assert_same_arrays(first.snapshot, load_map(db, name="lab").snapshot)  # nothing written
+    sdr = engine.params.replace(frontend="sdr-htm")
+    save_map(db, name="lab", params=sdr, snapshot=changed, sessions=ids, expected_version=1)
+    again = load_map(db, name="lab")
+    assert_same_arrays(changed, again.snapshot)
+    assert np.array_equal(again.meta.template_index, first.meta.template_index)  # the same rows, new content
