@@ -240,7 +240,8 @@ class Engine:
         engine = cls(params, origin)
         engine.local_view = view_cells_class(params).restore(params, state)
         engine.lv_origin = np.asarray(state["lv_origin"], dtype=np.int64).tolist()
-        engine.lv_place, engine.lv_place_offset = _places(state, len(engine.lv_origin))
+        place, offset = template_place_rows(state, len(engine.lv_origin))
+        engine.lv_place, engine.lv_place_offset = place.tolist(), list(offset)
         engine.odometry = VisualOdometry.restore(params, state)
         engine.pose_cells = PoseCellNetwork.restore(params, state)
         engine.map = ExperienceMap.restore(params, engine.pose_cells.rank, state)
@@ -251,12 +252,16 @@ class Engine:
         return engine
 
 
-def _places(state: Mapping[str, np.ndarray], n: int) -> tuple[list[int], list[np.ndarray]]:
-    """Return the templates' places of a snapshot (``lv_place``, optional: missing rows have none, −1)."""
+def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return (place (n,), offset (n, 4)) of a snapshot's first n templates (``lv_place``/``lv_place_offset``).
+
+    The keys are optional: templates past their end, or all of them in snapshots made before the keys
+    existed, have no place (−1, zero offset).
+    """
     place = np.full(n, -1, dtype=np.int64)
     offset = np.zeros((n, 4), dtype=np.float64)
     if "lv_place" in state:
         stored = np.asarray(state["lv_place"], dtype=np.int64).reshape(-1)[:n]
         place[: stored.size] = stored
         offset[: stored.size] = np.asarray(state["lv_place_offset"], dtype=np.float64).reshape(-1, 4)[: stored.size]
-    return place.tolist(), list(offset)
+    return place, offset

@@ -77,7 +77,6 @@ class CortexReader:
         gates = {"sv_min_intersection": min(params.merge_sv_min_intersection, params.sv_tm_topk),
                  "sv_enable_f1_gate": params.merge_sv_enable_f1_gate}  # fmt: skip
         self.cells = NeocortexViewCells.restore(params.replace(**gates), state)
-        self.params = params
         self.key = key
         self.row = row
         self.topk = params.sv_tm_topk

@@ -235,7 +235,7 @@ class OnlineMerger:
                 logger.info("map %r is not a merge candidate: %s", stored.key, reason)
                 continue
             state = stored.state
-            poses, templates, anchors = _places(state, with_views=engine.params.frontend == "sdr-htm")
+            poses, templates, anchors = _predicting_places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
             cells = self._matcher(engine, state, stored.key)
             rule = self._rule(stored, engine.params)
@@ -496,7 +496,9 @@ def _heading(rad: float) -> np.ndarray:
     return np.array([0.0, 0.0, 0.0, rad])
 
 
-def _places(state: Mapping[str, np.ndarray], *, with_views: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _predicting_places(
+    state: Mapping[str, np.ndarray], *, with_views: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (poses (P, 4), templates (P,), anchor experiences (P,)) of the places a stored map predicts views at.
 
     The experiences; with ``with_views`` (sdr-htm maps) also every view cell's own place

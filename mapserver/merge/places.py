@@ -19,6 +19,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from core.engine import template_place_rows
 from mapserver.merge.record import MergeRecord
 from mapserver.merge.se3 import wrap_angle
 
@@ -27,14 +28,7 @@ State = Mapping[str, np.ndarray]
 
 def _rows(state: State) -> tuple[np.ndarray, np.ndarray]:
     """Return (place (N,), offset (N, 4)) of a snapshot's templates; rows without one: −1 and zeros."""
-    n = int(np.shape(state["lv_means"])[0])
-    place = np.full(n, -1, dtype=np.int64)
-    offset = np.zeros((n, 4), dtype=np.float64)
-    if "lv_place" in state:
-        stored = np.asarray(state["lv_place"], dtype=np.int64).reshape(-1)[:n]
-        place[: stored.size] = stored
-        offset[: stored.size] = np.asarray(state["lv_place_offset"], dtype=np.float64).reshape(-1, 4)[: stored.size]
-    return place, offset
+    return template_place_rows(state, int(np.shape(state["lv_means"])[0]))
 
 
 def template_places(state: State) -> tuple[np.ndarray, np.ndarray]:
