@@ -124,6 +124,11 @@ class LiveSession:
             return self._rolled_back(event)
         return None
 
+    def finish(self) -> Engine | None:
+        """End the log: judge a probation still running; return the engine to store when it rolled its merge back."""
+        rollback = None if self.merger is None else self.merger.finish()
+        return None if rollback is None else self._rolled_back(rollback)
+
     def _activate(self, ids: RowIdentities, stamp: float, template: int, created: bool) -> None:
         """Book the frame's active template by its stable identity (renumbering by merges cannot change it)."""
         tag, index = ids.template_identity(template)

@@ -207,12 +207,12 @@ def _process_session(
     on_probation = None if merger is None or opts.stop_after is None else lambda: merger.probation is not None
     run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step,
                      overrun=on_probation)  # fmt: skip
-    engine, ids = run.engine, live.holder.ids
     if run.frames == 0 and own is None:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
+    engine = live.finish() or run.engine  # a probation the log ended is judged: its rollback's engine goes on
+    ids = live.holder.ids
     if merger is not None:
-        merger.finish()
         for other, reason in merger.skipped.items():
             logger.warning("map %r is not a merge candidate: %s", other, reason)
     processed = start + run.frames

@@ -35,8 +35,9 @@ Resume: :meth:`OnlineMerger.export_state` returns what the driver carries from f
 :class:`MergerState`; ``OnlineMerger(..., resume=state)`` continues from it, so a session
 stopped after frame k and continued gives the merges of one run. ``process --stop-after`` runs on
 past k while a probation runs (``mapserver.run.run_engine``'s ``overrun``), so a stored merge is
-always verified; a probation still running when the log ends ends there (its merge stays, recorded
-with verification ``incomplete``: the log holds no more evidence).
+always verified; a probation still running when the log ends is judged there on what it saw
+(:meth:`OnlineMerger.finish`): its merge stays when the probation's own evidence confirms it, and is
+rolled back otherwise.
 """
 
 from __future__ import annotations
@@ -444,17 +445,19 @@ class OnlineMerger:
             msg = "a merge on probation needs the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
         verdict = probation.step(self._track, result, frame)
-        if verdict is None:
-            return None
-        event = self._probation_event
-        assert event is not None
+        return None if verdict is None else self._settle_probation(verdict, result.frame)
+
+    def _settle_probation(self, verdict: str, frame: int) -> Rollback | None:
+        """Record the probation's verdict on its merge event; on REJECTED undo the merge (the shadow goes on)."""
+        probation, event = self.probation, self._probation_event
+        assert probation is not None and event is not None
         event.evidence["verification"] = probation.evidence(self._track, verdict)
         self.probation = None
         if verdict == PASSED:
             logger.info("merge into map %r verified over %.2f m", event.key, self._track.distance - probation.start_m)
             return None
         assert verdict == REJECTED
-        logger.warning("merge into map %r rolled back at frame %d: %s", event.key, result.frame, probation.reason)
+        logger.warning("merge into map %r rolled back at frame %d: %s", event.key, frame, probation.reason)
         self.absorbed.pop()
         self.events.remove(event)
         self._candidates = self._before_merge
@@ -462,20 +465,36 @@ class OnlineMerger:
             candidate.hypotheses.hypotheses.clear()
             self.skipped.pop(candidate.stored.key, None)
         probation.hset.ban(probation.hypothesis)
-        rollback = Rollback(event, probation.shadow, result.frame, tuple(probation.created), tuple(probation.seen))
+        rollback = Rollback(event, probation.shadow, frame, tuple(probation.created), tuple(probation.seen))
         self.rollbacks.append(rollback)
         return rollback
 
-    def finish(self) -> None:
-        """End a probation still running (the log ended or the session stops): its merge stays, unverified."""
-        if self.probation is not None and self._probation_event is not None:
-            self._probation_event.evidence["verification"] = self.probation.evidence(self._track, "incomplete")
-            self.probation = None
+    def finish(self) -> Rollback | None:
+        """End a probation still running when the log ends: judge it on what it saw (``Probation.conclude_at_end``).
+
+        A merge kept is recorded with verification status ``incomplete`` (its probation was cut short).
+        Returns the :class:`Rollback` when that judgement rejects the merge: the caller continues (and stores)
+        the session's engine without the merge, as after a rollback during the log.
+        """
+        if self.probation is None or self._probation_event is None:
+            return None
+        frame = int(self._track.last[0]) if self._track.frames else -1
+        event = self._probation_event
+        rollback = self._settle_probation(self.probation.conclude_at_end(), frame)
+        if rollback is None:  # kept, but its verification was cut short
+            event.evidence["verification"]["status"] = "incomplete"
+        return rollback
 
     # ------------------------------------------------------------------ resume
     def export_state(self) -> MergerState:
-        """Return what the driver carries to the next frame (see the module docstring, "Resume")."""
-        self.finish()
+        """Return what the driver carries to the next frame (see the module docstring, "Resume").
+
+        Raises:
+            RuntimeError: a probation is running (a session stops only after its probation concludes).
+        """
+        if self.probation is not None:
+            msg = "a merge is on probation: run on until it concludes (or call finish()) before exporting the state"
+            raise RuntimeError(msg)
         hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:

@@ -40,8 +40,20 @@ from core import Action, Engine, StepResult
 from mapserver.merge.hypotheses import HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
-PROBATION_CAP = 4.0
-"""A probation whose matches never stop ends after this many probation distances."""
+PROBATION_CAP = 8.0
+"""A probation whose matches never stop ends after this many probation distances.
+
+Measured (``bench/lookalike_sweep.py --param lookalike_turns=1``, 10 seeds): at 4 the probation of 3 of 10
+false merges at a 40 m look-alike holding turns ended inside the look-alike (48 m of matches with the
+``circle`` preset's 12 m probation) and the merges stayed; at 8 none did, and 2 of 10 at 60 m: the cap is the
+longest look-alike the probation can see the end of. The cost is the shadow engine stepped for up to 8
+probation distances on a session that stays on the stored map's ground."""
+WEAK_MISS_PROBATION_CAP = 4.0
+"""The cap for a front-end whose misses weigh less than LVC's (``sdr-htm``). Its matches are too sparse to
+mark where a run of them stops (gaps of 6 m on true ground), so its probations run to the cap and the cap is
+their length. Measured (``bench/sdr_merge_sweep.py``, 4–5 seeds): at 8 a false merge has time to reach the
+other mirror of a look-alike and pass (``symmetric``: 2 of 4 seeds kept the 180° merge, ``twin`` turns alike
+20 m: 4 of 4), at 4 none of the 180° merges and 3 of 5 twin merges were rolled back."""
 CUSUM_EVIDENCE = 3.0
 """A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
 
@@ -172,14 +184,39 @@ class Probation:
         look-alike place holding turns matches until the robot leaves it (measured: ``twin`` with
         ``lookalike_turns = 1`` kept 3–9 of 10 false merges whose probation ended inside the look-alike),
         so the probation ends ``evidence_m`` metres after the newest match, or at ``PROBATION_CAP``
-        probation distances when the matches never stop (a robot that stays on the stored map's ground).
+        probation distances when the matches never stop (a robot that stays on the stored map's ground;
+        ``WEAK_MISS_PROBATION_CAP`` for a front-end with weak misses).
         """
         rule = self.hset.rule
         travelled = distance - self.start_m
         if travelled < rule.probation_m:
             return False
         since_hit = distance - (self.last_hit_m if self.last_hit_m >= 0.0 else self.start_m)
-        return since_hit >= rule.evidence_m or travelled >= PROBATION_CAP * rule.probation_m
+        cap = WEAK_MISS_PROBATION_CAP if self._weak_misses() else PROBATION_CAP
+        return since_hit >= rule.evidence_m or travelled >= cap * rule.probation_m
+
+    def conclude_at_end(self) -> str:
+        """Judge a probation that the log ended: REJECTED when what it saw speaks against the merge, else PASSED.
+
+        Against: net evidence below zero (matches − ``miss_weight`` · mismatches where the merged map predicts
+        views: the views disagree more than they agree). Such a merge is not stored; a missed merge can still
+        be made later (``mapserver merge``), a wrong one would be stored. The full pass line (half
+        ``evidence_m``, :meth:`_conclude`) is not asked of a probation cut short: measured on ``cave3d`` with
+        the ``sdr-htm`` front-end, a true merge whose log ended at 66 % of its probation had net +1.78 m of
+        the 1.93 m its share of the line asks. A log that ends inside a look-alike gives nothing that tells it
+        from the true place; such a merge stays, its verification marked as cut short.
+        """
+        hit, miss = self.hypothesis.post_hit_m, self.hypothesis.post_miss_m
+        net = hit - self.hset.rule.miss_weight * miss
+        prefix = "the log ended during the probation: "
+        if net < 0.0:
+            self.reason = (
+                f"{prefix}views disagree with the merged map: {hit:.2f} m of matches and {miss:.2f} m of "
+                f"mismatches where it predicts its places (net {net:.2f} m)"
+            )
+            return REJECTED
+        self.reason = f"{prefix}{hit:.2f} m of matches and {miss:.2f} m of mismatches (net {net:.2f} m): kept"
+        return PASSED
 
     def _conclude(self) -> str:
         """The pass test at the end of the probation distance: the probation must confirm the merge.

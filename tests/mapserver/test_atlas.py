@@ -330,3 +330,32 @@ def test_merge_evidence_must_be_minus_one_or_metres(tmp_path: Path) -> None:
     assert code == 2 and "--merge-evidence must be -1 (the map's scale) or at least 0" in err
     code, err = cli_code("merge", "--db", db, "--map", "a", "--into", "b", "--merge-evidence", "0")
     assert code == 2 and "no map named 'a'" in err  # a valid value gets as far as reading the maps
+
+
+def test_a_merge_the_logs_end_rejects_is_stored_as_the_session_alone(
+    tour: Path,
+    db_url: str,  # noqa: F811
+    make_url: Any,  # noqa: F811
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A probation still running when the log ends is judged there (``OnlineMerger.finish``); when the
+    judgement rejects the merge, the store gets the session's own map (the engine that never merged) and a
+    ``rejected`` event, in the one final transaction, and session 1's map is untouched."""
+    from mapserver.merge import verify
+
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=db_url)
+    before = _snapshot(db_url, "session1")
+    monkeypatch.setattr(verify.Probation, "_may_conclude", lambda self, distance: False)  # runs to the log's end
+    monkeypatch.setattr(verify.Probation, "conclude_at_end", lambda self: verify.REJECTED)
+    run = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)
+    assert [m["status"] for m in run.merges] == ["rejected"] and run.map_name == "session2"
+    alone = make_url()
+    pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=alone, merge=False)
+
+    def own(url: str) -> dict[str, np.ndarray]:  # session ids differ between the two databases
+        return {k: v for k, v in _engine_keys(_snapshot(url, "session2")).items() if not k.endswith("_origin")}
+
+    assert_same_arrays(own(db_url), own(alone))
+    assert_same_arrays(before, _snapshot(db_url, "session1"))
+    with open_database(db_url) as db, db.read() as conn:
+        assert [e.status for e in list_merge_events(conn=conn)] == ["rejected"]

@@ -43,6 +43,7 @@ class Run:
     merged_frames: list[int] = field(default_factory=list)
     rolled_back_frames: list[int] = field(default_factory=list)
     rollbacks: list[Rollback] = field(default_factory=list)
+    driver: OnlineMerger | None = None  # the online driver, as the log's end left it (a probation may run)
 
     def new_on_mapped_ground(self, mapped: list[tuple[float, float]], after: int | None = None) -> tuple[int, int]:
         """Return (frames, frames creating an experience) after the first merge where the route was mapped.
@@ -94,7 +95,7 @@ def run_session(
         elif isinstance(event, Rollback):
             engine = event.engine
             rolled_back.append(i)
-    return Run(engine, driver.events, arcs, created, merged_frames, rolled_back, driver.rollbacks)
+    return Run(engine, driver.events, arcs, created, merged_frames, rolled_back, driver.rollbacks, driver)
 
 
 def true_alignment(world: LoopWorld, loaded_start: float, partial_start: float) -> np.ndarray:

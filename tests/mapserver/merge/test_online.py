@@ -147,6 +147,35 @@ def test_a_false_merge_is_rolled_back_by_its_verification_and_the_true_one_still
     np.testing.assert_array_equal(shadow.map.poses[:n], alone.map.poses[:n])
 
 
+def test_a_log_that_ends_during_the_probation_keeps_the_merge_only_without_contradiction(
+    first_half: StoredMap,
+) -> None:
+    """Session 2 merges at the real overlap (arc 6 of the next lap) and its log ends 1 m later: what the
+    probation saw speaks for the merge, so it stays, its verification cut short; had the views disagreed
+    with it, the log's end rolls it back to the engine that never merged."""
+    for contradicted in (False, True):
+        run = run_session(WORLD, 22.0, 25.0, [first_half])
+        driver = run.driver
+        assert driver is not None and len(run.events) == 1 and driver.probation is not None  # the log ends in it
+        event = run.events[0]
+        hypothesis = driver.probation.hypothesis
+        assert hypothesis.post_hit_m > 0 == hypothesis.post_miss_m
+        if contradicted:
+            hypothesis.post_miss_m = hypothesis.post_hit_m / 2.0 + 0.1  # net −0.2 m
+        rollback = driver.finish()
+        assert driver.probation is None
+        if not contradicted:
+            assert rollback is None and driver.events == [event]
+            assert event.evidence["verification"]["status"] == "incomplete"
+            continue
+        assert rollback is not None and rollback.event is event and driver.events == []
+        assert event.evidence["verification"]["status"] == "rejected" and driver.rollbacks == [rollback]
+        alone = Engine(PARAMS, origin=9)  # the engine to go on with is the session without the merge
+        for image, motion, stamp in WORLD.drive(22.0, 25.0, step=0.5, t0=1000.0):
+            alone.step(image, motion, round(stamp * 1e9) * 1e-9)
+        assert rollback.engine.experience_count == alone.experience_count
+        np.testing.assert_array_equal(rollback.engine.map.poses, alone.map.poses)
+
 def test_a_session_bridging_two_maps_joins_them() -> None:
     """New College case: one session merges into map A, then the merged engine into map B."""
     a = map_stretch(WORLD, 0.0, 12.0, 1)

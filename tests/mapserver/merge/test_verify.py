@@ -1,10 +1,10 @@
-"""When a probation may end (mapserver.merge.verify.Probation._may_conclude), by hand."""
+"""When a probation may end and how it is judged (mapserver.merge.verify.Probation), by hand."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 
-from mapserver.merge.verify import PROBATION_CAP, Probation
+from mapserver.merge.verify import PASSED, PROBATION_CAP, REJECTED, WEAK_MISS_PROBATION_CAP, Probation
 
 
 def _probation(last_hit_m: float) -> Probation:
@@ -50,3 +50,23 @@ def test_the_cusum_of_a_weak_miss_front_end_by_hand() -> None:
     lvc = _probation(last_hit_m=-1.0)  # LVC's misses weigh 2: its run rule decides, no CUSUM
     lvc._cusum(0.0, 10.0)
     assert lvc.cusum_m == 0.0
+
+
+def test_a_probation_the_log_cut_short_is_judged_on_what_it_saw() -> None:
+    against = _probation(last_hit_m=-1.0)
+    against.hypothesis = SimpleNamespace(post_hit_m=3.0, post_miss_m=1.6)  # net 3 − 2 · 1.6 = −0.2 m
+    assert against.conclude_at_end() == REJECTED and "net -0.20 m" in against.reason
+    unsure = _probation(last_hit_m=-1.0)
+    unsure.hypothesis = SimpleNamespace(post_hit_m=3.0, post_miss_m=1.4)  # net +0.2 m: below the full line, kept
+    assert unsure.conclude_at_end() == PASSED and "net 0.20 m" in unsure.reason
+    assert unsure._conclude() == REJECTED  # a probation run to its end would have asked for half evidence_m
+
+
+def test_a_weak_miss_front_end_keeps_the_shorter_cap() -> None:
+    sdr = _probation(last_hit_m=100.0 + WEAK_MISS_PROBATION_CAP * 12.0 - 0.5)
+    sdr.hset.rule.miss_weight = 0.16  # sdr-htm: its probation's length is the cap
+    assert not sdr._may_conclude(100.0 + WEAK_MISS_PROBATION_CAP * 12.0 - 0.1)
+    assert sdr._may_conclude(100.0 + WEAK_MISS_PROBATION_CAP * 12.0)
+    assert WEAK_MISS_PROBATION_CAP < PROBATION_CAP
+    lvc = _probation(last_hit_m=100.0 + WEAK_MISS_PROBATION_CAP * 12.0 - 0.5)  # LVC runs on while it matches
+    assert not lvc._may_conclude(100.0 + WEAK_MISS_PROBATION_CAP * 12.0)
