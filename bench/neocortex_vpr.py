@@ -1,7 +1,8 @@
 """Issue 17 figures: place recognition of the ``lvc`` and ``sdr-htm`` front-ends, VPR Guard on and off.
 
 Usage: python bench/neocortex_vpr.py [--out DIR] [--seed 0] [--scale 1.0] [--scenarios aliased,cave3d]
-       [--frontends lvc,sdr-htm,sdr-htm-imin8] [--reuse]
+       [--frontends lvc,sdr-htm,sdr-htm-imin8,sdr-htm+sonar] [--sim sonar=1,turbidity=3] [--guards on,off]
+       [--reuse]
 
 For each scenario the simulator writes its logs (all sessions, then the single run when there is one);
 every session log of a scenario goes through ONE engine in turn (so a later session's look-alike places
@@ -13,7 +14,9 @@ meet the earlier sessions' view cells) with the scenario's preset and its varian
 * ``sdr-sp``, ``sdr-sp-imin8`` (on request): the descriptor from the SP's columns instead of the TM's
   winner cells (``sv_descriptor_source = "sp"``): the same pipeline without sequence memory;
 
-each with ``vpr_guard`` on and off. Per run it prints the place-recognition rates of
+A variant with ``+sonar`` also reads the log's sonar topic (``--sim sonar=1`` makes ``cave3d`` write one;
+``turbidity=T`` fogs its camera) as the front-end's second modality (Eq. 4.3, OR fusion). Each runs with
+``vpr_guard`` on and off (``--guards``). Per run it prints the place-recognition rates of
 :func:`mapserver.evaluation.place_recognition` (recall = revisit_match_rate; precision = 1 −
 false_match_rate, with the evaluation's default radii), the loop-closure links judged against the ground
 truth (TP when the two experiences' true positions are within 5 m, the thesis's d_thr), the counts, and
@@ -72,7 +75,9 @@ def _loop_links(engine: Engine, gt: Trajectory) -> dict[str, int]:
     return {"loop_links": int(src.size), "tp": int(np.sum(d <= D_THR)), "fp": int(np.sum(d > D_THR))}
 
 
-def _run(directory: Path, logs: list[dict[str, Any]], params: Any, gt: Trajectory) -> dict[str, Any]:
+def _run(
+    directory: Path, logs: list[dict[str, Any]], params: Any, gt: Trajectory, topics: dict[str, str] | None = None
+) -> dict[str, Any]:
     engine = Engine(params)
     rows: list[tuple[float, int, int]] = []
 
@@ -82,7 +87,7 @@ def _run(directory: Path, logs: list[dict[str, Any]], params: Any, gt: Trajector
     started = time.perf_counter()
     frames = 0
     for s in logs:
-        frames += run_engine(engine, directory / s["log"], on_step=record).frames
+        frames += run_engine(engine, directory / s["log"], topics=topics, on_step=record).frames
     seconds = time.perf_counter() - started
     pr = place_recognition(rows, gt)
     false_rate = pr["false_match_rate"]
@@ -110,8 +115,11 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--scenarios", default="aliased,cave3d")
     parser.add_argument("--frontends", default="lvc,sdr-htm")
+    parser.add_argument("--sim", default="", help="simulator parameters, e.g. sonar=1,turbidity=3")
+    parser.add_argument("--guards", default="on,off")
     parser.add_argument("--reuse", action="store_true", help="use the logs already simulated in --out")
     args = parser.parse_args()
+    sim = {k: float(v) for k, v in (item.split("=", 1) for item in filter(None, args.sim.split(",")))}
     out = args.out or Path(tempfile.mkdtemp(prefix="neocortex-vpr-"))
     figures: dict[str, Any] = {}
     for name in args.scenarios.split(","):
@@ -119,15 +127,17 @@ def main() -> None:
         if args.reuse and (directory / "scenario.json").is_file():
             info = json.loads((directory / "scenario.json").read_text(encoding="utf-8"))
         else:
-            info = simulate(name, directory, seed=args.seed, scale=args.scale)
+            info = simulate(name, directory, seed=args.seed, scale=args.scale, params=sim or None)
         logs = list(info["sessions"]) + ([info["single"]] if info.get("single") else [])
         gt = _ground_truth(directory, logs)
         base = preset(info["preset"])
         for variant in args.frontends.split(","):
-            params = base.replace(**VARIANTS[variant])
-            for guard in (True, False):
+            front, _, extra = variant.partition("+")
+            params = base.replace(**VARIANTS[front])
+            topics = {"sonar": info["sonar"]["topic"]} if extra == "sonar" else None
+            for guard in (g == "on" for g in args.guards.split(",")):
                 key = f"{name}/{variant}/guard-{'on' if guard else 'off'}"
-                figures[key] = _run(directory, logs, params.replace(vpr_guard=guard), gt)
+                figures[key] = _run(directory, logs, params.replace(vpr_guard=guard), gt, topics)
                 print(key, json.dumps(figures[key]), flush=True)
     print(json.dumps(figures))
 

@@ -8,7 +8,8 @@ session 2 through the online merge driver against it (``mapserver.merge.online.O
 driver ``process`` uses, without the database). Every merge is printed with its transform's error against
 the true alignment of the two map frames (at the map origin: it grows with session 2's drift before the
 merge), every rollback with its reason, and the surviving merges with their verification status
-(``passed``, or ``incomplete`` when the log ended during the probation). In ``twin`` every merge is false.
+(``passed``, or ``incomplete`` when the log ended during the probation and what it saw did not speak
+against the merge; otherwise the log's end rolls it back). In ``twin`` every merge is false.
 Last stdout line: one JSON object.
 """
 
@@ -70,12 +71,16 @@ def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: A
         return None
 
     current = [Engine(params, origin=2)]
-    run_engine(current[0], out / s2["log"], on_step=hook)
-    merger.finish()
-    statuses = [e.evidence.get("verification", {}).get("status") for e in merger.events]
+    run = run_engine(current[0], out / s2["log"], on_step=hook)
+    ended = merger.finish()  # a probation the log cut short is judged on what it saw
+    if ended is not None:
+        events[-1]["rolled_back_at"] = run.frames
+        events[-1]["reason"] = ended.event.evidence["verification"]["reason"]
     surviving = [e for e in events if "rolled_back_at" not in e]
-    for event, status in zip(surviving, statuses, strict=False):
-        event["status"] = status
+    for event, kept in zip(surviving, merger.events, strict=False):
+        verification = kept.evidence.get("verification", {})
+        event["status"] = verification.get("status")
+        event["verification"] = {k: verification.get(k) for k in ("distance_m", "post_hit_m", "post_miss_m", "cusum_m")}
     return {"seed": seed, "merges": events}
 
 

@@ -23,7 +23,7 @@ import numpy.typing as npt
 from mapserver.errors import InputError
 from mapserver.formats import write_tum
 from mapserver.ingest.simulator.drive import Drive, VehicleErrors, simulate_drive
-from mapserver.ingest.simulator.render import expose, render
+from mapserver.ingest.simulator.render import expose, expose_sonar, render, render_sonar
 from mapserver.ingest.simulator.scenarios import SCENARIOS, Plan, SessionPlan
 from mapserver.ingest.writer import SUFFIXES, LogFormat, write_log
 
@@ -93,6 +93,17 @@ def render_frames(
         yield int(stamp), expose(radiance, float(gain), plan.noise.pixel_noise, rng)
 
 
+def render_sonar_frames(plan: Plan, drive: Drive, seed: int, index: int) -> Iterator[tuple[int, npt.NDArray[np.uint8]]]:
+    """Yield ``(stamp_ns, sonar image)`` at every camera frame of a drive (none when the plan has no sonar)."""
+    sonar = plan.sonar
+    if sonar is None:
+        return
+    rng = np.random.default_rng([seed, 3000 + index])
+    for stamp, pose in zip(drive.frame_stamps_ns.tolist(), drive.frame_poses, strict=True):
+        echo = render_sonar(plan.world, sonar, float(pose[0]), float(pose[1]), float(pose[2]), float(pose[3]))
+        yield int(stamp), expose_sonar(echo, sonar, rng)
+
+
 def _write_ground_truth(path: Path, drive: Drive) -> None:
     gt = drive.ground_truth
     write_tum(
@@ -117,7 +128,8 @@ def simulate(
     """Simulate a scenario and write its logs, ground truth and ``scenario.json`` into ``out_dir``.
 
     Each log (``<name>.<fmt>``) holds ``/robot/camera/image`` (mono8), ``/robot/odom`` (nav_msgs/Odometry,
-    noisy twist and the pose integrated from it) and ``/robot/ground_truth`` (PoseStamped, world frame); the
+    noisy twist and the pose integrated from it), ``/robot/ground_truth`` (PoseStamped, world frame) and,
+    where the plan has a sonar, ``/robot/sonar/image`` (mono8, at the camera's stamps); the
     ground truth is also written as ``<name>.tum``. Existing files of the same names are replaced.
 
     Args:
@@ -179,7 +191,8 @@ def simulate(
             log_name = f"{session.name}{SUFFIXES[fmt]}"
             gt_name = f"{session.name}.tum"
             write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick), drive.odometry,
-                      drive.ground_truth)
+                      drive.ground_truth, sonar=render_sonar_frames(plan, drive, seed, index),
+                      sonar_topic=plan.sonar_topic)
             _write_ground_truth(temp / gt_name, drive)
             entries[index] = {
                 "name": session.name,
@@ -210,6 +223,9 @@ def simulate(
                 "max_range_m": plan.camera.max_range, "rate_hz": plan.rates.camera_hz,
             },
             "odometry_hz": plan.rates.odom_hz,
+            **({} if plan.sonar is None else {"sonar": {
+                "topic": plan.sonar_topic, "beams": plan.sonar.beams, "bins": plan.sonar.bins,
+                "hfov_deg": plan.sonar.hfov_deg, "max_range_m": plan.sonar.max_range}}),
             "vehicle_odometry_errors": dataclasses.asdict(plan_vehicle(plan, seed)),
             **plan.info,
         }

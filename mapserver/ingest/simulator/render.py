@@ -85,6 +85,75 @@ def _attenuation(camera: Camera, r: FloatArray) -> FloatArray:
     return np.exp(-r / camera.fog_length) * fade
 
 
+@dataclass(frozen=True)
+class SurfaceHits:
+    """The nearest surface each ray (elevation row × azimuth column) meets within range.
+
+    Attributes:
+        covered: (H, W) whether the ray meets a surface.
+        rows, cols: the covered rays' indices.
+        surface: the surface each covered ray meets.
+        t: horizontal distance to the hit (m).
+        u_m: metres along the surface from its start.
+        z: the height of the hit.
+    """
+
+    covered: npt.NDArray[np.bool_]
+    rows: npt.NDArray[np.int64]
+    cols: npt.NDArray[np.int64]
+    surface: npt.NDArray[np.int64]
+    t: FloatArray
+    u_m: FloatArray
+    z: FloatArray
+
+
+def surface_hits(
+    world: World, x: float, y: float, cz: float, azimuths: FloatArray, slopes: FloatArray, max_range: float
+) -> SurfaceHits:
+    """Intersect the rays from (x, y, cz) along ``azimuths`` (W,) and elevation ``slopes`` (H,) with the surfaces.
+
+    Per column one horizontal ray is intersected with every surface within ``max_range`` (2-D segment
+    intersection, all columns and surfaces at once); of its ``HITS`` nearest hits a ray of slope ``h`` meets
+    the nearest whose surface spans the height ``cz + t·h`` at the hit distance ``t``.
+    """
+    dx, dy = np.cos(azimuths), np.sin(azimuths)
+    height_px, width_px = slopes.shape[0], azimuths.shape[0]
+    empty = np.zeros(0, dtype=np.int64)
+    sel = world.near(x, y, max_range)
+    if not sel.size:
+        none = np.zeros(0)
+        return SurfaceHits(np.zeros((height_px, width_px), dtype=bool), empty, empty, empty, none, none, none)
+    p0 = world.p0[sel]
+    edge = world.p1[sel] - p0
+    ox = p0[:, 0] - x
+    oy = p0[:, 1] - y
+    denom = dx[:, None] * edge[None, :, 1] - dy[:, None] * edge[None, :, 0]  # cross(d, e): (W, S)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (ox * edge[:, 1] - oy * edge[:, 0])[None, :] / denom
+        u = (ox[None, :] * dy[:, None] - oy[None, :] * dx[:, None]) / denom
+    ok = (np.abs(denom) > 1e-12) & (t > 1e-6) & (u >= 0.0) & (u <= 1.0) & (t < max_range)
+    t = np.where(ok, t, np.inf)
+    k = min(HITS, sel.size)
+    nearest = np.argpartition(t, k - 1, axis=1)[:, :k] if k < sel.size else np.argsort(t, axis=1)
+    t_k = np.take_along_axis(t, nearest, axis=1)
+    order = np.argsort(t_k, axis=1)
+    nearest = np.take_along_axis(nearest, order, axis=1)[:, :k]  # (W, k) local surface index
+    t_k = np.take_along_axis(t_k, order, axis=1)[:, :k]
+    u_k = np.take_along_axis(u, nearest, axis=1)
+    surf = sel[nearest]  # (W, k)
+    finite = np.isfinite(t_k)
+    z_hit = cz + np.where(finite, t_k, 0.0)[None, :, :] * slopes[:, None, None]  # (H, W, k)
+    spans = (z_hit >= world.base[surf][None]) & (z_hit <= world.top[surf][None]) & finite[None]
+    covered = spans.any(axis=2)
+    rows_c, cols_c = np.nonzero(covered)
+    first = np.argmax(spans[rows_c, cols_c], axis=1)  # nearest surface spanning the ray's height
+    s_px = surf[cols_c, first]
+    return SurfaceHits(
+        covered, rows_c, cols_c, s_px, t_k[cols_c, first], u_k[cols_c, first] * world.half_length[s_px] * 2.0,
+        z_hit[rows_c, cols_c, first],
+    )
+
+
 def render(world: World, camera: Camera, x: float, y: float, z: float, yaw: float) -> FloatArray:
     """Render the radiance image (H, W) in [0, 1] seen from vehicle pose (x, y, z, yaw).
 
@@ -103,46 +172,16 @@ def render(world: World, camera: Camera, x: float, y: float, z: float, yaw: floa
     cz = z + camera.mount_height
     h = camera.slopes  # (H,)
     az = yaw + camera.azimuths  # (W,)
-    dx, dy = np.cos(az), np.sin(az)
     height_px, width_px = h.shape[0], az.shape[0]
     image = np.empty((height_px, width_px))
-
-    sel = world.near(x, y, camera.max_range)
-    covered = np.zeros((height_px, width_px), dtype=bool)
-    if sel.size:
-        p0 = world.p0[sel]
-        edge = world.p1[sel] - p0
-        ox = p0[:, 0] - x
-        oy = p0[:, 1] - y
-        denom = dx[:, None] * edge[None, :, 1] - dy[:, None] * edge[None, :, 0]  # cross(d, e): (W, S)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (ox * edge[:, 1] - oy * edge[:, 0])[None, :] / denom
-            u = (ox[None, :] * dy[:, None] - oy[None, :] * dx[:, None]) / denom
-        ok = (np.abs(denom) > 1e-12) & (t > 1e-6) & (u >= 0.0) & (u <= 1.0) & (t < camera.max_range)
-        t = np.where(ok, t, np.inf)
-        k = min(HITS, sel.size)
-        nearest = np.argpartition(t, k - 1, axis=1)[:, :k] if k < sel.size else np.argsort(t, axis=1)
-        t_k = np.take_along_axis(t, nearest, axis=1)
-        order = np.argsort(t_k, axis=1)
-        nearest = np.take_along_axis(nearest, order, axis=1)[:, :k]  # (W, k) local surface index
-        t_k = np.take_along_axis(t_k, order, axis=1)[:, :k]
-        u_k = np.take_along_axis(u, nearest, axis=1)
-        surf = sel[nearest]  # (W, k)
-        finite = np.isfinite(t_k)
-        z_hit = cz + np.where(finite, t_k, 0.0)[None, :, :] * h[:, None, None]  # (H, W, k)
-        spans = (z_hit >= world.base[surf][None]) & (z_hit <= world.top[surf][None]) & finite[None]
-        covered = spans.any(axis=2)
-        rows_c, cols_c = np.nonzero(covered)
-        first = np.argmax(spans[rows_c, cols_c], axis=1)  # nearest surface spanning the pixel's height
-        s_px = surf[cols_c, first]
-        t_px = t_k[cols_c, first]
-        u_px = u_k[cols_c, first]
-        zh = z_hit[rows_c, cols_c, first]
-        albedo = _sample(world, s_px, u_px * world.half_length[s_px] * 2.0, zh - world.base[s_px])
-        radiance = albedo * world.shade[s_px]
-        r = t_px * np.sqrt(1.0 + h[rows_c] ** 2)
+    hits = surface_hits(world, x, y, cz, az, h, camera.max_range)
+    covered = hits.covered
+    if hits.rows.size:
+        albedo = _sample(world, hits.surface, hits.u_m, hits.z - world.base[hits.surface])
+        radiance = albedo * world.shade[hits.surface]
+        r = hits.t * np.sqrt(1.0 + h[hits.rows] ** 2)
         a = _attenuation(camera, r)
-        image[rows_c, cols_c] = radiance * a + camera.fog_level * (1.0 - a)
+        image[hits.rows, hits.cols] = radiance * a + camera.fog_level * (1.0 - a)
 
     rest = ~covered
     if rest.any():
@@ -198,3 +237,88 @@ def expose(radiance: FloatArray, gain: float, noise_sigma: float, rng: np.random
     if noise_sigma > 0.0:
         values = values + rng.normal(0.0, noise_sigma, size=values.shape)
     return np.clip(np.rint(values), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class Sonar:
+    """A forward-looking imaging sonar: echo intensity by range (rows) and bearing (columns).
+
+    A fan of ``beams`` bearings over ``hfov_deg`` (column 0 on the left, as the camera), each beam
+    ``vfov_deg`` high, sampled by ``elevation_rays`` rays. A ray's echo comes from the nearest surface it
+    meets (a wall, a box, the floor or the ceiling) within ``max_range``: backscatter ``albedo · |cos i|``
+    (``i`` the angle between the ray and the surface normal; the surface's texture stands for its
+    roughness), put into the range bin of the hit's 3-D distance; a beam's bins sum its rays' echoes. Sound
+    does not fade in turbid water as light does: the fog of the camera does not apply. Speckle (a
+    multiplicative gamma noise of mean 1) and quantisation are applied by :func:`expose_sonar`.
+
+    Attributes:
+        beams: image columns (bearings).
+        bins: image rows (range bins; row 0 is the farthest, as a sonar display's top).
+        hfov_deg: horizontal aperture.
+        vfov_deg: vertical aperture of each beam.
+        elevation_rays: rays per beam across the vertical aperture.
+        max_range: range of the last bin (m).
+        mount_height: sonar height above the vehicle's reference point (m).
+        speckle_looks: the gamma speckle's shape (higher: less speckle).
+        gain: echo to grey level scale (1: a perpendicular white wall filling a beam in one bin is 255).
+    """
+
+    beams: int = 64
+    bins: int = 48
+    hfov_deg: float = 130.0
+    vfov_deg: float = 20.0
+    elevation_rays: int = 8
+    max_range: float = 5.0
+    mount_height: float = 0.0
+    speckle_looks: float = 4.0
+    gain: float = 2.0
+    azimuths: FloatArray = field(init=False, repr=False, compare=False)
+    slopes: FloatArray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        hfov = math.radians(self.hfov_deg)
+        j = np.arange(self.beams, dtype=np.float64)
+        object.__setattr__(self, "azimuths", hfov / 2.0 - (j + 0.5) * hfov / self.beams)
+        half = math.radians(self.vfov_deg) / 2.0
+        angles = -half + (np.arange(self.elevation_rays, dtype=np.float64) + 0.5) * (2.0 * half / self.elevation_rays)
+        object.__setattr__(self, "slopes", np.tan(angles[::-1]))
+
+
+def render_sonar(world: World, sonar: Sonar, x: float, y: float, z: float, yaw: float) -> FloatArray:
+    """Return the sonar's echo image (bins, beams) seen from vehicle pose (x, y, z, yaw) (see :class:`Sonar`)."""
+    cz = z + sonar.mount_height
+    h = sonar.slopes
+    az = yaw + sonar.azimuths
+    hits = surface_hits(world, x, y, cz, az, h, sonar.max_range)
+    rays = h.shape[0]
+    echo = np.zeros((rays, az.shape[0]))
+    r = np.full((rays, az.shape[0]), np.inf)
+    if hits.rows.size:
+        albedo = _sample(world, hits.surface, hits.u_m, hits.z - world.base[hits.surface])
+        edge = world.p1[hits.surface] - world.p0[hits.surface]
+        along = np.cos(az[hits.cols]) * edge[:, 1] - np.sin(az[hits.cols]) * edge[:, 0]
+        cos_i = np.abs(along) / np.maximum(np.linalg.norm(edge, axis=1), 1e-12) / np.sqrt(1.0 + h[hits.rows] ** 2)
+        echo[hits.rows, hits.cols] = albedo * cos_i
+        r[hits.rows, hits.cols] = hits.t * np.sqrt(1.0 + h[hits.rows] ** 2)
+    rest = ~hits.covered
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.broadcast_to(h[:, None], echo.shape)
+        sine = np.abs(slope) / np.sqrt(1.0 + slope**2)  # |cos i| of a horizontal plane
+        floor = rest & (slope < 0.0)
+        r = np.where(floor, (cz - world.floor_z) / sine, r)
+        echo = np.where(floor, world.floor_albedo * sine, echo)
+        if world.ceiling_z is not None:
+            ceiling = rest & (slope > 0.0)
+            r = np.where(ceiling, (world.ceiling_z - cz) / sine, r)
+            echo = np.where(ceiling, world.ceiling_albedo * sine, echo)
+    inside = np.isfinite(r) & (r < sonar.max_range)
+    bins = np.minimum((r[inside] / sonar.max_range * sonar.bins).astype(np.int64), sonar.bins - 1)
+    image = np.zeros((sonar.bins, az.shape[0]))
+    np.add.at(image, (sonar.bins - 1 - bins, np.nonzero(inside)[1]), echo[inside] / rays)
+    return image
+
+
+def expose_sonar(echo: FloatArray, sonar: Sonar, rng: np.random.Generator) -> npt.NDArray[np.uint8]:
+    """Turn an echo image into an 8-bit sonar image: gamma speckle of mean 1, ``gain``, rounding."""
+    speckle = rng.gamma(sonar.speckle_looks, 1.0 / sonar.speckle_looks, size=echo.shape)
+    return np.clip(np.rint(echo * speckle * (255.0 * sonar.gain)), 0, 255).astype(np.uint8)

@@ -10,7 +10,10 @@ panoramic camera 1 m above the ground sees 6 m far (fog beyond). The vehicle dri
 ``cave3d`` is an underwater cave for the 4-DoF ``poseidon`` preset (0.1 m pose cells): a rock-walled
 passage around an elliptic loop at 0.15 m/s with 2 Hz images, the vehicle's depth changing along the
 loop; walls reach from the floor to the water surface and are banded in depth, so the camera's depth
-changes what it sees.
+changes what it sees. ``--param sonar=1`` adds a forward-looking imaging sonar (``/robot/sonar/image``,
+:class:`~.render.Sonar`: 64 beams over 130°, 48 range bins to 5 m, at the camera's rate and stamps), the
+second modality of the ``sdr-htm`` front-end; ``--param turbidity=T`` shortens the camera's fog length
+to 4 m / (1 + T) (sound does not fade with it).
 
 The look-alike scenarios that try to break the merge safeguard (``twin``, ``twin-overlap``, ``symmetric``,
 ``symmetric-overlap``) are ground scenarios too; they live in :mod:`.lookalike`.
@@ -21,6 +24,7 @@ and its own parameters (:data:`SCENARIOS` lists them with their defaults).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -32,7 +36,7 @@ import numpy.typing as npt
 from mapserver.errors import InputError
 from mapserver.ingest.simulator import routes
 from mapserver.ingest.simulator.drive import DriveSpec, Noise, Rates
-from mapserver.ingest.simulator.render import Camera
+from mapserver.ingest.simulator.render import Camera, Sonar
 from mapserver.ingest.simulator.routes import Route
 from mapserver.ingest.simulator.world import World, WorldBuilder
 
@@ -121,6 +125,8 @@ class Plan:
     single: SessionPlan | None
     params: dict[str, float]
     info: dict[str, Any] = field(default_factory=dict)
+    sonar: Sonar | None = None
+    sonar_topic: str = "/robot/sonar/image"
 
 
 @dataclass(frozen=True)
@@ -422,6 +428,9 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
     route = routes.ellipse((0.0, 0.0), 3.0 * scale, 1.8 * scale, start_deg=0.0)
     length = route.length
     amplitude = params["depth_amplitude_m"]
+    if params["sonar"] not in (0.0, 1.0) or not params["turbidity"] >= 0.0:
+        msg = f"sonar must be 0 or 1 and turbidity ≥ 0, got {params['sonar']!r} and {params['turbidity']!r}"
+        raise InputError(msg)
 
     def depth(s: FloatArray) -> FloatArray:
         return -1.5 + amplitude * np.sin(2.0 * 2.0 * math.pi * np.asarray(s) / length)
@@ -449,12 +458,13 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
         scenario="cave3d",
         preset="poseidon",
         world=world,
-        camera=CAVE_CAMERA,
+        camera=dataclasses.replace(CAVE_CAMERA, fog_length=CAVE_CAMERA.fog_length / (1.0 + params["turbidity"])),
         rates=CAVE_RATES,
         noise=CAVE_NOISE.scaled(min(scale, 1.0)),
         sessions=tuple(sessions),
         single=single,
         params=params,
+        sonar=Sonar() if params["sonar"] == 1.0 else None,
     )
 
 
@@ -478,7 +488,8 @@ SCENARIOS: Mapping[str, ScenarioDef] = {
                     build_bridge),
         ScenarioDef("chain5", "four inner loops and one outer loop touching them", {"laps": 1.1}, build_chain5),
         ScenarioDef("cave3d", "underwater cave loop with depth changes, two overlapping sessions (4-DoF)",
-                    {"single_laps": 2.0, "session1_laps": 1.5, "session2_laps": 1.5, "depth_amplitude_m": 0.4},
+                    {"single_laps": 2.0, "session1_laps": 1.5, "session2_laps": 1.5, "depth_amplitude_m": 0.4,
+                     "sonar": 0.0, "turbidity": 0.0},
                     build_cave3d),
         ScenarioDef("aliased", "two distinct places that look alike for a short stretch",
                     {"laps": 1.1, "alias_length_m": 0.25}, build_aliased),
