@@ -480,7 +480,7 @@ class OnlineMerger:
             return None
         frame = int(self._track.last[0]) if self._track.frames else -1
         event = self._probation_event
-        rollback = self._settle_probation(self.probation.conclude_at_end(), frame)
+        rollback = self._settle_probation(self.probation.conclude_at_end(self._track.distance), frame)
         if rollback is None:  # kept, but its verification was cut short
             event.evidence["verification"]["status"] = "incomplete"
         return rollback

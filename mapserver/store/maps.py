@@ -68,7 +68,7 @@ class MapSummary:
             "experiences": self.experiences,
             "links": self.links,
             "health": self.health,
-            "merges": dict(self.merges) if self.merges is not None else dict.fromkeys(MERGE_STATUSES, 0),
+            "merges": dict(self.merges) if self.merges is not None else _no_merges(),
         }
 
 
@@ -192,15 +192,36 @@ def list_maps(*, conn: Connection) -> list[MapSummary]:
         .outerjoin(MapState, MapState.map_id == Map.id)
         .order_by(Map.name)
     ).all()
+    merges = _merge_counts(conn)
+    return [
+        MapSummary(str(r[1]), int(r[2]), int(r[3]), int(r[4]), int(r[5]), r[6],
+                   merges.get(int(r[0]), _no_merges()))
+        for r in rows
+    ]  # fmt: skip
+
+
+def _no_merges() -> dict[str, int]:
+    return {**dict.fromkeys(MERGE_STATUSES, 0), "unverified": 0}
+
+
+def _merge_counts(conn: Connection) -> dict[int, dict[str, int]]:
+    """Return per map id its merge events by status, and ``unverified``: applied ones the log ended in probation.
+
+    An online merge's verification (``details.evidence.verification.status``) is ``incomplete`` when the log
+    ended before its probation could conclude (``mapserver.merge.verify.Probation.conclude_at_end``).
+    """
     merges: dict[int, dict[str, int]] = {}
     counted = select(MergeEvent.map_id, MergeEvent.status, func.count()).where(MergeEvent.map_id.is_not(None))
     for map_id, status, n in conn.execute(counted.group_by(MergeEvent.map_id, MergeEvent.status)):
-        merges.setdefault(int(map_id), dict.fromkeys(MERGE_STATUSES, 0))[str(status)] = int(n)
-    return [
-        MapSummary(str(r[1]), int(r[2]), int(r[3]), int(r[4]), int(r[5]), r[6],
-                   merges.get(int(r[0]), dict.fromkeys(MERGE_STATUSES, 0)))
-        for r in rows
-    ]  # fmt: skip
+        merges.setdefault(int(map_id), _no_merges())[str(status)] = int(n)
+    applied = select(MergeEvent.map_id, MergeEvent.details).where(
+        MergeEvent.map_id.is_not(None), MergeEvent.status == "applied", MergeEvent.mode == "online"
+    )
+    for map_id, details in conn.execute(applied):
+        verification = ((details or {}).get("evidence") or {}).get("verification") or {}
+        if verification.get("status") == "incomplete":
+            merges.setdefault(int(map_id), _no_merges())["unverified"] += 1
+    return merges
 
 
 def clear_map(*, conn: Connection, map_id: int) -> None:

@@ -346,7 +346,7 @@ def test_a_merge_the_logs_end_rejects_is_stored_as_the_session_alone(
     pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=db_url)
     before = _snapshot(db_url, "session1")
     monkeypatch.setattr(verify.Probation, "_may_conclude", lambda self, distance: False)  # runs to the log's end
-    monkeypatch.setattr(verify.Probation, "conclude_at_end", lambda self: verify.REJECTED)
+    monkeypatch.setattr(verify.Probation, "conclude_at_end", lambda self, distance: verify.REJECTED)
     run = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)
     assert [m["status"] for m in run.merges] == ["rejected"] and run.map_name == "session2"
     alone = make_url()
@@ -359,3 +359,26 @@ def test_a_merge_the_logs_end_rejects_is_stored_as_the_session_alone(
     assert_same_arrays(before, _snapshot(db_url, "session1"))
     with open_database(db_url) as db, db.read() as conn:
         assert [e.status for e in list_merge_events(conn=conn)] == ["rejected"]
+
+
+def test_a_merge_kept_when_the_log_ends_in_its_probation_is_listed_as_unverified(
+    tour: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The same run with a judgement that keeps the merge: it stands, its verification ``incomplete``, and the
+    map's merge counts (``maps --json``, ``GET /v1/maps``) say one merge is unverified."""
+    from mapserver.merge import verify
+
+    url = f"sqlite:///{tmp_path / 'kept.db'}"
+    pipeline.process_into_store(tour / "session1.bag", PARAMS, db_url=url)
+    monkeypatch.setattr(verify.Probation, "_may_conclude", lambda self, distance: False)
+    run = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=url)
+    (merge,) = run.merges
+    assert merge["status"] == "applied" and merge["evidence"]["verification"]["status"] == "incomplete"
+    assert merge["evidence"]["verification"]["since_match_m"] >= 0.0
+    (listed,) = cli_json("maps", "--db", url, "--json")["maps"]
+    assert listed["merges"] == {"applied": 1, "undone": 0, "rejected": 0, "unverified": 1}
+    assert cli_json("unmerge", "--db", url, "--event", str(merge["event"]))  # a user who doubts it undoes it
+    (after,) = [m for m in cli_json("maps", "--db", url, "--json")["maps"] if m["name"] == "session1"]
+    assert after["merges"] == {"applied": 0, "undone": 1, "rejected": 0, "unverified": 0}

@@ -60,7 +60,7 @@ def test_upload_job_map_path_export(api: Api, strip_log: Path, tmp_path: Path) -
     health = maps[0].pop("health")
     assert maps == [{"name": "lab", "sessions": 1, "templates": expected.templates,
                      "experiences": expected.experiences, "links": expected.links,
-                     "merges": {"applied": 0, "undone": 0, "rejected": 0}}]  # fmt: skip
+                     "merges": {"applied": 0, "undone": 0, "rejected": 0, "unverified": 0}}]  # fmt: skip
     # the health figure of the map as stored (core.robust.health over the engine's own snapshot)
     own = map_health(resolve_params("irat"), expected.engine.snapshot())
     assert health == {"switched_off": 0, "links": expected.links, "residual": pytest.approx(own["residual"]),

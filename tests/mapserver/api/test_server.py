@@ -91,7 +91,7 @@ def test_server_killed_during_a_job_reruns_it(server: Server, tmp_path: Path) ->
     health = maps[0].pop("health")
     assert maps == [{"name": "long", "sessions": 1, "templates": expected.templates,
                      "experiences": expected.experiences, "links": expected.links,
-                     "merges": {"applied": 0, "undone": 0, "rejected": 0}}]  # fmt: skip
+                     "merges": {"applied": 0, "undone": 0, "rejected": 0, "unverified": 0}}]  # fmt: skip
     # the resumed job switched off what an uninterrupted run switches off (30 laps: one link 24 → 26)
     off = int(np.count_nonzero(~expected.engine.map.link_active))
     assert health["switched_off"] == off and health["links"] == expected.links

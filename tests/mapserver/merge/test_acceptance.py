@@ -202,7 +202,7 @@ def test_symmetric_false_merge_is_rolled_back_stored_as_rejected_and_the_true_on
     turn = abs(np.angle(np.exp(1j * (rejected["transform"]["yaw"] - applied["transform"]["yaw"]))))
     assert turn > 2.5  # the rolled-back alignment was the half-turned one (sweep: 155–180° off the truth)
     (listed,) = cli_json("maps", "--db", db)["maps"]
-    assert (listed["sessions"], listed["merges"]) == (2, {"applied": 1, "rejected": 1, "undone": 0})
+    assert (listed["sessions"], listed["merges"]) == (2, {"applied": 1, "rejected": 1, "undone": 0, "unverified": 0})
     # the stored timeline replaced the rolled-back probation's frames by the session's own: every frame's
     # template exists in the map (a template only the rolled-back engine made would resolve to nothing)
     from mapserver.report import gather

@@ -166,7 +166,8 @@ def test_a_log_that_ends_during_the_probation_keeps_the_merge_only_without_contr
         assert driver.probation is None
         if not contradicted:
             assert rollback is None and driver.events == [event]
-            assert event.evidence["verification"]["status"] == "incomplete"
+            verification = event.evidence["verification"]
+            assert verification["status"] == "incomplete" and verification["since_match_m"] < 1.0
             continue
         assert rollback is not None and rollback.event is event and driver.events == []
         assert event.evidence["verification"]["status"] == "rejected" and driver.rollbacks == [rollback]

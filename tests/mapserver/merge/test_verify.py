@@ -53,13 +53,16 @@ def test_the_cusum_of_a_weak_miss_front_end_by_hand() -> None:
 
 
 def test_a_probation_the_log_cut_short_is_judged_on_what_it_saw() -> None:
-    against = _probation(last_hit_m=-1.0)
+    against = _probation(last_hit_m=110.0)
     against.hypothesis = SimpleNamespace(post_hit_m=3.0, post_miss_m=1.6)  # net 3 − 2 · 1.6 = −0.2 m
-    assert against.conclude_at_end() == REJECTED and "net -0.20 m" in against.reason
-    unsure = _probation(last_hit_m=-1.0)
-    unsure.hypothesis = SimpleNamespace(post_hit_m=3.0, post_miss_m=1.4)  # net +0.2 m: below the full line, kept
-    assert unsure.conclude_at_end() == PASSED and "net 0.20 m" in unsure.reason
-    assert unsure._conclude() == REJECTED  # a probation run to its end would have asked for half evidence_m
+    assert against.conclude_at_end(120.0) == REJECTED and "net -0.20 m" in against.reason
+    settled = _probation(last_hit_m=110.0)
+    settled.hypothesis = SimpleNamespace(post_hit_m=3.0, post_miss_m=1.4)  # net +0.2 m, matches stopped 10 m back
+    assert settled.conclude_at_end(120.0) == PASSED and "net 0.20 m" in settled.reason
+    assert settled._conclude() == REJECTED  # a probation run to its end would have asked for half evidence_m
+    matching = _probation(last_hit_m=117.0)  # the newest match 3 m back: kept (a look-alike could not be told)
+    matching.hypothesis = SimpleNamespace(post_hit_m=15.0, post_miss_m=0.0)
+    assert matching.conclude_at_end(120.0) == PASSED and "newest match 3.00 m before its end" in matching.reason
 
 
 def test_a_weak_miss_front_end_keeps_the_shorter_cap() -> None:

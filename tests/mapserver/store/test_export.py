@@ -32,7 +32,7 @@ def test_maps_lists_counts(db_url: str, stored: dict[str, np.ndarray], capsys) -
     assert listed == {
         "maps": [{"name": "two", "sessions": 1, "templates": stored["lv_templates"].shape[0],
                   "experiences": stored["em_pose"].shape[0], "links": stored["em_link_from"].shape[0],
-                  "merges": {"applied": 0, "undone": 0, "rejected": 0}}]
+                  "merges": {"applied": 0, "undone": 0, "rejected": 0, "unverified": 0}}]
     }  # fmt: skip
     assert health["links"] == stored["em_link_from"].shape[0] and health["switched_off"] == 0
     assert main(["maps", "--db", db_url]) == 0
