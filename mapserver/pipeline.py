@@ -6,6 +6,7 @@ Both faces (``mapserver process`` and the REST API's jobs) call :func:`process_l
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -293,12 +294,20 @@ def _read_atlas(
 
 
 def _check_stored_session(log_path: str | Path, params: Params, session: Any) -> int:
-    """Check that a stored session can be continued with ``params``; return its map's id."""
+    """Check that a stored session can be continued with ``params``; return its map's id.
+
+    A parameter the stored session does not name (it was stored before the parameter existed) takes its
+    default: such a session continues with the defaults it was in effect run with.
+    """
+    from core import params_from_dict
     from mapserver.store.state import plain_params
 
     wanted = plain_params(params)
-    if session.params != wanted:
-        keys = sorted(k for k in set(wanted) | set(session.params) if wanted.get(k) != session.params.get(k))
+    stored = dict(session.params)
+    with contextlib.suppress(ConfigError):  # a key this version does not know: compared as stored, and named
+        stored = plain_params(params_from_dict(stored))
+    if stored != wanted:
+        keys = sorted(k for k in set(wanted) | set(stored) if wanted.get(k) != stored.get(k))
         msg = (
             f"{str(log_path)!r} is stored already as session {session.name!r} with other parameters "
             f"({', '.join(keys[:5])}{', ...' if len(keys) > 5 else ''} differ); use the same preset/config"

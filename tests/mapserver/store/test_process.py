@@ -112,3 +112,24 @@ def test_refusals_are_one_line_exit_2(loop_log: Path, tmp_path: Path, db_url: st
     assert main(["maps", "--db", db_url, "--json"]) == 0
     maps = json.loads(capsys.readouterr().out.splitlines()[-1])["maps"]
     assert [(m["name"], m["sessions"]) for m in maps] == [("loop", 1)]
+
+
+def test_a_session_stored_before_a_parameter_existed_continues_with_its_default(
+    loop_log: Path,
+    db_url: str,
+) -> None:
+    """A partial session whose stored parameters lack a key added since (here ``merge_online``) resumes:
+    the missing key takes its default, which is what the session was run with."""
+    from sqlalchemy import text
+
+    assert main(["process", str(loop_log), "--preset", "irat", "--db", db_url, "--stop-after", "10"]) == 0
+    with open_database(db_url) as db, db.write() as conn:
+        (raw,) = conn.execute(text("SELECT params FROM sessions")).one()
+        stored = json.loads(raw) if isinstance(raw, str) else dict(raw)
+        del stored["merge_online"]
+        conn.execute(text("UPDATE sessions SET params = :p"), {"p": json.dumps(stored)})
+    assert main(["process", str(loop_log), "--preset", "irat", "--db", db_url]) == 0
+    stored["pc_dim_xy"] = 7  # a parameter that did exist, stored otherwise: still refused
+    with open_database(db_url) as db, db.write() as conn:
+        conn.execute(text("UPDATE sessions SET params = :p"), {"p": json.dumps(stored)})
+    assert main(["process", str(loop_log), "--preset", "irat", "--db", db_url]) == 2
