@@ -113,7 +113,8 @@ def main() -> None:
     print("cave3d", figures["cave3d"], flush=True)
     directory, info = _simulate(out, "aliased", args.seed)
     careful = _sessions(directory, info, f"sqlite:///{directory / 'k-default.db'}")
-    eager = _sessions(directory, info, f"sqlite:///{directory / 'k1.db'}", "--confirm", "1")
+    eager = _sessions(directory, info, f"sqlite:///{directory / 'k1.db'}", "--confirm", "1", "--merge-evidence", "0",
+                      "--merge-probation", "0")  # the paper's single-frame trigger  # fmt: skip
     figures["aliased"] = {"default_k_merges": sum(len(r["merges"]) for r in careful),
                           "k1_merges": sum(len(r["merges"]) for r in eager)}  # fmt: skip
     print("aliased", figures["aliased"], flush=True)

@@ -319,7 +319,22 @@ class OnlineMerger:
             probation = self.probation
             verdict = self._verify(result, frame)
             self._remember_shadow(probation)
-            return verdict
+            if verdict is not None or self.probation is None or not probation.held_open(self._track.distance):
+                return verdict
+            return self._decide(engine, result, frame, view, mean, held=probation)
+        return self._decide(engine, result, frame, view, mean)
+
+    def _decide(
+        self, engine: Engine, result: StepResult, frame: Any, view: np.ndarray, mean: float,
+        held: Probation | None = None,
+    ) -> MergeEvent | None:
+        """Update every candidate's hypotheses with the frame and merge when one clearly wins.
+
+        ``held``: a probation held open on a run of mismatches (:meth:`Probation.held_open`): the session has
+        left that map's ground, so the other stored maps are weighed again, and a merge into one of them first
+        passes the held probation (the session reached well-identified ground elsewhere; a probation cannot
+        run beside another merge).
+        """
         if not self._candidates:
             return None
         threshold = engine.params.vt_match_threshold
@@ -336,6 +351,12 @@ class OnlineMerger:
             return None
         key, winner, rival = decision
         chosen = next(c for c in self._candidates if c.stored.key == key)
+        if held is not None:
+            held.reason = (
+                f"held open on {held.miss_run_m:.2f} m of mismatches after its matches; the session went on to "
+                f"merge into map {key!r}"
+            )
+            self._settle_probation(PASSED, result.frame)
         return self._merge(chosen, winner, rival, engine, result, frame)
 
     def _observation(

@@ -184,6 +184,10 @@ def test_a_session_bridging_two_maps_joins_them() -> None:
     run = run_session(WORLD, 0.0, 38.0, [a, b], origin=3)
     assert [e.key for e in run.events] == [1, 2]
     assert run.events[1].absorbed == (1,)
+    # leaving A's ground ends its probation on a run of mismatches longer than A's edge explains: it is held
+    # open (Probation.held_open) and passes when the session merges into B, rather than blocking that merge
+    first = run.events[0].evidence["verification"]
+    assert first["status"] == "passed" and "held open on" in first["reason"] and "map 2" in first["reason"]
     engine = run.engine
     origins = np.asarray(engine.map.snapshot()["em_origin"])
     assert set(np.unique(origins).tolist()) == {1, 2, 3}

@@ -8,7 +8,7 @@ from mapserver.merge.verify import PASSED, PROBATION_CAP, REJECTED, WEAK_MISS_PR
 
 
 def _probation(last_hit_m: float) -> Probation:
-    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0)
+    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0, coverage_radius=1.5)
     return Probation(key=1, hypothesis=None, hset=SimpleNamespace(rule=rule), shadow=None,  # type: ignore[arg-type]
                      start_m=100.0, loaded_experiences=0, last_hit_m=last_hit_m)  # fmt: skip
 
@@ -73,3 +73,17 @@ def test_a_weak_miss_front_end_keeps_the_shorter_cap() -> None:
     assert WEAK_MISS_PROBATION_CAP < PROBATION_CAP
     lvc = _probation(last_hit_m=100.0 + WEAK_MISS_PROBATION_CAP * 12.0 - 0.5)  # LVC runs on while it matches
     assert not lvc._may_conclude(100.0 + WEAK_MISS_PROBATION_CAP * 12.0)
+
+
+def test_a_probation_does_not_close_on_a_run_of_mismatches_longer_than_the_maps_edge_explains() -> None:
+    leaving = _probation(last_hit_m=120.0)
+    leaving.miss_run_m = 1.5  # within the coverage radius of the last stored places: leaving the map's edge
+    assert leaving._may_conclude(124.0)
+    contradicted = _probation(last_hit_m=120.0)
+    contradicted.miss_run_m = 2.1  # more than that: wait for more evidence
+    assert not contradicted._may_conclude(124.0) and not contradicted._may_conclude(150.0)
+    assert contradicted._may_conclude(100.0 + PROBATION_CAP * 12.0)  # the cap still ends it
+    sdr = _probation(last_hit_m=120.0)
+    sdr.hset.rule.miss_weight = 0.16  # weak misses: runs of mismatches on true ground are common
+    sdr.miss_run_m = 5.0
+    assert sdr._may_conclude(124.0)
