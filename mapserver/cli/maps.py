@@ -28,10 +28,15 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("no maps\n")
         return 0
     width = max(4, *(len(m.name) for m in maps))
-    sys.stdout.write(f"{'name':<{width}}  sessions  templates  experiences    links  residual  off\n")
+    sys.stdout.write(
+        f"{'name':<{width}}  sessions  templates  experiences    links  residual  off  merges (rejected, unverified)\n"
+    )
     for m in maps:
         health = f"{m.health['residual']:>8.2f}  {m.health['switched_off']:>3}" if m.health else f"{'-':>8}  {'-':>3}"
+        merges = m.as_dict()["merges"]
+        counts = f"{merges['applied']:>6} ({merges['rejected']}, {merges['unverified']})"
         sys.stdout.write(
-            f"{m.name:<{width}}  {m.sessions:>8}  {m.templates:>9}  {m.experiences:>11}  {m.links:>7}  {health}\n"
+            f"{m.name:<{width}}  {m.sessions:>8}  {m.templates:>9}  {m.experiences:>11}  {m.links:>7}  {health}  "
+            f"{counts}\n"
         )
     return 0

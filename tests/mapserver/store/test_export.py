@@ -36,7 +36,9 @@ def test_maps_lists_counts(db_url: str, stored: dict[str, np.ndarray], capsys) -
     }  # fmt: skip
     assert health["links"] == stored["em_link_from"].shape[0] and health["switched_off"] == 0
     assert main(["maps", "--db", db_url]) == 0
-    assert capsys.readouterr().out.splitlines()[1].split()[:2] == ["two", "1"]
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].endswith("merges (rejected, unverified)")
+    assert lines[1].split()[:2] == ["two", "1"] and lines[1].split()[-3:] == ["0", "(0,", "0)"]
 
 
 def test_export_json_follows_the_contract(db_url: str, stored, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
