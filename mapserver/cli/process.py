@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from core import ConfigError
+from core.config import PRESETS
 from mapserver import pipeline
 from mapserver.cli._output import emit_json, info
 from mapserver.cli._progress import progress_bar
@@ -19,7 +20,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser = subparsers.add_parser("process", help="run the SLAM engine over a mission log")
     parser.add_argument("log", help="ROS 1 .bag, ROS 2 bag directory, .db3 or .mcap")
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--preset", help="parameter preset (irat, stlucia, newcollege, lake, circle, poseidon)")
+    group.add_argument("--preset", help=f"parameter preset ({', '.join(PRESETS)})")
     group.add_argument("--config", help="OpenRatSLAM config_*.txt or OpenRatSLAM2 YAML file")
     parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt (none: off); "
                         "sonar=/t adds a sonar image topic (sdr-htm front-end)")
