@@ -92,7 +92,7 @@ def process_into_store(
     db_url: str | None,
     map_name: str | None = None,
     topics: Mapping[str, str] | None = None,
-    merge: bool | None = None,
+    merge: bool = True,
     stop_after: int | None = None,
     out: str | Path | None = None,
     progress: ProgressCallback | None = None,
@@ -102,8 +102,7 @@ def process_into_store(
     """Run a log through the engine and store the session in a database, in one transaction.
 
     A log is identified by its SHA-256 and topic mapping. A new log becomes a new session. With
-    ``merge`` (by default ``params.merges_online``: yes for ``lvc``, no for ``sdr-htm``) every frame is
-    matched against the stored maps of the atlas that can
+    ``merge`` (the default) every frame is matched against the stored maps of the atlas that can
     merge with it (:func:`mapserver.atlas.merge_candidates`); a confirmed match merges the session
     into that map online and mapping continues in the merged map; the session may merge again into
     another map (a session bridging two maps joins them). A session that connects to no map becomes a
@@ -120,8 +119,7 @@ def process_into_store(
         map_name: name of the new map when the session connects to none (an error if a map of that name
             exists and the log is not one of its sessions).
         topics: topic overrides.
-        merge: merge online into the stored maps the session connects to; False keeps it a separate map;
-            None: ``params.merges_online``.
+        merge: merge online into the stored maps the session connects to; False keeps it a separate map.
         stop_after: stop when the session has processed this many frames in total (resume later); a merge
             on probation then is verified first (the session stops when its probation concludes).
         out: also write the map JSON here.
@@ -148,7 +146,6 @@ def process_into_store(
         msg = f"--confirm must be at least 1, got {confirm!r}"
         raise InputError(msg)
     started = time.perf_counter()
-    merge = params.merges_online if merge is None else merge
     options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice)
     with open_log(log_path, topics) as log, open_database(db_url) as db:
         identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}

@@ -85,7 +85,6 @@ class Params:
     min_event_dz: float = 0.05
     sync_stale_sec: float = 0.75
     # multisession merge
-    merge_online: int = -1  # merge into stored maps while processing: 1 yes, 0 no, −1 by front-end (Params docs)
     merge_confirm: int = 3
     merge_evidence_m: float = -1.0  # net agreeing metres before a merge; −1: the map's scale; 0: K matches only
     merge_probation_m: float = -1.0  # metres a merge keeps verifying itself; −1: auto (map scale); 0: no verification
@@ -150,20 +149,6 @@ class Params:
         if self.merge_miss_weight > 0:
             return self.merge_miss_weight
         return 0.16 if self.frontend == "sdr-htm" else 2.0
-
-    @property
-    def merges_online(self) -> bool:
-        """Return whether ``process`` merges sessions into stored maps unless told (``merge_online``; −1: by front-end).
-
-        ``lvc``: yes. ``sdr-htm``: no, a session merges only when asked (``process --merge``, the API's
-        ``merge=true``): with its weak misses the probation cannot refute look-alikes that hold turns or
-        mirror sectors (``bench/sdr_merge_sweep.py``, 2026-11-26: 3–4 of 5 ``twin`` turns-alike runs and 2
-        of 5 ``symmetric`` runs keep a false merge, against 0–1 of 10 for ``lvc``), and a wrong merge ruins
-        a stored map, while a missed one can still be made.
-        """
-        if self.merge_online >= 0:
-            return bool(self.merge_online)
-        return self.frontend != "sdr-htm"
 
     @property
     def lattice_rank(self) -> int:
@@ -270,8 +255,6 @@ def _validate(p: Params) -> None:
         fail("vpr_leak_rate", "must be ≥ 1")
     if p.merge_confirm < 1:
         fail("merge_confirm", "must be ≥ 1")
-    if p.merge_online not in (-1, 0, 1):
-        fail("merge_online", "must be 1 (merge), 0 (keep sessions apart) or -1 (by front-end)")
     if not (p.merge_miss_weight > 0 or p.merge_miss_weight == -1.0):
         fail("merge_miss_weight", "must be > 0, or -1 for the front-end's own")
     if p.merge_sv_min_intersection < 1:

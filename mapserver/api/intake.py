@@ -38,14 +38,13 @@ class UploadOptions:
         preset: engine preset (default ``circle``).
         map_name: name for a new map, None for the default (the log's name).
         topics: topic overrides (``image``, ``odometry``, ``ground_truth``), or None.
-        merge: merge the session into stored maps it connects to (``true``: ``process --merge``; ``false``:
-            ``--no-merge``; None when the field is absent: the preset's ``merge_online``).
+        merge: merge the session into stored maps it connects to (``process`` without ``--no-merge``).
     """
 
     preset: str
     map_name: str | None
     topics: dict[str, str] | None
-    merge: bool | None
+    merge: bool
 
 
 def parse_options(fields: Mapping[str, str]) -> UploadOptions:
@@ -70,12 +69,11 @@ def parse_options(fields: Mapping[str, str]) -> UploadOptions:
             msg = f"map name must be 1..{MAP_NAME_LIMIT} printable characters, got {fields.get('map')!r}"
             raise InputError(msg)
     topics = _topics(fields.get("topics"))
-    merge_text = (fields.get("merge") or "").strip().lower()
-    if merge_text not in ("", "true", "false", "1", "0", "yes", "no"):
+    merge_text = (fields.get("merge") or "true").strip().lower()
+    if merge_text not in ("true", "false", "1", "0", "yes", "no"):
         msg = f"merge must be true or false, got {fields.get('merge')!r}"
         raise InputError(msg)
-    merge = None if not merge_text else merge_text in ("true", "1", "yes")
-    return UploadOptions(preset, map_name, topics, merge)
+    return UploadOptions(preset, map_name, topics, merge_text in ("true", "1", "yes"))
 
 
 def _topics(text: str | None) -> dict[str, str] | None:

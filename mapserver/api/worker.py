@@ -120,7 +120,7 @@ def execute_job(
             db_url=db_url,
             map_name=_map_name(db, job, log_path),
             topics=job.topics,
-            merge=(job.options or {}).get("merge"),  # None: the preset's merge_online
+            merge=bool((job.options or {}).get("merge", True)),
             progress=reporter,
         )
     except JobInterrupted:

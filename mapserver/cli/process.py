@@ -27,12 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--out", help="write the map JSON here")
     parser.add_argument("--db", help="store the session in this database (SQLAlchemy URL)")
     parser.add_argument("--map", dest="map_name", help="name of the new map when the session connects to none")
-    merging = parser.add_mutually_exclusive_group()
-    merging.add_argument("--no-merge", action="store_true", help="always keep the session a separate map")
-    merging.add_argument(
-        "--merge", action="store_true",
-        help="merge into stored maps also where the parameters do not by default (merge_online; sdr-htm)",
-    )
+    parser.add_argument("--no-merge", action="store_true", help="always keep the session a separate map")
     parser.add_argument(
         "--confirm", type=int, metavar="K",
         help="consecutive matching frames that confirm a merge (default: the parameters' merge_confirm; 1 = paper)",
@@ -90,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
                 db_url=args.db,
                 map_name=args.map_name,
                 topics=topics,
-                merge=False if args.no_merge else (True if args.merge else None),
+                merge=not args.no_merge,
                 stop_after=args.stop_after,
                 out=args.out,
                 progress=update,

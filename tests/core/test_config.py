@@ -173,13 +173,3 @@ def test_missing_and_malformed_files(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="malformed YAML"):
         load_config(bad)
 
-
-def test_sessions_merge_online_by_front_end_unless_the_parameter_says() -> None:
-    named = preset
-
-    assert named("circle").merges_online and named("poseidon").merges_online  # lvc: merge while processing
-    assert not named("poseidon-sdr").merges_online and not named("neoslam").merges_online  # sdr-htm: when asked
-    assert named("poseidon-sdr").replace(merge_online=1).merges_online
-    assert not named("circle").replace(merge_online=0).merges_online
-    with pytest.raises(ConfigError, match="merge_online"):
-        named("circle").replace(merge_online=2)

@@ -34,8 +34,7 @@ UPLOAD_BODY: dict[str, Any] = {
                         "preset": {"type": "string", "description": "engine preset (default circle)"},
                         "map": {"type": "string", "description": "name of the new map if it joins none"},
                         "topics": {"type": "string", "description": "topic overrides: image=/cam,odometry=/odom"},
-                        "merge": {"type": "string", "enum": ["true", "false"],
-                                  "description": "default: the preset's merge_online (lvc true, sdr-htm false)"},
+                        "merge": {"type": "string", "enum": ["true", "false"], "description": "default true"},
                     },
                 }
             }

@@ -210,9 +210,3 @@ def test_zip_with_lying_headers_is_refused(make_api: Any) -> None:
         extract_archive(archive, dest, kind=".zip", max_bytes=1_000_000, max_members=10)
     assert not dest.exists()
 
-
-def test_the_merge_field_is_true_false_or_left_to_the_preset() -> None:
-    from mapserver.api.intake import parse_options
-
-    assert parse_options({}).merge is None  # the preset's merge_online decides (pipeline.process_into_store)
-    assert parse_options({"merge": "true"}).merge is True and parse_options({"merge": "no"}).merge is False

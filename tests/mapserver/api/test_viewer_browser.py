@@ -226,7 +226,6 @@ def test_demo_atlas_maps_node_path_merge_and_upload(page: Any, live: dict[str, A
     page.click("#nav-jobs")
     page.set_input_files("#upload-file", str(log))
     page.select_option("#upload-preset", "irat")
-    assert page.input_value("#upload-merge") == ""  # merging as the preset does (lvc: merge, sdr-htm: when asked)
     presets = page.eval_on_selector_all("#upload-preset option", "o => o.map(x => x.value)")
     assert {"poseidon-sdr", "neoslam"} <= set(presets)
     page.fill("#upload-map", "strip")

@@ -287,12 +287,8 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     db = _db(tmp_path)
     s1, s2 = (directory / s["log"] for s in info["sessions"])
     results = [cli_json("process", str(s1), "--db", db, "--preset", "poseidon-sdr")]
-    shutil.copyfile(tmp_path / "atlas.db", tmp_path / "split.db")  # session 1 alone, for the split runs below
-    shutil.copyfile(tmp_path / "atlas.db", tmp_path / "default.db")
-    # sdr-htm presets merge only when asked (merge_online = -1: by front-end): by default session 2 stays apart
-    apart = cli_json("process", str(s2), "--db", _db(tmp_path, "default"), "--preset", "poseidon-sdr")
-    assert apart["merges"] == [] and apart["map"] == "session2"
-    results.append(cli_json("process", str(s2), "--db", db, "--preset", "poseidon-sdr", "--merge"))
+    shutil.copyfile(tmp_path / "atlas.db", tmp_path / "split.db")  # session 1 alone, for the split run below
+    results.append(cli_json("process", str(s2), "--db", db, "--preset", "poseidon-sdr"))
     applied = [m for m in results[1]["merges"] if m["status"] == "applied"]
     assert [m["into"] for m in applied] == ["session1"]
     initial_yaw = math.radians(preset("poseidon-sdr").exp_initial_em_deg)
@@ -307,9 +303,8 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     # stopped 30 frames before its merge, the session resumes as one run: the readers' sequence state and
     # translations travel in the merge driver's state, the store rewrites the re-expressed view cells
     split = _db(tmp_path, "split")
-    first = process_into_store(s2, preset("poseidon-sdr"), db_url=split, stop_after=applied[0]["frame"] - 30,
-                               merge=True)  # fmt: skip
-    second = process_into_store(s2, preset("poseidon-sdr"), db_url=split, merge=True)
+    first = process_into_store(s2, preset("poseidon-sdr"), db_url=split, stop_after=applied[0]["frame"] - 30)
+    second = process_into_store(s2, preset("poseidon-sdr"), db_url=split)
     assert first.merges == [] and [m["frame"] for m in second.merges] == [applied[0]["frame"]]
     assert_same_arrays(stored.snapshot, load_map(open_database(split), name="session1").snapshot,
                        skip=("st_next_index",))  # fmt: skip
@@ -321,6 +316,6 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     simulate("cave3d", other, seed=1, only=["session1"])  # only the log this needs
     alien = _db(tmp_path, "alien")
     cli_json("process", str(other / "session1.bag"), "--db", alien, "--preset", "poseidon-sdr")
-    result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon-sdr", "--merge")
+    result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon-sdr")
     assert [m for m in result["merges"] if m["status"] == "applied"] == []
 

@@ -118,15 +118,15 @@ def test_a_session_stored_before_a_parameter_existed_continues_with_its_default(
     loop_log: Path,
     db_url: str,
 ) -> None:
-    """A partial session whose stored parameters lack a key added since (here ``merge_online``) resumes:
-    the missing key takes its default, which is what the session was run with."""
+    """A partial session whose stored parameters lack a key added since (here ``merge_sv_enable_f1_gate``,
+    added on 2026-11-25) resumes: the missing key takes its default, which is what the session was run with."""
     from sqlalchemy import text
 
     assert main(["process", str(loop_log), "--preset", "irat", "--db", db_url, "--stop-after", "10"]) == 0
     with open_database(db_url) as db, db.write() as conn:
         (raw,) = conn.execute(text("SELECT params FROM sessions")).one()
         stored = json.loads(raw) if isinstance(raw, str) else dict(raw)
-        del stored["merge_online"]
+        del stored["merge_sv_enable_f1_gate"]
         conn.execute(text("UPDATE sessions SET params = :p"), {"p": json.dumps(stored)})
     assert main(["process", str(loop_log), "--preset", "irat", "--db", db_url]) == 0
     stored["pc_dim_xy"] = 7  # a parameter that did exist, stored otherwise: still refused

@@ -443,7 +443,7 @@ async function upload(e) {
   form.append("file", file, file.name);
   form.append("preset", $("#upload-preset").value);
   if ($("#upload-map").value) form.append("map", $("#upload-map").value);
-  if ($("#upload-merge").value) form.append("merge", $("#upload-merge").value);  // none: the preset decides
+  form.append("merge", $("#upload-merge").checked ? "true" : "false");
   try {
     const res = await api("/v1/sessions", { method: "POST", body: form });
     saveJobs([{ job: res.job, upload: file.name, status: res.status, progress: 0 }, ...jobs().filter((j) => j.job !== res.job)]);
