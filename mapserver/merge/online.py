@@ -378,7 +378,7 @@ class OnlineMerger:
         seen = np.zeros(4)
         experience = -1 if place < 0 else int(candidate.anchors[place])
         if place >= 0:
-            seen = compose(places.poses[place], np.array([0.0, 0.0, 0.0, rel]))
+            seen = compose(places.poses[place], _heading(rel))
         return Observation(
             frame=frame, stored_template=u, stored_experience=experience, error=float(error), relative_rad=float(rel),
             partial_template=int(engine.local_view.current), odometry=self._odometry.copy(),
@@ -468,11 +468,15 @@ class OnlineMerger:
         verdict = probation.step(self._track, result, frame)
         return None if verdict is None else self._settle_probation(verdict, result.frame)
 
-    def _settle_probation(self, verdict: str, frame: int) -> Rollback | None:
-        """Record the probation's verdict on its merge event; on REJECTED undo the merge (the shadow goes on)."""
+    def _settle_probation(self, verdict: str, frame: int, status: str | None = None) -> Rollback | None:
+        """Record the probation's verdict on its merge event; on REJECTED undo the merge (the shadow goes on).
+
+        ``status``: the verification status recorded when the merge stays (default: the verdict).
+        """
         probation, event = self.probation, self._probation_event
         assert probation is not None and event is not None
-        event.evidence["verification"] = probation.evidence(self._track, verdict)
+        event.evidence["verification"] = probation.evidence(self._track, status if verdict == PASSED and status
+                                                            else verdict)  # fmt: skip
         self.probation = None
         if verdict == PASSED:
             logger.info("merge into map %r verified over %.2f m", event.key, self._track.distance - probation.start_m)
@@ -500,11 +504,8 @@ class OnlineMerger:
         if self.probation is None or self._probation_event is None:
             return None
         frame = int(self._track.last[0]) if self._track.frames else -1
-        event = self._probation_event
-        rollback = self._settle_probation(self.probation.conclude_at_end(self._track.distance), frame)
-        if rollback is None:  # kept, but its verification was cut short
-            event.evidence["verification"]["status"] = "incomplete"
-        return rollback
+        verdict = self.probation.conclude_at_end(self._track.distance)
+        return self._settle_probation(verdict, frame, status="incomplete")  # kept: its verification cut short
 
     # ------------------------------------------------------------------ resume
     def export_state(self) -> MergerState:
