@@ -61,9 +61,15 @@ def _digest(snapshot: dict[str, Any]) -> str:
     return h.hexdigest()
 
 
+def _motion(row: np.ndarray) -> Any:
+    """Return the ``core.motion.Motion`` of an extracted motion row (None: the log had no odometry)."""
+    from core.motion import Motion
+
+    return None if np.isnan(row[0]) else Motion(*(float(v) for v in row))
+
+
 def _run_engine(frames: dict[str, np.ndarray], device: str) -> dict[str, Any]:
     from core import Engine, preset
-    from core.motion import Motion
 
     params = preset("poseidon-sdr").replace(frontend_device=device)
     engines: dict[int, Any] = {}
@@ -74,8 +80,7 @@ def _run_engine(frames: dict[str, np.ndarray], device: str) -> dict[str, Any]:
         if int(log) not in engines:  # each log its own session
             engines[int(log)] = Engine(params)
         engine = engines[int(log)]
-        move = None if np.isnan(motion[0]) else Motion(*(float(v) for v in motion))
-        cells.append(engine.step(image, move, int(stamp) * 1e-9).template)
+        cells.append(engine.step(image, _motion(motion), int(stamp) * 1e-9).template)
     _sync(device)
     seconds = time.perf_counter() - started
     n = len(frames["stamps"])
@@ -95,7 +100,6 @@ def _time_shufflenet(frames: dict[str, np.ndarray], device: str, count: int) -> 
     import torch
 
     from core import Engine, preset
-    from core.motion import Motion
     from core.neocortex.backbones import ShuffleNetV2, build_backbone, preprocess
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -119,7 +123,7 @@ def _time_shufflenet(frames: dict[str, np.ndarray], device: str, count: int) -> 
         started = time.perf_counter()
         for image, motion, stamp in zip(frames["images"][:count], frames["motions"][:count], frames["stamps"][:count],
                                         strict=True):  # fmt: skip
-            engine.step(image, None if np.isnan(motion[0]) else Motion(*(float(v) for v in motion)), int(stamp) * 1e-9)
+            engine.step(image, _motion(motion), int(stamp) * 1e-9)
         _sync(device)
         seconds = time.perf_counter() - started
     return {"device": device, "frames": count, "engine_ms_per_frame": round(1000 * seconds / count, 2),
