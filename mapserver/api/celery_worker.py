@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
 import threading
 from dataclasses import dataclass
 
@@ -154,6 +155,24 @@ def _run_one(db: Database, lock: MapLock, job: JobRecord, owner: str, config: Wo
         logger.info("job %d done: session %s, map %s", job.id, outcome.session_id, outcome.map_id)
 
 
+def one_core_per_job() -> None:
+    """Limit this process's numeric libraries (BLAS, OpenMP, OpenCV, torch) to one thread each.
+
+    A worker runs ``--concurrency`` jobs at once, one per core: library thread pools on top of that
+    oversubscribe the cores (measured with ``bench/cluster.py``, 2 workers on 2 cores: each job 15-20 %
+    slower than alone). The engine's own frame loop already limits BLAS (``mapserver.run``); this covers
+    the rest of a job (store, merge, relaxation) and the other libraries.
+    """
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    cv2.setNumThreads(1)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")  # for torch when a job imports it later
+
+
 def serve_worker(*, broker_url: str, queue: str, name: str, concurrency: int, pool: str, log_level: str) -> int:
     """Run a Celery worker on ``queue`` until it is stopped (call :func:`configure` first); return 0.
 
@@ -183,6 +202,8 @@ def serve_worker(*, broker_url: str, queue: str, name: str, concurrency: int, po
             dispatcher.stop()
             dispatcher.db.dispose()
 
+    signals.worker_process_init.connect(lambda **_kwargs: one_core_per_job(), weak=False)  # prefork children
+    one_core_per_job()  # solo and threads pools run jobs in this process
     signals.worker_ready.connect(start_dispatcher, weak=False)
     signals.worker_shutdown.connect(stop_dispatcher, weak=False)
     app.worker_main([
