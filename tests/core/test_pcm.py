@@ -1,0 +1,113 @@
+"""Pairwise consistency of loop links (core.pcm): cycle errors by hand, tree paths, the greedy clique."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from core.pcm import TreePaths, compose, greedy_clique, invert, pair_consistency
+
+finite = st.floats(-50, 50, allow_nan=False)
+poses = st.tuples(finite, finite, finite, st.floats(-10, 10, allow_nan=False))
+
+
+@given(poses, poses)
+@settings(max_examples=60, deadline=None)
+def test_compose_with_the_inverse_is_the_identity_and_inversion_reverses_order(a: tuple, b: tuple) -> None:
+    pa, pb = np.array([a]), np.array([b])
+    for pose in (compose(pa, invert(pa)), compose(invert(pa), pa)):
+        assert np.allclose(pose[0, :3], 0.0, atol=1e-9)
+        assert math.isclose(math.remainder(pose[0, 3], 2 * math.pi), 0.0, abs_tol=1e-9)
+    lhs, rhs = invert(compose(pa, pb)), compose(invert(pb), invert(pa))
+    assert np.allclose(lhs[0, :3], rhs[0, :3], atol=1e-9)
+    assert math.isclose(math.remainder(lhs[0, 3] - rhs[0, 3], 2 * math.pi), 0.0, abs_tol=1e-9)
+
+
+def test_compose_turns_the_second_step_by_the_first_heading() -> None:
+    out = compose(np.array([[1.0, 2.0, 0.5, math.pi / 2]]), np.array([[3.0, 0.0, 1.0, 0.1]]))
+    assert np.allclose(out, [[1.0, 5.0, 1.5, math.pi / 2 + 0.1]])  # x step of 3 m turned 90°: +y
+
+
+@given(st.integers(2, 40), st.integers(0, 10_000))
+@settings(max_examples=40, deadline=None)
+def test_tree_paths_equal_shortest_paths_on_a_random_forest(n: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    child = np.arange(1, n)
+    parent = np.array([rng.integers(0, c) for c in child])
+    cut = rng.random(child.size) < 0.15  # some edges missing: a forest of several trees
+    src, dst, length = parent[~cut], child[~cut], rng.uniform(0.1, 3.0, int((~cut).sum()))
+    roots = np.zeros(n, dtype=bool)
+    roots[0] = True
+    roots[child[cut]] = True
+    paths = TreePaths(n, src, dst, length, roots)
+    expected = dijkstra(csr_matrix((length, (src, dst)), shape=(n, n)), directed=False)
+    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    got = paths.distance(a.ravel(), b.ravel()).reshape(n, n)
+    assert np.array_equal(np.isinf(got), np.isinf(expected))
+    assert np.allclose(got[np.isfinite(got)], expected[np.isfinite(expected)])
+
+
+def _straight_chain(n: int = 10) -> tuple[np.ndarray, TreePaths]:
+    """Experiences 1 m apart along x, heading 0, joined by odometry links of 1 m."""
+    pose = np.zeros((n, 4))
+    pose[:, 0] = np.arange(n)
+    src = np.arange(n - 1)
+    roots = np.zeros(n, dtype=bool)
+    roots[0] = True
+    return pose, TreePaths(n, src, src + 1, np.ones(n - 1), roots)
+
+
+def test_pair_consistency_by_hand_on_a_straight_chain() -> None:
+    pose, paths = _straight_chain()
+    # three links back along the chain: two true (8→1 and 9→2 both say -7 m), one 1 m wrong (9→2 says -6 m)
+    src, dst = np.array([8, 9, 9]), np.array([1, 2, 2])
+    transform = np.array([[-7.0, 0, 0, 0], [-7.0, 0, 0, 0], [-6.0, 0, 0, 0]])
+    z = pair_consistency(pose, src, dst, transform, paths, length=1.0, drift=0.1, yaw_drift=0.1)
+    assert z[0, 1] == 0.0 and z[1, 0] == 0.0  # the true pair closes exactly
+    # 8→1 against the wrong 9→2: cycle 8 → 9 (1 m) → 2 → 1 (1 m): error 1 m over L = 1 + 1 + 2·1 m
+    assert math.isclose(z[0, 2], 1.0 / (0.1 * 4.0))
+    assert math.isclose(z[1, 2], 1.0 / (0.1 * 2.0))  # same ends: L = 0 + 0 + 2 m
+    assert np.all(np.diag(z) == 0.0)
+
+
+def test_a_heading_error_counts_through_the_yaw_drift() -> None:
+    pose, paths = _straight_chain()
+    src, dst = np.array([8, 8]), np.array([1, 1])
+    transform = np.array([[-7.0, 0, 0, 0], [-7.0, 0, 0, 0.2]])
+    z = pair_consistency(pose, src, dst, transform, paths, length=1.0, drift=0.1, yaw_drift=0.05)
+    # cycle E = T2 · T1⁻¹ = (-7, 0, 0, 0.2) ⊕ (7, 0, 0, 0): xy (-7 + 7cos 0.2, 7 sin 0.2), ψ 0.2
+    ex, ey = -7 + 7 * math.cos(0.2), 7 * math.sin(0.2)
+    assert math.isclose(z[0, 1], math.hypot(math.hypot(ex, ey) / (0.1 * 2), 0.2 / (0.05 * 2)))
+
+
+def test_links_whose_ends_no_odometry_joins_are_consistent() -> None:
+    pose = np.zeros((4, 4))
+    pose[:, 0] = [0, 1, 10, 11]
+    roots = np.array([True, False, True, False])
+    paths = TreePaths(4, np.array([0, 2]), np.array([1, 3]), np.ones(2), roots)  # two separate chains
+    z = pair_consistency(pose, np.array([0, 1]), np.array([2, 3]), np.array([[5.0, 0, 0, 0], [9.0, 0, 0, 0]]),
+                         paths, 1.0, 0.1, 0.1)  # fmt: skip
+    # cycle 0 → 1 (1 m) → 3 (link 2, +9 m) → 2 (1 m back) → 0 (link 1, -5 m): 4 m over L = 1 + 1 + 2 m
+    assert math.isclose(z[0, 1], 4.0 / (0.1 * 4.0))
+    paths_apart = TreePaths(4, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.ones(4, bool))
+    z_apart = pair_consistency(pose, np.array([0, 1]), np.array([2, 3]),
+                               np.array([[5.0, 0, 0, 0], [9.0, 0, 0, 0]]), paths_apart, 1.0, 0.1, 0.1)  # fmt: skip
+    assert z_apart[0, 1] == 0.0  # ... and without any odometry there is no cycle, no evidence
+
+
+def test_greedy_clique_takes_links_by_degree_and_keeps_only_mutual_agreement() -> None:
+    consistent = np.array([
+        [1, 1, 1, 0, 1],
+        [1, 1, 1, 0, 0],
+        [1, 1, 1, 1, 0],
+        [0, 0, 1, 1, 1],
+        [1, 0, 0, 1, 1],
+    ], dtype=bool)  # fmt: skip
+    # degrees (self included) 4, 3, 4, 3, 3: 0 first, then 2 (agrees with 0), then 1 (agrees with 0 and 2);
+    # 3 disagrees with 0, 4 with 2
+    assert greedy_clique(consistent).tolist() == [True, True, True, False, False]
