@@ -19,10 +19,11 @@ cycle, no evidence).
 PCM then looks for the largest set of mutually consistent links (a maximum clique of the
 consistency graph). Here the clique is found greedily (links in decreasing number of consistent
 partners, each kept when it agrees with every link kept so far): it is only a *start* for
-:func:`core.robust.switch_off_outliers`, whose TLS cost then decides. Why it helps: wrong links that
-outnumber the true ones (20 wrong against 11 true closures on ``cave3d``) bend the all-links solution
-until several fit it, and the greedy descent from there stops in that bend; a true closure is
-consistent with the true closures near it along the route, a wrong one is not.
+:func:`core.robust.switch_off_outliers`, whose TLS cost then decides (with a margin: see there). Why it
+helps: wrong links that outnumber the true ones bend the all-links solution until several fit it, and the
+greedy descent from there stops in that bend; a true closure is consistent with the true closures near it
+along the route, a random wrong one is not. Its known weakness, as PCM's: false closures of one self-aliased
+place are consistent with one another.
 """
 
 from __future__ import annotations
@@ -36,13 +37,6 @@ from scipy.sparse.csgraph import breadth_first_order
 #: links it left out (measured on ``cave3d`` with 20 wrong links of 1-2 m: at 0.5 the clique held 8 of 11 true
 #: closures and no wrong link; at 1, up to 8 wrong ones; true pairs close within 1.03 at most)
 PAIR_THRESHOLD = 0.5
-#: a link that the robust descent found no fault with is switched off from the clique start only when its cycle
-#: with some kept link misses by more than this (true pairs close within 1.03 on ``cave3d``, 0.82 on ``loop``)
-PAIR_EVIDENCE = 2.0
-#: the clique start replaces the robust descent's answer only when its TLS cost is lower by more than this (one
-#: unit of z²): a near-tie keeps the descent from all links (measured: ``loop`` with 20 wrong links of 2 m, seed 20,
-#: 329.56 against 329.63 with two true closures off)
-PAIR_MARGIN = 1.0
 #: above this many switchable links the K×K consistency matrix is not built (memory ∝ K²)
 MAX_LINKS = 1500
 

@@ -126,10 +126,12 @@ def test_false_links_are_switched_off_and_the_true_closures_stay(count: int, sep
 
 @pytest.mark.slow
 def test_more_wrong_links_than_true_closures_hold_with_the_pairwise_start(monkeypatch: pytest.MonkeyPatch) -> None:
-    """20 wrong links against 14 true closures: all 10 seeds keep the clean APE with the pairwise start.
+    """20 wrong links against 14 true closures: 9 of 10 seeds keep the clean APE with the pairwise start.
 
     Measured without it (the greedy descent from all links and from the odometry only): 8 of 10, the
     wrong links winning a stretch of the loop in 2; that figure is the paired check that the start matters.
+    (Accepting the clique start at any lower cost held 10 of 10 here but bent the merged maps of the
+    self-aliased ``twin-overlap`` worlds: see core/robust.py.)
     """
     clean = _circle_graph()
     clean_ape = _ape(clean[0], _run(clean).pose)
@@ -141,7 +143,7 @@ def test_more_wrong_links_than_true_closures_hold_with_the_pairwise_start(monkey
             count += _ape(graph[0], _run(graph).pose) <= 1.25 * clean_ape
         return count
 
-    assert held() == 10
+    assert held() == 9
     monkeypatch.setattr(robust, "_pairwise_start", lambda *_args: None)
     assert held() == 8
 
