@@ -37,8 +37,10 @@ from scipy.sparse.csgraph import breadth_first_order
 #: links it left out (measured on ``cave3d`` with 20 wrong links of 1-2 m: at 0.5 the clique held 8 of 11 true
 #: closures and no wrong link; at 1, up to 8 wrong ones; true pairs close within 1.03 at most)
 PAIR_THRESHOLD = 0.5
-#: above this many switchable links the K×K consistency matrix is not built (memory ∝ K²)
-MAX_LINKS = 1500
+#: above this many switchable links the K×K consistency matrix is not built (memory 8·K² bytes, ~1.7 s at 1000)
+MAX_LINKS = 1000
+#: pairs evaluated at once (bounds the temporaries of :func:`pair_consistency`)
+PAIR_CHUNK = 65536
 
 
 def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -125,11 +127,33 @@ def pair_consistency(
     """Return ``z`` (K, K) of every pair of links (module docstring); the diagonal is 0."""
     k = src.size
     p, q = np.triu_indices(k, 1)
+    out = np.zeros((k, k))
+    for lo in range(0, p.size, PAIR_CHUNK):  # bounded temporaries: K = 1000 is 0.5 M pairs
+        pp, qq = p[lo : lo + PAIR_CHUNK], q[lo : lo + PAIR_CHUNK]
+        z = _pair_z(pose, src, dst, transform, paths, length, drift, yaw_drift, pp, qq)
+        out[pp, qq] = z
+        out[qq, pp] = z
+    return out
+
+
+def _pair_z(
+    pose: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    transform: np.ndarray,
+    paths: TreePaths,
+    length: float,
+    drift: float,
+    yaw_drift: float,
+    p: np.ndarray,
+    q: np.ndarray,
+) -> np.ndarray:
+    """Return the cycle error ``z`` of link pairs (p[k], q[k]), with q's link taken the way round of shorter paths."""
     best = np.zeros(p.size)
     shortest = np.full(p.size, np.inf)
     t1_inv = invert(transform[p])
+    i, j = src[p], dst[p]
     for a, b, t2 in ((src[q], dst[q], transform[q]), (dst[q], src[q], invert(transform[q]))):
-        i, j = src[p], dst[p]
         cycle = compose(compose(compose(compose(invert(pose[i]), pose[a]), t2), compose(invert(pose[b]), pose[j])),
                         t1_inv)  # fmt: skip
         travelled = paths.distance(i, a) + paths.distance(b, j) + 2.0 * length
@@ -137,10 +161,7 @@ def pair_consistency(
         z = np.hypot(np.linalg.norm(cycle[:, :3], axis=1) / (drift * travelled), yaw / (yaw_drift * travelled))
         shorter = travelled < shortest  # the cycle of the shorter paths is the one the odometry constrains most
         best[shorter], shortest[shorter] = z[shorter], travelled[shorter]
-    out = np.zeros((k, k))
-    out[p, q] = best
-    out[q, p] = best
-    return out
+    return best
 
 
 def greedy_clique(consistent: np.ndarray) -> np.ndarray:
