@@ -29,6 +29,7 @@ Operations (Algorithm 1):
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -176,6 +177,12 @@ def merge_states(
 ) -> tuple[dict[str, np.ndarray], MergeRecord]:
     """Merge the partial map's state into the loaded map's (Menezes et al. Algorithm 1, corrected).
 
+    The steps follow the algorithm: (i) templates (:func:`_merge_templates`, Eq. 9), (ii)/(iii) the
+    lattice transform between the matched packets and the pose-cell links moved by it
+    (:func:`_lattice_transform`, :func:`_merge_pose_cell_links`, corrected Eq. 10), (iv) experiences and
+    their links under T (:func:`_merge_experiences`, :func:`_merge_links`, Eqs. 13–14 and 17), then the
+    robot's own state continues in the merged map (:func:`_robot_state`).
+
     Args:
         loaded: snapshot of the loaded (stored) map; its ids are kept.
         partial: snapshot of the partial map (the session being mapped, or the map merged offline);
@@ -195,28 +202,67 @@ def merge_states(
         MergeError: the snapshots cannot be merged (different lattice or template shapes, a
             documented key missing, an id out of range).
     """
+    dims = _check_inputs(loaded, partial, match)
+    tmap, kept_t, templates = _merge_templates(loaded, partial, match)
+    f, delta_u = _lattice_transform(loaded, match, dims)
+    pc_links = _merge_pose_cell_links(loaded, partial, tmap, kept_t, f if shift_lattice else None, len(dims))
+    experiences = _merge_experiences(loaded, partial, match, tmap, f if shift_lattice else None, identify_within)
+    links = _merge_links(loaded, partial, match, experiences)
+    robot = _robot_state(partial, match, experiences)
+    state = _merged_state(loaded, partial, match, dims, tmap, kept_t, templates, f, delta_u, pc_links,
+                          experiences, links, robot)  # fmt: skip
+    record = MergeRecord(
+        stored_template=match.stored_template,
+        stored_experience=match.stored_experience,
+        partial_template=match.partial_template,
+        partial_pose=_four(np.asarray(match.partial_pose, dtype=np.float64)),
+        relative_rad=float(match.relative_rad),
+        confirmations=int(match.confirmations),
+        lattice_source=f.source,
+        lattice_target=f.target,
+        lattice_offset=tuple(f.offset.tolist()),
+        heading_offset_rad=f.heading_rad,
+        lattice_shifted=shift_lattice,
+        transform=_four(experiences.T),
+        template_offset=int(np.shape(loaded["lv_means"])[0]),
+        experience_offset=experiences.n_loaded,
+        link_offset=links.n_loaded,
+        template_map=tmap,
+        experience_map=experiences.emap,
+        merge_links=links.merge_links.astype(np.int64),
+        templates=int(state["lv_means"].shape[0]),
+        experiences=int(state["em_pose"].shape[0]),
+        links=int(state["em_link_from"].shape[0]),
+    )
+    return state, record
+
+
+def _four(values: np.ndarray) -> tuple[float, float, float, float]:
+    """Return a pose (4,) as a tuple of floats."""
+    return (float(values[0]), float(values[1]), float(values[2]), float(values[3]))
+
+
+def _check_inputs(loaded: State, partial: State, match: Match) -> tuple[int, ...]:
+    """Check both snapshots and the match's ids; return the lattice shape."""
     check_state(loaded, "loaded")
     check_state(partial, "partial")
     reason = incompatibility(loaded, partial)
     if reason:
         raise MergeError(reason)
     dims = lattice_shape(loaded)
-    rank, n_th = len(dims), dims[-1]
-    n_lt, n_pt = int(np.shape(loaded["lv_means"])[0]), int(np.shape(partial["lv_means"])[0])
-    l_pose = np.asarray(loaded["em_pose"], dtype=np.float64).reshape(-1, 4)
-    p_pose = np.asarray(partial["em_pose"], dtype=np.float64).reshape(-1, 4)
-    n_le, n_pe = l_pose.shape[0], p_pose.shape[0]
-    n_ll = int(np.shape(loaded["em_link_from"])[0])
-    u, e_u, z = match.stored_template, match.stored_experience, match.partial_template
-    _check_id(u, n_lt, "stored template")
-    _check_id(e_u, n_le, "stored experience")
-    _check_id(z, n_pt, "partial template")
-    if len(match.partial_packet) != rank or len(match.partial_pose) != 4:
-        msg = f"partial anchor must be a pose (4,) and a packet ({rank},), got {match.partial_pose!r}, " \
+    _check_id(match.stored_template, int(np.shape(loaded["lv_means"])[0]), "stored template")
+    _check_id(match.stored_experience, int(np.shape(loaded["em_pose"])[0]), "stored experience")
+    _check_id(match.partial_template, int(np.shape(partial["lv_means"])[0]), "partial template")
+    if len(match.partial_packet) != len(dims) or len(match.partial_pose) != 4:
+        msg = f"partial anchor must be a pose (4,) and a packet ({len(dims)},), got {match.partial_pose!r}, " \
               f"{match.partial_packet!r}"
         raise MergeError(msg)
+    return dims
 
-    # (i) templates, Eq. 9
+
+def _merge_templates(loaded: State, partial: State, match: Match) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Operation (i), Eq. 9: the template id map, which partial templates are kept, the merged templates."""
+    n_lt, n_pt = int(np.shape(loaded["lv_means"])[0]), int(np.shape(partial["lv_means"])[0])
     tmap = _template_map(match, n_lt, n_pt)
     kept_t = tmap >= n_lt
     shape = np.shape(loaded["lv_templates"])[1:] if n_lt else np.shape(partial["lv_templates"])[1:]
@@ -226,126 +272,222 @@ def merge_states(
             np.asarray(partial["lv_templates"], dtype=np.float32).reshape(-1, *shape)[kept_t],
         ]
     )
+    return tmap, kept_t, templates
 
-    # (ii)/(iii) the lattice transform f between the matched packets: offset loaded − partial (corrected
-    # Eq. 10), (x, y) rotated by the heading offset. The loaded packet is the matched experience's lattice
-    # coordinates (the packet after its frame's path integration; a link holds the packet of the frame
-    # before, and a session's first template the initial one), heading corrected by the view's offset.
-    l_pc = np.asarray(loaded["em_pc"], dtype=np.float64).reshape(-1, rank)
-    p_pc = np.asarray(partial["em_pc"], dtype=np.float64).reshape(-1, rank)
-    delta_u = match.relative_rad / (2.0 * math.pi) * n_th
-    target = l_pc[e_u].copy()
+
+def _lattice_transform(loaded: State, match: Match, dims: tuple[int, ...]) -> tuple[LatticeTransform, float]:
+    """Operations (ii)/(iii): the lattice transform f between the matched packets, and the view's heading cells.
+
+    Offset loaded − partial (corrected Eq. 10), (x, y) rotated by the heading offset. The loaded packet is
+    the matched experience's lattice coordinates (the packet after its frame's path integration; a link
+    holds the packet of the frame before, and a session's first template the initial one), heading
+    corrected by the view's offset.
+    """
+    l_pc = np.asarray(loaded["em_pc"], dtype=np.float64).reshape(-1, len(dims))
+    delta_u = match.relative_rad / (2.0 * math.pi) * dims[-1]
+    target = l_pc[match.stored_experience].copy()
     target[-1] += delta_u
-    f = LatticeTransform.between(dims, np.asarray(match.partial_packet, dtype=np.float64), target)
+    return LatticeTransform.between(dims, np.asarray(match.partial_packet, dtype=np.float64), target), delta_u
 
-    def lattice(coords: np.ndarray) -> np.ndarray:
-        return f.apply(coords) if shift_lattice else np.asarray(coords, dtype=np.float64).copy()
 
-    l_links = np.asarray(loaded["pc_link_template"], dtype=np.int64)
+def _moved(f: LatticeTransform | None, coords: np.ndarray, rank: int) -> np.ndarray:
+    """Return partial lattice coordinates in the loaded lattice (unchanged when f is None: (iii) skipped)."""
+    moved = f.apply(coords) if f is not None else np.asarray(coords, dtype=np.float64).copy()
+    return moved.reshape(-1, rank)
+
+
+def _merge_pose_cell_links(
+    loaded: State, partial: State, tmap: np.ndarray, kept_t: np.ndarray, f: LatticeTransform | None, rank: int
+) -> dict[str, np.ndarray]:
+    """Operation (iii) on the LVC→pose-cell links: the partial links of kept templates, moved by f."""
     p_links = np.asarray(partial["pc_link_template"], dtype=np.int64)
-    l_coords = np.asarray(loaded["pc_link_coords"], dtype=np.float64).reshape(-1, rank)
-    p_coords = np.asarray(partial["pc_link_coords"], dtype=np.float64).reshape(-1, rank)
     keep_link = kept_t[p_links]  # links of identified templates: the loaded template's links stand
+    p_coords = np.asarray(partial["pc_link_coords"], dtype=np.float64).reshape(-1, rank)
+    l_coords = np.asarray(loaded["pc_link_coords"], dtype=np.float64).reshape(-1, rank)
+    return {
+        "pc_link_template": np.concatenate(
+            [np.asarray(loaded["pc_link_template"], dtype=np.int64), tmap[p_links[keep_link]]]
+        ),
+        "pc_link_coords": np.concatenate([l_coords, _moved(f, p_coords[keep_link], rank)]),
+        "pc_link_strength": _cat(loaded, partial, "pc_link_strength", np.float64, keep_link),
+        "pc_link_decay": _cat(loaded, partial, "pc_link_decay", np.float64, keep_link),
+    }
 
-    # (iv) experiences: T = T_loaded ⊕ T_partial⁻¹ (Eqs. 13–14 generalised to x, y, z, yaw)
-    anchor_loaded = compose(l_pose[e_u], _heading(match.relative_rad))
-    pose_p = np.asarray(match.partial_pose, dtype=np.float64)
-    T = alignment(anchor_loaded, pose_p)
+
+@dataclass(frozen=True, slots=True)
+class _Experiences:
+    """Operation (iv)'s outcome for the experiences: T, the id map, and the merged arrays."""
+
+    T: np.ndarray  # (4,) the rigid transform partial → loaded frame
+    anchor_loaded: np.ndarray  # (4,) the matched loaded experience's pose turned by the view's offset
+    emap: np.ndarray  # (n_partial,) merged id of each partial experience
+    kept: np.ndarray  # (n_partial,) partial experiences inserted (not identified)
+    n_loaded: int
+    n_total: int
+    arrays: dict[str, np.ndarray]  # em_pose, em_pc, em_template, em_stamp, em_origin
+
+
+def _merge_experiences(
+    loaded: State,
+    partial: State,
+    match: Match,
+    tmap: np.ndarray,
+    f: LatticeTransform | None,
+    identify_within: float | None,
+) -> _Experiences:
+    """Operation (iv), Eqs. 13–14 generalised to (x, y, z, yaw): T = T_loaded ⊕ T_partial⁻¹, experiences under T."""
+    l_pose = np.asarray(loaded["em_pose"], dtype=np.float64).reshape(-1, 4)
+    p_pose = np.asarray(partial["em_pose"], dtype=np.float64).reshape(-1, 4)
+    n_le, n_pe = l_pose.shape[0], p_pose.shape[0]
+    n_lt = int(np.shape(loaded["lv_means"])[0])
+    anchor_loaded = compose(l_pose[match.stored_experience], _heading(match.relative_rad))
+    T = alignment(anchor_loaded, np.asarray(match.partial_pose, dtype=np.float64))
     emap = np.full(n_pe, -1, dtype=np.int64)
     within = default_identify_within(loaded) if identify_within is None else identify_within
     _identify_experiences(loaded, partial, tmap, n_lt, emap, T, within)
-    kept_e = emap < 0
-    emap[kept_e] = n_le + np.arange(int(kept_e.sum()), dtype=np.int64)
-    n_total = n_le + int(kept_e.sum())
+    kept = emap < 0
+    emap[kept] = n_le + np.arange(int(kept.sum()), dtype=np.int64)
+    rank = len(lattice_shape(loaded))
+    l_pc = np.asarray(loaded["em_pc"], dtype=np.float64).reshape(-1, rank)
+    p_pc = np.asarray(partial["em_pc"], dtype=np.float64).reshape(-1, rank)
+    arrays = {
+        "em_pose": np.concatenate([l_pose, compose(T, p_pose[kept])]),
+        "em_pc": np.concatenate([l_pc, _moved(f, p_pc[kept], rank)]),
+        "em_template": np.concatenate(
+            [np.asarray(loaded["em_template"], dtype=np.int64), tmap[np.asarray(partial["em_template"])[kept]]]
+        ),
+        "em_stamp": _cat(loaded, partial, "em_stamp", np.float64, kept),
+        "em_origin": _cat(loaded, partial, "em_origin", np.int64, kept),
+    }
+    return _Experiences(T, anchor_loaded, emap, kept, n_le, n_le + int(kept.sum()), arrays)
 
-    keep_l, nf, nt, kind, joins = _links(loaded, partial, emap, kept_e, n_total)
-    p_transform = np.asarray(partial["em_link_transform"], dtype=np.float64).reshape(-1, 4)
-    # kept partial links in their order, those joining the two graphs (the merge links) last
+
+@dataclass(frozen=True, slots=True)
+class _Links:
+    """Operation (iv)'s outcome for the links: the merged link arrays and which of them are merge links."""
+
+    n_loaded: int
+    merge_links: np.ndarray  # ids (in the merged map) of the links that join the two graphs
+    arrays: dict[str, np.ndarray]  # em_link_from, _to, _transform, _dt, _distance, _kind, _active
+
+
+def _merge_links(loaded: State, partial: State, match: Match, exp: _Experiences) -> _Links:
+    """Operation (iv) on the links: the partial's kept links, merge links last.
+
+    Where nothing identified joins the graphs, Eq. 17 adds a link from the partial's current experience to
+    the matched one.
+    """
+    keep_l, nf, nt, kind, joins = _links(loaded, partial, exp.emap, exp.kept, exp.n_total)
     kept_links = np.flatnonzero(keep_l)
     keep_l = np.concatenate([kept_links[~joins[kept_links]], kept_links[joins[kept_links]]])
-    new_from, new_to = [nf[keep_l]], [nt[keep_l]]
-    new_tf, new_kind = [p_transform[keep_l]], [kind[keep_l]]
-    new_dt = [np.asarray(partial["em_link_dt"], dtype=np.float64)[keep_l]]
-    new_dist = [np.asarray(partial["em_link_distance"], dtype=np.float64)[keep_l]]
+    p_transform = np.asarray(partial["em_link_transform"], dtype=np.float64).reshape(-1, 4)
+    new = {
+        "em_link_from": [nf[keep_l]], "em_link_to": [nt[keep_l]], "em_link_transform": [p_transform[keep_l]],
+        "em_link_dt": [np.asarray(partial["em_link_dt"], dtype=np.float64)[keep_l]],
+        "em_link_distance": [np.asarray(partial["em_link_distance"], dtype=np.float64)[keep_l]],
+        "em_link_kind": [kind[keep_l]],
+        "em_link_active": [_link_active(partial)[keep_l] | joins[keep_l]],  # a link that becomes a merge link starts on
+    }  # fmt: skip
     new_joins = [joins[keep_l]]
-    new_active = [_link_active(partial)[keep_l] | joins[keep_l]]  # a link that becomes a merge link starts on
-
-    accum = np.asarray(partial["em_accum"], dtype=np.float64).copy()
     current = int(partial["em_current"])
-    if current >= 0 and n_le and kept_e.any() and not new_joins[0].any():
+    if current >= 0 and exp.n_loaded and exp.kept.any() and not new_joins[0].any():
         # nothing identified joins the graphs (e.g. no partial experience of an identified template):
         # Eq. 17 as a link from the partial's current experience to e_u, at their relative pose under T
-        src = int(emap[current])
-        link = relative(compose(T, p_pose[current]), l_pose[e_u])
-        new_from.append(np.array([src], dtype=np.int64))
-        new_to.append(np.array([e_u], dtype=np.int64))
-        new_tf.append(link[None, :])
-        new_kind.append(np.array([int(LinkKind.MERGE)], dtype=np.int8))
-        new_dt.append(np.array([float(accum[4])]))
-        new_dist.append(np.array([float(np.linalg.norm(link[:3]))]))
+        e_u = match.stored_experience
+        p_pose = np.asarray(partial["em_pose"], dtype=np.float64).reshape(-1, 4)
+        l_pose = np.asarray(loaded["em_pose"], dtype=np.float64).reshape(-1, 4)
+        link = relative(compose(exp.T, p_pose[current]), l_pose[e_u])
+        new["em_link_from"].append(np.array([int(exp.emap[current])], dtype=np.int64))
+        new["em_link_to"].append(np.array([e_u], dtype=np.int64))
+        new["em_link_transform"].append(link[None, :])
+        new["em_link_kind"].append(np.array([int(LinkKind.MERGE)], dtype=np.int8))
+        new["em_link_dt"].append(np.array([float(np.asarray(partial["em_accum"], dtype=np.float64)[4])]))
+        new["em_link_distance"].append(np.array([float(np.linalg.norm(link[:3]))]))
         new_joins.append(np.array([True]))
-        new_active.append(np.array([True]))
-    link_kind = np.concatenate([np.asarray(loaded["em_link_kind"], dtype=np.int8), *new_kind]).astype(np.int8)
-    merge_links = n_ll + np.flatnonzero(np.concatenate(new_joins))
+        new["em_link_active"].append(np.array([True]))
+    n_ll = int(np.shape(loaded["em_link_from"])[0])
+    arrays = {
+        "em_link_from": np.concatenate([np.asarray(loaded["em_link_from"], dtype=np.int64), *new["em_link_from"]]),
+        "em_link_to": np.concatenate([np.asarray(loaded["em_link_to"], dtype=np.int64), *new["em_link_to"]]),
+        "em_link_transform": np.concatenate(
+            [np.asarray(loaded["em_link_transform"], dtype=np.float64).reshape(-1, 4), *new["em_link_transform"]]
+        ),
+        "em_link_dt": np.concatenate([np.asarray(loaded["em_link_dt"], dtype=np.float64), *new["em_link_dt"]]),
+        "em_link_distance": np.concatenate(
+            [np.asarray(loaded["em_link_distance"], dtype=np.float64), *new["em_link_distance"]]
+        ),
+        "em_link_kind": np.concatenate(
+            [np.asarray(loaded["em_link_kind"], dtype=np.int8), *new["em_link_kind"]]
+        ).astype(np.int8),
+        "em_link_active": np.concatenate([_link_active(loaded), *new["em_link_active"]]),
+    }
+    return _Links(n_ll, n_ll + np.flatnonzero(np.concatenate(new_joins)), arrays)
 
-    # the robot continues in the merged map: same experience, odometry since it rotated by T
-    if current >= 0:
-        em_current = int(emap[current])
-        previous = int(partial["em_previous"])
-        em_previous = int(emap[previous]) if previous >= 0 else -1
-        c, s = math.cos(float(T[3])), math.sin(float(T[3]))
-        accum[0], accum[1] = c * accum[0] - s * accum[1], s * accum[0] + c * accum[1]
-        accum[3] = float(wrap_angle(accum[3] + float(T[3])))
-    else:  # no partial experience yet: the robot is at e_u (set_experience(e_u, relative_rad))
-        em_current, em_previous = e_u, -1
-        accum = np.array([0.0, 0.0, 0.0, float(anchor_loaded[3]), 0.0, 0.0])
 
+def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, int, np.ndarray]:
+    """The robot continues in the merged map: (current, previous experience, odometry since it rotated by T)."""
+    accum = np.asarray(partial["em_accum"], dtype=np.float64).copy()
+    current = int(partial["em_current"])
+    if current < 0:  # no partial experience yet: the robot is at e_u (set_experience(e_u, relative_rad))
+        return match.stored_experience, -1, np.array([0.0, 0.0, 0.0, float(exp.anchor_loaded[3]), 0.0, 0.0])
+    previous = int(partial["em_previous"])
+    c, s = math.cos(float(exp.T[3])), math.sin(float(exp.T[3]))
+    accum[0], accum[1] = c * accum[0] - s * accum[1], s * accum[0] + c * accum[1]
+    accum[3] = float(wrap_angle(accum[3] + float(exp.T[3])))
+    return int(exp.emap[current]), int(exp.emap[previous]) if previous >= 0 else -1, accum
+
+
+def _cat(loaded: State, partial: State, key: str, dtype: type, mask: np.ndarray) -> np.ndarray:
+    """Return the loaded map's ``key`` followed by the partial's rows under ``mask``."""
+    return np.concatenate([np.asarray(loaded[key], dtype=dtype), np.asarray(partial[key], dtype=dtype)[mask]])
+
+
+def _merged_state(
+    loaded: State,
+    partial: State,
+    match: Match,
+    dims: tuple[int, ...],
+    tmap: np.ndarray,
+    kept_t: np.ndarray,
+    templates: np.ndarray,
+    f: LatticeTransform,
+    delta_u: float,
+    pc_links: dict[str, np.ndarray],
+    exp: _Experiences,
+    links: _Links,
+    robot: tuple[int, int, np.ndarray],
+) -> dict[str, np.ndarray]:
+    """Assemble the merged snapshot: the merged parts, and the partial's running state in merged ids."""
     best = f.apply(np.asarray(partial["pc_best"], dtype=np.float64))
     lv_current = int(partial["lv_current"])
     pc_current = int(partial["pc_current_vt"])
 
-    def cat(key: str, dtype: type, mask: np.ndarray) -> np.ndarray:
-        return np.concatenate([np.asarray(loaded[key], dtype=dtype), np.asarray(partial[key], dtype=dtype)[mask]])
-
     def scalar(value: int) -> np.ndarray:
         return np.asarray(_remap(np.asarray(value), tmap), dtype=np.int64)
 
-    state: dict[str, np.ndarray] = {
+    em_current, em_previous, accum = robot
+    return {
         "lv_templates": templates,
-        "lv_means": cat("lv_means", np.float64, kept_t),
-        "lv_origin": cat("lv_origin", np.int64, kept_t),
+        "lv_means": _cat(loaded, partial, "lv_means", np.float64, kept_t),
+        "lv_origin": _cat(loaded, partial, "lv_origin", np.int64, kept_t),
         "lv_current": scalar(lv_current),
         "lv_previous": scalar(int(partial["lv_previous"])),
         "lv_relative_rad": np.asarray(
-            match.relative_rad if lv_current == z else float(partial["lv_relative_rad"]), dtype=np.float64
+            match.relative_rad if lv_current == match.partial_template else float(partial["lv_relative_rad"]),
+            dtype=np.float64,
         ),
         "vo_prev_vtrans": np.asarray(partial["vo_prev_vtrans"], dtype=np.float64).copy(),
         "vo_prev_vrot": np.asarray(partial["vo_prev_vrot"], dtype=np.float64).copy(),
         "pc_activity": splat(dims, best),
         "pc_best": best,
-        "pc_link_template": np.concatenate([l_links, tmap[p_links[keep_link]]]),
-        "pc_link_coords": np.concatenate([l_coords, lattice(p_coords[keep_link]).reshape(-1, rank)]),
-        "pc_link_strength": cat("pc_link_strength", np.float64, keep_link),
-        "pc_link_decay": cat("pc_link_decay", np.float64, keep_link),
+        **pc_links,
         "pc_current_vt": scalar(pc_current),
         "pc_prev_vt": scalar(int(partial["pc_prev_vt"])),
-        "pc_vt_delta_th": np.asarray(delta_u if pc_current == z else float(partial["pc_vt_delta_th"])),
-        "em_pose": np.concatenate([l_pose, compose(T, p_pose[kept_e])]),
-        "em_pc": np.concatenate([l_pc, lattice(p_pc[kept_e]).reshape(-1, rank)]),
-        "em_template": np.concatenate(
-            [np.asarray(loaded["em_template"], dtype=np.int64), tmap[np.asarray(partial["em_template"])[kept_e]]]
+        "pc_vt_delta_th": np.asarray(
+            delta_u if pc_current == match.partial_template else float(partial["pc_vt_delta_th"])
         ),
-        "em_stamp": cat("em_stamp", np.float64, kept_e),
-        "em_origin": cat("em_origin", np.int64, kept_e),
-        "em_link_from": np.concatenate([np.asarray(loaded["em_link_from"], dtype=np.int64), *new_from]),
-        "em_link_to": np.concatenate([np.asarray(loaded["em_link_to"], dtype=np.int64), *new_to]),
-        "em_link_transform": np.concatenate(
-            [np.asarray(loaded["em_link_transform"], dtype=np.float64).reshape(-1, 4), *new_tf]
-        ),
-        "em_link_dt": np.concatenate([np.asarray(loaded["em_link_dt"], dtype=np.float64), *new_dt]),
-        "em_link_distance": np.concatenate([np.asarray(loaded["em_link_distance"], dtype=np.float64), *new_dist]),
-        "em_link_kind": link_kind,
-        "em_link_active": np.concatenate([_link_active(loaded), *new_active]),
+        **exp.arrays,
+        **links.arrays,
         "em_current": np.asarray(em_current, dtype=np.int64),
         "em_previous": np.asarray(em_previous, dtype=np.int64),
         "em_accum": accum,
@@ -355,27 +497,3 @@ def merge_states(
         "eng_frames": np.asarray(int(partial["eng_frames"]), dtype=np.int64),
         "eng_last_stamp": np.asarray(float(partial["eng_last_stamp"]), dtype=np.float64),
     }
-    record = MergeRecord(
-        stored_template=u,
-        stored_experience=e_u,
-        partial_template=z,
-        partial_pose=(float(pose_p[0]), float(pose_p[1]), float(pose_p[2]), float(pose_p[3])),
-        relative_rad=float(match.relative_rad),
-        confirmations=int(match.confirmations),
-        lattice_source=f.source,
-        lattice_target=f.target,
-        lattice_offset=tuple(f.offset.tolist()),
-        heading_offset_rad=f.heading_rad,
-        lattice_shifted=shift_lattice,
-        transform=(float(T[0]), float(T[1]), float(T[2]), float(T[3])),
-        template_offset=n_lt,
-        experience_offset=n_le,
-        link_offset=n_ll,
-        template_map=tmap,
-        experience_map=emap,
-        merge_links=merge_links.astype(np.int64),
-        templates=int(state["lv_means"].shape[0]),
-        experiences=int(state["em_pose"].shape[0]),
-        links=int(state["em_link_from"].shape[0]),
-    )
-    return state, record
