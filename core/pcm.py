@@ -130,7 +130,7 @@ def pair_consistency(
     out = np.zeros((k, k))
     for lo in range(0, p.size, PAIR_CHUNK):  # bounded temporaries: K = 1000 is 0.5 M pairs
         pp, qq = p[lo : lo + PAIR_CHUNK], q[lo : lo + PAIR_CHUNK]
-        z = _pair_z(pose, src, dst, transform, paths, length, drift, yaw_drift, pp, qq)
+        z = _pair_z(pose, (src, dst, transform), paths, (length, drift, yaw_drift), pp, qq)
         out[pp, qq] = z
         out[qq, pp] = z
     return out
@@ -138,17 +138,19 @@ def pair_consistency(
 
 def _pair_z(
     pose: np.ndarray,
-    src: np.ndarray,
-    dst: np.ndarray,
-    transform: np.ndarray,
+    links: tuple[np.ndarray, np.ndarray, np.ndarray],
     paths: TreePaths,
-    length: float,
-    drift: float,
-    yaw_drift: float,
+    scale: tuple[float, float, float],
     p: np.ndarray,
     q: np.ndarray,
 ) -> np.ndarray:
-    """Return the cycle error ``z`` of link pairs (p[k], q[k]), with q's link taken the way round of shorter paths."""
+    """Return the cycle error ``z`` of link pairs (p[k], q[k]), with q's link taken the way round of shorter paths.
+
+    ``links`` is (src, dst, transform) and ``scale`` (link length, drift, yaw drift), as for
+    :func:`pair_consistency`.
+    """
+    src, dst, transform = links
+    length, drift, yaw_drift = scale
     best = np.zeros(p.size)
     shortest = np.full(p.size, np.inf)
     t1_inv = invert(transform[p])
