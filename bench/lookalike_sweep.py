@@ -66,8 +66,8 @@ def _local_error(directory: Path, doc: dict, s1: dict, s2: dict, stamp: float, w
     The transform's error at the map origin (``error_m``) grows with session 2's odometry drift before the
     merge; this says whether the merge put the robot in the right place.
     """
+    from core.se3 import compose, inverse
     from mapserver.formats import yaw_from_quaternion
-    from mapserver.merge.se3 import compose, inverse
 
     final = json.loads((directory / "final.json").read_text())
     near = [e for e in final["experiences"] if e["session"] == s2["name"] and abs(e["stamp"] - stamp) <= window_s]

@@ -34,9 +34,9 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 import numpy as np
 
 from core import Engine, Params, preset
+from core.se3 import relative
 from mapserver.merge import Match, StoredMap, merge_engine, merge_states, restore_merged
 from mapserver.merge.lattice import splat
-from mapserver.merge.se3 import relative
 
 TARGET_S = 1.0
 

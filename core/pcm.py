@@ -32,6 +32,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
+from core.relaxation import sums_to_root
+from core.se3 import compose, inverse, relative
+
 #: pairs whose cycle closes within this many drift bounds are consistent. Strict on purpose: the clique is a
 #: seed that must hold no wrong link; the TLS swap-in of :func:`core.robust.switch_off_outliers` adds the true
 #: links it left out (measured on ``cave3d`` with 20 wrong links of 1-2 m: at 0.5 the clique held 8 of 11 true
@@ -41,28 +44,6 @@ PAIR_THRESHOLD = 0.5
 MAX_LINKS = 1000
 #: pairs evaluated at once (bounds the temporaries of :func:`pair_consistency`)
 PAIR_CHUNK = 65536
-
-
-def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return ``a ⊕ b`` (N, 4) for poses (x, y, z, ψ): b's xy turned by a's heading, z and ψ added."""
-    c, s = np.cos(a[:, 3]), np.sin(a[:, 3])
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 0] + c * b[:, 0] - s * b[:, 1]
-    out[:, 1] = a[:, 1] + s * b[:, 0] + c * b[:, 1]
-    out[:, 2] = a[:, 2] + b[:, 2]
-    out[:, 3] = a[:, 3] + b[:, 3]
-    return out
-
-
-def invert(a: np.ndarray) -> np.ndarray:
-    """Return ``a⁻¹`` (N, 4), so that ``a ⊕ a⁻¹`` is the identity."""
-    c, s = np.cos(a[:, 3]), np.sin(a[:, 3])
-    out = np.empty_like(a)
-    out[:, 0] = -(c * a[:, 0] + s * a[:, 1])
-    out[:, 1] = -(-s * a[:, 0] + c * a[:, 1])
-    out[:, 2] = -a[:, 2]
-    out[:, 3] = -a[:, 3]
-    return out
 
 
 class TreePaths:
@@ -82,11 +63,8 @@ class TreePaths:
         child = np.flatnonzero(parent != np.arange(n))
         step = np.zeros(n)
         step[child] = np.asarray(graph[parent[child], child]).ravel()
-        depth, from_root = (parent != np.arange(n)).astype(np.int64), step
-        up = parent
-        while not np.array_equal(up[up], up):  # pointer jumping: sums of the steps up to the root
-            depth, from_root = depth + depth[up], from_root + from_root[up]
-            up = up[up]
+        from_root, _ = sums_to_root(parent, step)
+        depth, _ = sums_to_root(parent, (parent != np.arange(n)).astype(np.int64))
         self.component, self.depth, self.from_root = component, depth, from_root
         levels = max(1, int(depth.max(initial=0)).bit_length())
         self.up = np.empty((levels, n), dtype=np.int64)
@@ -153,14 +131,12 @@ def _pair_z(
     length, drift, yaw_drift = scale
     best = np.zeros(p.size)
     shortest = np.full(p.size, np.inf)
-    t1_inv = invert(transform[p])
+    t1_inv = inverse(transform[p])
     i, j = src[p], dst[p]
-    for a, b, t2 in ((src[q], dst[q], transform[q]), (dst[q], src[q], invert(transform[q]))):
-        cycle = compose(compose(compose(compose(invert(pose[i]), pose[a]), t2), compose(invert(pose[b]), pose[j])),
-                        t1_inv)  # fmt: skip
+    for a, b, t2 in ((src[q], dst[q], transform[q]), (dst[q], src[q], inverse(transform[q]))):
+        cycle = compose(compose(compose(relative(pose[i], pose[a]), t2), relative(pose[b], pose[j])), t1_inv)
         travelled = paths.distance(i, a) + paths.distance(b, j) + 2.0 * length
-        yaw = np.remainder(cycle[:, 3] + np.pi, 2 * np.pi) - np.pi
-        z = np.hypot(np.linalg.norm(cycle[:, :3], axis=1) / (drift * travelled), yaw / (yaw_drift * travelled))
+        z = np.hypot(np.linalg.norm(cycle[:, :3], axis=1) / (drift * travelled), cycle[:, 3] / (yaw_drift * travelled))
         shorter = travelled < shortest  # the cycle of the shorter paths is the one the odometry constrains most
         best[shorter], shortest[shorter] = z[shorter], travelled[shorter]
     return best

@@ -91,6 +91,20 @@ def roots(parent: np.ndarray) -> np.ndarray:
         root = nxt
 
 
+def sums_to_root(parent: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return, for every node of a forest, the sum of ``step`` from it up to its root, and the root.
+
+    ``parent[i]`` is i's parent (a root is its own parent, with step 0); ``step`` is (n,) or (n, k), the
+    value of the edge from each node to its parent. Pointer jumping, O(n log depth).
+    """
+    total = step
+    up = parent
+    while not np.array_equal(up[up], up):  # invariant: total[i] sums the steps from i up to up[i]
+        total = total + total[up]
+        up = up[up]
+    return total, up
+
+
 def solve(
     pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, anchor: np.ndarray, passes: int = 8
 ) -> np.ndarray:

@@ -69,7 +69,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
 from core.pcm import MAX_LINKS, PAIR_THRESHOLD, TreePaths, greedy_clique, pair_consistency
-from core.relaxation import residuals, roots, solve
+from core.relaxation import residuals, roots, solve, sums_to_root
 
 #: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
 SWITCHABLE_KINDS = (1, 2)
@@ -299,13 +299,7 @@ def chain_headings(
     delta = np.zeros(n)
     used = np.asarray(which[parent[child], child]).ravel().astype(np.int64) - 1
     delta[child] = np.where(src[used] == parent[child], transform[used, 3], -transform[used, 3])
-    # heading = anchor heading + Σ of the steps up the tree: pointer jumping, O(n log depth)
-    total = delta
-    up = parent
-    while not np.array_equal(up[up], up):  # invariant: total[i] sums the steps from i up to up[i]
-        total = total + total[up]
-        up = up[up]
-    root_of = up
+    total, root_of = sums_to_root(parent, delta)  # heading = anchor heading + Σ of the steps up the tree
     out[child] = out[root_of[child]] + total[child]
     return out
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapserver.merge.se3 import alignment, compose, wrap_angle
+from core.se3 import alignment, compose, wrap_angle
 
 
 @dataclass(frozen=True, eq=False)

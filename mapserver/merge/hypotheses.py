@@ -40,8 +40,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from core.localview import LocalViewCells
+from core.se3 import alignment, compose, wrap_angle
 from mapserver.merge.confirm import Observation
-from mapserver.merge.se3 import alignment, compose, wrap_angle
 
 MISS_WEIGHT = 2.0
 """A miss on mapped ground outweighs a hit (see the module docstring)."""

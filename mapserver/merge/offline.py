@@ -20,12 +20,12 @@ import numpy as np
 
 from core import Engine
 from core.localview import LocalViewCells
+from core.se3 import compose
 from mapserver.errors import MergeError, NoConfirmedMatchError
 from mapserver.merge.confirm import Observation, Streak
 from mapserver.merge.engines import StoredMap, merge_snapshots
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance
 from mapserver.merge.record import Match, MergeRecord
-from mapserver.merge.se3 import compose
 from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
 
 logger = logging.getLogger(__name__)

@@ -24,13 +24,13 @@ from typing import Any
 import numpy as np
 
 from core.localview import LocalViewCells
+from core.se3 import alignment, compose, wrap_angle
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.hypotheses import HIT, MIN_TURN_RAD, MISS, EvidenceRule, StoredPlaces
 from mapserver.merge.offline import candidate_matches
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance, map_spacing
 from mapserver.merge.record import Match
-from mapserver.merge.se3 import alignment, compose, wrap_angle
 
 
 @dataclass(frozen=True)

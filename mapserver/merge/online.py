@@ -51,13 +51,13 @@ import numpy as np
 
 from core import Engine, StepResult
 from core.localview import LocalViewCells
+from core.se3 import compose, relative
 from mapserver.merge.confirm import Observation
 from mapserver.merge.engines import StoredMap, merge_engine
 from mapserver.merge.hypotheses import EvidenceRule, Hypothesis, HypothesisSet, StoredPlaces, Track, decide
 from mapserver.merge.places import template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.resume import MergerState
-from mapserver.merge.se3 import compose, relative
 from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
 from mapserver.merge.verify import PASSED, REJECTED, Probation
 

@@ -20,8 +20,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from core.engine import template_place_rows
+from core.se3 import wrap_angle
 from mapserver.merge.record import MergeRecord
-from mapserver.merge.se3 import wrap_angle
 
 State = Mapping[str, np.ndarray]
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from mapserver.merge.se3 import to_matrix
+from core.se3 import to_matrix
 
 
 @dataclass(frozen=True)

@@ -34,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from core import LinkKind
+from core.se3 import alignment, compose, relative, wrap_angle
 from mapserver.errors import MergeError
 from mapserver.merge.lattice import LatticeTransform, splat
 from mapserver.merge.record import Match, MergeRecord
-from mapserver.merge.se3 import alignment, compose, relative, wrap_angle
 from mapserver.merge.snapshot import (
     State,
     check_state,

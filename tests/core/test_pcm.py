@@ -1,4 +1,7 @@
-"""Pairwise consistency of loop links (core.pcm): cycle errors by hand, tree paths, the greedy clique."""
+"""Pairwise consistency of loop links (core.pcm): cycle errors by hand, tree paths, the greedy clique.
+
+The pose algebra it composes cycles with is core.se3, tested in test_se3.py.
+"""
 
 from __future__ import annotations
 
@@ -10,27 +13,7 @@ from hypothesis import strategies as st
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from core.pcm import TreePaths, compose, greedy_clique, invert, pair_consistency
-
-finite = st.floats(-50, 50, allow_nan=False)
-poses = st.tuples(finite, finite, finite, st.floats(-10, 10, allow_nan=False))
-
-
-@given(poses, poses)
-@settings(max_examples=60, deadline=None)
-def test_compose_with_the_inverse_is_the_identity_and_inversion_reverses_order(a: tuple, b: tuple) -> None:
-    pa, pb = np.array([a]), np.array([b])
-    for pose in (compose(pa, invert(pa)), compose(invert(pa), pa)):
-        assert np.allclose(pose[0, :3], 0.0, atol=1e-9)
-        assert math.isclose(math.remainder(pose[0, 3], 2 * math.pi), 0.0, abs_tol=1e-9)
-    lhs, rhs = invert(compose(pa, pb)), compose(invert(pb), invert(pa))
-    assert np.allclose(lhs[0, :3], rhs[0, :3], atol=1e-9)
-    assert math.isclose(math.remainder(lhs[0, 3] - rhs[0, 3], 2 * math.pi), 0.0, abs_tol=1e-9)
-
-
-def test_compose_turns_the_second_step_by_the_first_heading() -> None:
-    out = compose(np.array([[1.0, 2.0, 0.5, math.pi / 2]]), np.array([[3.0, 0.0, 1.0, 0.1]]))
-    assert np.allclose(out, [[1.0, 5.0, 1.5, math.pi / 2 + 0.1]])  # x step of 3 m turned 90°: +y
+from core.pcm import TreePaths, greedy_clique, pair_consistency
 
 
 @given(st.integers(2, 40), st.integers(0, 10_000))

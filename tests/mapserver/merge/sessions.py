@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from core import Action, Engine, Params
+from core.se3 import compose, inverse
 from mapserver.merge import MergeEvent, OnlineMerger, Rollback, StoredMap
-from mapserver.merge.se3 import compose, inverse
 from tests.mapserver.merge.world import LoopWorld
 
 # A small lattice (41 cells of 1 m: the 40 m loop never wraps it) with the Virtual Tour's weak

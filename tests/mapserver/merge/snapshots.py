@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.se3 import relative
 from mapserver.merge.lattice import splat
-from mapserver.merge.se3 import relative
 
 TY, TX = 4, 6
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from core.se3 import compose
 from mapserver.merge import Observation, Streak
-from mapserver.merge.se3 import compose
 
 # the stored map is the odometry frame turned by 90° and moved by (10, 5)
 A_TRUE = np.array([10.0, 5.0, 0.0, math.pi / 2])

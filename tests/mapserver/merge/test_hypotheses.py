@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.localview import LocalViewCells
+from core.se3 import compose
 from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import (
     HIT,
@@ -22,7 +23,6 @@ from mapserver.merge.hypotheses import (
     decide,
 )
 from mapserver.merge.resume import MergerState
-from mapserver.merge.se3 import compose
 from tests.mapserver.merge.sessions import PARAMS
 
 RULE = EvidenceRule.for_map(spacing=1.0, position_tolerance=1.5, yaw_tolerance=0.5, evidence_m=-1.0, probation_m=-1.0)

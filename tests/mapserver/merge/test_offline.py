@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.se3 import compose, wrap_angle
 from mapserver.errors import MergeError
 from mapserver.merge import StoredMap, find_match, merge_maps
-from mapserver.merge.se3 import compose, wrap_angle
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, true_alignment
 from tests.mapserver.merge.world import LoopWorld
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from core import Engine, Params, preset
+from core.se3 import compose, wrap_angle
 from mapserver.merge import OnlineMerger, StoredMap
 from mapserver.merge.hypotheses import MIN_TURN_RAD
-from mapserver.merge.se3 import compose, wrap_angle
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, run_session, true_alignment
 from tests.mapserver.merge.world import LoopWorld
 

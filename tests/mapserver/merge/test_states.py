@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core import Engine, LinkKind, Motion, Params
+from core.se3 import compose, inverse, relative
 from mapserver.errors import MergeError
 from mapserver.merge import LatticeTransform, Match, MergeRecord, merge_states, restore_merged
 from mapserver.merge.lattice import wrap_coords
-from mapserver.merge.se3 import compose, inverse, relative
 from mapserver.merge.snapshot import OPTIONAL_SNAPSHOT_KEYS, SNAPSHOT_KEYS
 from tests.mapserver.merge.snapshots import TX, TY, make_state
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapserver.merge.se3 import alignment, compose, from_matrix, inverse, relative, to_matrix, wrap_angle
+from core.se3 import alignment, compose, from_matrix, inverse, relative, to_matrix, wrap_angle
 
 coordinate = st.floats(-50.0, 50.0, allow_nan=False)
 angle = st.floats(-math.pi, math.pi, allow_nan=False)
