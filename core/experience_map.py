@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import TYPE_CHECKING
 
@@ -56,6 +57,17 @@ from core.robust import SWITCHABLE_KINDS, Drift, switch_off_outliers
 if TYPE_CHECKING:
     from core.config import Params
     from core.motion import Motion
+
+
+@dataclass(frozen=True, slots=True)
+class _Standby:
+    """Reckoning links on standby for one robust check (:meth:`ExperienceMap._standby`)."""
+
+    src: np.ndarray  # (M,) the last experience created before a relocalisation
+    dst: np.ndarray  # (M,) the experience created after it
+    link: np.ndarray  # (M, 6) dead reckoning between them: dx, dy, dz, dyaw (src frame), dt, distance
+    partner: np.ndarray  # (M,) the odometry link each stands in for
+    switchable: np.ndarray  # (K,) odometry links made switchable by a reckoning link
 
 
 class LinkKind(IntEnum):
@@ -98,6 +110,12 @@ class ExperienceMap:
         self.previous = -1
         # dx, dy, dz (map frame), facing (rad), dt (s), distance (m) since the current experience
         self.accum = np.array([0.0, 0.0, 0.0, math.radians(params.exp_initial_em_deg), 0.0, 0.0])
+        #: dead reckoning since the last experience created, in its frame: dx, dy, dz, dyaw, dt, distance
+        self.reckon = np.zeros(6)
+        self.last_created = -1
+        self._reckon_from = GrowBuffer((), np.int64)  # reckoning links (docs/architecture.md): from, to, and
+        self._reckon_to = GrowBuffer((), np.int64)  # the odometry between them (dx, dy, dz, dyaw, dt, distance)
+        self._reckon_link = GrowBuffer((6,), np.float64)
         #: experience updates made by relaxation in the last :meth:`relax_step` (bounded per frame)
         self.last_relax_updates = 0
 
@@ -131,7 +149,12 @@ class ExperienceMap:
     def links(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Return (from, to, transform (K,4), dt, distance, kind) views."""
         return (
-            self._from.view, self._to.view, self._transform.view, self._dt.view, self._distance.view, self._kind.view
+            self._from.view,
+            self._to.view,
+            self._transform.view,
+            self._dt.view,
+            self._distance.view,
+            self._kind.view,
         )
 
     @property
@@ -181,14 +204,16 @@ class ExperienceMap:
             a[4] += motion.dt
             a[5] += abs(motion.dx)
             return
-        facing = a[3]
-        c, s = math.cos(facing), math.sin(facing)
-        a[0] += c * motion.dx - s * motion.dy
-        a[1] += s * motion.dx + c * motion.dy
-        a[2] += motion.dz
-        a[3] = wrap_scalar(facing + motion.dyaw)
-        a[4] += motion.dt
-        a[5] += math.sqrt(motion.dx * motion.dx + motion.dy * motion.dy + motion.dz * motion.dz)
+        step = math.sqrt(motion.dx * motion.dx + motion.dy * motion.dy + motion.dz * motion.dz)
+        for acc in (a, self.reckon):  # the map-frame accumulator, and the dead reckoning in the last new frame
+            facing = acc[3]
+            c, s = math.cos(facing), math.sin(facing)
+            acc[0] += c * motion.dx - s * motion.dy
+            acc[1] += s * motion.dx + c * motion.dy
+            acc[2] += motion.dz
+            acc[3] = wrap_scalar(facing + motion.dyaw)
+            acc[4] += motion.dt
+            acc[5] += step
 
     def create_experience(self, template: int, lattice: np.ndarray, stamp: float, origin: int) -> int:
         """Create an experience at the current one plus the accumulated odometry; link and select it.
@@ -218,8 +243,26 @@ class ExperienceMap:
         self._exps_of_template[template].append(new_id)
         if self.current >= 0:
             self.create_link(self.current, new_id, 0.0, LinkKind.ODOMETRY)
+        self._record_reckoning(new_id)
         self.set_experience(new_id, 0.0)
         return new_id
+
+    def _record_reckoning(self, new_id: int) -> None:
+        """Keep the dead reckoning from the last experience created to ``new_id`` when a relocalisation came between.
+
+        The odometry link into ``new_id`` starts at the current experience, which a loop closure
+        chose: if that closure was false, the link carries the false place on (a fold). The
+        reckoning link is the robot's own odometry between the two experiences it created, which
+        the robust check puts in that link's place when it switches the link off (:meth:`check_links`).
+        """
+        if self.params.openratslam_compat:  # no robust check there: nothing to keep
+            return
+        if self.current >= 0 and self.last_created >= 0 and self.current != self.last_created:
+            self._reckon_from.append(self.last_created)
+            self._reckon_to.append(new_id)
+            self._reckon_link.append(self.reckon.copy())
+        self.last_created = new_id
+        self.reckon[:] = 0.0
 
     def create_link(self, source: int, target: int, relative_rad: float, kind: LinkKind) -> bool:
         """Link ``source`` → ``target`` with the accumulated odometry; False if they are linked already.
@@ -414,6 +457,10 @@ class ExperienceMap:
         Loop and merge links inconsistent with the rest of the graph are switched off,
         and switched-off links that became consistent are switched back on; when any
         changes, the map moves to the fixed point of relaxation over the active links.
+        An odometry link that leaves an experience a loop closure chose, towards a new one, is
+        switchable too, with its reckoning link on standby (:meth:`_record_reckoning`): when the
+        check switches that odometry link off, the reckoning link joins the map as an odometry
+        link, so a false relocalisation's fold is undone, not only its closure.
         """
         self._checked = self._switchable
         if self._switchable == 0:
@@ -421,14 +468,64 @@ class ExperienceMap:
         p = self.params
         drift = Drift(p.exp_robust_drift, p.exp_robust_yaw_drift, p.exp_robust_threshold)
         src, dst, transform, _, distance, kind = self.links
-        result = switch_off_outliers(self._pose.view, src, dst, transform, kind, distance, self.anchors(), drift)
-        if np.array_equal(result.active, self._active.view):
+        standby = self._standby(src, dst, kind)
+        k = src.size
+        odometry = np.zeros(standby.src.size, np.int8)
+        result = switch_off_outliers(
+            self._pose.view, np.concatenate([src, standby.src]), np.concatenate([dst, standby.dst]),
+            np.concatenate([transform, standby.link[:, :4]]), np.concatenate([kind, odometry]),
+            np.concatenate([distance, standby.link[:, 5]]), self.anchors(), drift, standby=standby.partner,
+            also_switchable=standby.switchable,
+        )  # fmt: skip
+        joined = np.flatnonzero(result.active[k:])
+        if np.array_equal(result.active[:k], self._active.view) and joined.size == 0:
             return False
-        self._active.view[:] = result.active
-        self._off = int(np.count_nonzero(~result.active))
+        self._active.view[:] = result.active[:k]
+        self._off = int(np.count_nonzero(~result.active[:k]))
+        for j in joined.tolist():  # the robot's own odometry replaces a fold
+            row = standby.link[j]
+            self._append_link(int(standby.src[j]), int(standby.dst[j]), row[:4].copy(), float(row[4]), float(row[5]),
+                              int(LinkKind.ODOMETRY))  # fmt: skip
         self._operator = None
-        self._solve_active()
+        self._adopt(result.pose)
         return True
+
+    def _adopt(self, pose: np.ndarray) -> None:
+        """Move every experience to ``pose`` (the check's fixed point over the active links; turns the accumulator).
+
+        The check solved with the heading windings dead-reckoned along the odometry
+        (:func:`core.robust.chain_headings`); re-solving from the current headings instead would take
+        a fold's windings (headings off by about π round to either winding).
+        """
+        current = self._pose.view
+        start_yaw = float(current[self.current, 3]) if self.current >= 0 else 0.0
+        current[:] = pose
+        current[:, 3] = wrap_angle(current[:, 3])
+        if self.current >= 0:
+            self._turn_accumulator(wrap_scalar(float(current[self.current, 3]) - start_yaw))
+        self._work.clear()
+
+    def _standby(self, src: np.ndarray, dst: np.ndarray, kind: np.ndarray) -> _Standby:
+        """Return the reckoning links not yet in the map, and which odometry links they stand in for.
+
+        Each reckoning link (a → n) pairs with the odometry link into ``n`` from the experience a
+        loop closure chose (c → n, c ≠ a): that link becomes switchable (``switchable``, a (K,)
+        mask), and the reckoning link, unless the map already holds it, is returned with
+        ``partner`` = c → n's index: the check turns it on exactly when c → n is off.
+        """
+        k, n = src.size, self.count
+        a, to = self._reckon_from.view, self._reckon_to.view
+        odometry = np.flatnonzero(kind == int(LinkKind.ODOMETRY))[::-1]
+        into = np.full(n, -1, dtype=np.int64)
+        into[dst[odometry]] = odometry  # the first odometry link into each experience: the one that made it
+        partner = into[to] if to.size else np.zeros(0, np.int64)
+        valid = (partner >= 0) & (src[np.maximum(partner, 0)] != a)
+        switchable = np.zeros(k, dtype=bool)
+        switchable[partner[valid]] = True
+        ends = np.sort(np.stack([src[odometry], dst[odometry]], axis=1), axis=1) @ np.array([1, n], dtype=np.int64)
+        held = np.isin(np.minimum(a, to) + n * np.maximum(a, to), ends)  # joined the map as an odometry link
+        pick = valid & ~held
+        return _Standby(a[pick], to[pick], self._reckon_link.view[pick], partner[pick], switchable)
 
     def _solve_active(self) -> None:
         """Move every experience to the fixed point of relaxation over the active links (turning the accumulator)."""
@@ -512,8 +609,9 @@ class ExperienceMap:
     def iterate_openratslam(self) -> None:
         """Relax as OpenRatSLAM's ``ExperienceMap::iterate`` (``exp_loops`` sweeps; see :mod:`core.compat`)."""
         p = self.params
-        compat.iterate(self._pose.view, self._from.view, self._to.view, self._transform.view, p.exp_loops,
-                       p.exp_correction)
+        compat.iterate(
+            self._pose.view, self._from.view, self._to.view, self._transform.view, p.exp_loops, p.exp_correction
+        )
         self._work.clear()
 
     def link_residual(self, link: int) -> float:
@@ -544,14 +642,20 @@ class ExperienceMap:
             "em_accum": self.accum.copy(),
             "em_relax_pending": np.asarray(self.relax_pending, dtype=bool),
             "em_relax_queue": self._work.items(),
+            "em_reckon_from": self._reckon_from.copy(),
+            "em_reckon_to": self._reckon_to.copy(),
+            "em_reckon_link": self._reckon_link.copy(),
+            "em_reckon": self.reckon.copy(),
+            "em_last_created": np.asarray(self.last_created, dtype=np.int64),
         }
 
     @classmethod
     def restore(cls, params: Params, lattice_rank: int, state: Mapping[str, np.ndarray]) -> ExperienceMap:
         """Rebuild a map from :meth:`snapshot` arrays, exactly.
 
-        ``em_link_active`` (default: every link on) and ``em_robust_checked`` (default:
-        checked with every link there is) are optional. ``em_relax_queue`` is optional: without it a pending relaxation
+        ``em_link_active`` (default: every link on), ``em_robust_checked`` (default:
+        checked with every link there is) and the reckoning keys (default: none kept, no
+        experience created since) are optional. ``em_relax_queue`` is optional: without it a pending relaxation
         (``em_relax_pending``) schedules every linked experience.
         """
         em = cls(params, lattice_rank)
@@ -587,6 +691,12 @@ class ExperienceMap:
         em.current = int(state["em_current"])
         em.previous = int(state["em_previous"])
         em.accum = np.asarray(state["em_accum"], dtype=np.float64).copy()
+        em._reckon_from = GrowBuffer.from_array(state.get("em_reckon_from", np.zeros(0, np.int64)), np.int64)
+        em._reckon_to = GrowBuffer.from_array(state.get("em_reckon_to", np.zeros(0, np.int64)), np.int64)
+        reckoned = np.asarray(state.get("em_reckon_link", np.zeros((0, 6))), dtype=np.float64).reshape(-1, 6)
+        em._reckon_link = GrowBuffer.from_array(reckoned, np.float64)
+        em.reckon = np.asarray(state.get("em_reckon", np.zeros(6)), dtype=np.float64).copy()
+        em.last_created = int(state.get("em_last_created", np.asarray(-1)))
         if "em_relax_queue" in state:
             em._work.extend_ordered(np.asarray(state["em_relax_queue"], dtype=np.int64))
         elif bool(state["em_relax_pending"]):

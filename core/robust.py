@@ -52,6 +52,23 @@ two-session ``cave3d`` map, largest z 3.48; drift
 0.1 m/m and 0.1 rad/m). The same ``z`` gives the map's health figure: the RMS of ``z``
 over the active links (0.5 on the simulator's clean ``loop`` map).
 
+Two things the TLS cost cannot see (measured on session 2 of ``symmetric`` seed 0, a point-symmetric
+world: alone 12.05 m APE, 2.62 m now, 2.92 m for the log's odometry):
+
+- *Folds.* RatSLAM relocalises on a loop closure: the robot continues from the matched experience, and
+  the next experience it creates is linked by odometry to that one. A false closure then carries the
+  false place on through odometry links, which were never switchable: switching the closure off left the
+  fold. So the engine keeps, for each experience created after a relocalisation, its reckoning link (the
+  robot's own odometry from the experience it created before: :meth:`core.experience_map.ExperienceMap.
+  _record_reckoning`); here the odometry link the relocalisation made is switchable, and its reckoning
+  link is on standby (``standby``): on exactly when that link is off.
+- *Folds agree with themselves.* A mirror world folded onto itself bends every link a little (TLS cost 96
+  with the fold, 128 with its eight links off). But each false closure contradicts the odometry of the
+  route between its own ends: the one-link cycle test of :func:`core.pcm.single_consistency` against the
+  dead reckoning (odometry and standby links, no fold) flags it, and flagged links are switched off
+  whatever the cost (:func:`contradicts_odometry`). Links that the odometry does not join are never
+  flagged (``UNARY_THRESHOLD`` has the measured figures).
+
 Headings are dead-reckoned along a spanning forest of the never-switched links
 (:func:`chain_headings`) and the relaxation's heading windings are taken from them, so a
 false link that bent the current map cannot change how many turns a cycle makes. A
@@ -68,7 +85,15 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
-from core.pcm import MAX_LINKS, PAIR_THRESHOLD, TreePaths, greedy_clique, pair_consistency
+from core.pcm import (
+    MAX_LINKS,
+    PAIR_THRESHOLD,
+    UNARY_THRESHOLD,
+    TreePaths,
+    greedy_clique,
+    pair_consistency,
+    single_consistency,
+)
 from core.relaxation import residuals, roots, solve, sums_to_root
 
 #: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
@@ -133,8 +158,15 @@ def switch_off_outliers(
     anchor: np.ndarray,
     drift: Drift,
     max_solves: int = 400,
+    standby: np.ndarray | None = None,
+    also_switchable: np.ndarray | None = None,
 ) -> RobustResult:
     """Return which links stay on: binary switches minimising the TLS cost (module docstring).
+
+    ``standby`` (M,): the last M links are on standby, each on exactly when the link it names is
+    off (an odometry link's replacement: :meth:`core.experience_map.ExperienceMap.check_links`);
+    ``also_switchable`` marks links that are switchable whatever their kind (a mask over the first
+    links). Standby links are not switchable and do not count in the link length ``s``.
 
     ``pose`` gives the anchors' poses and the experiences' positions to start from; the
     decision depends on the links only. When every switchable link is within ``c̄`` of the
@@ -143,34 +175,81 @@ def switch_off_outliers(
     simulator's maps).
     """
     k = src.size
+    partner = np.zeros(0, np.int64) if standby is None else np.asarray(standby, dtype=np.int64)
+    real = k - partner.size
     can = switchable(kind)
+    if also_switchable is not None:
+        can[: np.size(also_switchable)] |= np.asarray(also_switchable, dtype=bool)
     start = pose.copy()
     start[:, 3] = chain_headings(pose[:, 3], src, dst, transform, can, anchor)
-    problem = _Problem(start, src, dst, transform, can, anchor, link_length(distance, kind), drift, max_solves)
-    best = problem.eliminate(np.ones(k, dtype=bool))
+    length = link_length(np.asarray(distance)[:real], np.asarray(kind)[:real])
+    gated = contradicts_odometry(start, src, dst, transform, np.asarray(distance, dtype=np.float64), can, length, drift)
+    problem = _Problem(start, src, dst, transform, can & ~gated, anchor, length, drift, max_solves)
+    problem.standby, problem.gated = (np.arange(real, k), partner), gated
+    best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance)
+    return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
+
+
+def contradicts_odometry(
+    start: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    transform: np.ndarray,
+    distance: np.ndarray,
+    can: np.ndarray,
+    length: float,
+    drift: Drift,
+) -> np.ndarray:
+    """Return a mask (K,) of switchable links whose own cycle with the odometry fails (pcm.single_consistency).
+
+    The odometry is every never-switched link (standby reckoning links included, so a
+    relocalisation's fold is not part of it), dead-reckoned from ``start``. A link whose ends the
+    odometry does not join (sessions joined only by merge or loop links) is never flagged: along a
+    merge link the cycle carries the merge's own error (a metre and a few degrees at the map
+    origin), which flagged true closures of ``twin-overlap`` (README, "folds"). Flagged:
+    ``z > UNARY_THRESHOLD``.
+    """
+    out = np.zeros(src.size, dtype=bool)
+    links = np.flatnonzero(can)
+    if links.size == 0:
+        return out
+    n, tree = start.shape[0], np.flatnonzero(~can)
+    anchors = component_anchors(n, src[tree], dst[tree])
+    dead_reckoned = solve(start, src[tree], dst[tree], transform[tree], anchors, passes=1)
+    paths = TreePaths(n, src[tree], dst[tree], distance[tree], anchors)
+    z = single_consistency(dead_reckoned, (src[links], dst[links], transform[links]), paths,
+                           (length, drift.drift, drift.yaw_drift))  # fmt: skip
+    out[links[np.isfinite(z) & (z > UNARY_THRESHOLD)]] = True
+    return out
+
+
+def _search(problem: _Problem, best: _State, distance: np.ndarray) -> _State:
+    """Return the cheapest switches found from the first descent ``best`` and the other starts (module docstring)."""
+    fixed = ~problem.can & ~problem.gated  # never switched: odometry and the standby reckoning links
     first_active = best.active
-    strained = float(best.z[~can].max(initial=0.0)) > 0.5 * drift.threshold
+    strained = float(best.z[fixed & best.active].max(initial=0.0)) > 0.5 * problem.drift.threshold
+    descended = not first_active[problem.can].all()
     clique: _State | None = None
-    if can.any() and (strained or not first_active.all()):
-        n = start.shape[0]
-        bare_active = keep_connected(n, src, dst, ~can, best.z)  # bridges (merge links) stay on
+    if problem.can.any() and (strained or descended):
+        n, src, dst = problem.start.shape[0], problem.src, problem.dst
+        bare_active = problem.couple(keep_connected(n, src, dst, fixed, best.z), best.z)  # bridges stay on
         bare = problem.state(bare_active)
         # Links that agree with one another bend the graph until none of them stands out (a look-alike place
         # closed again and again): start also from the odometry alone, with the switchable links that fit it on.
         if strained:
-            fits = problem.eliminate(keep_connected(n, src, dst, ~can | (bare.z <= drift.threshold), bare.z))
+            fits = problem.eliminate(keep_connected(n, src, dst, fixed | (bare.z <= problem.drift.threshold), bare.z))
             if _better(fits, best):
                 best = fits
         # Wrong links that outnumber the true ones near them: start also from a pairwise-consistent set, where
         # the descent found outliers (module docstring).
-        if not first_active.all():
+        if descended:
             clique = _pairwise_start(problem, bare, bare_active, distance)
     best = problem.switch_back_on(best)
     if clique is not None:
         clique = problem.switch_back_on(clique)
-        if clique.cost < best.cost - drift.threshold**2:  # by more than one outlier's worth
+        if clique.cost < best.cost - problem.drift.threshold**2:  # by more than one outlier's worth
             best = clique
-    return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
+    return best
 
 
 def _pairwise_start(problem: _Problem, bare: _State, bare_active: np.ndarray, distance: np.ndarray) -> _State | None:
@@ -220,6 +299,24 @@ class _Problem:
         self.can, self.anchor, self.length, self.drift = can, anchor, length, drift
         self.max_solves = max_solves
         self.solves = 0
+        self.standby: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        self.gated = np.zeros(src.size, dtype=bool)  # off whatever the cost: contradicts_odometry
+
+    def couple(self, active: np.ndarray, z: np.ndarray | None = None) -> np.ndarray:
+        """Return ``active`` with gated links off and each standby link on when its partner is off.
+
+        Then the links that keep every component whole are turned back on (:func:`keep_connected`,
+        in increasing ``z``).
+        """
+        links, partner = self.standby
+        if not links.size and not self.gated.any():
+            return active
+        active = active.copy()
+        active[self.gated] = False
+        active[links] = ~active[partner]
+        return keep_connected(
+            self.start.shape[0], self.src, self.dst, active, np.zeros(active.size) if z is None else z
+        )
 
     def state(self, active: np.ndarray) -> _State:
         """Solve the relaxation over ``active`` (windings from the start headings) and score it."""
@@ -228,7 +325,8 @@ class _Problem:
         self.solves += 1
         z = normalised_residuals(pose, self.src, self.dst, self.transform, self.length, self.drift)
         c2 = self.drift.threshold**2
-        cost = float(ODOMETRY_WEIGHT * np.sum(z[~self.can] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
+        fixed = ~self.can & active  # standby links count while they stand in
+        cost = float(ODOMETRY_WEIGHT * np.sum(z[fixed] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
         return _State(active, pose, z, cost)
 
     def switch_back_on(self, best: _State) -> _State:
@@ -236,7 +334,7 @@ class _Problem:
         improved = True
         while improved and self.solves < self.max_solves:
             improved = False
-            off = np.flatnonzero(~best.active)
+            off = np.flatnonzero(~best.active & self.can)
             for link in off[np.argsort(best.z[off], kind="stable")].tolist():
                 if best.active[link] or self.solves >= self.max_solves:
                     continue
@@ -249,7 +347,7 @@ class _Problem:
 
     def eliminate(self, active: np.ndarray, keep_on: int = -1) -> _State:
         """Switch off the worst active switchable link while one exceeds ``c̄`` (never a bridge nor ``keep_on``)."""
-        current = self.state(active)
+        current = self.state(self.couple(active))
         while self.solves < self.max_solves:
             over = current.active & self.can & (current.z > self.drift.threshold)
             if keep_on >= 0:
@@ -259,6 +357,7 @@ class _Problem:
             candidates = np.flatnonzero(over)
             trial = current.active.copy()
             trial[candidates[np.argmax(current.z[candidates])]] = False
+            trial = self.couple(trial, current.z)
             trial = keep_connected(self.start.shape[0], self.src, self.dst, trial, current.z)
             if np.array_equal(trial, current.active):  # only bridges exceed the threshold
                 break

@@ -26,8 +26,11 @@ SNAPSHOT_KEYS: tuple[str, ...] = (
     "gate_history", "gate_state", "eng_frames", "eng_last_stamp",
 )
 
-#: Keys a merge writes that older states may lack (``em_link_active``: every link on when missing).
-OPTIONAL_SNAPSHOT_KEYS: tuple[str, ...] = ("em_link_active",)
+#: Keys a merge writes that older states may lack (``em_link_active``: every link on when missing; the
+#: reckoning keys: none kept, no experience created since).
+OPTIONAL_SNAPSHOT_KEYS: tuple[str, ...] = (
+    "em_link_active", "em_reckon_from", "em_reckon_to", "em_reckon_link", "em_reckon", "em_last_created",
+)  # fmt: skip
 
 
 def check_state(state: State, name: str) -> None:

@@ -437,6 +437,33 @@ def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, 
     return int(exp.emap[current]), int(exp.emap[previous]) if previous >= 0 else -1, accum
 
 
+def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.ndarray) -> dict[str, np.ndarray]:
+    """Return both maps' reckoning links in merged ids, and the running session's dead reckoning.
+
+    Reckoning links hold odometry in their source's frame, which no rigid transform changes; the
+    partial's links with an end identified with a loaded experience are dropped (the odometry link
+    they stand in for may have become a merge link). States without them (older, imported) have none.
+    """
+
+    def links(state: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return (np.asarray(state.get("em_reckon_from", np.zeros(0)), dtype=np.int64).reshape(-1),
+                np.asarray(state.get("em_reckon_to", np.zeros(0)), dtype=np.int64).reshape(-1),
+                np.asarray(state.get("em_reckon_link", np.zeros((0, 6))), dtype=np.float64).reshape(-1, 6))  # fmt: skip
+
+    l_from, l_to, l_link = links(loaded)
+    p_from, p_to, p_link = links(partial)
+    keep = kept[p_from] & kept[p_to]
+    p_from, p_to = emap[p_from], emap[p_to]
+    last = int(np.asarray(partial.get("em_last_created", np.asarray(-1))))
+    return {
+        "em_reckon_from": np.concatenate([l_from, p_from[keep]]),
+        "em_reckon_to": np.concatenate([l_to, p_to[keep]]),
+        "em_reckon_link": np.concatenate([l_link, p_link[keep]]),
+        "em_reckon": np.asarray(partial.get("em_reckon", np.zeros(6)), dtype=np.float64).copy(),
+        "em_last_created": np.asarray(int(emap[last]) if last >= 0 else -1, dtype=np.int64),
+    }
+
+
 def _cat(loaded: State, partial: State, key: str, dtype: type, mask: np.ndarray) -> np.ndarray:
     """Return the loaded map's ``key`` followed by the partial's rows under ``mask``."""
     return np.concatenate([np.asarray(loaded[key], dtype=dtype), np.asarray(partial[key], dtype=dtype)[mask]])
@@ -491,6 +518,7 @@ def _merged_state(
         "em_current": np.asarray(em_current, dtype=np.int64),
         "em_previous": np.asarray(em_previous, dtype=np.int64),
         "em_accum": accum,
+        **_merged_reckoning(loaded, partial, exp.emap, exp.kept),
         "em_relax_pending": np.asarray(True),
         "gate_history": _remap(np.asarray(partial["gate_history"]), tmap),
         "gate_state": np.asarray(partial["gate_state"], dtype=np.float64).copy(),

@@ -139,3 +139,25 @@ def test_snapshot_restore_round_trip() -> None:
     for key in snap:
         assert np.array_equal(snap[key], back[key]), key
     assert ExperienceMap.restore(em.params, 3, snap).experiences_of_template(2) == [1]
+
+
+def test_a_relocalisation_keeps_the_robots_own_odometry_between_the_experiences_it_created() -> None:
+    """Reckoning links: from the last experience created to the next, whatever loop closure came between."""
+    em = _em()
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    em.on_odo(Motion(2.0, 0.0, 0.0, 0.0, 1.0))
+    em.create_experience(1, np.zeros(3), 1.0, 0)  # no relocalisation since 0: nothing kept
+    assert em.snapshot()["em_reckon_from"].size == 0
+    em.on_odo(Motion(1.0, 0.0, 0.0, math.pi / 2, 1.0))  # 1 m ahead, then a left turn
+    em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
+    em.set_experience(0, 0.0)  # relocalised onto 0 (facing 0 again)
+    em.on_odo(Motion(3.0, 0.0, 0.0, 0.0, 2.0))  # 3 m ahead: +y in 1's frame, +x in 0's
+    e2 = em.create_experience(2, np.zeros(3), 4.0, 0)
+    state = em.snapshot()
+    assert state["em_reckon_from"].tolist() == [1] and state["em_reckon_to"].tolist() == [e2]
+    assert state["em_reckon_link"][0] == pytest.approx([1.0, 3.0, 0.0, math.pi / 2, 3.0, 4.0])
+    src, dst, transform, _, _, _ = em.links
+    assert (int(src[-1]), int(dst[-1])) == (0, e2) and transform[-1] == pytest.approx([3.0, 0.0, 0.0, 0.0])
+    assert state["em_last_created"] == e2 and not state["em_reckon"].any()
+    again = ExperienceMap.restore(em.params, 3, state)
+    assert all(np.array_equal(v, again.snapshot()[k]) for k, v in state.items())

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from core.pcm import TreePaths, greedy_clique, pair_consistency
+from core.pcm import TreePaths, greedy_clique, pair_consistency, single_consistency
 
 
 @given(st.integers(2, 40), st.integers(0, 10_000))
@@ -94,3 +94,19 @@ def test_greedy_clique_takes_links_by_degree_and_keeps_only_mutual_agreement() -
     # degrees (self included) 4, 3, 4, 3, 3: 0 first, then 2 (agrees with 0), then 1 (agrees with 0 and 2);
     # 3 disagrees with 0, 4 with 2
     assert greedy_clique(consistent).tolist() == [True, True, True, False, False]
+
+
+def test_single_consistency_by_hand_on_a_straight_chain() -> None:
+    pose, paths = _straight_chain()
+    # 8→1 true (-7 m); 8→1 saying "same place" (7 m wrong); 9→2 1 m short, turned 0.1 rad
+    src, dst = np.array([8, 8, 9]), np.array([1, 1, 2])
+    transform = np.array([[-7.0, 0, 0, 0], [0.0, 0, 0, 0], [-6.0, 0, 0, 0.1]])
+    z = single_consistency(pose, (src, dst, transform), paths, (1.0, 0.1, 0.05))
+    assert z[0] == 0.0
+    # error 7 m against drift·L (L = 7 m of path + one link length) + UNARY_REACH (3) link lengths
+    assert math.isclose(z[1], 7.0 / (0.1 * 8.0 + 3.0))
+    # E = (-7, 0, 0, 0) ⊕ (-6, 0, 0, 0.1)⁻¹: the inverse is (6cos 0.1, -6sin 0.1, 0, -0.1)
+    ex, ey = -7 + 6 * math.cos(0.1), -6 * math.sin(0.1)
+    assert math.isclose(z[2], math.hypot(math.hypot(ex, ey) / (0.1 * 8.0 + 3.0), 0.1 / (0.05 * 8.0)))
+    apart = TreePaths(10, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.ones(10, bool))
+    assert np.isinf(single_consistency(pose, (src, dst, transform), apart, (1.0, 0.1, 0.05))).all()  # no path

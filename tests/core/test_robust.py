@@ -319,3 +319,108 @@ def test_false_links_that_agree_with_one_another_are_switched_off_though_none_st
     problem = _Problem(headings, graph[1], graph[2], graph[3], can, anchor, link_length(graph[5], graph[4]), drift, 400)
     greedy = problem.eliminate(np.ones(graph[1].size, dtype=bool))
     assert greedy.active[src.size :].all() and _ape(truth, greedy.pose) > 7.0
+
+
+def _fold_map(params: Params, false: bool) -> tuple[ExperienceMap, np.ndarray]:
+    """One lap of a 16-gon (1 m sides), then a relocalisation and 8 new experiences along the true lap 2.
+
+    ``false``: the robot, back at vertex 0, relocalises onto experience 8 (the opposite vertex, 5.1 m
+    away, heading turned by π): the new experiences hang off 8 and fold onto the far side. Otherwise it
+    relocalises onto 0, where it is. Returns the map and the true positions of its experiences.
+    """
+    em = ExperienceMap(params, 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 16 + 0.003, 1.0)
+    for i in range(1, 16):
+        em.on_odo(step)
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    em.on_odo(step)
+    target = 8 if false else 0
+    em.create_link(em.current, target, 0.0, LinkKind.LOOP)
+    em.set_experience(target, 0.0)
+    for j in range(1, 9):
+        em.on_odo(step)
+        em.create_experience(15 + j, np.zeros(3), 15.0 + j, 0)
+    radius = 0.5 / math.sin(math.pi / 16)
+    vertex = np.r_[np.arange(16), np.arange(1, 9)] * 2 * math.pi / 16
+    truth = np.stack([radius * np.sin(vertex), radius * (1 - np.cos(vertex)), np.zeros(24), vertex], 1)
+    return em, truth
+
+
+def test_a_false_relocalisation_is_unfolded_by_the_robots_own_odometry() -> None:
+    em, truth = _fold_map(Params(), false=True)
+    links = em.link_count
+    em.settle()
+    src, dst, _, _, _, kind = em.links
+    assert not em.link_active[15] and not em.link_active[16]  # the closure 15 → 8 and the odometry 8 → 16 it made
+    assert em.link_count == links + 1 and (int(src[-1]), int(dst[-1]), int(kind[-1])) == (15, 16, 0)
+    assert _ape(truth, em.poses) < 0.1  # the yaw bias of 0.003 rad per step alone
+    # the paired must-fail: the same map without its reckoning link keeps the fold (the closure alone goes off)
+    state = em.snapshot()
+    folded, _ = _fold_map(Params(), false=True)
+    bare = folded.snapshot()
+    for key in ("em_reckon_from", "em_reckon_to", "em_reckon_link"):
+        bare.pop(key)
+    folded = ExperienceMap.restore(Params(), 3, bare)
+    folded.settle()
+    assert folded.link_count == links and _ape(truth, folded.poses) > 1.5
+    assert state["em_link_active"].size == links + 1
+
+
+def test_a_true_relocalisation_keeps_its_closure_and_odometry_and_adds_nothing() -> None:
+    em, truth = _fold_map(Params(), false=False)
+    links = em.link_count
+    em.settle()
+    assert em.link_active.all() and em.link_count == links
+    assert _ape(truth, em.poses) < 0.1  # the yaw bias of 0.003 rad per step alone
+
+
+def _two_sessions(false: bool, merged: bool = True):
+    """Session A: a 32-gon (1 m sides, ids 0-31); session B: 8 experiences along A's vertices 1-8 (ids 32-39)
+    joined to A by a merge link 32 → 1. Loop links from B's 36-39: onto A's 5-8 (true) or, ``false``, onto the
+    opposite vertices 21-24 (10.2 m away, turned by π) with the transform of a true closure; the four false
+    ones agree with one another (B's stretch turned rigidly onto A's far side)."""
+    sides = 32
+    radius = 0.5 / math.sin(math.pi / sides)
+    vertex = np.r_[np.arange(sides), np.arange(1, 9)] * 2 * math.pi / sides
+    truth = np.stack([radius * np.sin(vertex), radius * (1 - np.cos(vertex)), np.zeros(40), vertex], 1)
+    src = np.r_[np.arange(31), np.arange(32, 39)]
+    dst = src + 1
+    kind = np.zeros(src.size, dtype=np.int8)
+    closures = np.arange(36, 40)
+    targets = closures - 31 + (16 if false else 0)
+    if merged:
+        src, dst, kind = np.r_[src, 32], np.r_[dst, 1], np.r_[kind, 2].astype(np.int8)
+    transform = _relative(truth[src], truth[dst])
+    transform[kind == 0, 3] += 0.003  # odometry yaw bias
+    loop_t = _relative(truth[closures], truth[closures - 31])  # what a true closure measures
+    src, dst = np.r_[src, closures], np.r_[dst, targets]
+    kind = np.r_[kind, np.ones(4, dtype=np.int8)]
+    transform = np.concatenate([transform, loop_t])
+    distance = np.linalg.norm(transform[:, :3], axis=1)
+    return truth, src, dst, transform, kind, distance
+
+
+@pytest.mark.parametrize("false", [True, False])
+def test_links_that_contradict_their_sessions_odometry_are_switched_off_though_they_agree(false: bool) -> None:
+    """B's experiences continue A's session by odometry (32 → 1 an odometry link): the four false closures
+    agree with one another, and each contradicts the odometry of the route between its own ends."""
+    truth, src, dst, transform, kind, distance = _two_sessions(false)
+    kind = np.where(kind == 2, 0, kind).astype(np.int8)
+    anchor = component_anchors(truth.shape[0], src, dst)
+    result = switch_off_outliers(np.zeros_like(truth), src, dst, transform, kind, distance, anchor, DRIFT)
+    assert result.active[kind != 1].all()
+    assert not result.active[kind == 1].any() if false else result.active[kind == 1].all()
+    assert _ape(truth, result.pose) < 0.2  # the odometry's yaw bias (0.003 rad per link) alone: 0.14 m
+
+
+def test_links_the_odometry_does_not_join_are_never_gated() -> None:
+    """Across sessions joined by a merge link the cycle would carry the merge's own error, which flagged true
+    closures of ``twin-overlap``: the one-link test leaves such links to the TLS cost (README, "folds")."""
+    truth, src, dst, transform, kind, distance = _two_sessions(True)
+    length = link_length(distance, kind)
+    assert not robust.contradicts_odometry(truth, src, dst, transform, distance, switchable(kind), length, DRIFT).any()
+    # the paired must-flag: the same links, B joined to A by odometry
+    one = np.where(kind == 2, 0, kind).astype(np.int8)
+    flagged = robust.contradicts_odometry(truth, src, dst, transform, distance, switchable(one), length, DRIFT)
+    assert flagged.tolist() == (one == 1).tolist()

@@ -276,3 +276,20 @@ def test_merged_maps_keep_the_link_flags_of_both_maps() -> None:
     # the partial's kept links stay off; the links that join the graphs (merge links) start on
     assert state["em_link_active"][n_loaded:].tolist() == (kinds == 2).tolist()
     assert (kinds == 2).any() and (kinds != 2).any()
+
+
+def test_reckoning_links_are_renumbered_and_those_with_an_identified_end_dropped() -> None:
+    """The partial's experiences 0, 1, 2 become 6, 7, 8 and its 3 is identified with the loaded 2."""
+    loaded, partial = loaded_state(), partial_state(TURN)
+    loaded.update(em_reckon_from=np.array([4]), em_reckon_to=np.array([5]), em_reckon_link=np.full((1, 6), 9.0))
+    rows = np.arange(12, dtype=np.float64).reshape(2, 6)
+    partial.update(em_reckon_from=np.array([0, 1]), em_reckon_to=np.array([2, 3]), em_reckon_link=rows,
+                   em_reckon=np.arange(6, dtype=np.float64), em_last_created=np.asarray(2))  # fmt: skip
+    match = Match.at_experience(partial, 3, stored_template=2, stored_experience=2)
+    state, record = merge_states(loaded, partial, match)
+    assert record.experience_map.tolist() == [6, 7, 8, 2]
+    assert state["em_reckon_from"].tolist() == [4, 6] and state["em_reckon_to"].tolist() == [5, 8]
+    assert state["em_reckon_link"].tolist() == [[9.0] * 6, rows[0].tolist()]  # odometry in the source frame: kept
+    assert state["em_reckon"].tolist() == list(range(6)) and int(state["em_last_created"]) == 8
+    plain, _ = merge_states(loaded_state(), partial_state(TURN), match)
+    assert plain["em_reckon_from"].size == 0 and int(plain["em_last_created"]) == -1  # states without them
