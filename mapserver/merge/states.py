@@ -460,7 +460,7 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
         "em_reckon_to": np.concatenate([l_to, p_to[keep]]),
         "em_reckon_link": np.concatenate([l_link, p_link[keep]]),
         "em_reckon": np.asarray(partial.get("em_reckon", np.zeros(6)), dtype=np.float64).copy(),
-        "em_last_created": np.asarray(int(emap[last]) if last >= 0 else -1, dtype=np.int64),
+        "em_last_created": np.asarray(int(emap[last]) if last >= 0 and kept[last] else -1, dtype=np.int64),
     }
 
 

@@ -8,12 +8,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from core.pcm import TreePaths, greedy_clique, pair_consistency, single_consistency
+from core.pcm import TreePaths, greedy_clique, heading_consistency, pair_consistency, single_consistency
 
 
 @given(st.integers(2, 40), st.integers(0, 10_000))
@@ -110,3 +111,13 @@ def test_single_consistency_by_hand_on_a_straight_chain() -> None:
     assert math.isclose(z[2], math.hypot(math.hypot(ex, ey) / (0.1 * 8.0 + 3.0), 0.1 / (0.05 * 8.0)))
     apart = TreePaths(10, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.ones(10, bool))
     assert np.isinf(single_consistency(pose, (src, dst, transform), apart, (1.0, 0.1, 0.05))).all()  # no path
+
+
+def test_heading_consistency_by_hand_on_a_straight_chain() -> None:
+    pose, paths = _straight_chain()
+    # 8→1 true; 8→1 turned 0.3 rad (the cycle turns back by 0.3); 9→2 turned by π
+    src, dst = np.array([8, 8, 9]), np.array([1, 1, 2])
+    transform = np.array([[-7.0, 0, 0, 0], [-7.0, 0, 0, 0.3], [-7.0, 0, 0, math.pi]])
+    turn, travelled = heading_consistency(pose, (src, dst, transform), paths)
+    assert turn.tolist() == pytest.approx([0.0, -0.3, math.pi])
+    assert travelled.tolist() == pytest.approx([7.0, 7.0, 7.0])

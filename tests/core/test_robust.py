@@ -414,13 +414,43 @@ def test_links_that_contradict_their_sessions_odometry_are_switched_off_though_t
     assert _ape(truth, result.pose) < 0.2  # the odometry's yaw bias (0.003 rad per link) alone: 0.14 m
 
 
-def test_links_the_odometry_does_not_join_are_never_gated() -> None:
-    """Across sessions joined by a merge link the cycle would carry the merge's own error, which flagged true
-    closures of ``twin-overlap``: the one-link test leaves such links to the TLS cost (README, "folds")."""
+def test_links_the_odometry_does_not_join_are_gated_by_their_turn_only() -> None:
+    """Across sessions joined by a merge link the cycle carries the merge's own error (a metre at the map
+    origin, more along a lever arm), which flagged true closures of ``twin-overlap``: there only the heading
+    is tested (README, "folds across sessions"). The four false closures turn their cycle by π: flagged."""
     truth, src, dst, transform, kind, distance = _two_sessions(True)
     length = link_length(distance, kind)
+    merge = kind == 2
     assert not robust.contradicts_odometry(truth, src, dst, transform, distance, switchable(kind), length, DRIFT).any()
-    # the paired must-flag: the same links, B joined to A by odometry
+    flagged = robust.contradicts_odometry(truth, src, dst, transform, distance, switchable(kind), length, DRIFT,
+                                          bridge=merge)  # fmt: skip
+    assert flagged.tolist() == (kind == 1).tolist()
+    # the paired must-flag: the same links, B joined to A by odometry (the one-link z test)
     one = np.where(kind == 2, 0, kind).astype(np.int8)
     flagged = robust.contradicts_odometry(truth, src, dst, transform, distance, switchable(one), length, DRIFT)
     assert flagged.tolist() == (one == 1).tolist()
+
+
+def test_true_closures_across_a_merge_are_not_gated_whatever_their_translation() -> None:
+    """The must-not-flag pair: true closures across the merge link, with the merge link 3 m off (its error
+    at the map origin); and false closures that only shift (two vertices on, turned 0.39 rad) stay to the
+    TLS cost: the heading test flags turns, not translations."""
+    truth, src, dst, transform, kind, distance = _two_sessions(False)
+    merge = kind == 2
+    transform[merge, 0] += 3.0
+    length = link_length(distance, kind)
+    args = (switchable(kind), length, DRIFT)
+    assert not robust.contradicts_odometry(truth, src, dst, transform, distance, *args, bridge=merge).any()
+    dst = np.where(kind == 1, dst + 2, dst)
+    assert not robust.contradicts_odometry(truth, src, dst, transform, distance, *args, bridge=merge).any()
+
+
+@pytest.mark.parametrize("false", [True, False])
+def test_a_fold_across_a_merge_is_switched_off_and_true_closures_kept(false: bool) -> None:
+    """symmetric seed 0's failure in small: session B, merged into A, closes onto A's far side turned by π."""
+    truth, src, dst, transform, kind, distance = _two_sessions(false)
+    anchor = component_anchors(truth.shape[0], src, dst)
+    result = switch_off_outliers(np.zeros_like(truth), src, dst, transform, kind, distance, anchor, DRIFT)
+    assert result.active[kind != 1].all()
+    assert not result.active[kind == 1].any() if false else result.active[kind == 1].all()
+    assert _ape(truth, result.pose) < 0.2

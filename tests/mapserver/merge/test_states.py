@@ -293,3 +293,17 @@ def test_reckoning_links_are_renumbered_and_those_with_an_identified_end_dropped
     assert state["em_reckon"].tolist() == list(range(6)) and int(state["em_last_created"]) == 8
     plain, _ = merge_states(loaded_state(), partial_state(TURN), match)
     assert plain["em_reckon_from"].size == 0 and int(plain["em_last_created"]) == -1  # states without them
+
+
+def test_a_last_created_experience_identified_by_the_merge_starts_no_reckoning_link() -> None:
+    """The partial's last created experience 3 is identified with the loaded 2: the merge, not the robot's
+    odometry, joins what comes next to the loaded map, so no reckoning link may start there (it would join
+    the sessions in the dead reckoning the robust check tests links against). Its pair: 2, kept, still starts one
+    (the test above)."""
+    loaded, partial = loaded_state(), partial_state(TURN)
+    partial.update(em_reckon_from=np.zeros(0, np.int64), em_reckon_to=np.zeros(0, np.int64),
+                   em_reckon_link=np.zeros((0, 6)), em_reckon=np.ones(6), em_last_created=np.asarray(3))  # fmt: skip
+    match = Match.at_experience(partial, 3, stored_template=2, stored_experience=2)
+    state, record = merge_states(loaded, partial, match)
+    assert record.experience_map.tolist()[3] == 2
+    assert int(state["em_last_created"]) == -1
