@@ -442,7 +442,10 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
 
     Reckoning links hold odometry in their source's frame, which no rigid transform changes; the
     partial's links with an end identified with a loaded experience are dropped (the odometry link
-    they stand in for may have become a merge link). States without them (older, imported) have none.
+    they stand in for may have become a merge link). Likewise the running session's last created
+    experience, when identified, starts no reckoning link (``em_last_created`` −1): one from the
+    loaded experience would join the sessions in the dead reckoning that the robust check tests links
+    against (:func:`core.robust.contradicts_odometry`). States without them (older, imported) have none.
     """
 
     def links(state: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,6 +15,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from core.pcm import TreePaths, greedy_clique, heading_consistency, pair_consistency, single_consistency
+from core.se3 import compose, relative, wrap_angle
 
 
 @given(st.integers(2, 40), st.integers(0, 10_000))
@@ -121,3 +122,25 @@ def test_heading_consistency_by_hand_on_a_straight_chain() -> None:
     turn, travelled = heading_consistency(pose, (src, dst, transform), paths)
     assert turn.tolist() == pytest.approx([0.0, -0.3, math.pi])
     assert travelled.tolist() == pytest.approx([7.0, 7.0, 7.0])
+
+
+@given(st.integers(3, 30), st.integers(0, 10_000), st.floats(-3.0, 3.0), st.floats(-math.pi, math.pi))
+@settings(max_examples=40, deadline=None)
+def test_heading_consistency_returns_a_links_extra_turn_whatever_frame_the_map_is_in(
+    n: int, seed: int, turn: float, frame_yaw: float
+) -> None:
+    """A link that says the route between its ends turned ``turn`` more than the poses do closes its cycle
+    turned by ``-turn``; moving the whole map rigidly changes nothing."""
+    rng = np.random.default_rng(seed)
+    pose = np.column_stack([rng.uniform(-20, 20, (n, 3)), rng.uniform(-math.pi, math.pi, n)])
+    roots = np.zeros(n, dtype=bool)
+    roots[0] = True
+    paths = TreePaths(n, np.arange(n - 1), np.arange(1, n), np.ones(n - 1), roots)
+    src, dst = rng.integers(0, n, 5), rng.integers(0, n, 5)
+    transform = compose(relative(pose[src], pose[dst]), np.array([0.0, 0.0, 0.0, turn]))
+    got, travelled = heading_consistency(pose, (src, dst, transform), paths)
+    assert np.allclose(wrap_angle(got + turn), 0.0, atol=1e-9)
+    assert travelled.tolist() == pytest.approx(np.abs(src - dst).astype(float).tolist())
+    moved = compose(np.array([3.0, -7.0, 1.0, frame_yaw]), pose)
+    again, _ = heading_consistency(moved, (src, dst, transform), paths)
+    assert np.allclose(wrap_angle(again - got), 0.0, atol=1e-9)
