@@ -136,13 +136,13 @@ def single_consistency(
     other links agree with it (a place that looks like another, closed again and again, agrees
     with itself); a mirror place's turn (about π) earns no lever arm.
     """
-    src, dst, transform = links
+    src, dst, _ = links
     length, drift, yaw_drift = scale
-    cycle = compose(relative(pose[src], pose[dst]), inverse(transform))
+    cycle = _cycles(pose, links)
     travelled = paths.distance(src, dst) + length
     with np.errstate(invalid="ignore"):
         turn = np.abs(cycle[:, 3])
-        drifted = turn <= BRIDGED_TURN + BRIDGED_TURN_DRIFT * travelled  # a turn the odometry's heading explains
+        drifted = turn <= turn_allowance(travelled)  # a turn the odometry's heading explains
         allowed = drift * travelled + UNARY_REACH * length + np.where(drifted, turn * travelled / np.pi, 0.0)
         z = np.hypot(np.linalg.norm(cycle[:, :3], axis=1) / allowed, cycle[:, 3] / (yaw_drift * travelled))
     return np.where(np.isfinite(travelled), z, np.inf)
@@ -155,9 +155,19 @@ def heading_consistency(
 
     E = (X_i⁻¹ X_j) · T⁻¹ as in :func:`single_consistency` (its heading only), L = path(i, j) (inf: no path).
     """
+    src, dst, _ = links
+    return _cycles(pose, links)[:, 3], paths.distance(src, dst)
+
+
+def turn_allowance(travelled: np.ndarray) -> np.ndarray:
+    """Return the radians a cycle over L = ``travelled`` metres may turn: BRIDGED_TURN + BRIDGED_TURN_DRIFT·L."""
+    return BRIDGED_TURN + BRIDGED_TURN_DRIFT * travelled
+
+
+def _cycles(pose: np.ndarray, links: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """Return E = (X_i⁻¹ X_j) · T⁻¹ (K, 4) of each link (i → j, T): where its cycle with the poses misses."""
     src, dst, transform = links
-    cycle = compose(relative(pose[src], pose[dst]), inverse(transform))
-    return cycle[:, 3], paths.distance(src, dst)
+    return compose(relative(pose[src], pose[dst]), inverse(transform))
 
 
 def pair_consistency(

@@ -90,8 +90,6 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
 from core.pcm import (
-    BRIDGED_TURN,
-    BRIDGED_TURN_DRIFT,
     MAX_LINKS,
     PAIR_THRESHOLD,
     UNARY_THRESHOLD,
@@ -100,6 +98,7 @@ from core.pcm import (
     heading_consistency,
     pair_consistency,
     single_consistency,
+    turn_allowance,
 )
 from core.relaxation import residuals, roots, solve, sums_to_root
 
@@ -237,7 +236,7 @@ def contradicts_odometry(
         return out
     dead_reckoned, paths = _dead_reckoning(start, graph, ~can | bridge)
     turn, travelled = heading_consistency(dead_reckoned, (src[across], dst[across], transform[across]), paths)
-    out[across] = np.isfinite(travelled) & (np.abs(turn) > BRIDGED_TURN + BRIDGED_TURN_DRIFT * travelled)
+    out[across] = np.isfinite(travelled) & (np.abs(turn) > turn_allowance(travelled))
     return out
 
 
