@@ -283,7 +283,8 @@ def steady_pan(page: Any, x: float, y: float, tries: int = 5) -> tuple[list[floa
 
 def figures_of(draws: list[float], runs: list[list[float]], data: dict[str, Any]) -> dict[str, Any]:
     return {"redraws": len(draws), "median_ms": round(statistics.median(draws), 2), "max_ms": round(max(draws), 2),
-            "pans": len(runs), "median_ms_first_pan": round(statistics.median(runs[0]), 2), "max_ms_each_pan": [round(max(r), 2) for r in runs], "nodes": len(data["nodes"]["id"]),
+            "pans": len(runs), "median_ms_first_pan": round(statistics.median(runs[0]), 2),
+            "max_ms_each_pan": [round(max(r), 2) for r in runs], "nodes": len(data["nodes"]["id"]),
             "links": len(data["links"]["a"])}  # fmt: skip
 
 
