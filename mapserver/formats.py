@@ -193,8 +193,36 @@ def map_json(
         ValueError: a link kind code is unknown, or ``odometry`` or ``frames`` has the wrong shape.
 
     """
+    if "lv_means" in snapshot:
+        n_templates = int(np.asarray(snapshot["lv_means"]).shape[0])
+    else:
+        n_templates = int(np.asarray(snapshot["lv_templates"]).shape[0])
+    doc: dict[str, Any] = {
+        "format": MAP_FORMAT,
+        "params": _plain(dict(params)),
+        "sessions": [
+            {"name": str(s.name), "log_sha256": str(s.log_sha256), "frames": int(s.frames)} for s in sessions
+        ],
+        "templates": n_templates,
+        "experiences": _experiences_json(snapshot, session_name_by_origin),
+        "links": _links_json(snapshot),
+    }
+    if odometry is not None:
+        odo = np.asarray(odometry, dtype=np.float64)
+        if odo.ndim != 2 or odo.shape[1] != 4:
+            msg = f"odometry must have shape (N, 4) [stamp, x, y, z], got {odo.shape!r}"
+            raise ValueError(msg)
+        doc["odometry"] = odo.tolist()
+    if frames is not None:
+        doc["frames"] = _frames_json(frames)
+    return doc
+
+
+def _experiences_json(
+    snapshot: Mapping[str, npt.NDArray[Any]], session_name_by_origin: Mapping[int, str]
+) -> list[dict[str, Any]]:
+    """Return the map JSON's ``experiences``: pose, yaw quaternion about z, template, stamp and session name."""
     pose = np.asarray(snapshot["em_pose"], dtype=np.float64).reshape(-1, 4)
-    n_exp = pose.shape[0]
     templates = np.asarray(snapshot["em_template"]).reshape(-1).tolist()
     stamps = np.asarray(snapshot["em_stamp"], dtype=np.float64).reshape(-1).tolist()
     origins = np.asarray(snapshot["em_origin"]).reshape(-1).tolist()
@@ -202,7 +230,7 @@ def map_json(
     qz = np.sin(half).tolist()
     qw = np.cos(half).tolist()
     xyz_yaw = pose.tolist()
-    experiences = [
+    return [
         {
             "id": i,
             "x": xyz_yaw[i][0],
@@ -217,9 +245,16 @@ def map_json(
             "stamp": stamps[i],
             "session": session_name_by_origin.get(int(origins[i])),
         }
-        for i in range(n_exp)
+        for i in range(pose.shape[0])
     ]
 
+
+def _links_json(snapshot: Mapping[str, npt.NDArray[Any]]) -> list[dict[str, Any]]:
+    """Return the map JSON's ``links``; a link switched off by robust relaxation carries ``"active": false``.
+
+    Raises:
+        ValueError: a link kind code is unknown.
+    """
     link_from = np.asarray(snapshot["em_link_from"]).reshape(-1).tolist()
     link_to = np.asarray(snapshot["em_link_to"]).reshape(-1).tolist()
     link_dt = np.asarray(snapshot["em_link_dt"], dtype=np.float64).reshape(-1).tolist()
@@ -245,37 +280,22 @@ def map_json(
         )
         if k in link_off:  # switched off by robust relaxation (stays stored)
             links[-1]["active"] = False
+    return links
 
-    if "lv_means" in snapshot:
-        n_templates = int(np.asarray(snapshot["lv_means"]).shape[0])
-    else:
-        n_templates = int(np.asarray(snapshot["lv_templates"]).shape[0])
 
-    doc: dict[str, Any] = {
-        "format": MAP_FORMAT,
-        "params": _plain(dict(params)),
-        "sessions": [
-            {"name": str(s.name), "log_sha256": str(s.log_sha256), "frames": int(s.frames)} for s in sessions
-        ],
-        "templates": n_templates,
-        "experiences": experiences,
-        "links": links,
-    }
-    if odometry is not None:
-        odo = np.asarray(odometry, dtype=np.float64)
-        if odo.ndim != 2 or odo.shape[1] != 4:
-            msg = f"odometry must have shape (N, 4) [stamp, x, y, z], got {odo.shape!r}"
+def _frames_json(frames: Sequence[Sequence[float]]) -> list[list[float | int]]:
+    """Return the ``frames`` extension rows ``[stamp, template, created (0/1)]``.
+
+    Raises:
+        ValueError: a row is not (stamp, template, created).
+    """
+    rows: list[list[float | int]] = []
+    for row in frames:
+        if len(row) != 3:
+            msg = f"frames rows must be (stamp, template, created), got {row!r}"
             raise ValueError(msg)
-        doc["odometry"] = odo.tolist()
-    if frames is not None:
-        rows = []
-        for row in frames:
-            if len(row) != 3:
-                msg = f"frames rows must be (stamp, template, created), got {row!r}"
-                raise ValueError(msg)
-            rows.append([float(row[0]), int(row[1]), 1 if row[2] else 0])
-        doc["frames"] = rows
-    return doc
+        rows.append([float(row[0]), int(row[1]), 1 if row[2] else 0])
+    return rows
 
 
 def atomic_write_bytes(path: PathLike, data: bytes) -> None:

@@ -826,10 +826,22 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
         msg = f"map {record.name!r} has no stored state"
         raise CorruptStateError(msg)
     manifest: dict[str, Any] = dict(state[0])
-    extra = unpack_npz(state[1])
     rank = int(state[3])
     built: dict[str, np.ndarray] = {}
+    template_session, template_index = _read_templates(conn, record.name, map_id, manifest, built)
+    _read_pose_cell_links(conn, map_id, rank, built)
+    experience_session, experience_index = _read_experiences(conn, map_id, rank, built)
+    _read_links(conn, map_id, built)
+    snapshot = _assemble_snapshot(record.name, manifest, unpack_npz(state[1]), state[2], built)
+    sessions = tuple(sessions_of_map(conn=conn, map_id=map_id))
+    meta = MapMeta(record, sessions, template_session, template_index, experience_session, experience_index)
+    return MapContent(dict(record.params), snapshot, meta)
 
+
+def _read_templates(
+    conn: Connection, name: str, map_id: int, manifest: dict[str, Any], built: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Read the LVC templates into ``built`` (``lv_*``); return each template's session id and origin index."""
     rows = fetch_tuples(
         conn,
         select(
@@ -842,17 +854,19 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     n = len(rows)
     head = np.array([r[:5] for r in rows], dtype=np.int64).reshape(-1, 5)
     if not np.array_equal(head[:, 2], np.arange(n)):
-        msg = f"map {record.name!r}: template local ids are not 0..{n - 1}"
+        msg = f"map {name!r}: template local ids are not 0..{n - 1}"
         raise CorruptStateError(msg)
     shape = manifest.get("lv_templates", {}).get("shape", [0, 0, 0])
     h, w = (int(head[0, 3]), int(head[0, 4])) if n else (int(shape[1]), int(shape[2]))
     blob = b"".join(r[6] for r in rows)
     built["lv_templates"] = np.frombuffer(blob, dtype="<f4").reshape(n, h, w)
     built["lv_means"] = np.array([r[5] for r in rows], dtype=np.float64)
-    template_session = head[:, 0].copy()
-    template_index = head[:, 1].copy()
-    built["lv_origin"] = template_session.copy()
+    built["lv_origin"] = head[:, 0].copy()
+    return head[:, 0].copy(), head[:, 1].copy()
 
+
+def _read_pose_cell_links(conn: Connection, map_id: int, rank: int, built: dict[str, np.ndarray]) -> None:
+    """Read the LVC→pose-cell links into ``built`` (``pc_link_*``; coordinates of the lattice's ``rank``)."""
     pc_columns = [PoseCellLink.template, PoseCellLink.pc_x, PoseCellLink.pc_y]
     if rank == 4:
         pc_columns.append(PoseCellLink.pc_z)
@@ -866,6 +880,11 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     built["pc_link_strength"] = block[:, 1 + rank].copy()
     built["pc_link_decay"] = block[:, 2 + rank].copy()
 
+
+def _read_experiences(
+    conn: Connection, map_id: int, rank: int, built: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Read the experiences into ``built`` (``em_pose`` … ``em_origin``); return their sessions and origin indices."""
     em_columns = [
         Experience.session_id, Experience.origin_index, Experience.x, Experience.y, Experience.z, Experience.yaw,
         Experience.pc_x, Experience.pc_y,
@@ -878,13 +897,16 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
         len(em_columns),
     )
     experience_session = block[:, 0].astype(np.int64)
-    experience_index = block[:, 1].astype(np.int64)
     built["em_pose"] = block[:, 2:6].copy()
     built["em_pc"] = block[:, 6 : 6 + rank].copy()
     built["em_template"] = block[:, 6 + rank].astype(np.int64)
     built["em_stamp"] = block[:, 7 + rank].copy()
     built["em_origin"] = experience_session.copy()
+    return experience_session, block[:, 1].astype(np.int64)
 
+
+def _read_links(conn: Connection, map_id: int, built: dict[str, np.ndarray]) -> None:
+    """Read the experience links into ``built`` (``em_link_*``, kinds as their codes)."""
     kind_code = case({name: code for code, name in enumerate(LINK_KIND_NAMES)}, value=Link.kind, else_=-1)
     block = _column_block(
         fetch_tuples(
@@ -906,6 +928,14 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     built["em_link_kind"] = block[:, 8].astype(np.int64)
     built["em_link_active"] = block[:, 9].astype(bool)
 
+
+def _assemble_snapshot(
+    name: str, manifest: dict[str, Any], extra: dict[str, np.ndarray], pc_activity: bytes, built: dict[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """Return the snapshot the manifest describes: each key from the rows read, the arrays blob or the activity.
+
+    Dtype, shape and the bits of negative zeros are restored as saved (:func:`restore_negative_zeros`).
+    """
     snapshot: dict[str, np.ndarray] = {}
     for key, info in manifest.items():
         dtype = np.dtype(info["dtype"])
@@ -913,22 +943,20 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
         place = info["in"]
         if place == "arrays":
             if key not in extra:
-                msg = f"map {record.name!r}: stored arrays lack {key!r}"
+                msg = f"map {name!r}: stored arrays lack {key!r}"
                 raise CorruptStateError(msg)
             value = extra[key]
         elif place == "pc_activity":
-            value = unpack_raw(state[2], dtype, shape_k)
+            value = unpack_raw(pc_activity, dtype, shape_k)
         else:
             value = built[key]
         if value.size != math.prod(shape_k):
-            msg = f"map {record.name!r}: {key!r} has {value.size} values, the manifest says shape {shape_k!r}"
+            msg = f"map {name!r}: {key!r} has {value.size} values, the manifest says shape {shape_k!r}"
             raise CorruptStateError(msg)
         array = np.array(value, dtype=dtype, copy=True).reshape(shape_k)
         patch = extra.get(NEGZERO_PREFIX + key)
         if patch is not None:
             restore_negative_zeros(array, patch)
         snapshot[key] = array
-    sessions = tuple(sessions_of_map(conn=conn, map_id=map_id))
-    meta = MapMeta(record, sessions, template_session, template_index, experience_session, experience_index)
-    return MapContent(dict(record.params), snapshot, meta)
+    return snapshot
 

@@ -160,15 +160,7 @@ def simulate(
     if target.exists() and not target.is_dir():
         msg = f"--out {str(target)!r} exists and is not a directory"
         raise InputError(msg)
-    jobs: list[tuple[int, SessionPlan]] = list(enumerate(plan.sessions))
-    if plan.single is not None and all(s is not plan.single for s in plan.sessions):
-        jobs.append((len(plan.sessions), plan.single))
-    if only is not None:
-        unknown = sorted(set(only) - {s.name for _, s in jobs})
-        if unknown:
-            msg = f"unknown session(s) {', '.join(unknown)} for scenario {scenario!r}"
-            raise InputError(msg)
-    wanted = [(i, s) for i, s in jobs if only is None or s.name in only]
+    jobs, wanted = _session_jobs(plan, scenario, only)
     drives = {index: simulate_session(plan, session, index, seed) for index, session in wanted}
     total = sum(len(d.frame_stamps_ns) for d in drives.values())
     done = 0
@@ -187,54 +179,95 @@ def simulate(
             for index, session in jobs
         }
         for index, session in wanted:
-            drive = drives[index]
-            log_name = f"{session.name}{SUFFIXES[fmt]}"
-            gt_name = f"{session.name}.tum"
-            write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick), drive.odometry,
-                      drive.ground_truth, sonar=render_sonar_frames(plan, drive, seed, index),
-                      sonar_topic=plan.sonar_topic)
-            _write_ground_truth(temp / gt_name, drive)
-            entries[index] = {
-                "name": session.name,
-                "log": log_name,
-                "ground_truth": gt_name,
-                "frames": len(drive.frame_stamps_ns),
-                "duration_s": round((drive.odometry[-1].stamp_ns - drive.odometry[0].stamp_ns) * 1e-9, 3),
-                "start_stamp": drive.odometry[0].stamp_ns * 1e-9,
-                "odometry_errors": drive.errors,
-                **session.info,
-            }
-        sessions = [entries[i] for i, _ in enumerate(plan.sessions)]
-        single = None
-        if plan.single is not None:
-            index = next((i for i, s in jobs if s is plan.single), None)
-            single = {k: v for k, v in entries[index].items() if k != "name"} if index is not None else None
-        document: dict[str, Any] = {
-            "scenario": plan.scenario,
-            "preset": plan.preset,
-            "sessions": sessions,
-            "single": single,
-            "seed": int(seed),
-            "format": fmt,
-            "scale": float(scale),
-            "params": plan.params,
-            "camera": {
-                "width": plan.camera.width, "height": plan.camera.height, "hfov_deg": plan.camera.hfov_deg,
-                "max_range_m": plan.camera.max_range, "rate_hz": plan.rates.camera_hz,
-            },
-            "odometry_hz": plan.rates.odom_hz,
-            **({} if plan.sonar is None else {"sonar": {
-                "topic": plan.sonar_topic, "beams": plan.sonar.beams, "bins": plan.sonar.bins,
-                "hfov_deg": plan.sonar.hfov_deg, "max_range_m": plan.sonar.max_range}}),
-            "vehicle_odometry_errors": dataclasses.asdict(plan_vehicle(plan, seed)),
-            **plan.info,
-        }
+            entries[index] = _write_session(temp, fmt, plan, session, (drives[index], seed, index), tick)
+        document = _scenario_document(plan, entries, jobs, seed, fmt, scale)
         (temp / SCENARIO_FILE).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
         _move_into(temp, target)
     finally:
         with contextlib.suppress(FileNotFoundError):
             shutil.rmtree(temp)
     return document
+
+
+def _session_jobs(
+    plan: Plan, scenario: str, only: Sequence[str] | None
+) -> tuple[list[tuple[int, SessionPlan]], list[tuple[int, SessionPlan]]]:
+    """Return every session of the plan (the single-session log last when it is not one of them) and those to write.
+
+    Raises:
+        InputError: ``only`` names a session the scenario does not have.
+    """
+    jobs: list[tuple[int, SessionPlan]] = list(enumerate(plan.sessions))
+    if plan.single is not None and all(s is not plan.single for s in plan.sessions):
+        jobs.append((len(plan.sessions), plan.single))
+    if only is not None:
+        unknown = sorted(set(only) - {s.name for _, s in jobs})
+        if unknown:
+            msg = f"unknown session(s) {', '.join(unknown)} for scenario {scenario!r}"
+            raise InputError(msg)
+    return jobs, [(i, s) for i, s in jobs if only is None or s.name in only]
+
+
+def _write_session(
+    temp: Path, fmt: LogFormat, plan: Plan, session: SessionPlan, run: tuple[Drive, int, int], tick: Callable[[], None]
+) -> dict[str, Any]:
+    """Write one session's log and ground truth into ``temp``; return its scenario.json entry.
+
+    ``run`` is (the simulated drive, the seed, the session's index in the plan).
+    """
+    drive, seed, index = run
+    log_name = f"{session.name}{SUFFIXES[fmt]}"
+    gt_name = f"{session.name}.tum"
+    write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick), drive.odometry,
+              drive.ground_truth, sonar=render_sonar_frames(plan, drive, seed, index),
+              sonar_topic=plan.sonar_topic)  # fmt: skip
+    _write_ground_truth(temp / gt_name, drive)
+    return {
+        "name": session.name,
+        "log": log_name,
+        "ground_truth": gt_name,
+        "frames": len(drive.frame_stamps_ns),
+        "duration_s": round((drive.odometry[-1].stamp_ns - drive.odometry[0].stamp_ns) * 1e-9, 3),
+        "start_stamp": drive.odometry[0].stamp_ns * 1e-9,
+        "odometry_errors": drive.errors,
+        **session.info,
+    }
+
+
+def _scenario_document(
+    plan: Plan,
+    entries: dict[int, dict[str, Any]],
+    jobs: list[tuple[int, SessionPlan]],
+    seed: int,
+    fmt: LogFormat,
+    scale: float,
+) -> dict[str, Any]:
+    """Return scenario.json: the sessions' entries, the single-session log's, camera, odometry and sonar settings."""
+    sessions = [entries[i] for i, _ in enumerate(plan.sessions)]
+    single = None
+    if plan.single is not None:
+        index = next((i for i, s in jobs if s is plan.single), None)
+        single = {k: v for k, v in entries[index].items() if k != "name"} if index is not None else None
+    return {
+        "scenario": plan.scenario,
+        "preset": plan.preset,
+        "sessions": sessions,
+        "single": single,
+        "seed": int(seed),
+        "format": fmt,
+        "scale": float(scale),
+        "params": plan.params,
+        "camera": {
+            "width": plan.camera.width, "height": plan.camera.height, "hfov_deg": plan.camera.hfov_deg,
+            "max_range_m": plan.camera.max_range, "rate_hz": plan.rates.camera_hz,
+        },
+        "odometry_hz": plan.rates.odom_hz,
+        **({} if plan.sonar is None else {"sonar": {
+            "topic": plan.sonar_topic, "beams": plan.sonar.beams, "bins": plan.sonar.bins,
+            "hfov_deg": plan.sonar.hfov_deg, "max_range_m": plan.sonar.max_range}}),
+        "vehicle_odometry_errors": dataclasses.asdict(plan_vehicle(plan, seed)),
+        **plan.info,
+    }  # fmt: skip
 
 
 def _move_into(temp: Path, target: Path) -> None:
