@@ -6,11 +6,16 @@ Each row is ``SCENARIO`` or ``SCENARIO:STRENGTH`` (``lookalike_m`` for twin, ``s
 symmetric). Per seed it runs the contract's commands: ``mapserver simulate SCENARIO --out D --seed N
 --param ...``, ``mapserver process D/session1.bag --db sqlite:///D/db.sqlite`` and ``mapserver process
 D/session2.bag --db sqlite:///D/db.sqlite --json``, then classifies session 2's merges against the ground
-truth: in ``twin`` every merge is false (the places never overlap); elsewhere a merge is false when its
-transform is more than ``--tol-m`` metres or ``--tol-deg`` degrees from the true alignment of the two
-sessions' map frames, except that an applied merge is judged where it put the robot: false when session 2's
-experiences within 10 s of it lie, in the final map, more than ``--tol-m`` metres (median) from their true
-positions in session 1's map frame (the error at the map origin grows with the drift before the merge).
+truth: in ``twin`` every merge is false (the places never overlap); elsewhere a merge is judged by the place
+it put the robot at: false when the stored experience nearest to the robot's pose carried into the stored map
+by the merge transform was seen, in the world, more than ``--tol-m`` metres from where the robot truly was at
+the merge, or the merge turns the robot against that experience ``--tol-deg`` degrees off the truth
+(``place_error_m``, ``place_error_deg``). Also reported: the transform's error against the true alignment of
+the two sessions' map frames (``error_m``, ``error_deg``: it grows with either session's drift before the
+merge) and, for an applied merge, the final map's error near it (``local_error_m``: the median distance of
+session 2's experiences within 10 s of it from their true positions in session 1's map frame, which counts the
+stored map's own drift; until 2026-11-26 this judged applied merges, and called a merge onto the right place of
+a map drifted 9 m there false).
 Prints one line per row and, last, one JSON object with every figure.
 """
 
@@ -84,6 +89,48 @@ def _local_error(directory: Path, doc: dict, s1: dict, s2: dict, stamp: float, w
     return round(float(np.median(errors)), 3)
 
 
+def _place_error(
+    directory: Path, stored: dict, s1: dict, s2: dict, stamp: float, carried: np.ndarray
+) -> tuple[float, float]:
+    """Metres and degrees, in the world, between where session 2 truly was at ``stamp`` and the stored place the
+    merge put it at.
+
+    ``carried`` (x, y, z, yaw) is the robot's pose at the merge frame carried into the stored map by the merge
+    transform; the stored place is session 1's experience nearest to it in the stored map as it was when the
+    merge was made (``stored``). Metres: between the two sessions' ground-truth positions there (session 1's
+    when it made that experience). Degrees: the merge's heading of the robot relative to that experience
+    against the true one. Unlike the final map's error near the merge (``_local_error``), neither counts the
+    stored map's own drift: a merge onto the right place of a drifted map is a true merge.
+    """
+    from mapserver.formats import yaw_from_quaternion
+
+    gt1, gt2 = (np.loadtxt(directory / s["ground_truth"]).reshape(-1, 8) for s in (s1, s2))
+    poses = np.array([[e["x"], e["y"]] for e in stored["experiences"]])
+    nearest = stored["experiences"][int(np.argmin(np.linalg.norm(poses - carried[:2], axis=1)))]
+    seen = gt1[int(np.argmin(np.abs(gt1[:, 0] - nearest["stamp"])))]
+    truly = gt2[int(np.argmin(np.abs(gt2[:, 0] - stamp)))]
+    turn_true = yaw_from_quaternion(*truly[4:8]) - yaw_from_quaternion(*seen[4:8])
+    turn_merge = float(carried[3]) - nearest["yaw"]
+    degrees = abs(math.degrees(math.remainder(turn_merge - turn_true, 2 * math.pi)))
+    return round(float(np.linalg.norm(seen[1:3] - truly[1:3])), 3), round(degrees, 1)
+
+
+def _merge_poses(db: str) -> dict[int, np.ndarray]:
+    """Each merge event's robot pose at its merge frame, carried into the stored map (event id → x, y, z, yaw)."""
+    from core.se3 import compose
+    from mapserver.store import open_database
+    from mapserver.store.merge_events import list_merge_events
+
+    out = {}
+    with open_database(db) as database, database.read() as conn:
+        for event in list_merge_events(conn=conn):
+            reckoning = (event.details or {}).get("reckoning_pose")
+            if reckoning is not None:
+                transform = np.array([event.transform[0], event.transform[1], event.transform[2], event.yaw])
+                out[event.id] = compose(transform, np.asarray(reckoning, dtype=np.float64))
+    return out
+
+
 def run_once(
     out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float, extra: str = ""
 ) -> dict:
@@ -103,8 +150,12 @@ def run_once(
     doc = cli_json(*argv)
     db = f"sqlite:///{directory / 'db.sqlite'}"
     s1, s2 = doc["sessions"][:2]
-    cli_json("process", str(directory / s1["log"]), "--db", db)
+    first = cli_json("process", str(directory / s1["log"]), "--db", db)
+    stored_json = directory / "stored.json"
+    cli_json("export", "--db", db, "--map", first["map"], "--format", "json", "--out", str(stored_json))
+    stored = json.loads(stored_json.read_text())
     result = cli_json("process", str(directory / s2["log"]), "--db", db)
+    carried = _merge_poses(db)
     truth = true_alignment(directory, s1, s2, math.radians(preset(doc["preset"]).exp_initial_em_deg))
     merges = []
     for merge in result["merges"]:
@@ -118,10 +169,14 @@ def run_once(
     shared = _shared_distance(directory, s1, s2, applied[0]["stamp"]) if applied else None
     in_map = [s1, s2] if applied else [s2]
     ape = _ape(directory, db, result["map"], in_map, "final")
-    for m in applied:  # where the merge put session 2, judged in the final map near the merge
+    for m, merge in zip(merges, result["merges"], strict=True):  # where the merge put session 2, in the world
+        if merge["event"] in carried:
+            m["place_error_m"], m["place_error_deg"] = _place_error(directory, stored, s1, s2, m["stamp"],
+                                                                   carried[merge["event"]])  # fmt: skip
+            if scenario != "twin":
+                m["false"] = m["place_error_m"] > tol_m or m["place_error_deg"] > tol_deg
+    for m in applied:  # and in the final map near the merge (the stored map's own drift counts here)
         m["local_error_m"] = _local_error(directory, doc, s1, s2, m["stamp"])
-        if scenario != "twin" and m["local_error_m"] is not None:
-            m["false"] = m["local_error_m"] > tol_m
     alone_db = f"sqlite:///{directory / 'alone.sqlite'}"
     reference = doc["single"] if scenario != "twin" and doc.get("single") else s2
     cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge")
