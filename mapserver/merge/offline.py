@@ -14,6 +14,7 @@ anchored at the run's best-matching template, every pair of the run identified.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -76,6 +77,33 @@ def candidate_matches(
         NoConfirmedMatchError: no run of K agreeing matching templates exists (the message says how
             many the best run had; a :class:`MergeError` that exits 2).
     """
+    needed = _needed_confirmations(partial, loaded, confirm)
+    tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
+    n_a, n_b = int(np.shape(partial.state["lv_means"])[0]), int(np.shape(loaded.state["lv_means"])[0])
+    if n_a == 0 or n_b == 0:
+        empty = partial.key if n_a == 0 else loaded.key
+        msg = f"map {empty!r} has no templates to match"
+        raise MergeError(msg)
+    cells = LocalViewCells.restore(loaded.params, loaded.state)
+    threshold = loaded.params.vt_match_threshold
+    arrays = _MatchArrays.of(partial.state, loaded.state, n_a, n_b)
+    scan = _scan_runs(cells, threshold, arrays, Streak(needed, tolerance, yaw_tolerance))
+    if not scan.runs:
+        if scan.matched == 0:
+            msg = f"no template of map {partial.key!r} matches map {loaded.key!r} (threshold {threshold!r})"
+        else:
+            msg = (
+                f"no confirmed match of map {partial.key!r} in map {loaded.key!r}: {scan.matched} templates match "
+                f"but the longest agreeing run has {scan.longest} (needs {needed}, along two distinct stored "
+                "templates)"
+            )
+        raise NoConfirmedMatchError(msg)
+    ranked = sorted(scan.runs.values(), key=lambda r: _score(r[0]), reverse=True)
+    return [_match_of(partial.state, arrays.a_order, arrays.a_starts, entries, pairs) for entries, pairs in ranked]
+
+
+def _needed_confirmations(partial: StoredMap, loaded: StoredMap, confirm: int | None) -> int:
+    """Return K, the agreeing templates a run needs, once the maps are known to be mergeable."""
     reason = params_incompatibility(loaded.params, partial.params)
     if reason:
         msg = f"cannot merge map {partial.key!r} into {loaded.key!r}: {reason}"
@@ -84,73 +112,96 @@ def candidate_matches(
     if needed < 1:
         msg = f"--confirm must be at least 1, got {needed!r}"
         raise MergeError(msg)
-    tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
-    a, b = partial.state, loaded.state
-    n_a, n_b = int(np.shape(a["lv_means"])[0]), int(np.shape(b["lv_means"])[0])
-    if n_a == 0 or n_b == 0:
-        empty = partial.key if n_a == 0 else loaded.key
-        msg = f"map {empty!r} has no templates to match"
-        raise MergeError(msg)
-    cells = LocalViewCells.restore(loaded.params, b)
-    threshold = loaded.params.vt_match_threshold
-    a_templates = np.asarray(a["lv_templates"], dtype=np.float32)
-    a_means = np.asarray(a["lv_means"], dtype=np.float64)
-    a_order, a_starts = experiences_by_template(np.asarray(a["em_template"]), n_a)
-    b_order, b_starts = experiences_by_template(np.asarray(b["em_template"]), n_b)
-    a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
-    a_pc = np.asarray(a["em_pc"], dtype=np.float64).reshape(a_pose.shape[0], -1)
-    b_pose = np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4)
+    return needed
 
-    streak = Streak(needed, tolerance, yaw_tolerance)
-    runs: dict[int, tuple[list[Observation], tuple[tuple[int, int], ...]]] = {}  # run → its best confirmed state
-    run = matched = longest = 0
 
-    for i in range(n_a):
-        u, error, relative = cells.match(a_templates[i], float(a_means[i]), limit=threshold)
+@dataclass(frozen=True)
+class _MatchArrays:
+    """A's templates and experience poses and both maps' template → experience indices, as the scan reads them."""
+
+    a_templates: np.ndarray
+    a_means: np.ndarray
+    a_order: np.ndarray
+    a_starts: np.ndarray
+    b_order: np.ndarray
+    b_starts: np.ndarray
+    a_pose: np.ndarray
+    a_pc: np.ndarray
+    b_pose: np.ndarray
+
+    @classmethod
+    def of(cls, a: Any, b: Any, n_a: int, n_b: int) -> _MatchArrays:
+        """Return the arrays of snapshots ``a`` (map A, ``n_a`` templates) and ``b`` (map B, ``n_b``)."""
+        a_order, a_starts = experiences_by_template(np.asarray(a["em_template"]), n_a)
+        b_order, b_starts = experiences_by_template(np.asarray(b["em_template"]), n_b)
+        a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
+        return cls(
+            a_templates=np.asarray(a["lv_templates"], dtype=np.float32),
+            a_means=np.asarray(a["lv_means"], dtype=np.float64),
+            a_order=a_order,
+            a_starts=a_starts,
+            b_order=b_order,
+            b_starts=b_starts,
+            a_pose=a_pose,
+            a_pc=np.asarray(a["em_pc"], dtype=np.float64).reshape(a_pose.shape[0], -1),
+            b_pose=np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4),
+        )
+
+
+@dataclass
+class _Scan:
+    """What the scan of A's templates found: each run's best confirmed state, matching templates, longest run."""
+
+    runs: dict[int, tuple[list[Observation], tuple[tuple[int, int], ...]]] = field(default_factory=dict)
+    matched: int = 0
+    longest: int = 0
+
+
+def _scan_runs(cells: LocalViewCells, threshold: float, arrays: _MatchArrays, streak: Streak) -> _Scan:
+    """Match A's templates in creation order against B's; return every run's best confirmed state."""
+    scan = _Scan()
+    run = 0
+    for i in range(arrays.a_means.shape[0]):
+        u, error, relative = cells.match(arrays.a_templates[i], float(arrays.a_means[i]), limit=threshold)
         if u < 0 or error > threshold:
             streak.reset()
             run += 1
             continue
-        matched += 1
-        mine = _experience_for(a_order, a_starts, i)
-        theirs = _experience_for(b_order, b_starts, u)
-        exp_a = int(mine[0]) if mine.size else -1
-        exp_b = -1
-        if theirs.size and exp_a >= 0:
-            predicted = streak.predict(a_pose[exp_a])
-            if predicted is None or theirs.size == 1:
-                exp_b = int(theirs[0])
-            else:
-                exp_b = int(theirs[int(np.argmin(np.linalg.norm(b_pose[theirs, :3] - predicted[:3], axis=1)))])
-        seen = compose(b_pose[exp_b], np.array([0.0, 0.0, 0.0, relative])) if exp_b >= 0 else np.zeros(4)
-        observation = Observation(
-            frame=i,
-            stored_template=u,
-            stored_experience=exp_b,
-            error=float(error),
-            relative_rad=float(relative),
-            partial_template=i,
-            odometry=a_pose[exp_a] if exp_a >= 0 else np.zeros(4),
-            packet=a_pc[exp_a] if exp_a >= 0 else np.zeros(a_pc.shape[1]),
-            seen=seen,
-        )
+        scan.matched += 1
         before = len(streak.entries)
-        streak.add(observation)
+        streak.add(_observation(arrays, streak, i, u, error, relative))
         run += len(streak.entries) <= before  # the streak restarted: a new run
-        longest = max(longest, len(streak.entries))
-        if streak.confirmed and _score(streak.entries) > _score(runs.get(run, ([], ()))[0]):
-            runs[run] = (list(streak.entries), streak.pairs())
-    if not runs:
-        if matched == 0:
-            msg = f"no template of map {partial.key!r} matches map {loaded.key!r} (threshold {threshold!r})"
+        scan.longest = max(scan.longest, len(streak.entries))
+        if streak.confirmed and _score(streak.entries) > _score(scan.runs.get(run, ([], ()))[0]):
+            scan.runs[run] = (list(streak.entries), streak.pairs())
+    return scan
+
+
+def _observation(arrays: _MatchArrays, streak: Streak, i: int, u: int, error: float, relative: float) -> Observation:
+    """Return A's template ``i`` matching B's template ``u`` as an observation of the streak."""
+    mine = _experience_for(arrays.a_order, arrays.a_starts, i)
+    theirs = _experience_for(arrays.b_order, arrays.b_starts, u)
+    exp_a = int(mine[0]) if mine.size else -1
+    exp_b = -1
+    if theirs.size and exp_a >= 0:
+        predicted = streak.predict(arrays.a_pose[exp_a])
+        if predicted is None or theirs.size == 1:
+            exp_b = int(theirs[0])
         else:
-            msg = (
-                f"no confirmed match of map {partial.key!r} in map {loaded.key!r}: {matched} templates match but "
-                f"the longest agreeing run has {longest} (needs {needed}, along two distinct stored templates)"
-            )
-        raise NoConfirmedMatchError(msg)
-    ranked = sorted(runs.values(), key=lambda r: _score(r[0]), reverse=True)
-    return [_match_of(a, a_order, a_starts, entries, pairs) for entries, pairs in ranked]
+            distances = np.linalg.norm(arrays.b_pose[theirs, :3] - predicted[:3], axis=1)
+            exp_b = int(theirs[int(np.argmin(distances))])
+    seen = compose(arrays.b_pose[exp_b], np.array([0.0, 0.0, 0.0, relative])) if exp_b >= 0 else np.zeros(4)
+    return Observation(
+        frame=i,
+        stored_template=u,
+        stored_experience=exp_b,
+        error=float(error),
+        relative_rad=float(relative),
+        partial_template=i,
+        odometry=arrays.a_pose[exp_a] if exp_a >= 0 else np.zeros(4),
+        packet=arrays.a_pc[exp_a] if exp_a >= 0 else np.zeros(arrays.a_pc.shape[1]),
+        seen=seen,
+    )
 
 
 def _score(entries: list[Observation]) -> tuple[int, float]:
