@@ -27,7 +27,7 @@ import io
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -36,6 +36,9 @@ from scipy.spatial.distance import directed_hausdorff
 
 from mapserver.errors import InputError
 from mapserver.formats import PathLike, Trajectory, atomic_write_bytes, odometry_trajectory
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -355,20 +358,8 @@ def _evaluate(
     max_diff_s: float,
     session: str | None,
 ) -> _MapEvaluation:
-    exps = list(doc["experiences"])
-    if session is not None:
-        names = sorted({str(e["session"]) for e in exps})
-        exps = [e for e in exps if e["session"] == session]
-        if not exps:
-            msg = f"map has no experience of session {session!r} (sessions: {', '.join(names) or 'none'})"
-            raise InputError(msg)
-    if not exps:
-        msg = "map has no experiences to evaluate"
-        raise InputError(msg)
-    if len(ground_truth) == 0:
-        msg = "ground truth holds no pose"
-        raise InputError(msg)
-    exps.sort(key=lambda e: float(e["stamp"]))
+    """Align the experiences (of ``session``) and the odometry to the ground truth and measure both."""
+    exps = _experiences_to_evaluate(doc, ground_truth, session)
     exp_ids = [int(e["id"]) for e in exps]
     stamps = np.array([float(e["stamp"]) for e in exps])
     xyz = np.array([[float(e["x"]), float(e["y"]), float(e["z"])] for e in exps])
@@ -378,49 +369,12 @@ def _evaluate(
     if dims == 2:
         gt_xyz[:, 2] = 0.0
     gt_plane = Trajectory(gt.stamps_s, gt_xyz, gt.quat_xyzw)
-
-    gt_at = interpolate_poses(gt_plane, stamps, max_diff_s=max_diff_s)
-    mask = ~np.isnan(gt_at[:, 0])
-    if not mask.any():
-        msg = (
-            f"no experience stamp falls within the ground truth's time span "
-            f"[{gt.stamps_s[0]:.3f}, {gt.stamps_s[-1]:.3f}] s (experiences span "
-            f"[{stamps[0]:.3f}, {stamps[-1]:.3f}] s)"
-        )
-        raise InputError(msg)
-    ape = ape_positions(gt_at[mask][:, :dims], xyz[mask][:, :dims])
-    R3, t3 = _lift(ape.R, ape.t)
-    aligned = xyz @ R3.T + t3
-    z_rmse = _z_rmse(gt_at[mask], aligned[mask]) if dims == 3 else None
+    ape, R3, t3, aligned, z_rmse = _align_experiences(gt_plane, stamps, xyz, dims, max_diff_s)
     dist = hausdorff(aligned[:, :dims], gt_xyz[:, :dims])
-
-    index = {eid: i for i, eid in enumerate(exp_ids)}
-    links = [
-        (index[int(link["from"])], index[int(link["to"])], str(link["kind"]))
-        for link in doc["links"]
-        if int(link["from"]) in index and int(link["to"]) in index
-    ]
-
+    links = _link_indices(doc, exp_ids)
     if odometry is None and (session is None or len(doc.get("sessions", [])) <= 1):
         odometry = odometry_trajectory(doc)
-    odo_stamps = odo_aligned = None
-    odo_ape = None
-    odo_z_rmse = None
-    if odometry is not None and len(odometry) > 0:
-        odo = odometry.sorted()
-        odo_xyz = odo.positions_xyz.copy()
-        if dims == 2:
-            odo_xyz[:, 2] = 0.0
-        gt_at_odo = interpolate_poses(gt_plane, odo.stamps_s, max_diff_s=max_diff_s)
-        omask = ~np.isnan(gt_at_odo[:, 0])
-        if omask.any():
-            odo_ape = ape_positions(gt_at_odo[omask][:, :dims], odo_xyz[omask][:, :dims])
-            oR, ot = _lift(odo_ape.R, odo_ape.t)
-            odo_stamps = odo.stamps_s
-            odo_aligned = odo_xyz @ oR.T + ot
-            if dims == 3:
-                odo_z_rmse = _z_rmse(gt_at_odo[omask], odo_aligned[omask])
-
+    odo_stamps, odo_aligned, odo_ape, odo_z_rmse = _align_odometry(odometry, gt_plane, dims, max_diff_s)
     return _MapEvaluation(
         dims=dims,
         session=session,
@@ -440,6 +394,78 @@ def _evaluate(
         z_rmse=z_rmse,
         odo_z_rmse=odo_z_rmse,
     )
+
+
+def _experiences_to_evaluate(
+    doc: Mapping[str, Any], ground_truth: Trajectory, session: str | None
+) -> list[Mapping[str, Any]]:
+    """Return the map's experiences (of ``session``) in stamp order; refuse an empty selection or ground truth."""
+    exps = list(doc["experiences"])
+    if session is not None:
+        names = sorted({str(e["session"]) for e in exps})
+        exps = [e for e in exps if e["session"] == session]
+        if not exps:
+            msg = f"map has no experience of session {session!r} (sessions: {', '.join(names) or 'none'})"
+            raise InputError(msg)
+    if not exps:
+        msg = "map has no experiences to evaluate"
+        raise InputError(msg)
+    if len(ground_truth) == 0:
+        msg = "ground truth holds no pose"
+        raise InputError(msg)
+    exps.sort(key=lambda e: float(e["stamp"]))
+    return exps
+
+
+def _align_experiences(
+    gt_plane: Trajectory, stamps: FloatArray, xyz: FloatArray, dims: int, max_diff_s: float
+) -> tuple[APEResult, FloatArray, FloatArray, FloatArray, float | None]:
+    """Return the experiences' APE at their stamps, its (R, t) in 3-D, the aligned positions and the z RMSE."""
+    gt_at = interpolate_poses(gt_plane, stamps, max_diff_s=max_diff_s)
+    mask = ~np.isnan(gt_at[:, 0])
+    if not mask.any():
+        msg = (
+            f"no experience stamp falls within the ground truth's time span "
+            f"[{gt_plane.stamps_s[0]:.3f}, {gt_plane.stamps_s[-1]:.3f}] s (experiences span "
+            f"[{stamps[0]:.3f}, {stamps[-1]:.3f}] s)"
+        )
+        raise InputError(msg)
+    ape = ape_positions(gt_at[mask][:, :dims], xyz[mask][:, :dims])
+    R3, t3 = _lift(ape.R, ape.t)
+    aligned = xyz @ R3.T + t3
+    z_rmse = _z_rmse(gt_at[mask], aligned[mask]) if dims == 3 else None
+    return ape, R3, t3, aligned, z_rmse
+
+
+def _link_indices(doc: Mapping[str, Any], exp_ids: list[int]) -> list[tuple[int, int, str]]:
+    """Return the links between the evaluated experiences as (from, to, kind), endpoints indexing ``exp_ids``."""
+    index = {eid: i for i, eid in enumerate(exp_ids)}
+    return [
+        (index[int(link["from"])], index[int(link["to"])], str(link["kind"]))
+        for link in doc["links"]
+        if int(link["from"]) in index and int(link["to"]) in index
+    ]
+
+
+def _align_odometry(
+    odometry: Trajectory | None, gt_plane: Trajectory, dims: int, max_diff_s: float
+) -> tuple[FloatArray | None, FloatArray | None, APEResult | None, float | None]:
+    """Return the odometry aligned to the ground truth on its own: stamps, aligned positions, APE, z RMSE."""
+    if odometry is None or len(odometry) == 0:
+        return None, None, None, None
+    odo = odometry.sorted()
+    odo_xyz = odo.positions_xyz.copy()
+    if dims == 2:
+        odo_xyz[:, 2] = 0.0
+    gt_at_odo = interpolate_poses(gt_plane, odo.stamps_s, max_diff_s=max_diff_s)
+    omask = ~np.isnan(gt_at_odo[:, 0])
+    if not omask.any():
+        return None, None, None, None
+    odo_ape = ape_positions(gt_at_odo[omask][:, :dims], odo_xyz[omask][:, :dims])
+    oR, ot = _lift(odo_ape.R, odo_ape.t)
+    odo_aligned = odo_xyz @ oR.T + ot
+    odo_z_rmse = _z_rmse(gt_at_odo[omask], odo_aligned[omask]) if dims == 3 else None
+    return odo.stamps_s, odo_aligned, odo_ape, odo_z_rmse
 
 
 def _z_rmse(ref: FloatArray, aligned: FloatArray) -> float:
@@ -521,6 +547,65 @@ class RecognitionSettings:
     false_radius: float = 5.0
 
 
+@dataclass(frozen=True)
+class _FrameTable:
+    """The map's per-frame record with each frame's ground-truth position (NaN where it has none)."""
+
+    stamps: FloatArray
+    templates: IntArray
+    created: npt.NDArray[np.bool_]
+    positions: FloatArray
+    known: npt.NDArray[np.bool_]
+
+    @classmethod
+    def of(cls, rows: npt.ArrayLike, ground_truth: Trajectory, max_diff_s: float) -> _FrameTable:
+        """Return the table of ``[stamp, template, created]`` rows with positions read from ``ground_truth``."""
+        table = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+        stamps = table[:, 0]
+        positions = interpolate_poses(ground_truth, stamps, max_diff_s=max_diff_s)
+        return cls(stamps, table[:, 1].astype(np.int64), table[:, 2] != 0, positions, ~np.isnan(positions[:, 0]))
+
+
+def _revisit_frames(frames: _FrameTable, idx: IntArray, s: RecognitionSettings) -> npt.NDArray[np.bool_]:
+    """Return which frames revisit a place: within R of a frame (of ``idx``) more than T earlier."""
+    revisit = np.zeros(frames.stamps.shape[0], dtype=bool)
+    if idx.size:
+        stamps, positions = frames.stamps, frames.positions
+        tree = cKDTree(positions[idx])
+        for k, neighbours in enumerate(tree.query_ball_point(positions[idx], r=s.revisit_radius)):
+            i = idx[k]
+            if neighbours and float(np.min(stamps[idx[neighbours]])) < stamps[i] - s.revisit_gap_s:
+                revisit[i] = True
+    return revisit
+
+
+def _count_matches(
+    frames: _FrameTable, idx: IntArray, revisit: npt.NDArray[np.bool_], s: RecognitionSettings
+) -> tuple[int, int, int]:
+    """Return (recognised revisits, matched frames, false matches) among the frames of ``idx``."""
+    stamps, templates, created, positions = frames.stamps, frames.templates, frames.created, frames.positions
+    # creating frame of every template (first created row)
+    creator: dict[int, int] = {}
+    for index in np.flatnonzero(created).tolist():
+        creator.setdefault(int(templates[index]), index)
+    recognised = 0
+    matched = 0
+    false = 0
+    for i in idx.tolist():
+        if created[i]:
+            continue
+        c = creator.get(int(templates[i]))
+        if c is None or not frames.known[c]:
+            continue
+        matched += 1
+        distance = float(np.linalg.norm(positions[c] - positions[i]))
+        if distance > s.false_radius:
+            false += 1
+        if revisit[i] and stamps[c] < stamps[i] - s.revisit_gap_s and distance <= s.match_radius:
+            recognised += 1
+    return recognised, matched, false
+
+
 def place_recognition(
     rows: npt.ArrayLike,
     ground_truth: Trajectory,
@@ -554,39 +639,10 @@ def place_recognition(
 
     """
     s = settings or RecognitionSettings()
-    table = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
-    stamps = table[:, 0]
-    templates = table[:, 1].astype(np.int64)
-    created = table[:, 2] != 0
-    positions = interpolate_poses(ground_truth, stamps, max_diff_s=max_diff_s)
-    known = ~np.isnan(positions[:, 0])
-    # creating frame of every template (first created row)
-    creator: dict[int, int] = {}
-    for index in np.flatnonzero(created).tolist():
-        creator.setdefault(int(templates[index]), index)
-    idx = np.flatnonzero(known)
-    revisit = np.zeros(stamps.shape[0], dtype=bool)
-    if idx.size:
-        tree = cKDTree(positions[idx])
-        for k, neighbours in enumerate(tree.query_ball_point(positions[idx], r=s.revisit_radius)):
-            i = idx[k]
-            if neighbours and float(np.min(stamps[idx[neighbours]])) < stamps[i] - s.revisit_gap_s:
-                revisit[i] = True
-    recognised = 0
-    matched = 0
-    false = 0
-    for i in idx.tolist():
-        if created[i]:
-            continue
-        c = creator.get(int(templates[i]))
-        if c is None or not known[c]:
-            continue
-        matched += 1
-        distance = float(np.linalg.norm(positions[c] - positions[i]))
-        if distance > s.false_radius:
-            false += 1
-        if revisit[i] and stamps[c] < stamps[i] - s.revisit_gap_s and distance <= s.match_radius:
-            recognised += 1
+    frames = _FrameTable.of(rows, ground_truth, max_diff_s)
+    idx = np.flatnonzero(frames.known)
+    revisit = _revisit_frames(frames, idx, s)
+    recognised, matched, false = _count_matches(frames, idx, revisit, s)
     n_revisit = int(revisit.sum())
     return {
         "revisit_frames": n_revisit,
@@ -636,7 +692,6 @@ def plot_map_vs_ground_truth(
 
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
 
     ev = _evaluate(doc, gt, odometry=odometry, max_diff_s=max_diff_s, session=session)
@@ -649,6 +704,24 @@ def plot_map_vs_ground_truth(
     else:
         ax = fig.add_subplot(1, 1, 1)
         ax_z = None
+
+    _plot_top_view(ax, ev)
+    if ax_z is not None:
+        _plot_height(ax_z, ev)
+
+    if title is None:
+        names = ev.session or ", ".join(str(s.get("name")) for s in doc.get("sessions", [])) or "map"
+        title = f"{names}: {len(ev.exp_ids)} experiences vs ground truth"
+    fig.suptitle(title)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _plot_top_view(ax: Axes, ev: _MapEvaluation) -> None:
+    """Draw the top view: ground truth, aligned odometry, experiences joined by their links, legend."""
+    from matplotlib.collections import LineCollection
 
     ax.plot(ev.gt_xyz[:, 0], ev.gt_xyz[:, 1], "-", color="k", lw=1.2, label="ground truth")
     if ev.odo_aligned is not None and ev.odo_ape is not None:
@@ -683,21 +756,14 @@ def plot_map_vs_ground_truth(
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
 
-    if ax_z is not None:
-        ax_z.plot(ev.gt.stamps_s, ev.gt_xyz[:, 2], "-", color="k", lw=1.2, label="ground truth")
-        if ev.odo_aligned is not None and ev.odo_stamps is not None:
-            ax_z.plot(ev.odo_stamps, ev.odo_aligned[:, 2], "--", color="C1", lw=1.0, label="odometry")
-        ax_z.scatter(ev.exp_stamps, ev.exp_aligned[:, 2], s=9, color="C0", zorder=3, label="experiences")
-        ax_z.set_xlabel("time (s)")
-        ax_z.set_ylabel("z (m)")
-        ax_z.grid(True, alpha=0.3)
-        ax_z.legend(loc="best", fontsize=8)
 
-    if title is None:
-        names = ev.session or ", ".join(str(s.get("name")) for s in doc.get("sessions", [])) or "map"
-        title = f"{names}: {len(ev.exp_ids)} experiences vs ground truth"
-    fig.suptitle(title)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    atomic_write_bytes(path, buf.getvalue())
+def _plot_height(ax: Axes, ev: _MapEvaluation) -> None:
+    """Draw the height panel: ground truth, aligned odometry and experiences, z against time."""
+    ax.plot(ev.gt.stamps_s, ev.gt_xyz[:, 2], "-", color="k", lw=1.2, label="ground truth")
+    if ev.odo_aligned is not None and ev.odo_stamps is not None:
+        ax.plot(ev.odo_stamps, ev.odo_aligned[:, 2], "--", color="C1", lw=1.0, label="odometry")
+    ax.scatter(ev.exp_stamps, ev.exp_aligned[:, 2], s=9, color="C0", zorder=3, label="experiences")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("z (m)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
