@@ -368,6 +368,21 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
 
     """
     name = str(path)
+    doc = _parse_map_file(path, name)
+    _check_top_level(name, doc)
+    _check_items(name, "sessions", doc["sessions"], _SESSION_KEYS)
+    _check_items(name, "experiences", doc["experiences"], _EXPERIENCE_KEYS)
+    _check_items(name, "links", doc["links"], _LINK_KEYS)
+    _check_experiences_and_links(name, doc)
+    if "odometry" in doc:
+        _check_rows(name, doc, "odometry", ("stamp", "x", "y", "z"))
+    if "frames" in doc:
+        _check_rows(name, doc, "frames", ("stamp", "template", "created"))
+    return doc
+
+
+def _parse_map_file(path: PathLike, name: str) -> Any:
+    """Return the JSON value of a map file (any JSON value; non-finite constants refused)."""
     try:
         raw = Path(path).read_bytes()
     except FileNotFoundError:
@@ -377,7 +392,7 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
         msg = f"cannot read map file {name!r}: {err.strerror or err}"
         raise InputError(msg) from None
     try:
-        doc = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant)
+        return json.loads(raw.decode("utf-8"), parse_constant=_reject_constant)
     except UnicodeDecodeError as err:
         msg = f"map file {name!r} is not UTF-8: {err.reason} at byte {err.start}"
         raise InputError(msg) from None
@@ -387,6 +402,10 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
     except ValueError as err:
         msg = f"map file {name!r} is not valid JSON: {err}"
         raise InputError(msg) from None
+
+
+def _check_top_level(name: str, doc: Any) -> None:
+    """Refuse a document that is not an object of this format with every top-level key of its type."""
     if not isinstance(doc, dict):
         msg = f"map file {name!r} is not a JSON object"
         raise InputError(msg)
@@ -408,9 +427,10 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
     if not _is_number(doc["templates"]):
         msg = f"map file {name!r}: 'templates' is not a number: {doc['templates']!r}"
         raise InputError(msg)
-    _check_items(name, "sessions", doc["sessions"], _SESSION_KEYS)
-    _check_items(name, "experiences", doc["experiences"], _EXPERIENCE_KEYS)
-    _check_items(name, "links", doc["links"], _LINK_KEYS)
+
+
+def _check_experiences_and_links(name: str, doc: dict[str, Any]) -> None:
+    """Refuse experience fields that are not numbers and link endpoints that name no experience."""
     ids = set()
     for i, exp in enumerate(doc["experiences"]):
         for key in _EXPERIENCE_NUMBERS:
@@ -423,23 +443,17 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
             if link[key] not in ids:
                 msg = f"map file {name!r}: links[{k}].{key} = {link[key]!r} is not an experience id"
                 raise InputError(msg)
-    if "odometry" in doc:
-        odo = doc["odometry"]
-        ok = isinstance(odo, list) and all(
-            isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in odo
-        )
-        if not ok:
-            msg = f"map file {name!r}: 'odometry' is not a list of [stamp, x, y, z]"
-            raise InputError(msg)
-    if "frames" in doc:
-        rows = doc["frames"]
-        ok = isinstance(rows, list) and all(
-            isinstance(row, list) and len(row) == 3 and all(_is_number(v) for v in row) for row in rows
-        )
-        if not ok:
-            msg = f"map file {name!r}: 'frames' is not a list of [stamp, template, created]"
-            raise InputError(msg)
-    return doc
+
+
+def _check_rows(name: str, doc: dict[str, Any], key: str, columns: tuple[str, ...]) -> None:
+    """Refuse ``doc[key]`` unless it is a list of rows of ``columns`` numbers."""
+    rows = doc[key]
+    ok = isinstance(rows, list) and all(
+        isinstance(row, list) and len(row) == len(columns) and all(_is_number(v) for v in row) for row in rows
+    )
+    if not ok:
+        msg = f"map file {name!r}: {key!r} is not a list of [{', '.join(columns)}]"
+        raise InputError(msg)
 
 
 def _check_items(name: str, key: str, items: list[Any], required: Sequence[str]) -> None:
