@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection, func, select
 
-from core import Params, params_from_dict
+from core import Engine, Params, params_from_dict
 from mapserver.errors import ConflictError, InputError, MergeError
 from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots, merge_states, restore_merged
 from mapserver.merge.identity import RowIdentities, next_index_from_table
@@ -45,7 +45,7 @@ from mapserver.merge.relevance import ViewLog
 from mapserver.merge.resume import MergerState, merger_keys
 from mapserver.merge.snapshot import params_incompatibility
 from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, find_map, get_map
-from mapserver.store.archive import archive_map_state, archive_state, load_archive, restore_map_states
+from mapserver.store.archive import ArchivedState, archive_map_state, archive_state, load_archive, restore_map_states
 from mapserver.store.merge_events import (
     MergeEventSpec,
     get_merge_event,
@@ -101,17 +101,25 @@ def _index_maxima(conn: Connection, session_ids: Sequence[int]) -> dict[int, tup
     return {k: (v[0], v[1]) for k, v in out.items()}
 
 
+def _stored_identities(
+    conn: Connection, rows: Any, snapshot: Mapping[str, np.ndarray], session_ids: Sequence[int]
+) -> RowIdentities:
+    """Return stored rows' identities, next indices raised past every index their sessions ever used."""
+    identities = RowIdentities.from_arrays(
+        rows.template_session, rows.template_index, rows.experience_session, rows.experience_index,
+        next_index_from_table(snapshot.get(ID_NEXT_KEY)),
+    )  # fmt: skip
+    for sid, (nt, ne) in _index_maxima(conn, session_ids).items():
+        identities.raise_next(sid, nt, ne)
+    return identities
+
+
 def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
     """Load a stored map with its identities (next indices past every index its sessions ever used)."""
     content = read_map_state(conn=conn, map_id=map_id)
     meta = content.meta
-    identities = RowIdentities.from_arrays(
-        meta.template_session, meta.template_index, meta.experience_session, meta.experience_index,
-        next_index_from_table(content.snapshot.get(ID_NEXT_KEY)),
-    )  # fmt: skip
     session_ids = [s.id for s in meta.sessions]
-    for sid, (nt, ne) in _index_maxima(conn, session_ids).items():
-        identities.raise_next(sid, nt, ne)
+    identities = _stored_identities(conn, meta, content.snapshot, session_ids)
     return AtlasMap(
         id=meta.map.id,
         name=meta.map.name,
@@ -342,27 +350,7 @@ def write_merges(
     """
     versions = _claim_all(conn, {k: v for k, v in claimed.items() if k != host_id})
     host = get_map_by_id_or_stale(conn, host_id)
-    event_ids: list[int] = []
-    for merge in merges:
-        partial_ids = (merge.partial.identities or RowIdentities()).retagged(tags)
-        spec = MergeEventSpec(
-            map_id=merge.host_id,
-            map_name=merge.host_name,
-            mode=merge.mode,
-            confirmations=merge.record.confirmations,
-            lattice_offset=list(merge.record.lattice_offset),
-            transform=transform7(merge.record),
-            yaw=merge.record.transform[3],
-            matches=matches_json(merge.target, partial_ids, merge.record),
-            target_sessions=merge.target.session_ids,
-            source_sessions=merge.partial.session_ids,
-            details={**merge.details, "host": {"name": merge.host_name, "map_id": merge.host_id}},
-        )
-        event_id = record_merge_event(conn=conn, spec=spec)
-        event_ids.append(event_id)
-        archive_map_state(conn=conn, map_id=merge.target.id, event_id=event_id, role="target")
-        if merge.partial.from_store and merge.partial.map_id is not None:
-            archive_map_state(conn=conn, map_id=merge.partial.map_id, event_id=event_id, role="source")
+    event_ids = [_record_applied_event(conn, merge, tags) for merge in merges]
     for map_id in sorted(versions):
         drop_map(conn=conn, map_id=map_id)
     state = {**dict(snapshot), ID_NEXT_KEY: identities.retagged(tags).next_table(), **dict(extra or {})}
@@ -374,20 +362,51 @@ def write_merges(
         template_index=t_index, experience_index=e_index,
     )  # fmt: skip
     for merge, event_id in zip(merges, event_ids, strict=True):
-        side = merge.partial
-        if side.from_store or side.snapshot is None or side.identities is None:
-            continue
-        ids = side.identities.retagged(tags)
-        t_s, t_i = ids.template_arrays()
-        e_s, e_i = ids.experience_arrays()
-        archive_state(
-            conn=conn, map_name=side.name, params=side.params,
-            snapshot={**_retag(side.snapshot, tags), ID_NEXT_KEY: ids.next_table()},
-            session_ids=side.session_ids, template_session=t_s, template_index=t_i, experience_session=e_s,
-            experience_index=e_i, map_id=side.map_id if side.map_id == host_id else None,  # others are dropped
-            event_id=event_id, role="source",
-        )  # fmt: skip
+        _archive_partial_from_memory(conn, merge.partial, event_id, tags, host_id)
     return WrittenMerges(event_ids, host_id, host.name, result)
+
+
+def _event_spec(
+    merge: MergeToWrite, tags: Mapping[int, int], map_id: int, map_name: str, details: dict[str, Any], status: str
+) -> MergeEventSpec:
+    """Return the event row of a merge (transform, matches, sessions) recorded under map ``map_id``."""
+    partial_ids = (merge.partial.identities or RowIdentities()).retagged(tags)
+    return MergeEventSpec(
+        map_id=map_id, map_name=map_name, mode=merge.mode, confirmations=merge.record.confirmations,
+        lattice_offset=list(merge.record.lattice_offset), transform=transform7(merge.record),
+        yaw=merge.record.transform[3], matches=matches_json(merge.target, partial_ids, merge.record),
+        target_sessions=merge.target.session_ids, source_sessions=merge.partial.session_ids, details=details,
+        status=status,
+    )  # fmt: skip
+
+
+def _record_applied_event(conn: Connection, merge: MergeToWrite, tags: Mapping[int, int]) -> int:
+    """Record an applied merge's event, archive the stored maps it joins as they are; return the event id."""
+    details = {**merge.details, "host": {"name": merge.host_name, "map_id": merge.host_id}}
+    spec = _event_spec(merge, tags, merge.host_id, merge.host_name, details, "applied")
+    event_id = record_merge_event(conn=conn, spec=spec)
+    archive_map_state(conn=conn, map_id=merge.target.id, event_id=event_id, role="target")
+    if merge.partial.from_store and merge.partial.map_id is not None:
+        archive_map_state(conn=conn, map_id=merge.partial.map_id, event_id=event_id, role="source")
+    return event_id
+
+
+def _archive_partial_from_memory(
+    conn: Connection, side: PartialSide, event_id: int, tags: Mapping[int, int], host_id: int
+) -> None:
+    """Archive a merge's partial side from memory (a side read from the store was archived from its rows)."""
+    if side.from_store or side.snapshot is None or side.identities is None:
+        return
+    ids = side.identities.retagged(tags)
+    t_s, t_i = ids.template_arrays()
+    e_s, e_i = ids.experience_arrays()
+    archive_state(
+        conn=conn, map_name=side.name, params=side.params,
+        snapshot={**_retag(side.snapshot, tags), ID_NEXT_KEY: ids.next_table()},
+        session_ids=side.session_ids, template_session=t_s, template_index=t_i, experience_session=e_s,
+        experience_index=e_i, map_id=side.map_id if side.map_id == host_id else None,  # others are dropped
+        event_id=event_id, role="source",
+    )  # fmt: skip
 
 
 def write_rejected_merges(conn: Connection, *, merges: Sequence[MergeToWrite], tags: Mapping[int, int]) -> list[int]:
@@ -397,18 +416,8 @@ def write_rejected_merges(conn: Connection, *, merges: Sequence[MergeToWrite], t
     keeps the transform, the matches and the evidence, under the stored map the session was wrongly
     merged into.
     """
-    event_ids: list[int] = []
-    for merge in merges:
-        partial_ids = (merge.partial.identities or RowIdentities()).retagged(tags)
-        spec = MergeEventSpec(
-            map_id=merge.target.id, map_name=merge.target.name, mode=merge.mode,
-            confirmations=merge.record.confirmations, lattice_offset=list(merge.record.lattice_offset),
-            transform=transform7(merge.record), yaw=merge.record.transform[3],
-            matches=matches_json(merge.target, partial_ids, merge.record), target_sessions=merge.target.session_ids,
-            source_sessions=merge.partial.session_ids, details=dict(merge.details), status="rejected",
-        )  # fmt: skip
-        event_ids.append(record_merge_event(conn=conn, spec=spec))
-    return event_ids
+    specs = [_event_spec(m, tags, m.target.id, m.target.name, dict(m.details), "rejected") for m in merges]
+    return [record_merge_event(conn=conn, spec=spec) for spec in specs]
 
 
 def get_map_by_id_or_stale(conn: Connection, map_id: int) -> Any:
@@ -620,58 +629,21 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
             msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
             raise ConflictError(msg)
         details = dict(event.details or {})
-        undo = details.get("undo") or {}
-        current: dict[str, Any] = {}
-        for name, version in undo.items():
-            record = find_map(conn=conn, name=name)
-            if record is None or record.version != int(version):
-                msg = f"map {name!r} changed after merge event {event_id} was undone; it cannot be redone"
-                raise ConflictError(msg)
-            current[name] = record
-        archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
-        targets = [a for a in archives if a.role == "target"]
-        sources = [a for a in archives if a.role == "source"]
-        if len(targets) != 1 or len(sources) != 1:
-            msg = f"merge event {event_id} does not have one target and one source archive"
-            raise ConflictError(msg)
-        target, source = targets[0], sources[0]
+        current, target, source = _restored_maps_and_archives(conn, event_id, details.get("undo") or {}, event)
         match = match_from_dict(details["match"])
         shift = bool((details.get("record") or {}).get("lattice_shifted", True))
         t_params, s_params = params_from_dict(target.params), params_from_dict(source.params)
-        t_ids = RowIdentities.from_arrays(
-            target.template_session, target.template_index, target.experience_session, target.experience_index,
-            next_index_from_table(target.snapshot.get(ID_NEXT_KEY)),
-        )  # fmt: skip
-        s_ids = RowIdentities.from_arrays(
-            source.template_session, source.template_index, source.experience_session, source.experience_index,
-            next_index_from_table(source.snapshot.get(ID_NEXT_KEY)),
-        )  # fmt: skip
-        for ids, archived in ((t_ids, target), (s_ids, source)):
-            for sid, (nt, ne) in _index_maxima(conn, archived.session_ids).items():
-                ids.raise_next(sid, nt, ne)
-        extra: dict[str, np.ndarray] = {}
+        t_ids = _stored_identities(conn, target, target.snapshot, target.session_ids)
+        s_ids = _stored_identities(conn, source, source.snapshot, source.session_ids)
         if event.mode == "offline":
             engine, record = merge_snapshots(
                 StoredMap(target.map_name, t_params, target.snapshot),
                 StoredMap(source.map_name, s_params, source.snapshot), match, shift_lattice=shift,
             )  # fmt: skip
-            params = t_params
+            params, extra = t_params, {}
         else:
-            if s_params.frontend == "sdr-htm":
-                msg = ("an online merge of sdr-htm maps cannot be redone: its view cells were read by the stored "
-                       "map's cortex from the session's frames (unmerge keeps both maps; process the log again)")
-                raise MergeError(msg)
-            state, record = merge_states(target.snapshot, source.snapshot, match, shift_lattice=shift)
-            state.update(merged_template_places(target.snapshot, source.snapshot, record))
-            sid = int(details["session"])
-            engine = restore_merged(s_params, state, record, origin=sid)
-            engine.loop_closures = int(source.snapshot.get("eng_loop_closures", np.asarray(0)))
+            engine, record, extra = _redo_online(conn, details, target, source, match, shift, s_params, current)
             params = s_params
-            session = get_sessions(conn=conn, session_ids=[sid])[0]
-            if not session.complete:
-                state_after = MergerState(np.asarray(details.get("odometry", [0.0] * 4), dtype=np.float64))
-                version_after = current[details["host"]["name"]].version + 1
-                extra = merger_keys(state_after, session_id=sid, map_version=version_after, candidates=[])
         identities = RowIdentities.merged(t_ids, s_ids, record)
         host_name = details["host"]["name"]
         host = current[host_name]
@@ -691,6 +663,49 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
         update_merge_details(conn=conn, event_id=event_id, details=details)
         names = [s.name for s in get_sessions(conn=conn, session_ids=sessions)]
     return MergeOutcome(event_id, host_name, record, names)
+
+
+def _restored_maps_and_archives(
+    conn: Connection, event_id: int, undo: Mapping[str, Any], event: Any
+) -> tuple[dict[str, Any], ArchivedState, ArchivedState]:
+    """Return the maps the undo restored (name → row; refused if changed since) and the event's two archives."""
+    current: dict[str, Any] = {}
+    for name, version in undo.items():
+        record = find_map(conn=conn, name=name)
+        if record is None or record.version != int(version):
+            msg = f"map {name!r} changed after merge event {event_id} was undone; it cannot be redone"
+            raise ConflictError(msg)
+        current[name] = record
+    archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
+    targets = [a for a in archives if a.role == "target"]
+    sources = [a for a in archives if a.role == "source"]
+    if len(targets) != 1 or len(sources) != 1:
+        msg = f"merge event {event_id} does not have one target and one source archive"
+        raise ConflictError(msg)
+    return current, targets[0], sources[0]
+
+
+def _redo_online(
+    conn: Connection, details: Mapping[str, Any], target: ArchivedState, source: ArchivedState, match: Match,
+    shift: bool, s_params: Params, current: Mapping[str, Any],
+) -> tuple[Engine, MergeRecord, dict[str, np.ndarray]]:  # fmt: skip
+    """Return an online merge re-applied: the merged engine, its record and the merge driver's snapshot keys."""
+    if s_params.frontend == "sdr-htm":
+        msg = ("an online merge of sdr-htm maps cannot be redone: its view cells were read by the stored "
+               "map's cortex from the session's frames (unmerge keeps both maps; process the log again)")
+        raise MergeError(msg)
+    state, record = merge_states(target.snapshot, source.snapshot, match, shift_lattice=shift)
+    state.update(merged_template_places(target.snapshot, source.snapshot, record))
+    sid = int(details["session"])
+    engine = restore_merged(s_params, state, record, origin=sid)
+    engine.loop_closures = int(source.snapshot.get("eng_loop_closures", np.asarray(0)))
+    extra: dict[str, np.ndarray] = {}
+    session = get_sessions(conn=conn, session_ids=[sid])[0]
+    if not session.complete:
+        state_after = MergerState(np.asarray(details.get("odometry", [0.0] * 4), dtype=np.float64))
+        version_after = current[details["host"]["name"]].version + 1
+        extra = merger_keys(state_after, session_id=sid, map_version=version_after, candidates=[])
+    return engine, record, extra
 
 
 __all__ = [
