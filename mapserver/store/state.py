@@ -37,11 +37,11 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import Connection, bindparam, case, func, insert, or_, select, update
+from sqlalchemy import Connection, Update, bindparam, case, func, insert, or_, select, update
 
 from mapserver.errors import StoreError
 from mapserver.store.arrays import (
@@ -386,12 +386,19 @@ def _rewrite_reexpressed_templates(
                             "b_h": int(templates.shape[1]), "b_w": int(templates.shape[2])})  # fmt: skip
     if changed:
         conn.execute(
-            update(Template)
-            .where(Template.session_id == bindparam("b_s"), Template.origin_index == bindparam("b_i"))
-            .values(mean=bindparam("b_mean"), data=bindparam("b_data"), height=bindparam("b_h"),
-                    width=bindparam("b_w")),
+            _template_update(mean=bindparam("b_mean"), data=bindparam("b_data"), height=bindparam("b_h"),
+                             width=bindparam("b_w")),
             changed,
         )  # fmt: skip
+
+
+def _template_update(**values: Any) -> Update:
+    """Return an executemany UPDATE of template rows by identity (``b_s``, ``b_i``) setting ``values``."""
+    return (
+        update(Template)
+        .where(Template.session_id == bindparam("b_s"), Template.origin_index == bindparam("b_i"))
+        .values(**values)
+    )
 
 
 def _sync_templates(
@@ -400,23 +407,7 @@ def _sync_templates(
     """Make the map's template rows match the snapshot (insert new, renumber moved, detach dropped)."""
     n, h, w = templates.shape
     keys = _pair_keys(sessions, indices)
-    unique_sessions = np.unique(sessions).tolist()
-    where = Template.map_id == map_id
-    if unique_sessions:
-        where = or_(where, Template.session_id.in_(unique_sessions))
-    rows = conn.execute(
-        select(
-            Template.session_id,
-            Template.origin_index,
-            func.coalesce(Template.map_id, -1),
-            func.coalesce(Template.local_id, -1),
-            Template.height,
-            Template.width,
-            Template.mean,
-        ).where(where)
-    ).all()
-    existing = np.array([r[:6] for r in rows], dtype=np.int64).reshape(-1, 6)
-    existing_mean = np.array([r[6] for r in rows], dtype=np.float64)
+    existing, existing_mean = _stored_template_rows(conn, map_id, sessions)
     ekeys = _pair_keys(existing[:, 0], existing[:, 1])
     found = np.zeros(n, dtype=bool)
     e_map = np.full(n, -1, dtype=np.int64)
@@ -443,31 +434,61 @@ def _sync_templates(
             f"{int(e_map[i])}; drop or archive that map first"
         )
         raise OwnershipError(msg)
-    local = np.arange(n, dtype=np.int64)
-    move = found & ~((e_map == map_id) & (e_local == local))
+    move = found & ~((e_map == map_id) & (e_local == np.arange(n, dtype=np.int64)))
     dropped = (existing[:, 2] == map_id) & ~np.isin(ekeys, keys)
-    detach = [(int(s), int(i)) for s, i in existing[dropped, :2].tolist()]
-    detach += [(int(sessions[i]), int(indices[i])) for i in np.flatnonzero(move & (e_map == map_id)).tolist()]
+    _detach_and_move_templates(conn, map_id, sessions, indices, existing[dropped, :2], move, move & (e_map == map_id))
+    _insert_templates(conn, map_id, templates, means, sessions, indices, np.flatnonzero(~found))
+
+
+def _stored_template_rows(conn: Connection, map_id: int, sessions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the stored template rows of the map or of ``sessions``: (R, 6) identity/placement/shape, (R,) means."""
+    unique_sessions = np.unique(sessions).tolist()
+    where = Template.map_id == map_id
+    if unique_sessions:
+        where = or_(where, Template.session_id.in_(unique_sessions))
+    rows = conn.execute(
+        select(
+            Template.session_id,
+            Template.origin_index,
+            func.coalesce(Template.map_id, -1),
+            func.coalesce(Template.local_id, -1),
+            Template.height,
+            Template.width,
+            Template.mean,
+        ).where(where)
+    ).all()
+    existing = np.array([r[:6] for r in rows], dtype=np.int64).reshape(-1, 6)
+    existing_mean = np.array([r[6] for r in rows], dtype=np.float64)
+    return existing, existing_mean
+
+
+def _detach_and_move_templates(
+    conn: Connection, map_id: int, sessions: np.ndarray, indices: np.ndarray, dropped: np.ndarray,
+    move: np.ndarray, moved_here: np.ndarray,
+) -> None:  # fmt: skip
+    """Detach the map's dropped rows (and its own moved ones), then place moved rows at their new local ids."""
+    detach = [(int(s), int(i)) for s, i in dropped.tolist()]
+    detach += [(int(sessions[i]), int(indices[i])) for i in np.flatnonzero(moved_here).tolist()]
     if detach:
-        conn.execute(
-            update(Template)
-            .where(Template.session_id == bindparam("b_s"), Template.origin_index == bindparam("b_i"))
-            .values(map_id=None, local_id=None),
-            [{"b_s": s, "b_i": i} for s, i in detach],
-        )
+        conn.execute(_template_update(map_id=None, local_id=None), [{"b_s": s, "b_i": i} for s, i in detach])
     moved = np.flatnonzero(move)
     if moved.size:
         conn.execute(
-            update(Template)
-            .where(Template.session_id == bindparam("b_s"), Template.origin_index == bindparam("b_i"))
-            .values(map_id=bindparam("b_m"), local_id=bindparam("b_l")),
+            _template_update(map_id=bindparam("b_m"), local_id=bindparam("b_l")),
             [
                 {"b_s": int(sessions[i]), "b_i": int(indices[i]), "b_m": map_id, "b_l": int(i)}
                 for i in moved.tolist()
             ],
         )
-    new = np.flatnonzero(~found)
+
+
+def _insert_templates(
+    conn: Connection, map_id: int, templates: np.ndarray, means: np.ndarray, sessions: np.ndarray,
+    indices: np.ndarray, new: np.ndarray,
+) -> None:  # fmt: skip
+    """Insert the snapshot's templates ``new`` (rows not stored yet) into the map."""
     if new.size:
+        _n, h, w = templates.shape
         data = np.ascontiguousarray(templates, dtype="<f4")
         mean_list = means.astype(np.float64).tolist()
         sess_list = sessions.tolist()
@@ -688,6 +709,30 @@ def write_map_state(
     version = claim_map(conn=conn, map_id=map_id, expected_version=expected_version)
     shapes = _check_snapshot(snapshot)
     ids = [int(s) for s in session_ids]
+    rows = _snapshot_identities(conn, map_id, snapshot, ids, origins, template_index, experience_index)
+    _replace_rows(conn, map_id, snapshot, shapes, params, rows)
+    _write_state_row(conn, map_id, snapshot, shapes, params)
+    conn.execute(update(Map).where(Map.id == map_id).values(params=plain_params(params)))
+    conn.execute(update(Session).where(Session.map_id == map_id, Session.id.not_in(ids)).values(map_id=None))
+    if ids:
+        conn.execute(update(Session).where(Session.id.in_(ids)).values(map_id=map_id))
+    return WriteResult(map_id, version, *rows)
+
+
+class _SnapshotIdentities(NamedTuple):
+    """The stable identity (session, index) of every template and experience row of a snapshot."""
+
+    template_sessions: npt.NDArray[np.int64]
+    template_index: npt.NDArray[np.int64]
+    experience_sessions: npt.NDArray[np.int64]
+    experience_index: npt.NDArray[np.int64]
+
+
+def _snapshot_identities(
+    conn: Connection, map_id: int, snapshot: Mapping[str, Any], ids: list[int], origins: Mapping[int, int] | None,
+    template_index: npt.ArrayLike | None, experience_index: npt.ArrayLike | None,
+) -> _SnapshotIdentities:  # fmt: skip
+    """Return the snapshot rows' identities, refusing tags, sessions and owners the map cannot take."""
     tag_map = dict(origins) if origins is not None else {s: s for s in ids}
     unknown = sorted(set(tag_map.values()) - set(ids))
     if unknown:
@@ -699,31 +744,23 @@ def write_map_state(
     _check_session_owners(conn, map_id, np.union1d(template_sessions, experience_sessions))
     t_index = _identities(conn, Template, map_id, template_sessions, template_index, "templates")
     e_index = _identities(conn, Experience, map_id, experience_sessions, experience_index, "experiences")
+    return _SnapshotIdentities(template_sessions, t_index, experience_sessions, e_index)
 
+
+def _replace_rows(
+    conn: Connection, map_id: int, snapshot: Mapping[str, Any], shapes: _Shapes, params: Any, rows: _SnapshotIdentities
+) -> None:
+    """Rewrite the map's experience, link and pose-cell link rows and sync its template rows to the snapshot."""
     for table in (Link, PoseCellLink, Experience):
         conn.execute(table.__table__.delete().where(table.map_id == map_id))
-    _check_experience_owners(conn, map_id, experience_sessions, e_index)
+    _check_experience_owners(conn, map_id, rows.experience_sessions, rows.experience_index)
+    templates, means = np.asarray(snapshot["lv_templates"]), np.asarray(snapshot["lv_means"])
     if _frontend(params) == "sdr-htm":
-        _rewrite_reexpressed_templates(
-            conn, np.asarray(snapshot["lv_templates"]), np.asarray(snapshot["lv_means"]), template_sessions, t_index
-        )
-    _sync_templates(
-        conn,
-        map_id,
-        np.asarray(snapshot["lv_templates"]),
-        np.asarray(snapshot["lv_means"]),
-        template_sessions,
-        t_index,
-    )
+        _rewrite_reexpressed_templates(conn, templates, means, rows.template_sessions, rows.template_index)
+    _sync_templates(conn, map_id, templates, means, rows.template_sessions, rows.template_index)
     _insert_pose_cell_links(conn, map_id, snapshot, shapes.rank)
-    _insert_experiences(conn, map_id, snapshot, shapes.rank, experience_sessions, e_index)
+    _insert_experiences(conn, map_id, snapshot, shapes.rank, rows.experience_sessions, rows.experience_index)
     _insert_links(conn, map_id, snapshot)
-    _write_state_row(conn, map_id, snapshot, shapes, params)
-    conn.execute(update(Map).where(Map.id == map_id).values(params=plain_params(params)))
-    conn.execute(update(Session).where(Session.map_id == map_id, Session.id.not_in(ids)).values(map_id=None))
-    if ids:
-        conn.execute(update(Session).where(Session.id.in_(ids)).values(map_id=map_id))
-    return WriteResult(map_id, version, template_sessions, t_index, experience_sessions, e_index)
 
 
 def _check_sessions_exist(conn: Connection, ids: Sequence[int]) -> None:
