@@ -221,14 +221,14 @@ def _process_session(
     if complete:
         engine.settle()
     ids.extend(engine.template_count, engine.experience_count, tag)
-    return _store_session(
-        db, log_path, params, identity, opts,
+    progress = _Progress(processed, total, live.stamps, np.concatenate([read.rows, reckoning.array()]),
+                         tuple(float(v) for v in reckoning.pose))  # fmt: skip
+    return _store_session(db, log_path, params, identity, opts, _RunOutcome(
         session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
-        merger=merger if not complete else None, candidates=candidates, processed=processed, total=total,
-        stamps=live.stamps, collector=live.collector, stored_rows=read.rows, reckoning=reckoning,
+        merger=merger if not complete else None, candidates=candidates, progress=progress, collector=live.collector,
         frames_run=run.frames, activations=(read.activations, live.activation_rows),
         relevance=(set() if merger is None else merger.observed, live.views),
-    )  # fmt: skip
+    ))  # fmt: skip
 
 
 @dataclass
@@ -339,88 +339,89 @@ def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, i
     return engine, RowIdentities(), NEW_SESSION_ORIGIN, 0, reckoning, None
 
 
+@dataclass(frozen=True)
+class _RunOutcome:
+    """What a run of the log leaves to store: the session and map it ran in, its engine, merges and records."""
+
+    session: Any  # the stored session it continued (None: a new session)
+    own: Any  # that session's map (mapserver.atlas.AtlasMap)
+    name: str  # the new map's name when the session joined none
+    engine: Engine
+    ids: Any  # row identities (mapserver.merge.identity.RowIdentities)
+    pending: list[Any]  # its merges, applied or rejected (mapserver.live.PendingMerge)
+    merger: Any  # the online merger whose state a resume needs (None: none, or the session is complete)
+    candidates: list[Any]  # the maps it was matched against (mapserver.atlas.AtlasMap)
+    progress: _Progress
+    collector: Any  # the evidence collector (mapserver.store.evidence.EvidenceCollector)
+    frames_run: int
+    activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
+    relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
+
+
 def _store_session(
-    db: Any,
-    log_path: str | Path,
-    params: Params,
-    identity: Mapping[str, Any],
-    opts: _Options,
-    *,
-    session: Any,
-    own: Any,
-    name: str,
-    engine: Engine,
-    ids: Any,
-    pending: list[Any],
-    merger: Any,
-    candidates: list[Any],
-    processed: int,
-    total: int,
-    stamps: list[float],
-    collector: Any,
-    stored_rows: np.ndarray,
-    reckoning: DeadReckoning,
-    frames_run: int,
-    activations: tuple[np.ndarray | None, Any],
-    relevance: tuple[set[object], Any],
+    db: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, run: _RunOutcome
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
     The steps: check that the candidate maps did not change (else :class:`StaleMapError`), write the
     session row (:func:`_write_session_row`), claim the maps and the host (:func:`_claim_host`), write the
     merged map with its merge events (applied and rejected), the session's evidence; then answer
-    (:func:`_answer`). ``activations``: the stored timeline (None when the session was stored before it
-    existed) and the live session's ``activation_rows``.
+    (:func:`_answer`).
     """
     from mapserver import atlas
-    from mapserver.live import merge_to_write
     from mapserver.merge.resume import merger_keys
     from mapserver.store import evidence as evidence_store
     from mapserver.store import get_map_by_id, lock_atlas
     from mapserver.store.db import commit_gate
     from mapserver.store.sessions import get_sessions
 
-    snapshot = engine.snapshot()
-    images = collector.finish()
-    rows = np.concatenate([stored_rows, reckoning.array()])
-    progress = _Progress(processed, total, stamps, rows, tuple(float(v) for v in reckoning.pose))
+    snapshot = run.engine.snapshot()
+    images = run.collector.finish()
+    progress = run.progress
     with commit_gate(db), db.write() as conn:
         if opts.merge:
             lock_atlas(conn=conn)
+            complete = progress.processed >= progress.total
             atlas.ensure_candidates_unchanged(
-                conn, params=params, exclude=None if own is None else own.id,
-                seen={c.id: c.version for c in candidates},
-                relevance=relevance if relevance[1] is not None and processed >= total else None,
+                conn, params=params, exclude=None if run.own is None else run.own.id,
+                seen={c.id: c.version for c in run.candidates},
+                relevance=run.relevance if run.relevance[1] is not None and complete else None,
             )  # fmt: skip
-        session_id = _write_session_row(conn, log_path, params, identity, session, progress, activations)
-        tags = {NEW_SESSION_ORIGIN: session_id} if session is None else {}
-        claimed, host_id, session_ids = _claim_host(conn, session_id, own, pending, name, params)
+        session_id = _write_session_row(conn, log_path, params, identity, run)
+        tags = {NEW_SESSION_ORIGIN: session_id} if run.session is None else {}
+        claimed, host_id, session_ids = _claim_host(conn, session_id, run, params)
         extra: dict[str, np.ndarray] = {}
-        if merger is not None:
-            expected = claimed[host_id] + 1  # the version this write gives the map
-            extra = merger_keys(
-                merger.export_state(), session_id=session_id, map_version=expected, candidates=candidates
-            )
-        frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
-        writes = [merge_to_write(m, pending, session_id, params, frames_now) for m in pending]
+        if run.merger is not None:  # the state a resume needs, for the version this write gives the map
+            extra = merger_keys(run.merger.export_state(), session_id=session_id, map_version=claimed[host_id] + 1,
+                                candidates=run.candidates)  # fmt: skip
+        applied, rejected = _merges_to_write(conn, run, session_id, params, session_ids)
         written = atlas.write_merges(
-            conn, merges=[w for w, m in zip(writes, pending, strict=True) if m.status == "applied"], claimed=claimed,
-            host_id=host_id, params=engine.params, snapshot=snapshot, identities=ids, tags=tags,
-            session_ids=session_ids, extra=extra,
+            conn, merges=applied, claimed=claimed, host_id=host_id, params=run.engine.params, snapshot=snapshot,
+            identities=run.ids, tags=tags, session_ids=session_ids, extra=extra,
         )  # fmt: skip
-        rejected = [w for w, m in zip(writes, pending, strict=True) if m.status == "rejected"]
         rejected_ids = atlas.write_rejected_merges(conn, merges=rejected, tags=tags)
-        e_session, e_index = ids.retagged(tags).experience_arrays()
+        e_session, e_index = run.ids.retagged(tags).experience_arrays()
         mine = set(e_index[e_session == session_id].tolist())
         items = [(img.experience, img) for img in images if img.experience in mine]
         evidence_store.save_evidence(conn=conn, session_id=session_id, items=items)
         map_record = get_map_by_id(conn=conn, map_id=host_id)
         sessions_now = get_sessions(conn=conn, session_ids=list(session_ids))
-    applied_writes = [w for w, m in zip(writes, pending, strict=True) if m.status == "applied"]
-    merges = [atlas.merge_summary(e, w, w.host_name) for e, w in zip(written.event_ids, applied_writes, strict=True)]
+    merges = [atlas.merge_summary(e, w, w.host_name) for e, w in zip(written.event_ids, applied, strict=True)]
     merges += [atlas.merge_summary(e, w, w.host_name) for e, w in zip(rejected_ids, rejected, strict=True)]
-    return _answer(opts, engine, snapshot, written.result, sessions_now, progress, merges, session_id,
-                   map_record.name, frames_run)  # fmt: skip
+    return _answer(opts, run, snapshot, written.result, sessions_now, merges, session_id, map_record.name)
+
+
+def _merges_to_write(
+    conn: Any, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
+) -> tuple[list[Any], list[Any]]:
+    """Return the session's applied and rejected merges as the store writes them (with every session's frames)."""
+    from mapserver.live import merge_to_write
+    from mapserver.store.sessions import get_sessions
+
+    frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
+    writes = [merge_to_write(m, run.pending, session_id, params, frames_now) for m in run.pending]
+    pairs = list(zip(writes, run.pending, strict=True))
+    return [w for w, m in pairs if m.status == "applied"], [w for w, m in pairs if m.status == "rejected"]
 
 
 @dataclass(frozen=True)
@@ -440,14 +441,13 @@ class _Progress:
 
 
 def _write_session_row(
-    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], session: Any, progress: _Progress,
-    activations: tuple[np.ndarray | None, Any],
-) -> int:  # fmt: skip
+    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome
+) -> int:
     """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
     from mapserver.store.sessions import NewSession, create_session, set_activations, update_session
     from mapserver.store.state import plain_params
 
-    stamps = progress.stamps
+    session, progress, stamps = run.session, run.progress, run.progress.stamps
     if session is not None:
         session_id = int(session.id)
         update_session(
@@ -467,16 +467,14 @@ def _write_session_row(
             ),
         )  # fmt: skip
         session_id = int(created.id)
-    stored, live = activations
+    stored, live = run.activations
     if stored is not None:
         set_activations(conn=conn, session_id=session_id,
                         rows=np.concatenate([stored, live({NEW_SESSION_ORIGIN: session_id})]))  # fmt: skip
     return session_id
 
 
-def _claim_host(
-    conn: Any, session_id: int, own: Any, pending: list[Any], name: str, params: Params
-) -> tuple[dict[int, int], int, list[int]]:
+def _claim_host(conn: Any, session_id: int, run: _RunOutcome, params: Params) -> tuple[dict[int, int], int, list[int]]:
     """Return the maps this write claims (id → version read), the host map and the map's sessions.
 
     The host is the oldest map involved; a new map (named ``name``) when the session joined none.
@@ -484,13 +482,14 @@ def _claim_host(
     from mapserver.store.maps import create_map
     from mapserver.store.state import plain_params
 
+    own = run.own
     claimed: dict[int, int] = {} if own is None else {own.id: own.version}
-    applied = [m for m in pending if m.status == "applied"]
+    applied = [m for m in run.pending if m.status == "applied"]
     claimed.update({m.target.id: m.target.version for m in applied})
     if claimed:
         host_id = min(claimed)
     else:
-        host_id = create_map(conn=conn, name=name, params=plain_params(params)).id
+        host_id = create_map(conn=conn, name=run.name, params=plain_params(params)).id
         claimed = {host_id: 0}
     session_ids = sorted({session_id, *(own.session_ids if own is not None else [])}
                          | {s for m in applied for s in m.target.session_ids})  # fmt: skip
@@ -498,12 +497,13 @@ def _claim_host(
 
 
 def _answer(
-    opts: _Options, engine: Engine, snapshot: Mapping[str, np.ndarray], result: Any, sessions_now: list[Any],
-    progress: _Progress, merges: list[dict[str, Any]], session_id: int, map_name: str, frames_run: int,
+    opts: _Options, run: _RunOutcome, snapshot: Mapping[str, np.ndarray], result: Any, sessions_now: list[Any],
+    merges: list[dict[str, Any]], session_id: int, map_name: str,
 ) -> ProcessResult:  # fmt: skip
     """Log the merges, write the map JSON when asked (``--out``) and return the summary."""
     from mapserver.store.state import plain_params
 
+    engine, progress = run.engine, run.progress
     for entry in merges:
         logger.info("merged into map %r at frame %s (event %d)", entry["into"], entry["frame"], entry["event"])
     document = None
@@ -521,7 +521,7 @@ def _answer(
         frames=progress.processed, templates=engine.template_count, experiences=engine.experience_count,
         links=int(snapshot["em_link_from"].shape[0]), loop_closures=engine.loop_closures, map_name=map_name,
         seconds=time.perf_counter() - opts.started, merges=merges, session_id=session_id, engine=engine,
-        document=document, frames_run=frames_run,
+        document=document, frames_run=run.frames_run,
     )  # fmt: skip
 
 
