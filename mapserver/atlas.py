@@ -281,23 +281,23 @@ def _uid(sessions: np.ndarray, indices: np.ndarray, row: int) -> list[int]:
     return [int(sessions[row]), int(indices[row])]
 
 
+def _identified_rows(
+    mapping: np.ndarray, offset: int, target: tuple[np.ndarray, np.ndarray], source: tuple[np.ndarray, np.ndarray]
+) -> list[dict[str, Any]]:
+    """Return the source rows a merge identified with target rows (``mapping[z] < offset``), with their uids."""
+    return [
+        {"target": int(mapping[z]), "source": int(z), "target_uid": _uid(*target, int(mapping[z])),
+         "source_uid": _uid(*source, int(z))}
+        for z in np.flatnonzero(mapping < offset).tolist()
+    ]  # fmt: skip
+
+
 def matches_json(target: AtlasMap, partial_ids: RowIdentities, record: MergeRecord) -> dict[str, Any]:
     """Return the event's ``matches``: identified template and experience pairs with stable identities."""
-    lt_s, lt_i = target.identities.template_arrays()
-    le_s, le_i = target.identities.experience_arrays()
-    pt_s, pt_i = partial_ids.template_arrays()
-    pe_s, pe_i = partial_ids.experience_arrays()
-    tmap, emap = np.asarray(record.template_map), np.asarray(record.experience_map)
-    templates = [
-        {"target": int(tmap[z]), "source": int(z), "target_uid": _uid(lt_s, lt_i, int(tmap[z])),
-         "source_uid": _uid(pt_s, pt_i, int(z))}
-        for z in np.flatnonzero(tmap < record.template_offset).tolist()
-    ]  # fmt: skip
-    experiences = [
-        {"target": int(emap[e]), "source": int(e), "target_uid": _uid(le_s, le_i, int(emap[e])),
-         "source_uid": _uid(pe_s, pe_i, int(e))}
-        for e in np.flatnonzero(emap < record.experience_offset).tolist()
-    ]  # fmt: skip
+    templates = _identified_rows(np.asarray(record.template_map), record.template_offset,
+                                 target.identities.template_arrays(), partial_ids.template_arrays())  # fmt: skip
+    experiences = _identified_rows(np.asarray(record.experience_map), record.experience_offset,
+                                   target.identities.experience_arrays(), partial_ids.experience_arrays())  # fmt: skip
     return {
         "anchor": {"target_template": record.stored_template, "target_experience": record.stored_experience,
                    "source_template": record.partial_template},
@@ -354,12 +354,10 @@ def write_merges(
     for map_id in sorted(versions):
         drop_map(conn=conn, map_id=map_id)
     state = {**dict(snapshot), ID_NEXT_KEY: identities.retagged(tags).next_table(), **dict(extra or {})}
-    t_index = identities.template_arrays()[1]
-    e_index = identities.experience_arrays()[1]
     result = write_map_state(  # claims the host: a concurrent writer there → StaleMapError, nothing written
         conn=conn, map_id=host_id, expected_version=claimed[host_id], params=params, snapshot=state,
         session_ids=list(session_ids), origins={**{s: s for s in session_ids}, **dict(tags)},
-        template_index=t_index, experience_index=e_index,
+        template_index=identities.template_arrays()[1], experience_index=identities.experience_arrays()[1],
     )  # fmt: skip
     for merge, event_id in zip(merges, event_ids, strict=True):
         _archive_partial_from_memory(conn, merge.partial, event_id, tags, host_id)
