@@ -1,9 +1,9 @@
-"""Merges in the store: reading merge candidates, writing a merge with its provenance, undo, redo, offline merge.
+"""Merges in the store: reading merge candidates, writing a merge with its provenance, offline merge.
 
 The glue between :mod:`mapserver.merge` (pure merging of engine states) and :mod:`mapserver.store`
 (rows, archives, merge events). ``pipeline.process_into_store`` writes the merges a session makes
-online through :func:`write_merges`; ``mapserver merge`` calls :func:`merge_stored_maps` and
-:func:`redo_merge`; ``mapserver unmerge`` calls :func:`unmerge`.
+online through :func:`write_merges`; ``mapserver merge`` calls :func:`merge_stored_maps`; undo and redo
+(``mapserver unmerge``, ``mapserver merge --redo``) are :mod:`mapserver.undo`.
 
 One merge event, in one write transaction (docs/architecture.md, "Merge", "Unmerge"): every stored
 map involved is claimed at the version it was read (a concurrent writer → ``StaleMapError``, nothing
@@ -34,28 +34,22 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection, func, select
 
-from core import Engine, Params, params_from_dict
-from mapserver.errors import ConflictError, InputError, MergeError
-from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots, merge_states, restore_merged
+from core import Params, params_from_dict
+from mapserver.errors import InputError, MergeError
+from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots
 from mapserver.merge.identity import RowIdentities, next_index_from_table
 from mapserver.merge.offline_evidence import confirmed_offline_match
-from mapserver.merge.places import merged_template_places
-from mapserver.merge.provenance import match_from_dict, match_to_dict, record_summary, transform7
+from mapserver.merge.provenance import match_to_dict, record_summary, transform7
 from mapserver.merge.relevance import ViewLog
-from mapserver.merge.resume import MergerState, merger_keys
 from mapserver.merge.snapshot import params_incompatibility
-from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, find_map, get_map
-from mapserver.store.archive import ArchivedState, archive_map_state, archive_state, load_archive, restore_map_states
+from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, get_map
+from mapserver.store.archive import archive_map_state, archive_state
 from mapserver.store.merge_events import (
     MergeEventSpec,
-    get_merge_event,
-    list_merge_events,
     record_merge_event,
-    set_merge_status,
-    update_merge_details,
 )
 from mapserver.store.models import Evidence, Experience, Map, Template
-from mapserver.store.sessions import get_reckoning, get_sessions, sessions_of_map, update_session
+from mapserver.store.sessions import get_sessions, sessions_of_map
 from mapserver.store.state import WriteResult, read_map_state, read_map_templates, write_map_state
 
 logger = logging.getLogger(__name__)
@@ -101,7 +95,7 @@ def _index_maxima(conn: Connection, session_ids: Sequence[int]) -> dict[int, tup
     return {k: (v[0], v[1]) for k, v in out.items()}
 
 
-def _stored_identities(
+def stored_identities(
     conn: Connection, rows: Any, snapshot: Mapping[str, np.ndarray], session_ids: Sequence[int]
 ) -> RowIdentities:
     """Return stored rows' identities, next indices raised past every index their sessions ever used."""
@@ -119,7 +113,7 @@ def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
     content = read_map_state(conn=conn, map_id=map_id)
     meta = content.meta
     session_ids = [s.id for s in meta.sessions]
-    identities = _stored_identities(conn, meta, content.snapshot, session_ids)
+    identities = stored_identities(conn, meta, content.snapshot, session_ids)
     return AtlasMap(
         id=meta.map.id,
         name=meta.map.name,
@@ -306,7 +300,7 @@ def matches_json(target: AtlasMap, partial_ids: RowIdentities, record: MergeReco
     }  # fmt: skip
 
 
-def _claim_all(conn: Connection, claimed: Mapping[int, int]) -> dict[int, int]:
+def claim_all(conn: Connection, claimed: Mapping[int, int]) -> dict[int, int]:
     """Claim every map at the version it was read; return the new versions (a vanished map is stale)."""
     out: dict[int, int] = {}
     for map_id, version in sorted(claimed.items()):
@@ -348,7 +342,7 @@ def write_merges(
     Raises:
         StaleMapError: a map changed or vanished since it was read (nothing is written).
     """
-    versions = _claim_all(conn, {k: v for k, v in claimed.items() if k != host_id})
+    versions = claim_all(conn, {k: v for k, v in claimed.items() if k != host_id})
     host = get_map_by_id_or_stale(conn, host_id)
     event_ids = [_record_applied_event(conn, merge, tags) for merge in merges]
     for map_id in sorted(versions):
@@ -522,204 +516,19 @@ def merge_stored_maps(
     return MergeOutcome(written.event_ids[0], written.host_name, record)
 
 
-# ------------------------------------------------------------------------------------------------ undo / redo
-
-
-@dataclass(frozen=True)
-class UnmergeOutcome:
-    """What an unmerge restored."""
-
-    event_id: int
-    maps: list[str]
-    session_rewound: str | None = None
-    frames: int | None = None
-
-
-def _event_sessions(event: Any) -> set[int]:
-    return {int(s) for s in event.sessions}
-
-
-def unmerge(db: Database, *, event_id: int) -> UnmergeOutcome:
-    """Undo a merge event: every map involved is restored exactly as it was before it (one transaction).
-
-    A session whose frames after the merge lived in the merged map (an online merge) is set back to
-    the merge frame: processing its log again continues it from there (with or without merging).
-
-    Raises:
-        NotFoundError: no such event.
-        ConflictError: the event is not applied, a later applied event involves its sessions (undo that
-            first), or the maps changed after it in a way an undo would lose (a session processed further,
-            another session joined, a map of the same name created).
-    """
-    with db.write() as conn:
-        event = get_merge_event(conn=conn, event_id=event_id)
-        if event.status != "applied":
-            msg = f"merge event {event_id} is {event.status} already"
-            raise ConflictError(msg)
-        mine = _event_sessions(event)
-        later = [e.id for e in list_merge_events(conn=conn) if e.id > event.id and e.status == "applied"
-                 and _event_sessions(e) & mine]  # fmt: skip
-        if later:
-            msg = (
-                f"merge event {later[-1]} (later) involves the same sessions; undo it first "
-                f"(mapserver unmerge --event {later[-1]}), newest first"
-            )
-            raise ConflictError(msg)
-        details = dict(event.details or {})
-        archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
-        if not archives:
-            msg = f"merge event {event_id} has no archived states to restore"
-            raise ConflictError(msg)
-        frames = {int(k): int(v) for k, v in (details.get("session_frames") or {}).items()}
-        for name in sorted({a.map_name for a in archives} | {event.map_name}):
-            record = find_map(conn=conn, name=name)
-            if record is None:
-                continue
-            held = {s.id: s for s in sessions_of_map(conn=conn, map_id=record.id)}
-            strangers = sorted(s.name for sid, s in held.items() if sid not in mine)
-            if strangers:
-                msg = (
-                    f"map {name!r} now holds session(s) {', '.join(map(repr, strangers))} that joined after merge "
-                    f"event {event_id}; an unmerge would drop them"
-                )
-                raise ConflictError(msg)
-            ahead = sorted(s.name for sid, s in held.items() if sid in frames and s.frames_processed > frames[sid])
-            if ahead:
-                msg = (
-                    f"session(s) {', '.join(map(repr, ahead))} of map {name!r} were processed further after merge "
-                    f"event {event_id}; an unmerge would lose those frames"
-                )
-                raise ConflictError(msg)
-        restored = restore_map_states(conn=conn, archive_ids=event.archive_ids)
-        rewound = None
-        at = details.get("frames_at")
-        sid = details.get("session")
-        if sid is not None and at is not None:
-            session = get_sessions(conn=conn, session_ids=[int(sid)])[0]
-            rows, _pose = get_reckoning(conn=conn, session_id=session.id)
-            pose = details.get("reckoning_pose")
-            update_session(
-                conn=conn, session_id=session.id, status="partial", frames_processed=int(at),
-                last_stamp=float(details["stamp"]), reckoning=rows[: int(at)],
-                reckoning_pose=None if pose is None else tuple(float(v) for v in pose),  # type: ignore[arg-type]
-            )  # fmt: skip
-            rewound = session.name
-        set_merge_status(conn=conn, event_id=event_id, status="undone")
-        details["undo"] = {a.map_name: r.version for a, r in zip(archives, restored, strict=True)}
-        update_merge_details(conn=conn, event_id=event_id, details=details)
-    return UnmergeOutcome(event_id, [a.map_name for a in archives], rewound, None if at is None else int(at))
-
-
-def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
-    """Re-apply an undone merge event: its recorded match on its archived states, written as the original was.
-
-    The result equals the original merge bit for bit (``merge_states`` is deterministic). For an online
-    merge the session stays at the merge frame; processing its log again continues it in the merged map
-    exactly as the original run did.
-
-    Raises:
-        NotFoundError: no such event.
-        ConflictError: the event is not undone, or its maps changed since the unmerge.
-    """
-    with db.write() as conn:
-        event = get_merge_event(conn=conn, event_id=event_id)
-        if event.status != "undone":
-            msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
-            raise ConflictError(msg)
-        details = dict(event.details or {})
-        current, target, source = _restored_maps_and_archives(conn, event_id, details.get("undo") or {}, event)
-        match = match_from_dict(details["match"])
-        shift = bool((details.get("record") or {}).get("lattice_shifted", True))
-        t_params, s_params = params_from_dict(target.params), params_from_dict(source.params)
-        t_ids = _stored_identities(conn, target, target.snapshot, target.session_ids)
-        s_ids = _stored_identities(conn, source, source.snapshot, source.session_ids)
-        if event.mode == "offline":
-            engine, record = merge_snapshots(
-                StoredMap(target.map_name, t_params, target.snapshot),
-                StoredMap(source.map_name, s_params, source.snapshot), match, shift_lattice=shift,
-            )  # fmt: skip
-            params, extra = t_params, {}
-        else:
-            engine, record, extra = _redo_online(conn, details, target, source, match, shift, s_params, current)
-            params = s_params
-        identities = RowIdentities.merged(t_ids, s_ids, record)
-        host_name = details["host"]["name"]
-        host = current[host_name]
-        versions = _claim_all(conn, {r.id: r.version for r in current.values() if r.id != host.id})
-        for map_id in sorted(versions):
-            drop_map(conn=conn, map_id=map_id)
-        sessions = sorted(set(target.session_ids) | set(source.session_ids))
-        state_out = {**engine.snapshot(), ID_NEXT_KEY: identities.next_table(), **extra}
-        result = write_map_state(
-            conn=conn, map_id=host.id, expected_version=host.version, params=params, snapshot=state_out,
-            session_ids=sessions, template_index=identities.template_arrays()[1],
-            experience_index=identities.experience_arrays()[1],
-        )  # fmt: skip
-        set_merge_status(conn=conn, event_id=event_id, status="applied")
-        details.pop("undo", None)
-        details["host"] = {**details["host"], "map_id": result.map_id}
-        update_merge_details(conn=conn, event_id=event_id, details=details)
-        names = [s.name for s in get_sessions(conn=conn, session_ids=sessions)]
-    return MergeOutcome(event_id, host_name, record, names)
-
-
-def _restored_maps_and_archives(
-    conn: Connection, event_id: int, undo: Mapping[str, Any], event: Any
-) -> tuple[dict[str, Any], ArchivedState, ArchivedState]:
-    """Return the maps the undo restored (name → row; refused if changed since) and the event's two archives."""
-    current: dict[str, Any] = {}
-    for name, version in undo.items():
-        record = find_map(conn=conn, name=name)
-        if record is None or record.version != int(version):
-            msg = f"map {name!r} changed after merge event {event_id} was undone; it cannot be redone"
-            raise ConflictError(msg)
-        current[name] = record
-    archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
-    targets = [a for a in archives if a.role == "target"]
-    sources = [a for a in archives if a.role == "source"]
-    if len(targets) != 1 or len(sources) != 1:
-        msg = f"merge event {event_id} does not have one target and one source archive"
-        raise ConflictError(msg)
-    return current, targets[0], sources[0]
-
-
-def _redo_online(
-    conn: Connection, details: Mapping[str, Any], target: ArchivedState, source: ArchivedState, match: Match,
-    shift: bool, s_params: Params, current: Mapping[str, Any],
-) -> tuple[Engine, MergeRecord, dict[str, np.ndarray]]:  # fmt: skip
-    """Return an online merge re-applied: the merged engine, its record and the merge driver's snapshot keys."""
-    if s_params.frontend == "sdr-htm":
-        msg = ("an online merge of sdr-htm maps cannot be redone: its view cells were read by the stored "
-               "map's cortex from the session's frames (unmerge keeps both maps; process the log again)")
-        raise MergeError(msg)
-    state, record = merge_states(target.snapshot, source.snapshot, match, shift_lattice=shift)
-    state.update(merged_template_places(target.snapshot, source.snapshot, record))
-    sid = int(details["session"])
-    engine = restore_merged(s_params, state, record, origin=sid)
-    engine.loop_closures = int(source.snapshot.get("eng_loop_closures", np.asarray(0)))
-    extra: dict[str, np.ndarray] = {}
-    session = get_sessions(conn=conn, session_ids=[sid])[0]
-    if not session.complete:
-        state_after = MergerState(np.asarray(details.get("odometry", [0.0] * 4), dtype=np.float64))
-        version_after = current[details["host"]["name"]].version + 1
-        extra = merger_keys(state_after, session_id=sid, map_version=version_after, candidates=[])
-    return engine, record, extra
-
-
 __all__ = [
     "ID_NEXT_KEY",
     "AtlasMap",
     "MergeOutcome",
     "MergeToWrite",
     "PartialSide",
-    "UnmergeOutcome",
     "WrittenMerges",
+    "claim_all",
     "matches_json",
     "merge_candidates",
     "merge_stored_maps",
     "merge_summary",
     "read_atlas_map",
-    "redo_merge",
-    "unmerge",
+    "stored_identities",
     "write_merges",
 ]

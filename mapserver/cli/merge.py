@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from mapserver import atlas
+from mapserver import atlas, undo
 from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
 from mapserver.store import DEFAULT_DB_URL, open_database
@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
             msg = "--redo EVENT takes no --map, --into, --confirm or --merge-evidence (the event says what to merge)"
             raise InputError(msg)
         with open_database(args.db) as db:
-            outcome = atlas.redo_merge(db, event_id=args.redo)
+            outcome = undo.redo_merge(db, event_id=args.redo)
         info(f"merge event {outcome.event_id} applied again: map {outcome.map_name!r} ({', '.join(outcome.sessions)})")
     else:
         if not args.source or not args.into:

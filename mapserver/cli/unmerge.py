@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from mapserver import atlas
+from mapserver import undo
 from mapserver.cli._output import emit_json, info
 from mapserver.store import DEFAULT_DB_URL, open_database
 
@@ -21,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     """Undo the event and say what was restored."""
     with open_database(args.db) as db:
-        outcome = atlas.unmerge(db, event_id=args.event)
+        outcome = undo.unmerge(db, event_id=args.event)
     info(f"merge event {outcome.event_id} undone: restored map(s) {', '.join(map(repr, outcome.maps))}")
     if outcome.session_rewound is not None:
         info(
