@@ -353,51 +353,13 @@ def simulate_drive(
     t = np.arange(n) * dt
     true = traj.pose(t)
     twist = body_twist(true, dt)
-    if vehicle is None:
-        vehicle = VehicleErrors.draw(noise, rng)
-    m = twist.shape[0]
-    session = rng.normal(0.0, 1.0, 2)  # the session's own scale change and turn-on yaw-rate bias offset
-    scale = vehicle.scale_error + noise.session_scale_error * float(session[0])
-    yaw_bias = vehicle.yaw_bias + noise.session_yaw_bias * float(session[1])
-    walk = np.zeros(m)  # the session's yaw-rate bias random walk, from 0 at the start
-    if m > 1:
-        walk[1:] = np.cumsum(rng.normal(0.0, noise.session_yaw_walk * math.sqrt(dt), m - 1))
-    errors = {"scale_error": scale, "yaw_bias": yaw_bias, "vz_bias": vehicle.vz_bias}
-    moving = np.clip(np.abs(twist[:, 0]) / max(spec.speed, _SMALL), 0.0, 1.0)
-    measured = np.empty_like(twist)
-    measured[:, 0] = twist[:, 0] * (1.0 + scale) + moving * rng.normal(0.0, noise.speed_noise, m)
-    measured[:, 1] = twist[:, 1] * (1.0 + scale)
-    measured[:, 2] = twist[:, 2] + vehicle.vz_bias + rng.normal(0.0, 1.0, m) * noise.vz_noise
-    measured[:, 3] = twist[:, 3] + yaw_bias + walk + rng.normal(0.0, noise.yaw_noise, m)
-    if spec.depth is None:
-        measured[:, 2] = 0.0
+    errors, walk = _session_errors(noise, vehicle, twist.shape[0], dt, rng)
+    measured = _measured_twist(twist, spec, noise, errors, walk, rng)
     odom = integrate(measured, dt)
-    published = np.vstack([measured, np.zeros((1, 4))])  # the last message: at rest
     stamps = t0_ns + np.rint(t * 1e9).astype(np.int64)
-    odometry = [
-        OdomSample(int(stamps[k]), *(float(v) for v in odom[k]), *(float(v) for v in published[k]))
-        for k in range(n)
-    ]
-    ground_truth = [
-        PoseSample(
-            int(stamps[k]),
-            float(true[k, 0]),
-            float(true[k, 1]),
-            float(true[k, 2]),
-            0.0,
-            0.0,
-            math.sin(true[k, 3] / 2.0),
-            math.cos(true[k, 3] / 2.0),
-        )
-        for k in range(n)
-    ]
-    period = 1.0 / rates.camera_hz
-    n_frames = math.floor((t[-1] - rates.camera_offset_s) / period) + 1
-    frame_t = rates.camera_offset_s + np.arange(max(n_frames, 0)) * period
-    frame_stamps = t0_ns + np.rint(frame_t * 1e9).astype(np.int64)
-    session_gain = 1.0 + noise.gain * float(rng.normal())
-    drift = Smooth(rng, period=(30.0, 120.0))
-    gain = session_gain * (1.0 + 0.003 * drift.value(frame_t))
+    odometry = _odometry_messages(stamps, odom, measured)
+    ground_truth = _ground_truth_messages(stamps, true)
+    frame_t, frame_stamps, gain = _camera_frames(rates, noise, float(t[-1]), t0_ns, rng)
     return Drive(
         odometry=odometry,
         ground_truth=ground_truth,
@@ -408,3 +370,80 @@ def simulate_drive(
         odom_poses=odom,
         errors=errors,
     )
+
+
+def _session_errors(
+    noise: Noise, vehicle: VehicleErrors | None, m: int, dt: float, rng: np.random.Generator
+) -> tuple[dict[str, float], FloatArray]:
+    """Return the session's odometry errors (vehicle's plus session's own) and its (m,) yaw-rate bias walk."""
+    if vehicle is None:
+        vehicle = VehicleErrors.draw(noise, rng)
+    session = rng.normal(0.0, 1.0, 2)  # the session's own scale change and turn-on yaw-rate bias offset
+    scale = vehicle.scale_error + noise.session_scale_error * float(session[0])
+    yaw_bias = vehicle.yaw_bias + noise.session_yaw_bias * float(session[1])
+    walk = np.zeros(m)  # the session's yaw-rate bias random walk, from 0 at the start
+    if m > 1:
+        walk[1:] = np.cumsum(rng.normal(0.0, noise.session_yaw_walk * math.sqrt(dt), m - 1))
+    return {"scale_error": scale, "yaw_bias": yaw_bias, "vz_bias": vehicle.vz_bias}, walk
+
+
+def _measured_twist(
+    twist: FloatArray,
+    spec: DriveSpec,
+    noise: Noise,
+    errors: dict[str, float],
+    walk: FloatArray,
+    rng: np.random.Generator,
+) -> FloatArray:
+    """Return the (m, 4) twists (v, u, vz, w) the odometry publishes: the true ones with the session's errors."""
+    m = twist.shape[0]
+    scale, yaw_bias = errors["scale_error"], errors["yaw_bias"]
+    moving = np.clip(np.abs(twist[:, 0]) / max(spec.speed, _SMALL), 0.0, 1.0)
+    measured = np.empty_like(twist)
+    measured[:, 0] = twist[:, 0] * (1.0 + scale) + moving * rng.normal(0.0, noise.speed_noise, m)
+    measured[:, 1] = twist[:, 1] * (1.0 + scale)
+    measured[:, 2] = twist[:, 2] + errors["vz_bias"] + rng.normal(0.0, 1.0, m) * noise.vz_noise
+    measured[:, 3] = twist[:, 3] + yaw_bias + walk + rng.normal(0.0, noise.yaw_noise, m)
+    if spec.depth is None:
+        measured[:, 2] = 0.0
+    return measured
+
+
+def _odometry_messages(stamps: npt.NDArray[np.int64], odom: FloatArray, measured: FloatArray) -> list[OdomSample]:
+    """Return the odometry messages: integrated pose and published twist at each stamp (the last at rest)."""
+    published = np.vstack([measured, np.zeros((1, 4))])  # the last message: at rest
+    return [
+        OdomSample(int(stamps[k]), *(float(v) for v in odom[k]), *(float(v) for v in published[k]))
+        for k in range(len(stamps))
+    ]
+
+
+def _ground_truth_messages(stamps: npt.NDArray[np.int64], true: FloatArray) -> list[PoseSample]:
+    """Return the ground-truth messages: the true pose (yaw as a quaternion about z) at each stamp."""
+    return [
+        PoseSample(
+            int(stamps[k]),
+            float(true[k, 0]),
+            float(true[k, 1]),
+            float(true[k, 2]),
+            0.0,
+            0.0,
+            math.sin(true[k, 3] / 2.0),
+            math.cos(true[k, 3] / 2.0),
+        )
+        for k in range(len(stamps))
+    ]
+
+
+def _camera_frames(
+    rates: Rates, noise: Noise, end_s: float, t0_ns: int, rng: np.random.Generator
+) -> tuple[FloatArray, npt.NDArray[np.int64], FloatArray]:
+    """Return the camera frames up to session time ``end_s``: their session times, stamps and lighting gains."""
+    period = 1.0 / rates.camera_hz
+    n_frames = math.floor((end_s - rates.camera_offset_s) / period) + 1
+    frame_t = rates.camera_offset_s + np.arange(max(n_frames, 0)) * period
+    frame_stamps = t0_ns + np.rint(frame_t * 1e9).astype(np.int64)
+    session_gain = 1.0 + noise.gain * float(rng.normal())
+    drift = Smooth(rng, period=(30.0, 120.0))
+    gain = session_gain * (1.0 + 0.003 * drift.value(frame_t))
+    return frame_t, frame_stamps, gain
