@@ -299,40 +299,12 @@ def write_log(
         ValueError: unknown format or encoding, or ``directory`` with ``bag``.
 
     """
-    if image_encoding not in IMAGE_ENCODINGS:
-        msg = f"unsupported image encoding {image_encoding!r} (expected one of {IMAGE_ENCODINGS!r})"
-        raise ValueError(msg)
-    if gt_type not in _GT_TYPES:
-        msg = f"unknown ground-truth type {gt_type!r} (expected one of {sorted(_GT_TYPES)!r})"
-        raise ValueError(msg)
-    target = _target_path(Path(path), fmt, directory)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    temp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
-    options = _Options(
-        topics={
-            0: (odom_topic, "nav_msgs/msg/Odometry"),
-            1: (gt_topic, _GT_TYPES[gt_type]),
-            2: (image_topic, _image_type(image_encoding)),
-            3: (sonar_topic, "sensor_msgs/msg/Image"),
-        },
-        image_encoding=image_encoding,
-        gt_type=gt_type,
-        pose_only=pose_only_odometry,
+    options = _checked_options(
+        odom_topic, gt_topic, image_topic, sonar_topic, image_encoding, gt_type, pose_only_odometry
     )
+    target = _prepared_target(Path(path), fmt, directory)
     stream = _merged(images, odometry, ground_truth, sonar)
-    try:
-        if fmt == "bag":
-            _write_ros1(temp, stream, options)
-            built = temp
-        else:
-            _write_ros2(temp, fmt, stream, options)
-            built = temp if directory else temp / f"{temp.name}{SUFFIXES[fmt]}"
-        if target.exists() or target.is_symlink():
-            _remove(target)
-        os.replace(built, target)
-    finally:
-        if temp.exists() or temp.is_symlink():
-            _remove(temp)
+    _write_then_replace(target, fmt, directory, stream, options)
     return target
 
 
@@ -353,6 +325,66 @@ class _Options:
     image_encoding: ImageEncoding
     gt_type: GroundTruthType
     pose_only: bool
+
+
+def _checked_options(
+    odom_topic: str,
+    gt_topic: str,
+    image_topic: str,
+    sonar_topic: str,
+    image_encoding: ImageEncoding,
+    gt_type: GroundTruthType,
+    pose_only: bool,
+) -> _Options:
+    """Return the writer options (topic and type per stream kind) after checking the encoding and ground-truth type.
+
+    Raises:
+        ValueError: unknown image encoding or ground-truth type.
+    """
+    if image_encoding not in IMAGE_ENCODINGS:
+        msg = f"unsupported image encoding {image_encoding!r} (expected one of {IMAGE_ENCODINGS!r})"
+        raise ValueError(msg)
+    if gt_type not in _GT_TYPES:
+        msg = f"unknown ground-truth type {gt_type!r} (expected one of {sorted(_GT_TYPES)!r})"
+        raise ValueError(msg)
+    return _Options(
+        topics={
+            0: (odom_topic, "nav_msgs/msg/Odometry"),
+            1: (gt_topic, _GT_TYPES[gt_type]),
+            2: (image_topic, _image_type(image_encoding)),
+            3: (sonar_topic, "sensor_msgs/msg/Image"),
+        },
+        image_encoding=image_encoding,
+        gt_type=gt_type,
+        pose_only=pose_only,
+    )
+
+
+def _prepared_target(path: Path, fmt: LogFormat, directory: bool) -> Path:
+    """Return the path the log is written to, its parent directory created."""
+    target = _target_path(path, fmt, directory)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    return target
+
+
+def _write_then_replace(
+    target: Path, fmt: LogFormat, directory: bool, stream: Iterator[tuple[int, int, Any]], options: _Options
+) -> None:
+    """Write the log under a temporary name beside ``target``, then move it there (nothing is left on failure)."""
+    temp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
+    try:
+        if fmt == "bag":
+            _write_ros1(temp, stream, options)
+            built = temp
+        else:
+            _write_ros2(temp, fmt, stream, options)
+            built = temp if directory else temp / f"{temp.name}{SUFFIXES[fmt]}"
+        if target.exists() or target.is_symlink():
+            _remove(target)
+        os.replace(built, target)
+    finally:
+        if temp.exists() or temp.is_symlink():
+            _remove(temp)
 
 
 def _build(messages: _Messages, stamp: int, kind: int, item: Any, options: _Options) -> Any:
