@@ -156,13 +156,32 @@ def simulate(
         msg = f"unknown log format {fmt!r} (valid: {', '.join(SUFFIXES)})"
         raise InputError(msg)
     plan = plan_scenario(scenario, seed, scale=scale, params=params)
-    target = Path(out_dir)
+    target = _checked_target(Path(out_dir))
+    jobs, wanted = _session_jobs(plan, scenario, only)
+    drives = {index: simulate_session(plan, session, index, seed) for index, session in wanted}
+    tick = _frame_ticker(sum(len(d.frame_stamps_ns) for d in drives.values()), progress)
+    with _temporary_dir_beside(target) as temp:
+        entries = _write_sessions(temp, fmt, plan, jobs, wanted, drives, seed, tick)
+        document = _scenario_document(plan, entries, jobs, seed, fmt, scale)
+        (temp / SCENARIO_FILE).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+        _move_into(temp, target)
+    return document
+
+
+def _checked_target(target: Path) -> Path:
+    """Return the target directory (existing or not) after checking that it is not a file.
+
+    Raises:
+        InputError: ``target`` exists and is not a directory.
+    """
     if target.exists() and not target.is_dir():
         msg = f"--out {str(target)!r} exists and is not a directory"
         raise InputError(msg)
-    jobs, wanted = _session_jobs(plan, scenario, only)
-    drives = {index: simulate_session(plan, session, index, seed) for index, session in wanted}
-    total = sum(len(d.frame_stamps_ns) for d in drives.values())
+    return target
+
+
+def _frame_ticker(total: int, progress: ProgressCallback | None) -> Callable[[], None]:
+    """Return the per-frame callback that counts rendered frames and reports ``progress(done, total)``."""
     done = 0
 
     def tick() -> None:
@@ -171,22 +190,19 @@ def simulate(
         if progress is not None:
             progress(done, total)
 
+    return tick
+
+
+@contextlib.contextmanager
+def _temporary_dir_beside(target: Path) -> Iterator[Path]:
+    """Yield a fresh temporary directory beside ``target`` (its parent created); remove what is left of it on exit."""
     target.parent.mkdir(parents=True, exist_ok=True)
     temp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
     try:
-        entries: dict[int, dict[str, Any]] = {
-            index: {"name": session.name, "log": None, "ground_truth": None, **session.info}
-            for index, session in jobs
-        }
-        for index, session in wanted:
-            entries[index] = _write_session(temp, fmt, plan, session, (drives[index], seed, index), tick)
-        document = _scenario_document(plan, entries, jobs, seed, fmt, scale)
-        (temp / SCENARIO_FILE).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
-        _move_into(temp, target)
+        yield temp
     finally:
         with contextlib.suppress(FileNotFoundError):
             shutil.rmtree(temp)
-    return document
 
 
 def _session_jobs(
@@ -206,6 +222,28 @@ def _session_jobs(
             msg = f"unknown session(s) {', '.join(unknown)} for scenario {scenario!r}"
             raise InputError(msg)
     return jobs, [(i, s) for i, s in jobs if only is None or s.name in only]
+
+
+def _write_sessions(
+    temp: Path,
+    fmt: LogFormat,
+    plan: Plan,
+    jobs: list[tuple[int, SessionPlan]],
+    wanted: list[tuple[int, SessionPlan]],
+    drives: dict[int, Drive],
+    seed: int,
+    tick: Callable[[], None],
+) -> dict[int, dict[str, Any]]:
+    """Write the ``wanted`` sessions' logs into ``temp``; return every session's scenario.json entry by index.
+
+    The sessions of ``jobs`` not written get an entry with ``"log": null``.
+    """
+    entries: dict[int, dict[str, Any]] = {
+        index: {"name": session.name, "log": None, "ground_truth": None, **session.info} for index, session in jobs
+    }
+    for index, session in wanted:
+        entries[index] = _write_session(temp, fmt, plan, session, (drives[index], seed, index), tick)
+    return entries
 
 
 def _write_session(
