@@ -123,10 +123,56 @@ def archive_state(
         StoreError: the identities do not match the snapshot's sizes.
     """
     arrays = {key: np.asarray(value) for key, value in snapshot.items()}
+    templates = _snapshot_templates(arrays)
+    ids = _checked_identities(arrays, templates, template_session, template_index, experience_session, experience_index)
+    content = _archive_content(conn, arrays, templates, ids)
+    row = {
+        "event_id": event_id,
+        "role": role,
+        "map_id": map_id,
+        "map_name": map_name,
+        "map_version": map_version,
+        "params": plain_params(params),
+        "session_ids": [int(s) for s in session_ids],
+        "n_templates": int(templates.shape[0]),
+        "n_experiences": _n_experiences(arrays),
+        "n_links": int(np.asarray(arrays.get("em_link_from", np.zeros(0))).reshape(-1).shape[0]),
+        "state": pack_npz(content),
+    }
+    return int(conn.execute(insert(MapArchive).values(**row).returning(MapArchive.id)).scalar_one())
+
+
+def _snapshot_templates(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Return the snapshot's (N, ty, tx) templates.
+
+    Raises:
+        StoreError: the snapshot has no 3-D ``lv_templates``.
+    """
     templates = arrays.get("lv_templates")
     if templates is None or templates.ndim != 3:
         msg = "the snapshot to archive lacks float32 (N, ty, tx) lv_templates"
         raise StoreError(msg)
+    return templates
+
+
+def _n_experiences(arrays: Mapping[str, np.ndarray]) -> int:
+    """Return the number of experiences of a snapshot (rows of ``em_pose``; none without it)."""
+    return int(np.asarray(arrays.get("em_pose", np.zeros((0, 4)))).reshape(-1, 4).shape[0])
+
+
+def _checked_identities(
+    arrays: Mapping[str, np.ndarray],
+    templates: np.ndarray,
+    template_session: npt.ArrayLike,
+    template_index: npt.ArrayLike,
+    experience_session: npt.ArrayLike,
+    experience_index: npt.ArrayLike,
+) -> dict[str, npt.NDArray[np.int64]]:
+    """Return the templates' and experiences' identities as flat int64 arrays, keyed as in ``_IDENTITIES``.
+
+    Raises:
+        StoreError: the identities do not match the snapshot's sizes.
+    """
     ids = {
         "template_session": np.asarray(template_session, dtype=np.int64).reshape(-1),
         "template_index": np.asarray(template_index, dtype=np.int64).reshape(-1),
@@ -134,11 +180,22 @@ def archive_state(
         "experience_index": np.asarray(experience_index, dtype=np.int64).reshape(-1),
     }
     n = templates.shape[0]
-    e = np.asarray(arrays.get("em_pose", np.zeros((0, 4)))).reshape(-1, 4).shape[0]
+    e = _n_experiences(arrays)
     for key, value in ids.items():
         if value.shape[0] != (n if key.startswith("template") else e):
             msg = f"{key} has {value.shape[0]} entries for {n} templates and {e} experiences"
             raise StoreError(msg)
+    return ids
+
+
+def _archive_content(
+    conn: Connection,
+    arrays: Mapping[str, np.ndarray],
+    templates: np.ndarray,
+    ids: Mapping[str, npt.NDArray[np.int64]],
+) -> dict[str, np.ndarray]:
+    """Return the arrays the archive's npz holds: the snapshot with only unreferenced templates inline, and ids."""
+    n = templates.shape[0]
     means = np.asarray(arrays.get("lv_means", np.zeros(n)), dtype=np.float64).reshape(-1)
     referenced = _template_refs(conn, ids["template_session"], ids["template_index"], means, templates.shape[1:])
     content = {k: v for k, v in arrays.items() if k != "lv_templates"}
@@ -149,20 +206,7 @@ def archive_state(
     content[_META + "template_dtype"] = np.asarray(templates.dtype.str)
     for key, value in ids.items():
         content[_META + key] = value
-    row = {
-        "event_id": event_id,
-        "role": role,
-        "map_id": map_id,
-        "map_name": map_name,
-        "map_version": map_version,
-        "params": plain_params(params),
-        "session_ids": [int(s) for s in session_ids],
-        "n_templates": int(n),
-        "n_experiences": int(e),
-        "n_links": int(np.asarray(arrays.get("em_link_from", np.zeros(0))).reshape(-1).shape[0]),
-        "state": pack_npz(content),
-    }
-    return int(conn.execute(insert(MapArchive).values(**row).returning(MapArchive.id)).scalar_one())
+    return content
 
 
 def archive_map_state(
