@@ -181,7 +181,8 @@ def merge_states(
     lattice transform between the matched packets and the pose-cell links moved by it
     (:func:`_lattice_transform`, :func:`_merge_pose_cell_links`, corrected Eq. 10), (iv) experiences and
     their links under T (:func:`_merge_experiences`, :func:`_merge_links`, Eqs. 13–14 and 17), then the
-    robot's own state continues in the merged map (:func:`_robot_state`).
+    robot's own state continues in the merged map (:func:`_robot_state`); :func:`_merge_record` records
+    the merge.
 
     Args:
         loaded: snapshot of the loaded (stored) map; its ids are kept.
@@ -211,7 +212,26 @@ def merge_states(
     robot = _robot_state(partial, match, experiences)
     state = _merged_state(loaded, partial, match, dims, tmap, kept_t, templates, f, delta_u, pc_links,
                           experiences, links, robot)  # fmt: skip
-    record = MergeRecord(
+    return state, _merge_record(loaded, match, shift_lattice, tmap, f, experiences, links, state)
+
+
+def _four(values: np.ndarray) -> tuple[float, float, float, float]:
+    """Return a pose (4,) as a tuple of floats."""
+    return (float(values[0]), float(values[1]), float(values[2]), float(values[3]))
+
+
+def _merge_record(
+    loaded: State,
+    match: Match,
+    shift_lattice: bool,
+    tmap: np.ndarray,
+    f: LatticeTransform,
+    exp: _Experiences,
+    links: _Links,
+    state: dict[str, np.ndarray],
+) -> MergeRecord:
+    """Return the merge's record: the match, f and T (operations (ii)-(iv)), the id offsets and maps, the sizes."""
+    return MergeRecord(
         stored_template=match.stored_template,
         stored_experience=match.stored_experience,
         partial_template=match.partial_template,
@@ -223,23 +243,17 @@ def merge_states(
         lattice_offset=tuple(f.offset.tolist()),
         heading_offset_rad=f.heading_rad,
         lattice_shifted=shift_lattice,
-        transform=_four(experiences.T),
+        transform=_four(exp.T),
         template_offset=int(np.shape(loaded["lv_means"])[0]),
-        experience_offset=experiences.n_loaded,
+        experience_offset=exp.n_loaded,
         link_offset=links.n_loaded,
         template_map=tmap,
-        experience_map=experiences.emap,
+        experience_map=exp.emap,
         merge_links=links.merge_links.astype(np.int64),
         templates=int(state["lv_means"].shape[0]),
         experiences=int(state["em_pose"].shape[0]),
         links=int(state["em_link_from"].shape[0]),
     )
-    return state, record
-
-
-def _four(values: np.ndarray) -> tuple[float, float, float, float]:
-    """Return a pose (4,) as a tuple of floats."""
-    return (float(values[0]), float(values[1]), float(values[2]), float(values[3]))
 
 
 def _check_inputs(loaded: State, partial: State, match: Match) -> tuple[int, ...]:
