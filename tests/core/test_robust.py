@@ -555,3 +555,79 @@ def test_a_closure_turned_beyond_the_odometrys_heading_drift_is_still_gated() ->
     truth, src, dst, transform, kind, distance = _hairpin(0.03)
     args = (truth, src, dst, transform, distance, switchable(kind), link_length(distance, kind), DRIFT)
     assert robust.contradicts_odometry(*args).tolist() == (kind == 1).tolist()
+
+
+def _step_back_map(heading_error: float) -> tuple[ExperienceMap, np.ndarray]:
+    """A straight route of 1 m steps (experiences 0-12), a false relocalisation, then 13-25 and a second pass.
+
+    0.5 m past experience 12 the robot relocalises onto 11 (linked to 12 already, so no loop link: a step
+    back, as RatSLAM makes when a recent template matches again), and experience 13 hangs off 11 by 0.5 m
+    where it lies 2 m ahead (``twin-overlap`` 40 m seed 6: 0.5 m claimed, 3.6 m true). A second pass links
+    12 → 13 by 1 m, its heading ``heading_error`` off: 11 → 13 and that loop link contradict each other, and
+    the reckoning link 12 → 13 (1 m, the robot's own odometry) says which is right.
+    """
+    em = ExperienceMap(Params(), 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    step = Motion(1.0, 0.0, 0.0, 0.002, 1.0)
+    for i in range(1, 13):
+        em.on_odo(step)
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    half = Motion(0.5, 0.0, 0.0, 0.0, 0.5)
+    em.on_odo(half)
+    assert not em.create_link(em.current, 11, 0.0, LinkKind.LOOP)  # 11 → 12 exists: no closure link
+    em.set_experience(11, 0.0)
+    em.on_odo(half)
+    em.create_experience(13, np.zeros(3), 13.0, 0)
+    for i in range(14, 26):
+        em.on_odo(step)
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    em.set_experience(12, 0.0)
+    em.on_odo(Motion(1.0, 0.0, 0.0, heading_error, 1.0))
+    assert em.create_link(12, 13, 0.0, LinkKind.LOOP)
+    truth = np.stack([np.arange(26.0), np.zeros(26), np.zeros(26), np.zeros(26)], 1)
+    return em, truth
+
+
+@pytest.mark.parametrize("heading_error", [0.0, 0.3])
+def test_a_relocalisation_beyond_the_robots_own_reach_is_undone(
+    heading_error: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """11 → 13 puts the robot 2 m from where its 1 m of odometry says: its reckoning link, left out, counts as
+    an outlier (``_Problem.overreached``), so undoing the relocalisation is the cheaper answer whether the
+    contradicting loop link is kept (0 rad) or gated (0.3 rad off): 11 → 13 goes off, the reckoning link joins.
+    The paired must-fail: uncounted, the two answers tie (or keeping wins) and the fold stays (APE > 0.4 m)."""
+    em, truth = _step_back_map(heading_error)
+    em.settle()
+    src, dst, _, _, _, kind = em.links
+    relocalised = int(np.flatnonzero((src == 11) & (dst == 13))[0])
+    assert not em.link_active[relocalised]
+    assert (int(src[-1]), int(dst[-1]), int(kind[-1])) == (12, 13, int(LinkKind.ODOMETRY))
+    assert _ape(truth, em.poses) < 0.1
+    monkeypatch.setattr(robust._Problem, "overreached", lambda _self, _active, _z: 0)
+    folded, _ = _step_back_map(heading_error)
+    folded.settle()
+    assert folded.link_active[relocalised] and _ape(truth, folded.poses) > 0.4
+
+
+def test_a_true_relocalisation_after_a_long_drifting_ride_keeps_everything() -> None:
+    """The must-still-happen side: a lap of a 32-gon closed onto experience 0, 28 m of relocalised driving on
+    the first lap with odometry 5 % short and turning 0.005 rad/m more, then experience 32. The reckoning link
+    misses the map by well under its own 27 m: nothing counts, every link stays on, nothing joins."""
+    em = ExperienceMap(Params(), 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 32, 1.0)
+    for i in range(1, 32):
+        em.on_odo(step)
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    em.on_odo(step)
+    em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
+    em.set_experience(0, 0.0)
+    ride = Motion(0.95, 0.0, 0.0, 2 * math.pi / 32 + 0.005, 1.0)
+    for j in range(1, 28):
+        em.on_odo(ride)
+        em.set_experience(j, 0.0)
+    em.on_odo(ride)
+    em.create_experience(32, np.zeros(3), 32.0, 0)
+    links = em.link_count
+    em.settle()
+    assert em.link_active.all() and em.link_count == links
