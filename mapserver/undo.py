@@ -56,62 +56,84 @@ def unmerge(db: Database, *, event_id: int) -> UnmergeOutcome:
             another session joined, a map of the same name created).
     """
     with db.write() as conn:
-        event = get_merge_event(conn=conn, event_id=event_id)
-        if event.status != "applied":
-            msg = f"merge event {event_id} is {event.status} already"
-            raise ConflictError(msg)
-        mine = _event_sessions(event)
-        later = [e.id for e in list_merge_events(conn=conn) if e.id > event.id and e.status == "applied"
-                 and _event_sessions(e) & mine]  # fmt: skip
-        if later:
-            msg = (
-                f"merge event {later[-1]} (later) involves the same sessions; undo it first "
-                f"(mapserver unmerge --event {later[-1]}), newest first"
-            )
-            raise ConflictError(msg)
+        event = _undoable_event(conn, event_id)
         details = dict(event.details or {})
         archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
         if not archives:
             msg = f"merge event {event_id} has no archived states to restore"
             raise ConflictError(msg)
         frames = {int(k): int(v) for k, v in (details.get("session_frames") or {}).items()}
-        for name in sorted({a.map_name for a in archives} | {event.map_name}):
-            record = find_map(conn=conn, name=name)
-            if record is None:
-                continue
-            held = {s.id: s for s in sessions_of_map(conn=conn, map_id=record.id)}
-            strangers = sorted(s.name for sid, s in held.items() if sid not in mine)
-            if strangers:
-                msg = (
-                    f"map {name!r} now holds session(s) {', '.join(map(repr, strangers))} that joined after merge "
-                    f"event {event_id}; an unmerge would drop them"
-                )
-                raise ConflictError(msg)
-            ahead = sorted(s.name for sid, s in held.items() if sid in frames and s.frames_processed > frames[sid])
-            if ahead:
-                msg = (
-                    f"session(s) {', '.join(map(repr, ahead))} of map {name!r} were processed further after merge "
-                    f"event {event_id}; an unmerge would lose those frames"
-                )
-                raise ConflictError(msg)
+        _refuse_if_maps_moved_on(conn, event, {a.map_name for a in archives}, frames)
         restored = restore_map_states(conn=conn, archive_ids=event.archive_ids)
-        rewound = None
-        at = details.get("frames_at")
-        sid = details.get("session")
-        if sid is not None and at is not None:
-            session = get_sessions(conn=conn, session_ids=[int(sid)])[0]
-            rows, _pose = get_reckoning(conn=conn, session_id=session.id)
-            pose = details.get("reckoning_pose")
-            update_session(
-                conn=conn, session_id=session.id, status="partial", frames_processed=int(at),
-                last_stamp=float(details["stamp"]), reckoning=rows[: int(at)],
-                reckoning_pose=None if pose is None else tuple(float(v) for v in pose),  # type: ignore[arg-type]
-            )  # fmt: skip
-            rewound = session.name
+        rewound = _rewind_session(conn, details)
         set_merge_status(conn=conn, event_id=event_id, status="undone")
         details["undo"] = {a.map_name: r.version for a, r in zip(archives, restored, strict=True)}
         update_merge_details(conn=conn, event_id=event_id, details=details)
+    at = details.get("frames_at")
     return UnmergeOutcome(event_id, [a.map_name for a in archives], rewound, None if at is None else int(at))
+
+
+def _undoable_event(conn: Connection, event_id: int) -> Any:
+    """Return the merge event if it can be undone now: applied, and no later applied event shares its sessions."""
+    event = get_merge_event(conn=conn, event_id=event_id)
+    if event.status != "applied":
+        msg = f"merge event {event_id} is {event.status} already"
+        raise ConflictError(msg)
+    mine = _event_sessions(event)
+    later = [e.id for e in list_merge_events(conn=conn) if e.id > event.id and e.status == "applied"
+             and _event_sessions(e) & mine]  # fmt: skip
+    if later:
+        msg = (
+            f"merge event {later[-1]} (later) involves the same sessions; undo it first "
+            f"(mapserver unmerge --event {later[-1]}), newest first"
+        )
+        raise ConflictError(msg)
+    return event
+
+
+def _refuse_if_maps_moved_on(conn: Connection, event: Any, names: set[str], frames: Mapping[int, int]) -> None:
+    """Refuse (ConflictError) when restoring the event's archives would lose work done since.
+
+    That is, a map it involved holds a session that joined after it, or a session processed past its frame
+    count at the merge (``frames``).
+    """
+    mine = _event_sessions(event)
+    for name in sorted(names | {event.map_name}):
+        record = find_map(conn=conn, name=name)
+        if record is None:
+            continue
+        held = {s.id: s for s in sessions_of_map(conn=conn, map_id=record.id)}
+        strangers = sorted(s.name for sid, s in held.items() if sid not in mine)
+        if strangers:
+            msg = (
+                f"map {name!r} now holds session(s) {', '.join(map(repr, strangers))} that joined after merge "
+                f"event {event.id}; an unmerge would drop them"
+            )
+            raise ConflictError(msg)
+        ahead = sorted(s.name for sid, s in held.items() if sid in frames and s.frames_processed > frames[sid])
+        if ahead:
+            msg = (
+                f"session(s) {', '.join(map(repr, ahead))} of map {name!r} were processed further after merge "
+                f"event {event.id}; an unmerge would lose those frames"
+            )
+            raise ConflictError(msg)
+
+
+def _rewind_session(conn: Connection, details: Mapping[str, Any]) -> str | None:
+    """Set an online merge's session back to the merge frame (partial, its dead reckoning cut there); its name."""
+    at = details.get("frames_at")
+    sid = details.get("session")
+    if sid is None or at is None:
+        return None
+    session = get_sessions(conn=conn, session_ids=[int(sid)])[0]
+    rows, _pose = get_reckoning(conn=conn, session_id=session.id)
+    pose = details.get("reckoning_pose")
+    update_session(
+        conn=conn, session_id=session.id, status="partial", frames_processed=int(at),
+        last_stamp=float(details["stamp"]), reckoning=rows[: int(at)],
+        reckoning_pose=None if pose is None else tuple(float(v) for v in pose),  # type: ignore[arg-type]
+    )  # fmt: skip
+    return session.name
 
 
 def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
