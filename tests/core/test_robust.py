@@ -557,14 +557,15 @@ def test_a_closure_turned_beyond_the_odometrys_heading_drift_is_still_gated() ->
     assert robust.contradicts_odometry(*args).tolist() == (kind == 1).tolist()
 
 
-def _step_back_map(heading_error: float) -> tuple[ExperienceMap, np.ndarray]:
+def _step_back_map(heading_error: float, gap: float = 0.5) -> tuple[ExperienceMap, np.ndarray]:
     """A straight route of 1 m steps (experiences 0-12), a false relocalisation, then 13-25 and a second pass.
 
     0.5 m past experience 12 the robot relocalises onto 11 (linked to 12 already, so no loop link: a step
     back, as RatSLAM makes when a recent template matches again), and experience 13 hangs off 11 by 0.5 m
     where it lies 2 m ahead (``twin-overlap`` 40 m seed 6: 0.5 m claimed, 3.6 m true). A second pass links
     12 → 13 by 1 m, its heading ``heading_error`` off: 11 → 13 and that loop link contradict each other, and
-    the reckoning link 12 → 13 (1 m, the robot's own odometry) says which is right.
+    the reckoning link 12 → 13 (1 m, the robot's own odometry) says which is right. ``gap``: metres driven
+    from the relocalisation to experience 13 (0.5 above).
     """
     em = ExperienceMap(Params(), 3)
     em.create_experience(0, np.zeros(3), 0.0, 0)
@@ -576,15 +577,16 @@ def _step_back_map(heading_error: float) -> tuple[ExperienceMap, np.ndarray]:
     em.on_odo(half)
     assert not em.create_link(em.current, 11, 0.0, LinkKind.LOOP)  # 11 → 12 exists: no closure link
     em.set_experience(11, 0.0)
-    em.on_odo(half)
+    em.on_odo(Motion(gap, 0.0, 0.0, 0.0, 0.5))
     em.create_experience(13, np.zeros(3), 13.0, 0)
     for i in range(14, 26):
         em.on_odo(step)
         em.create_experience(i, np.zeros(3), float(i), 0)
     em.set_experience(12, 0.0)
-    em.on_odo(Motion(1.0, 0.0, 0.0, heading_error, 1.0))
+    em.on_odo(Motion(0.5 + gap, 0.0, 0.0, heading_error, 1.0))
     assert em.create_link(12, 13, 0.0, LinkKind.LOOP)
-    truth = np.stack([np.arange(26.0), np.zeros(26), np.zeros(26), np.zeros(26)], 1)
+    x = np.r_[np.arange(13.0), 12.5 + gap + np.arange(13.0)]
+    truth = np.stack([x, np.zeros(26), np.zeros(26), np.zeros(26)], 1)
     return em, truth
 
 
@@ -609,10 +611,31 @@ def test_a_relocalisation_beyond_the_robots_own_reach_is_undone(
     assert folded.link_active[relocalised] and _ape(truth, folded.poses) > 0.4
 
 
-def test_a_true_relocalisation_after_a_long_drifting_ride_keeps_everything() -> None:
+@pytest.mark.parametrize(("gap", "undone"), [(0.5, True), (1.0, True), (2.0, False), (3.0, False)])
+def test_where_the_reach_rule_stops_undoing_a_false_relocalisation(gap: float, undone: bool) -> None:
+    """The sweep of the rule's strength: the relocalisation puts the robot 1.5 m off; the contradicting loop link
+    is gated (0.3 rad off), so the reckoning link alone decides. It is undone while the robot drove less than
+    that (0.5 + ``gap`` ≤ 1.5 m) to its next experience, and kept beyond, where its odometry could have gone
+    that far (measured: APE 0.05-0.33 m undone, 0.75 m kept)."""
+    em, truth = _step_back_map(0.3, gap)
+    em.settle()
+    src, dst, _, _, _, _ = em.links
+    relocalised = int(np.flatnonzero((src == 11) & (dst == 13))[0])
+    assert em.link_active[relocalised] != undone
+    assert (_ape(truth, em.poses) < 0.4) == undone
+
+
+@pytest.mark.parametrize(
+    ("short", "turn", "kept"), [(0.05, 0.005, True), (0.6, 0.05, True), (0.0, 0.4, True), (0.7, 0.06, False)]
+)
+def test_a_true_relocalisation_after_a_long_drifting_ride_keeps_everything(
+    short: float, turn: float, kept: bool
+) -> None:
     """The must-still-happen side: a lap of a 32-gon closed onto experience 0, 28 m of relocalised driving on
-    the first lap with odometry 5 % short and turning 0.005 rad/m more, then experience 32. The reckoning link
-    misses the map by well under its own 27 m: nothing counts, every link stays on, nothing joins."""
+    the first lap with odometry ``short`` (fraction) short and turning ``turn`` rad/m more, then experience 32.
+    The reckoning link misses the map by less than its own length: nothing counts, every link stays on, nothing
+    joins — up to 60 % short (or 0.4 rad/m of turn alone, the simulator's odometry is 2.5 % and 0.004 rad/m);
+    at 70 % short the reckoning link overreaches and the true relocalisation is undone: where it breaks."""
     em = ExperienceMap(Params(), 3)
     em.create_experience(0, np.zeros(3), 0.0, 0)
     step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 32, 1.0)
@@ -622,7 +645,7 @@ def test_a_true_relocalisation_after_a_long_drifting_ride_keeps_everything() -> 
     em.on_odo(step)
     em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
     em.set_experience(0, 0.0)
-    ride = Motion(0.95, 0.0, 0.0, 2 * math.pi / 32 + 0.005, 1.0)
+    ride = Motion(1.0 - short, 0.0, 0.0, 2 * math.pi / 32 + turn, 1.0)
     for j in range(1, 28):
         em.on_odo(ride)
         em.set_experience(j, 0.0)
@@ -630,4 +653,4 @@ def test_a_true_relocalisation_after_a_long_drifting_ride_keeps_everything() -> 
     em.create_experience(32, np.zeros(3), 32.0, 0)
     links = em.link_count
     em.settle()
-    assert em.link_active.all() and em.link_count == links
+    assert (em.link_active.all() and em.link_count == links) == kept
