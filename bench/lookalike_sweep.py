@@ -90,21 +90,22 @@ def _local_error(directory: Path, doc: dict, s1: dict, s2: dict, stamp: float, w
 
 
 def _place_error(
-    directory: Path, stored: dict, s1: dict, s2: dict, stamp: float, carried: np.ndarray
+    stored: dict, truth: tuple[np.ndarray, np.ndarray], stamp: float, carried: np.ndarray
 ) -> tuple[float, float]:
     """Metres and degrees, in the world, between where session 2 truly was at ``stamp`` and the stored place the
     merge put it at.
 
     ``carried`` (x, y, z, yaw) is the robot's pose at the merge frame carried into the stored map by the merge
-    transform; the stored place is session 1's experience nearest to it in the stored map as it was when the
-    merge was made (``stored``). Metres: between the two sessions' ground-truth positions there (session 1's
-    when it made that experience). Degrees: the merge's heading of the robot relative to that experience
-    against the true one. Unlike the final map's error near the merge (``_local_error``), neither counts the
-    stored map's own drift: a merge onto the right place of a drifted map is a true merge.
+    transform; the stored place is session 1's experience nearest to it in the stored map as it was when the merge
+    was made (``stored``); ``truth``: both sessions' ground truth (TUM rows). Metres: between the two sessions'
+    ground-truth positions there (session 1's when it made that experience). Degrees: the merge's heading of the
+    robot relative to that experience against the true one. Unlike the final map's error near the merge
+    (``_local_error``), neither counts the stored map's own drift: a merge onto the right place of a drifted map is
+    a true merge.
     """
     from mapserver.formats import yaw_from_quaternion
 
-    gt1, gt2 = (np.loadtxt(directory / s["ground_truth"]).reshape(-1, 8) for s in (s1, s2))
+    gt1, gt2 = truth
     poses = np.array([[e["x"], e["y"]] for e in stored["experiences"]])
     nearest = stored["experiences"][int(np.argmin(np.linalg.norm(poses - carried[:2], axis=1)))]
     seen = gt1[int(np.argmin(np.abs(gt1[:, 0] - nearest["stamp"])))]
@@ -169,10 +170,10 @@ def run_once(
     shared = _shared_distance(directory, s1, s2, applied[0]["stamp"]) if applied else None
     in_map = [s1, s2] if applied else [s2]
     ape = _ape(directory, db, result["map"], in_map, "final")
+    world = tuple(np.loadtxt(directory / s["ground_truth"]).reshape(-1, 8) for s in (s1, s2))
     for m, merge in zip(merges, result["merges"], strict=True):  # where the merge put session 2, in the world
         if merge["event"] in carried:
-            m["place_error_m"], m["place_error_deg"] = _place_error(directory, stored, s1, s2, m["stamp"],
-                                                                   carried[merge["event"]])  # fmt: skip
+            m["place_error_m"], m["place_error_deg"] = _place_error(stored, world, m["stamp"], carried[merge["event"]])
             if scenario != "twin":
                 m["false"] = m["place_error_m"] > tol_m or m["place_error_deg"] > tol_deg
     for m in applied:  # and in the final map near the merge (the stored map's own drift counts here)

@@ -135,7 +135,7 @@ def archive_state(
         "params": plain_params(params),
         "session_ids": [int(s) for s in session_ids],
         "n_templates": int(templates.shape[0]),
-        "n_experiences": _n_experiences(arrays),
+        "n_experiences": int(ids["experience_index"].shape[0]),  # checked against the snapshot's experiences
         "n_links": int(np.asarray(arrays.get("em_link_from", np.zeros(0))).reshape(-1).shape[0]),
         "state": pack_npz(content),
     }
@@ -153,11 +153,6 @@ def _snapshot_templates(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
         msg = "the snapshot to archive lacks float32 (N, ty, tx) lv_templates"
         raise StoreError(msg)
     return templates
-
-
-def _n_experiences(arrays: Mapping[str, np.ndarray]) -> int:
-    """Return the number of experiences of a snapshot (rows of ``em_pose``; none without it)."""
-    return int(np.asarray(arrays.get("em_pose", np.zeros((0, 4)))).reshape(-1, 4).shape[0])
 
 
 def _checked_identities(
@@ -180,7 +175,7 @@ def _checked_identities(
         "experience_index": np.asarray(experience_index, dtype=np.int64).reshape(-1),
     }
     n = templates.shape[0]
-    e = _n_experiences(arrays)
+    e = np.asarray(arrays.get("em_pose", np.zeros((0, 4)))).reshape(-1, 4).shape[0]
     for key, value in ids.items():
         if value.shape[0] != (n if key.startswith("template") else e):
             msg = f"{key} has {value.shape[0]} entries for {n} templates and {e} experiences"
