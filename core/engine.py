@@ -142,7 +142,11 @@ class Engine:
             else:
                 action = Action.NONE
         elif action == Action.CREATE_EDGE:
-            loop_closure = self.map.create_link(self.map.current, target, relative_rad, LinkKind.LOOP)
+            # a link's facing takes the target's heading minus the robot's, a view's offset the opposite
+            # (OpenRatSLAM passes its panoramic offset to both unchanged)
+            shift_heading = self.params.vt_shift_heading and not self.params.openratslam_compat
+            link_rad = -relative_rad if shift_heading else relative_rad
+            loop_closure = self.map.create_link(self.map.current, target, link_rad, LinkKind.LOOP)
             self.map.set_experience(target, relative_rad)
             self.loop_closures += int(loop_closure)
         if created:

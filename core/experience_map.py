@@ -68,6 +68,7 @@ class _Standby:
     link: np.ndarray  # (M, 6) dead reckoning between them: dx, dy, dz, dyaw (src frame), dt, distance
     partner: np.ndarray  # (M,) the odometry link each stands in for
     switchable: np.ndarray  # (K,) odometry links made switchable by a reckoning link
+    closure: np.ndarray  # (M,) the loop link from src made before the partner (the relocalisation's), or −1
 
 
 class LinkKind(IntEnum):
@@ -475,7 +476,7 @@ class ExperienceMap:
             self._pose.view, np.concatenate([src, standby.src]), np.concatenate([dst, standby.dst]),
             np.concatenate([transform, standby.link[:, :4]]), np.concatenate([kind, odometry]),
             np.concatenate([distance, standby.link[:, 5]]), self.anchors(), drift, standby=standby.partner,
-            also_switchable=standby.switchable,
+            also_switchable=standby.switchable, standby_closure=standby.closure,
         )  # fmt: skip
         joined = np.flatnonzero(result.active[k:])
         if np.array_equal(result.active[:k], self._active.view) and joined.size == 0:
@@ -525,7 +526,8 @@ class ExperienceMap:
         ends = np.sort(np.stack([src[odometry], dst[odometry]], axis=1), axis=1) @ np.array([1, n], dtype=np.int64)
         held = np.isin(np.minimum(a, to) + n * np.maximum(a, to), ends)  # joined the map as an odometry link
         pick = valid & ~held
-        return _Standby(a[pick], to[pick], self._reckon_link.view[pick], partner[pick], switchable)
+        closure = _last_loop_from(src, kind, a[pick], partner[pick])
+        return _Standby(a[pick], to[pick], self._reckon_link.view[pick], partner[pick], switchable, closure)
 
     def _solve_active(self) -> None:
         """Move every experience to the fixed point of relaxation over the active links (turning the accumulator)."""
@@ -730,3 +732,21 @@ def _component_minimum(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     first = np.full(int(labels.max()) + 1, n, dtype=np.int64)
     np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
     return first[labels]
+
+
+def _last_loop_from(src: np.ndarray, kind: np.ndarray, start: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """Return, per pair, the index of the last loop link leaving ``start[i]`` below ``before[i]``, or −1.
+
+    Links are numbered in the order they were made, so this is the closure the robot made from the
+    experience it created last before relocalising.
+    """
+    loops = np.flatnonzero(kind == int(LinkKind.LOOP))
+    if not loops.size or not start.size:
+        return np.full(start.size, -1, dtype=np.int64)
+    stride = np.int64(src.size + 1)
+    keys = src[loops].astype(np.int64) * stride + loops  # sorted by (source, index)
+    order = np.argsort(keys, kind="stable")
+    keys, loops = keys[order], loops[order]
+    at = np.searchsorted(keys, start.astype(np.int64) * stride + before, side="left") - 1
+    found = (at >= 0) & (src[loops[np.maximum(at, 0)]] == start)
+    return np.where(found, loops[np.maximum(at, 0)], -1).astype(np.int64)

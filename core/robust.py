@@ -173,6 +173,7 @@ def switch_off_outliers(
     max_solves: int = 400,
     standby: np.ndarray | None = None,
     also_switchable: np.ndarray | None = None,
+    standby_closure: np.ndarray | None = None,
 ) -> RobustResult:
     """Return which links stay on: binary switches minimising the TLS cost (module docstring).
 
@@ -180,6 +181,8 @@ def switch_off_outliers(
     off (an odometry link's replacement: :meth:`core.experience_map.ExperienceMap.check_links`);
     ``also_switchable`` marks links that are switchable whatever their kind (a mask over the first
     links). Standby links are not switchable and do not count in the link length ``s``.
+    ``standby_closure`` (M,): per standby link, the loop link that began its relocalisation (−1: none);
+    the standby link is also on while that link is off.
 
     ``pose`` gives the anchors' poses and the experiences' positions to start from; the
     decision depends on the links only. When every switchable link is within ``c̄`` of the
@@ -201,6 +204,8 @@ def switch_off_outliers(
     problem = _Problem(start, src, dst, transform, can & ~gated, anchor, length, drift, max_solves)
     problem.standby, problem.gated = (np.arange(real, k), partner), gated
     problem.standby_scale = length / np.maximum(length, np.asarray(distance, dtype=np.float64)[real:])
+    if standby_closure is not None:
+        problem.standby_closure = np.asarray(standby_closure, dtype=np.int64)
     problem.closures = problem.can & switchable(kind)  # not a relocalisation's odometry link
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
@@ -339,9 +344,16 @@ class _Problem:
         self.gated = np.zeros(src.size, dtype=bool)  # off whatever the cost: contradicts_odometry
         self.closures = can  # loop and merge links: those :meth:`switch_off_strained` tries
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
+        self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
 
     def couple(self, active: np.ndarray, z: np.ndarray | None = None) -> np.ndarray:
         """Return ``active`` with gated links off and each standby link on when its partner is off.
+
+        A standby link is also on when the loop link that began its relocalisation is off: the robot
+        may have relocalised twice between the two experiences it created (a false closure, then a true
+        one), and then the partner stands while nothing else joins the experience it left (``symmetric``
+        seed 1: 117 closed falsely onto 23, the robot relocalised onto 69 and made 118 from there; 21 m of
+        session 2 hung from one end).
 
         Then the links that keep every component whole are turned back on (:func:`keep_connected`,
         in increasing ``z``).
@@ -351,7 +363,12 @@ class _Problem:
             return active
         active = active.copy()
         active[self.gated] = False
-        active[links] = ~active[partner]
+        on = ~active[partner]
+        closure = self.standby_closure
+        if closure.size:
+            began = closure >= 0
+            on[began] |= ~active[closure[began]]
+        active[links] = on
         return keep_connected(
             self.start.shape[0], self.src, self.dst, active, np.zeros(active.size) if z is None else z
         )

@@ -31,6 +31,7 @@ class Params:
     vt_patch_normalise: int = 0
     vt_min_patch_normalisation_std: float = 0.0
     vt_panoramic: bool = False
+    vt_shift_heading: bool = False  # a forward view's best column shift gives its heading offset (not OpenRatSLAM)
     vt_active_decay: float = 1.0
     vt_mean_prefilter_epsilon: float = 0.005
     vt_min_inject_age: int = 10

@@ -156,6 +156,29 @@ def test_panoramic_relative_rad_at_a_known_circular_offset(offset: int, expected
     assert rad == pytest.approx(expected_rad, abs=1e-12)
 
 
+@pytest.mark.parametrize("pixels", [-8, -7, -3, 0, 1, 2, 5, 8])
+def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_column(pixels: int) -> None:
+    """``vt_shift_heading``: a 360° camera (256 pixels, 128 template columns) turned left by ``pixels`` pixel
+    columns sees in column j what column j − pixels showed (the simulator's projection: column j looks along
+    yaw + hfov/2 − (j + ½)·hfov/W), so its heading relative to the template is pixels · 2π/256; the match
+    steps 2 columns from a shift of 5, so only the parabola through the best whole column and its
+    neighbours finds it (within ±4 columns; at the search's edge, 5, it stops there). Off (OpenRatSLAM), a
+    forward view has no heading offset."""
+    rng = np.random.default_rng(4)
+    image = np.clip(rng.normal(128.0, 40.0, (64, 256 + 16)), 0, 255)
+    image = np.cumsum(np.cumsum(image, axis=1), axis=0)  # smooth, so the error is a bowl around the shift
+    image = (image[:, 16:] - image[:, :-16])[:, :256]
+    image = (255.0 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
+    params = {"template_x_size": 128, "template_y_size": 32, "vt_shift_match": 5, "vt_step_match": 2,
+              "vt_match_threshold": 0.2, "camera_fov_deg": 360.0}  # fmt: skip
+    for heading, expected in ((True, pixels * 2 * math.pi / 256), (False, 0.0)):
+        cells = _cells(vt_shift_heading=heading, **params)
+        cells.process(image)
+        best, rad, created = cells.process(np.roll(image, pixels, axis=1))
+        assert (best, created) == (0, False)
+        assert rad == pytest.approx(expected, abs=0.1 * 2 * math.pi / 128)
+
+
 def test_template_mean_prefilter_skips_templates_whose_mean_is_too_far() -> None:
     """The window matches exactly, but the unseen border columns move the template mean."""
     stored = np.tile(np.linspace(0.3, 0.6, 10, dtype=np.float32), (2, 1))

@@ -439,6 +439,67 @@ def test_a_true_relocalisation_keeps_its_closure_and_odometry_and_adds_nothing()
     assert _ape(truth, em.poses) < 0.1  # the yaw bias of 0.003 rad per step alone
 
 
+def _twice_relocalised_map(first_false: bool) -> tuple[ExperienceMap, np.ndarray]:
+    """A 16-gon lap (0-15) closed onto 0, then 7 new experiences along vertices 1-7 (16-22, yaw bias 0.02 rad
+    per step); at vertex 8 the robot closes onto 0 (``first_false``: the far side, 5.1 m away) or onto 8, moves
+    on along links that exist to 9 without a new link (as the engine does when the link is there), and makes 23-25
+    at vertices 10-12 from 9. Returns the map and the true positions of its experiences."""
+    em = ExperienceMap(Params(), 3)
+    step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 16 + 0.02, 1.0)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    for i in range(1, 16):
+        em.on_odo(step)
+        em.create_experience(i, np.zeros(3), float(i), 0)
+    em.on_odo(step)
+    em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
+    em.set_experience(0, 0.0)
+    for j in range(1, 8):
+        em.on_odo(step)
+        em.create_experience(15 + j, np.zeros(3), 15.0 + j, 0)
+    em.on_odo(step)
+    target = 0 if first_false else 8
+    em.create_link(em.current, target, 0.0, LinkKind.LOOP)
+    em.set_experience(target, 0.0)
+    em.on_odo(step)
+    em.set_experience(9, 0.0)
+    for j in range(3):
+        em.on_odo(step)
+        em.create_experience(23 + j, np.zeros(3), 25.0 + j, 0)
+    radius = 0.5 / math.sin(math.pi / 16)
+    vertex = np.r_[np.arange(16), np.arange(1, 8), np.arange(10, 13)] * 2 * math.pi / 16
+    truth = np.stack([radius * np.sin(vertex), radius * (1 - np.cos(vertex)), np.zeros(26), vertex], 1)
+    return em, truth
+
+
+def test_a_false_closure_before_a_true_relocalisation_lets_the_robots_odometry_join_what_it_left(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The false closure 22 → 0 goes off; the robot's next experience hangs off 9 by a true link, so the
+    reckoning link 22 → 23 is the only thing joining 16-22 to the lap at their far end: it joins the map."""
+    em, truth = _twice_relocalised_map(first_false=True)
+    links = em.link_count
+    em.settle()
+    src, dst, _, _, _, kind = em.links
+    assert em.link_count == links + 1 and (int(src[-1]), int(dst[-1]), int(kind[-1])) == (22, 23, 0)
+    assert np.array_equal(np.flatnonzero(~em.link_active), [23])  # only the false closure is off
+    joined = _ape(truth, em.poses)
+    assert joined < 0.06  # the yaw bias of 0.02 rad per step alone
+    # the paired must-fail: without the closure rule the reckoning link stands by while 9 → 23 stands, so the
+    # check switches off the true lap closure 15 → 0 and 9 → 23 as well to let it in (APE 0.21 m)
+    monkeypatch.setattr("core.experience_map._last_loop_from", lambda src, kind, start, before: np.full(start.size, -1))
+    hanging, _ = _twice_relocalised_map(first_false=True)
+    hanging.settle()
+    assert not hanging.link_active[15] and _ape(truth, hanging.poses) > 3 * joined
+
+
+def test_a_true_closure_before_a_relocalisation_adds_nothing() -> None:
+    em, truth = _twice_relocalised_map(first_false=False)
+    links = em.link_count
+    em.settle()
+    assert em.link_active.all() and em.link_count == links
+    assert _ape(truth, em.poses) < 0.06  # the yaw bias of 0.02 rad per step alone
+
+
 def _two_sessions(false: bool, merged: bool = True):
     """Session A: a 32-gon (1 m sides, ids 0-31); session B: 8 experiences along A's vertices 1-8 (ids 32-39)
     joined to A by a merge link 32 → 1. Loop links from B's 36-39: onto A's 5-8 (true) or, ``false``, onto the
