@@ -439,20 +439,26 @@ def test_a_true_relocalisation_keeps_its_closure_and_odometry_and_adds_nothing()
     assert _ape(truth, em.poses) < 0.1  # the yaw bias of 0.003 rad per step alone
 
 
-def _twice_relocalised_map(first_false: bool) -> tuple[ExperienceMap, np.ndarray]:
-    """A 16-gon lap (0-15) closed onto 0, then 7 new experiences along vertices 1-7 (16-22, yaw bias 0.02 rad
-    per step); at vertex 8 the robot closes onto 0 (``first_false``: the far side, 5.1 m away) or onto 8, moves
-    on along links that exist to 9 without a new link (as the engine does when the link is there), and makes 23-25
-    at vertices 10-12 from 9. Returns the map and the true positions of its experiences."""
+def _closed_lap(sides: int, step: Motion) -> ExperienceMap:
+    """A lap of ``sides`` experiences (0..sides−1), one ``step`` apart, closed by a loop link back onto 0 (current)."""
     em = ExperienceMap(Params(), 3)
-    step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 16 + 0.02, 1.0)
     em.create_experience(0, np.zeros(3), 0.0, 0)
-    for i in range(1, 16):
+    for i in range(1, sides):
         em.on_odo(step)
         em.create_experience(i, np.zeros(3), float(i), 0)
     em.on_odo(step)
     em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
     em.set_experience(0, 0.0)
+    return em
+
+
+def _twice_relocalised_map(first_false: bool) -> tuple[ExperienceMap, np.ndarray]:
+    """A 16-gon lap (0-15) closed onto 0, then 7 new experiences along vertices 1-7 (16-22, yaw bias 0.02 rad
+    per step); at vertex 8 the robot closes onto 0 (``first_false``: the far side, 5.1 m away) or onto 8, moves
+    on along links that exist to 9 without a new link (as the engine does when the link is there), and makes 23-25
+    at vertices 10-12 from 9. Returns the map and the true positions of its experiences."""
+    step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 16 + 0.02, 1.0)
+    em = _closed_lap(16, step)
     for j in range(1, 8):
         em.on_odo(step)
         em.create_experience(15 + j, np.zeros(3), 15.0 + j, 0)
@@ -697,15 +703,7 @@ def test_a_true_relocalisation_after_a_long_drifting_ride_keeps_everything(
     The reckoning link misses the map by less than its own length: nothing counts, every link stays on, nothing
     joins — up to 60 % short (or 0.4 rad/m of turn alone, the simulator's odometry is 2.5 % and 0.004 rad/m);
     at 70 % short the reckoning link overreaches and the true relocalisation is undone: where it breaks."""
-    em = ExperienceMap(Params(), 3)
-    em.create_experience(0, np.zeros(3), 0.0, 0)
-    step = Motion(1.0, 0.0, 0.0, 2 * math.pi / 32, 1.0)
-    for i in range(1, 32):
-        em.on_odo(step)
-        em.create_experience(i, np.zeros(3), float(i), 0)
-    em.on_odo(step)
-    em.create_link(em.current, 0, 0.0, LinkKind.LOOP)
-    em.set_experience(0, 0.0)
+    em = _closed_lap(32, Motion(1.0, 0.0, 0.0, 2 * math.pi / 32, 1.0))
     ride = Motion(1.0 - short, 0.0, 0.0, 2 * math.pi / 32 + turn, 1.0)
     for j in range(1, 28):
         em.on_odo(ride)
