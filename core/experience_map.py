@@ -743,10 +743,10 @@ def _last_loop_from(src: np.ndarray, kind: np.ndarray, start: np.ndarray, before
     loops = np.flatnonzero(kind == int(LinkKind.LOOP))
     if not loops.size or not start.size:
         return np.full(start.size, -1, dtype=np.int64)
-    stride = np.int64(src.size + 1)
-    keys = src[loops].astype(np.int64) * stride + loops  # sorted by (source, index)
-    order = np.argsort(keys, kind="stable")
+    stride = src.size + 1
+    keys = src[loops] * stride + loops
+    order = np.argsort(keys)  # by (source, index): keys are distinct
     keys, loops = keys[order], loops[order]
-    at = np.searchsorted(keys, start.astype(np.int64) * stride + before, side="left") - 1
-    found = (at >= 0) & (src[loops[np.maximum(at, 0)]] == start)
-    return np.where(found, loops[np.maximum(at, 0)], -1).astype(np.int64)
+    at = np.searchsorted(keys, start * stride + before) - 1  # the last key below (start, before)
+    found = loops[np.maximum(at, 0)]
+    return np.where((at >= 0) & (src[found] == start), found, -1)

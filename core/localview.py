@@ -26,8 +26,10 @@ Deliberate deviations from OpenRatSLAM (documented, not accidental):
   gives its heading relative to the template, to a fraction of a column (:meth:`LocalViewCells._view_shift`),
   ``camera_fov_deg`` over the cropped image width per column. OpenRatSLAM forces ``relative_rad`` to 0 for
   forward views, so a closure there carries the robot's odometry facing whatever way the view is turned
-  (loop links 7-28° off on the ``symmetric`` scenario, 0-2.5° with the shift). The offset is returned in the
-  engine's sign (the robot's heading minus the template's); ``openratslam_compat`` ignores the key.
+  (``symmetric`` seed 1: loop links up to 29° off, mostly within 2.5° with the shift). The offset is returned
+  in the engine's sign (the robot's heading minus the template's); ``openratslam_compat`` ignores the key.
+  The angle of a column comes from the last image made into a template, so matching without one (offline
+  ``merge`` of stored maps) gives forward views no heading, as before.
 """
 
 from __future__ import annotations
