@@ -28,8 +28,9 @@ Deliberate deviations from OpenRatSLAM (documented, not accidental):
   forward views, so a closure there carries the robot's odometry facing whatever way the view is turned
   (``symmetric`` seed 1: loop links up to 29° off, mostly within 2.5° with the shift). The offset is returned
   in the engine's sign (the robot's heading minus the template's); ``openratslam_compat`` ignores the key.
-  The angle of a column comes from the last image made into a template, so matching without one (offline
-  ``merge`` of stored maps) gives forward views no heading, as before.
+  The angle of a column is ``camera_fov_deg`` over ``template_x_size`` when the crop keeps the full width; a
+  crop of part of it takes the angle from the last image made into a template (a stored map's matcher takes
+  the running session's), so an offline ``merge`` of cropped views gives forward views no heading.
 """
 
 from __future__ import annotations
@@ -124,7 +125,28 @@ class LocalViewCells:
         self.last_view: np.ndarray | None = None
         self.last_mean = 0.0
         self.last_error = math.inf
-        self._column_rad = 0.0  # heading per template column of the last image (vt_shift_heading)
+        self._column_rad = self._full_width_column_rad()  # heading per template column (vt_shift_heading)
+
+    def _full_width_column_rad(self) -> float:
+        """Return the heading one template column spans when the crop keeps the image's full width (else 0).
+
+        ``camera_fov_deg`` over ``template_x_size``: known before any image, so matchers built from stored
+        templates alone (a stored map's places, offline merges) give forward views their heading too. A crop
+        of part of the width needs the image's width: :meth:`make_template` sets it from the first image.
+        """
+        p = self.params
+        if p.image_crop_x_min == 0 and p.image_crop_x_max == -1:
+            return math.radians(p.camera_fov_deg) / p.template_x_size
+        return 0.0
+
+    @property
+    def column_rad(self) -> float:
+        """Return the heading in radians one template column spans (``vt_shift_heading``; 0: not known yet)."""
+        return self._column_rad
+
+    @column_rad.setter
+    def column_rad(self, value: float) -> None:
+        self._column_rad = float(value)
 
     # -------------------------------------------------------------- accessors
     @property

@@ -192,6 +192,12 @@ class StoredPlaces:
         Miss: it matches none of them, and its best match in the whole map (``matched``, computed
         when not given) is no template without a place (the stored session's gates keep views
         without making experiences: such a match says nothing about where the robot is).
+
+        The place of a hit faces the stored experience's way turned by a panoramic view's offset; a forward
+        view's heading (``vt_shift_heading``) is left out: hypotheses re-anchor on every hit, and per-hit
+        forward headings turned the alignment 3–27° from hit to hit until a true merge's prediction left
+        the stored places (``twin-overlap`` 40 m seed 6, rolled back after 81.6 m of matches). The merge's
+        own anchor keeps it (:mod:`mapserver.merge.online`).
         """
         if self._near(pose, self.rule.coverage_radius).size == 0:
             return UNMAPPED, None
@@ -202,7 +208,8 @@ class StoredPlaces:
             return (UNMAPPED, None) if best >= 0 and not self.placed[best] else (MISS, None)
         mine = near[self.templates[near] == u]
         closest = mine[int(np.argmin(np.linalg.norm(self.poses[mine, :3] - pose[:3], axis=1)))]
-        return HIT, compose(self.poses[closest], np.array([0.0, 0.0, 0.0, relative]))
+        turn = relative if self.panoramic else 0.0  # a forward view's heading (vt_shift_heading) jitters per hit
+        return HIT, compose(self.poses[closest], np.array([0.0, 0.0, 0.0, turn]))
 
 
 @dataclass(eq=False)

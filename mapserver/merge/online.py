@@ -263,7 +263,10 @@ class OnlineMerger:
     def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray], key: object) -> Any:
         """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader."""
         if engine.params.frontend != "sdr-htm":
-            return LocalViewCells.restore(engine.params, state)
+            cells = LocalViewCells.restore(engine.params, state)
+            if engine.local_view.column_rad > 0:  # the session's camera, for vt_shift_heading
+                cells.column_rad = engine.local_view.column_rad
+            return cells
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm sessions
 
         reader = CortexReader(engine.params, state, row=len(self._readers), key=key)

@@ -156,6 +156,15 @@ def test_panoramic_relative_rad_at_a_known_circular_offset(offset: int, expected
     assert rad == pytest.approx(expected_rad, abs=1e-12)
 
 
+def _smooth_panorama() -> np.ndarray:
+    """A 64 × 256 random image box-filtered over 16 columns: smooth, so a match's error is a bowl around its shift."""
+    rng = np.random.default_rng(4)
+    image = np.clip(rng.normal(128.0, 40.0, (64, 256 + 16)), 0, 255)
+    image = np.cumsum(np.cumsum(image, axis=1), axis=0)
+    image = (image[:, 16:] - image[:, :-16])[:, :256]
+    return (255.0 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
+
+
 @pytest.mark.parametrize("pixels", [-8, -7, -3, 0, 1, 2, 5, 8])
 def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_column(pixels: int) -> None:
     """``vt_shift_heading``: a 360° camera (256 pixels, 128 template columns) turned left by ``pixels`` pixel
@@ -164,11 +173,7 @@ def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_colum
     steps 2 columns from a shift of 5, so only the parabola through the best whole column and its
     neighbours finds it (within ±4 columns; at the search's edge, 5, it stops there). Off (OpenRatSLAM), a
     forward view has no heading offset."""
-    rng = np.random.default_rng(4)
-    image = np.clip(rng.normal(128.0, 40.0, (64, 256 + 16)), 0, 255)
-    image = np.cumsum(np.cumsum(image, axis=1), axis=0)  # smooth, so the error is a bowl around the shift
-    image = (image[:, 16:] - image[:, :-16])[:, :256]
-    image = (255.0 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
+    image = _smooth_panorama()
     params = {"template_x_size": 128, "template_y_size": 32, "vt_shift_match": 5, "vt_step_match": 2,
               "vt_match_threshold": 0.2, "camera_fov_deg": 360.0}  # fmt: skip
     for heading, expected in ((True, pixels * 2 * math.pi / 256), (False, 0.0)):
@@ -177,6 +182,28 @@ def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_colum
         best, rad, created = cells.process(np.roll(image, pixels, axis=1))
         assert (best, created) == (0, False)
         assert rad == pytest.approx(expected, abs=0.1 * 2 * math.pi / 128)
+
+
+def test_a_stored_maps_matcher_knows_its_columns_heading_without_an_image() -> None:
+    """A matcher rebuilt from stored templates (a stored map's places, an offline merge) has made no template:
+    with the full width kept a column spans ``camera_fov_deg``/``template_x_size`` (360°/128), and a view turned
+    by 3 pixels of 256 gets its heading 3·2π/256 from it, as the session that saw the image does. A crop of
+    part of the width needs the image (100 of 200 pixels: half as much per column), so before one it is 0."""
+    params = {"template_x_size": 128, "template_y_size": 32, "vt_shift_match": 5, "vt_step_match": 2,
+              "vt_match_threshold": 0.2, "camera_fov_deg": 360.0, "vt_shift_heading": True}  # fmt: skip
+    image = _smooth_panorama()
+    seen = _cells(**params)
+    seen.process(image)
+    stored = LocalViewCells.restore(seen.params, seen.snapshot())
+    assert stored.column_rad == pytest.approx(2 * math.pi / 128) == seen.column_rad
+    view, mean = seen.make_template(np.roll(image, 3, axis=1))
+    best, _, rad = stored.match(view, mean)
+    assert best == 0
+    assert rad == pytest.approx(3 * 2 * math.pi / 256, abs=0.1 * 2 * math.pi / 128)
+    cropped = _cells(**{**params, "template_x_size": 50, "image_crop_x_max": 100})
+    assert cropped.column_rad == 0.0
+    cropped.make_template(image[:, :200])
+    assert cropped.column_rad == pytest.approx(math.radians(360.0) * 100 / 200 / 50)
 
 
 def test_template_mean_prefilter_skips_templates_whose_mean_is_too_far() -> None:

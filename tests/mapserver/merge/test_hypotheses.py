@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -61,6 +62,23 @@ def test_a_place_predicts_its_templates_and_nothing_elsewhere() -> None:
     assert places.test(np.array([2.0, 5.0, 0.0, 0.0]), *_view(2))[0] == UNMAPPED  # nobody was there
     assert places.test(np.array([2.0, 0.0, 0.0, math.pi]), *_view(2))[0] == UNMAPPED  # facing the other way
     assert _places(panoramic=True).test(np.array([2.0, 0.0, 0.0, math.pi]), *_view(2))[0] == HIT
+
+
+def test_a_forward_views_heading_does_not_turn_the_place_a_hit_re_anchors_on() -> None:
+    """``vt_shift_heading``: template 2 turned by one column matches it with a heading of about one column
+    (``camera_fov_deg``/32), which a merge's anchor takes; the place a hit re-anchors a hypothesis on keeps the
+    stored experience's heading (forward views' per-hit headings jitter), while a panoramic offset turns it."""
+    cells = LocalViewCells(PARAMS.replace(vt_shift_heading=True))
+    cells.add_templates(TEMPLATES, TEMPLATES.reshape(6, -1).mean(axis=1, dtype=np.float64))
+    poses = np.array([[float(i), 0.0, 0.0, 0.0] for i in range(6)])
+    places = StoredPlaces(cells, poses, np.arange(6), PARAMS.vt_match_threshold, False, RULE)
+    view = np.roll(TEMPLATES[2], 1, axis=1)
+    mean = float(view.mean(dtype=np.float64))
+    best, _, heading = cells.match_among(view, mean, np.arange(6))
+    assert best == 2 and abs(heading) == pytest.approx(cells.column_rad, rel=0.25)
+    outcome, seen = places.test(np.array([2.2, 0.1, 0.0, 0.1]), view, mean)
+    assert outcome == HIT
+    np.testing.assert_allclose(seen, [2.0, 0.0, 0.0, 0.0])
 
 
 def test_a_view_whose_best_match_has_no_place_says_nothing() -> None:
