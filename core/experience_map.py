@@ -51,7 +51,17 @@ from scipy.sparse.csgraph import connected_components
 from core import compat
 from core._buffers import GrowBuffer
 from core.lattice import wrap_angle, wrap_scalar
-from core.relaxation import Incidence, Worklist, member_of, residuals, roots, solve, solve_block, sorted_unique
+from core.relaxation import (
+    Incidence,
+    Worklist,
+    member_of,
+    refine_jointly,
+    residuals,
+    roots,
+    solve,
+    solve_block,
+    sorted_unique,
+)
 from core.robust import SWITCHABLE_KINDS, Drift, switch_off_outliers
 
 if TYPE_CHECKING:
@@ -476,7 +486,7 @@ class ExperienceMap:
             self._pose.view, np.concatenate([src, standby.src]), np.concatenate([dst, standby.dst]),
             np.concatenate([transform, standby.link[:, :4]]), np.concatenate([kind, odometry]),
             np.concatenate([distance, standby.link[:, 5]]), self.anchors(), drift, standby=standby.partner,
-            also_switchable=standby.switchable, standby_closure=standby.closure,
+            also_switchable=standby.switchable, standby_closure=standby.closure, joint=p.exp_relax_joint,
         )  # fmt: skip
         joined = np.flatnonzero(result.active[k:])
         if np.array_equal(result.active[:k], self._active.view) and joined.size == 0:
@@ -595,7 +605,9 @@ class ExperienceMap:
         :meth:`relax` runs until they do not, at most ``max_iterations`` iterations.
         ``exp_loops = 0`` switches relaxation off: nothing moves. With ``exp_robust``
         the robust check (:meth:`check_links`) runs first, and the fixed point is that
-        of the active links.
+        of the active links. With ``exp_relax_joint`` (ours, off by default) the map then
+        moves on to the joint least squares over positions and headings
+        (:func:`core.relaxation.refine_jointly`).
         """
         self._work.clear()
         if self.link_count == 0 or self.params.exp_loops <= 0 or self.params.openratslam_compat:
@@ -605,8 +617,19 @@ class ExperienceMap:
         run = 0
         while run < max_iterations and float(np.abs(self.full_corrections()).max()) > self.params.exp_relax_tolerance:
             run += self.relax(min(1000, max_iterations - run))
+        if self.params.exp_relax_joint:
+            self._refine_jointly()
         self._work.clear()
         return run
+
+    def _refine_jointly(self) -> None:
+        """Move the settled map to the joint least squares over its active links (``exp_relax_joint``)."""
+        p = self.params
+        active = np.flatnonzero(self._active.view)
+        self._pose.view[:] = refine_jointly(
+            self._pose.view, self._from.view[active], self._to.view[active], self._transform.view[active],
+            self.anchors(), heading_weight=p.exp_robust_drift / p.exp_robust_yaw_drift, iterations=5,
+        )  # fmt: skip
 
     def iterate_openratslam(self) -> None:
         """Relax as OpenRatSLAM's ``ExperienceMap::iterate`` (``exp_loops`` sweeps; see :mod:`core.compat`)."""

@@ -105,6 +105,17 @@ def sums_to_root(parent: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.n
     return total, up
 
 
+def _movable(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> np.ndarray | None:
+    """Return the mask (n,) of experiences a solve may move: linked and not anchored (None: there are none)."""
+    if src.size == 0:
+        return None
+    linked = np.zeros(n, dtype=bool)
+    linked[src] = True
+    linked[dst] = True
+    free = linked & ~anchor
+    return free if free.any() else None
+
+
 def solve(
     pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, anchor: np.ndarray, passes: int = 8
 ) -> np.ndarray:
@@ -119,13 +130,8 @@ def solve(
     """
     n = pose.shape[0]
     out = pose.copy()
-    if src.size == 0:
-        return out
-    linked = np.zeros(n, dtype=bool)
-    linked[src] = True
-    linked[dst] = True
-    free = linked & ~anchor
-    if not free.any():
+    free = _movable(n, src, dst, anchor)
+    if free is None:
         return out
     k = src.size
     # incidence matrix B (K × n): +1 at the target, −1 at the source
@@ -392,3 +398,67 @@ class Worklist:
         self._queued[self.items()] = False
         self._items = GrowBuffer((), np.int64)
         self._head = 0
+
+
+def refine_jointly(
+    pose: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    transform: np.ndarray,
+    anchor: np.ndarray,
+    heading_weight: float = 1.0,
+    iterations: int = 3,
+) -> np.ndarray:
+    """Return ``pose`` moved by Gauss–Newton steps on the joint least squares over positions and headings.
+
+    Minimises ``Σ_l ‖r_l,xyz‖² + (heading_weight · r_l,ψ)²`` with r from :func:`residuals` (Grisetti et al.,
+    "A Tutorial on Graph-Based SLAM", 2010, Eqs. 22–30, over SE(2) × z), from ``pose`` (normally
+    :func:`solve`'s fixed point). OpenRatSLAM's fixed point solves the headings from the heading
+    residuals alone, so a loop whose closures carry heading errors (a forward view matched a few degrees
+    round) keeps them and misses in position by that error times the loop's lever arm; here the position
+    residuals turn the headings too. Experiences marked ``anchor`` and experiences without links keep their
+    pose; the linearisation is about each step's headings.
+    """
+    n = pose.shape[0]
+    out = pose.copy()
+    free = _movable(n, src, dst, anchor)
+    if free is None:
+        return out
+    column = np.full(n, -1, dtype=np.int64)
+    column[free] = np.arange(int(np.count_nonzero(free)))
+    k = src.size
+    rows = np.arange(4 * k).reshape(k, 4)
+    for _ in range(iterations):
+        r = residuals(out, src, dst, transform)
+        r[:, 3] *= heading_weight
+        cos_y, sin_y = np.cos(out[src, 3]), np.sin(out[src, 3])
+        tx, ty = transform[:, 0], transform[:, 1]
+        # ∂r/∂(x, y, z, ψ) of the target: I (heading weighted); of the source: −I, and r_xy turns with ψ_src
+        entries = [
+            (rows[:, a], dst, a, np.full(k, 1.0 if a < 3 else heading_weight)) for a in range(4)
+        ] + [
+            (rows[:, a], src, a, np.full(k, -1.0 if a < 3 else -heading_weight)) for a in range(4)
+        ] + [
+            (rows[:, 0], src, 3, sin_y * tx + cos_y * ty),
+            (rows[:, 1], src, 3, -cos_y * tx + sin_y * ty),
+        ]  # fmt: skip
+        data, row_idx, col_idx = [], [], []
+        for row, node, axis, value in entries:
+            keep = column[node] >= 0
+            data.append(value[keep])
+            row_idx.append(row[keep])
+            col_idx.append(4 * column[node[keep]] + axis)
+        jac = sp.csr_matrix(
+            (np.concatenate(data), (np.concatenate(row_idx), np.concatenate(col_idx))),
+            shape=(4 * k, 4 * int(np.count_nonzero(free))),
+        )
+        normal = (jac.T @ jac).tocsc()
+        try:
+            step = splu(normal).solve(-(jac.T @ r.reshape(-1)))
+        except RuntimeError:  # singular: a free experience whose variables no link constrains
+            break
+        out[free] += step.reshape(-1, 4)
+        if float(np.max(np.abs(step))) < 1e-9:
+            break
+    out[free, 3] = np.remainder(out[free, 3] + math.pi, TWO_PI) - math.pi
+    return out

@@ -105,7 +105,7 @@ from core.pcm import (
     single_consistency,
     turn_allowance,
 )
-from core.relaxation import residuals, roots, solve, sums_to_root
+from core.relaxation import refine_jointly, residuals, roots, solve, sums_to_root
 
 #: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
 SWITCHABLE_KINDS = (1, 2)
@@ -174,6 +174,7 @@ def switch_off_outliers(
     standby: np.ndarray | None = None,
     also_switchable: np.ndarray | None = None,
     standby_closure: np.ndarray | None = None,
+    joint: bool = False,
 ) -> RobustResult:
     """Return which links stay on: binary switches minimising the TLS cost (module docstring).
 
@@ -182,7 +183,10 @@ def switch_off_outliers(
     ``also_switchable`` marks links that are switchable whatever their kind (a mask over the first
     links). Standby links are not switchable and do not count in the link length ``s``.
     ``standby_closure`` (M,): per standby link, the loop link that began its relocalisation (−1: none);
-    the standby link is also on while that link is off.
+    the standby link is also on while that link is off. ``joint`` (``exp_relax_joint``): the residuals are
+    taken at the joint least squares over positions and headings (:func:`core.relaxation.refine_jointly`)
+    instead of RatSLAM's fixed point, where a loop whose closures carry heading errors misses in position by
+    that error times its lever arm and a true closure of a long cycle can cost more than an outlier.
 
     ``pose`` gives the anchors' poses and the experiences' positions to start from; the
     decision depends on the links only. When every switchable link is within ``c̄`` of the
@@ -206,6 +210,7 @@ def switch_off_outliers(
     problem.standby_scale = length / np.maximum(length, np.asarray(distance, dtype=np.float64)[real:])
     if standby_closure is not None:
         problem.standby_closure = np.asarray(standby_closure, dtype=np.int64)
+    problem.joint = joint
     problem.closures = problem.can & switchable(kind)  # not a relocalisation's odometry link
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
@@ -345,6 +350,7 @@ class _Problem:
         self.closures = can  # loop and merge links: those :meth:`switch_off_strained` tries
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
+        self.joint = False  # score on the joint least squares (exp_relax_joint), not RatSLAM's fixed point
 
     def couple(self, active: np.ndarray, z: np.ndarray | None = None) -> np.ndarray:
         """Return ``active`` with gated links off and each standby link on when its partner is off.
@@ -376,9 +382,13 @@ class _Problem:
     def state(self, active: np.ndarray) -> _State:
         """Solve the relaxation over ``active`` (windings from the start headings) and score it."""
         on = np.flatnonzero(active)
-        pose = solve(self.start, self.src[on], self.dst[on], self.transform[on], self.anchor, passes=1)
+        graph = (self.src[on], self.dst[on], self.transform[on])
+        pose = solve(self.start, *graph, self.anchor, passes=1)
         self.solves += 1
-        z = normalised_residuals(pose, self.src, self.dst, self.transform, self.length, self.drift)
+        scored = pose
+        if self.joint:
+            scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.drift / self.drift.yaw_drift)
+        z = normalised_residuals(scored, self.src, self.dst, self.transform, self.length, self.drift)
         c2 = self.drift.threshold**2
         fixed = ~self.can & active  # standby links count while they stand in
         cost = float(ODOMETRY_WEIGHT * np.sum(z[fixed] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))

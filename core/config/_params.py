@@ -60,6 +60,7 @@ class Params:
     max_correction_step: float = 0.0
     # robust relaxation (core.robust): switch off loop/merge links inconsistent with the graph
     exp_robust: bool = True
+    exp_relax_joint: bool = False  # settle and the robust check on the joint least squares (not OpenRatSLAM)
     exp_robust_drift: float = 0.1  # expected odometry drift, metres per metre travelled
     exp_robust_yaw_drift: float = 0.1  # radians per metre travelled
     exp_robust_threshold: float = 4.0  # outlier when the normalised residual exceeds this
