@@ -1,6 +1,7 @@
 """False and true merges of the merge decision on the look-alike scenarios (issue 12), swept over strength.
 
 Usage: python bench/lookalike_sweep.py [--out DIR] [--seeds 3] [--rows twin:5,twin:10,...] [--param K=V,...]
+[--set K=V,...]
 
 Each row is ``SCENARIO`` or ``SCENARIO:STRENGTH`` (``lookalike_m`` for twin, ``symmetric_deg`` for
 symmetric). Per seed it runs the contract's commands: ``mapserver simulate SCENARIO --out D --seed N
@@ -133,14 +134,15 @@ def _merge_poses(db: str) -> dict[int, np.ndarray]:
 
 
 def run_once(
-    out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float, extra: str = ""
+    out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float, extra: str = "",
+    settings: str = "",
 ) -> dict:
     """Simulate one seed of a row, process its two sessions into one database, classify the merges.
 
     A merge counts as surviving when its status is ``applied``; ``rejected`` ones were rolled back by their
     verification. Also: metres session 2 drove on session 1's ground before its first surviving merge,
     the APE of session 2's final map and the APE of session 2 processed alone (twin) or of the ``single``
-    route (the others).
+    route (the others). ``settings`` (``--set``) go to every ``mapserver process``.
     """
     directory = out / f"{scenario}-{strength if strength is not None else 'default'}-seed{seed}"
     argv = ["simulate", scenario, "--out", str(directory), "--seed", str(seed)]
@@ -151,11 +153,12 @@ def run_once(
     doc = cli_json(*argv)
     db = f"sqlite:///{directory / 'db.sqlite'}"
     s1, s2 = doc["sessions"][:2]
-    first = cli_json("process", str(directory / s1["log"]), "--db", db)
+    engine = ["--set", settings] if settings else []
+    first = cli_json("process", str(directory / s1["log"]), "--db", db, *engine)
     stored_json = directory / "stored.json"
     cli_json("export", "--db", db, "--map", first["map"], "--format", "json", "--out", str(stored_json))
     stored = json.loads(stored_json.read_text())
-    result = cli_json("process", str(directory / s2["log"]), "--db", db)
+    result = cli_json("process", str(directory / s2["log"]), "--db", db, *engine)
     carried = _merge_poses(db)
     truth = true_alignment(directory, s1, s2, math.radians(preset(doc["preset"]).exp_initial_em_deg))
     merges = []
@@ -180,7 +183,7 @@ def run_once(
         m["local_error_m"] = _local_error(directory, doc, s1, s2, m["stamp"])
     alone_db = f"sqlite:///{directory / 'alone.sqlite'}"
     reference = doc["single"] if scenario != "twin" and doc.get("single") else s2
-    cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge")
+    cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge", *engine)
     ref_name = Path(reference["log"]).name.split(".")[0]
     ape_alone = _ape(directory, alone_db, ref_name, [reference], "alone")
     return {"seed": seed, "merges": merges, "shared_m_before_merge": shared, "ape": ape, "ape_reference": ape_alone}
@@ -196,13 +199,15 @@ def main() -> None:
     parser.add_argument("--tol-m", type=float, default=5.0)
     parser.add_argument("--tol-deg", type=float, default=30.0)
     parser.add_argument("--param", default="", help="more simulator parameters for every row, e.g. lookalike_turns=1")
+    parser.add_argument("--set", dest="settings", default="",
+                        help="engine parameters for every process run, e.g. vt_shift_heading=1,exp_relax_joint=1")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="lookalike-"))
     figures: dict[str, Any] = {}
     for row in args.rows.split(","):
         scenario, _, value = row.partition(":")
         strength = float(value) if value else None
-        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param)
+        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param, args.settings)
                 for seed in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
         surviving = sum(any(m["false"] and m["status"] == "applied" for m in r["merges"]) for r in runs)
         rolled = sum(any(m["false"] and m["status"] == "rejected" for m in r["merges"]) for r in runs)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from core import ConfigError as CoreConfigError
 from core import Params, load_config, preset
+from core.config import params_from_dict
 from mapserver.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -84,3 +85,26 @@ def with_frontend(params: Params, backbone: str | None = None, weights: str | Pa
         msg = "--weights needs a CNN backbone: --backbone shufflenetv2 or alexnet (or frontend_backbone in the config)"
         raise ConfigError(msg)
     return updated
+
+
+def with_settings(params: Params, settings: str | None) -> Params:
+    """Return ``params`` with ``--set KEY=VALUE[,KEY=VALUE…]`` applied (on top of the preset or config file).
+
+    Values take the key's type as in a config file (``1``/``true`` for a flag).
+
+    Raises:
+        ConfigError: an item without ``=``, an unknown key (the closest valid one is named) or an invalid value.
+    """
+    if not settings:
+        return params
+    values: dict[str, str] = {}
+    for item in settings.split(","):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            msg = f"--set takes KEY=VALUE items separated by commas, got {item.strip()!r}"
+            raise ConfigError(msg)
+        values[key.strip()] = value.strip()
+    try:
+        return params_from_dict(values, params, where="--set")
+    except CoreConfigError as err:
+        raise ConfigError(str(err)) from err

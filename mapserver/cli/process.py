@@ -12,7 +12,7 @@ from mapserver.cli._output import emit_json, info
 from mapserver.cli._progress import progress_bar
 from mapserver.errors import InputError
 from mapserver.ingest.topics import parse_topics_arg
-from mapserver.params import resolve_params, with_frontend
+from mapserver.params import resolve_params, with_frontend, with_settings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -22,6 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", help=f"parameter preset ({', '.join(PRESETS)})")
     group.add_argument("--config", help="OpenRatSLAM config_*.txt or OpenRatSLAM2 YAML file")
+    parser.add_argument("--set", dest="settings", metavar="KEY=VALUE,...",
+                        help="engine parameters on top of the preset or config, e.g. vt_shift_heading=1")
     parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt (none: off); "
                         "sonar=/t adds a sonar image topic (sdr-htm front-end)")
     parser.add_argument("--out", help="write the map JSON here")
@@ -61,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
     if not log.exists():
         msg = f"log not found: {str(log)!r}"
         raise InputError(msg)
-    params = with_frontend(resolve_params(args.preset, args.config, log), args.backbone, args.weights)
+    params = with_settings(resolve_params(args.preset, args.config, log), args.settings)
+    params = with_frontend(params, args.backbone, args.weights)
     overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if overrides:

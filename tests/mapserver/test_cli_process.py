@@ -200,3 +200,35 @@ def test_the_rate_counts_the_frames_of_this_run() -> None:
     resumed = ProcessResult(frames=100, templates=1, experiences=1, links=0, loop_closures=0, map_name="m",
                             seconds=2.0, frames_run=10)  # fmt: skip
     assert resumed.summary()["frames_per_s"] == 5.0
+
+
+def test_set_changes_engine_parameters_on_top_of_the_preset(
+    small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--set`` applies keys over ``--preset``: the map JSON records them and the preset's own values stay."""
+    plain, joint = tmp_path / "plain.json", tmp_path / "joint.json"
+    assert _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(plain))[0] == 0
+    code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(joint),
+                      "--set", "exp_relax_joint=1, vt_match_threshold=0.07")  # fmt: skip
+    assert code == 0
+    before, after = read_map_json(plain)["params"], read_map_json(joint)["params"]
+    assert (before["exp_relax_joint"], after["exp_relax_joint"]) == (False, True)
+    assert (before["vt_match_threshold"], after["vt_match_threshold"]) == (0.06, 0.07)
+    assert after["pc_dim_xy"] == before["pc_dim_xy"] == 15  # the rest is poseidon's
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("exp_relax_jiont=1", "unknown parameter 'exp_relax_jiont' in --set (did you mean 'exp_relax_joint'?)"),
+        ("exp_relax_joint", "--set takes KEY=VALUE items separated by commas, got 'exp_relax_joint'"),
+        ("vt_match_threshold=-1", "vt_match_threshold"),
+    ],
+)
+def test_a_bad_set_is_exit_2_and_writes_nothing(
+    small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], setting: str, message: str
+) -> None:
+    out_map = tmp_path / "map.json"
+    code, _, err = _run(capsys, "process", str(small_log), "--out", str(out_map), "--set", setting)
+    assert code == 2 and message in err and err.count("\n") == 1
+    assert not out_map.exists()
