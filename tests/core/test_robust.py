@@ -93,12 +93,12 @@ def _with_false(graph, count: int, separation: float, seed: int):
     ), fs.size
 
 
-def _run(graph):
+def _run(graph, joint: bool = False):
     truth, src, dst, transform, kind, distance = graph
     start = np.zeros_like(truth)
     start[0] = truth[0]
     anchor = component_anchors(truth.shape[0], src, dst)
-    return switch_off_outliers(start, src, dst, transform, kind, distance, anchor, DRIFT)
+    return switch_off_outliers(start, src, dst, transform, kind, distance, anchor, DRIFT, joint=joint)
 
 
 def test_a_clean_graph_keeps_every_link_and_is_relaxed_once() -> None:
@@ -777,3 +777,21 @@ def test_a_closure_turned_by_its_view_settles_closer_to_the_truth_jointly() -> N
     decoupled, joint = _turned_closure_lap(False), _turned_closure_lap(True)
     assert decoupled == pytest.approx(0.186, abs=0.005)
     assert joint == pytest.approx(0.144, abs=0.005)
+
+
+@pytest.mark.parametrize(("separation", "off"), [(0.5, 0), (1.0, 25), (3.0, 25)])
+def test_the_joint_scoring_switches_wrong_links_off_where_ratslams_does(separation: float, off: int) -> None:
+    """``joint`` (``exp_relax_joint``) must not let wrong links through that RatSLAM's fixed point catches: 5
+    wrong links ``separation`` metres off, seeds 0–4, on the two-lap circle. Swept: at 0.5 m none is switched
+    off by either (within the drift the 1.26 m links allow: where both break), at 1 and 3 m all 25 by both; the
+    14 true closures stay on, but for one at 3 m with the joint scoring (decoupled: none)."""
+    clean = _circle_graph()
+    n = clean[1].size
+    for joint in (False, True):
+        switched, true_off = 0, 0
+        for seed in range(5):
+            result = _run(_with_false(clean, 5, separation, seed=seed)[0], joint)
+            switched += int(np.count_nonzero(~result.active[n:]))
+            true_off += int(np.count_nonzero(~result.active[:n]))
+        assert switched == off
+        assert true_off == (1 if joint and separation == 3.0 else 0)
