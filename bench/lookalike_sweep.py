@@ -153,12 +153,12 @@ def run_once(
     doc = cli_json(*argv)
     db = f"sqlite:///{directory / 'db.sqlite'}"
     s1, s2 = doc["sessions"][:2]
-    engine = ["--set", settings] if settings else []
-    first = cli_json("process", str(directory / s1["log"]), "--db", db, *engine)
+    set_args = ["--set", settings] if settings else []
+    first = cli_json("process", str(directory / s1["log"]), "--db", db, *set_args)
     stored_json = directory / "stored.json"
     cli_json("export", "--db", db, "--map", first["map"], "--format", "json", "--out", str(stored_json))
     stored = json.loads(stored_json.read_text())
-    result = cli_json("process", str(directory / s2["log"]), "--db", db, *engine)
+    result = cli_json("process", str(directory / s2["log"]), "--db", db, *set_args)
     carried = _merge_poses(db)
     truth = true_alignment(directory, s1, s2, math.radians(preset(doc["preset"]).exp_initial_em_deg))
     merges = []
@@ -183,7 +183,7 @@ def run_once(
         m["local_error_m"] = _local_error(directory, doc, s1, s2, m["stamp"])
     alone_db = f"sqlite:///{directory / 'alone.sqlite'}"
     reference = doc["single"] if scenario != "twin" and doc.get("single") else s2
-    cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge", *engine)
+    cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge", *set_args)
     ref_name = Path(reference["log"]).name.split(".")[0]
     ape_alone = _ape(directory, alone_db, ref_name, [reference], "alone")
     return {"seed": seed, "merges": merges, "shared_m_before_merge": shared, "ape": ape, "ape_reference": ape_alone}

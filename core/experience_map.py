@@ -477,7 +477,7 @@ class ExperienceMap:
         if self._switchable == 0:
             return False
         p = self.params
-        drift = Drift(p.exp_robust_drift, p.exp_robust_yaw_drift, p.exp_robust_threshold)
+        drift = self._drift()
         src, dst, transform, _, distance, kind = self.links
         standby = self._standby(src, dst, kind)
         k = src.size
@@ -622,13 +622,17 @@ class ExperienceMap:
         self._work.clear()
         return run
 
+    def _drift(self) -> Drift:
+        """Return the expected odometry drift that normalises link residuals (``exp_robust_*``)."""
+        p = self.params
+        return Drift(p.exp_robust_drift, p.exp_robust_yaw_drift, p.exp_robust_threshold)
+
     def _refine_jointly(self) -> None:
         """Move the settled map to the joint least squares over its active links (``exp_relax_joint``)."""
-        p = self.params
         active = np.flatnonzero(self._active.view)
         self._pose.view[:] = refine_jointly(
             self._pose.view, self._from.view[active], self._to.view[active], self._transform.view[active],
-            self.anchors(), heading_weight=p.exp_robust_drift / p.exp_robust_yaw_drift, iterations=5,
+            self.anchors(), heading_weight=self._drift().heading_weight, iterations=5,
         )  # fmt: skip
 
     def iterate_openratslam(self) -> None:

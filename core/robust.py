@@ -123,6 +123,11 @@ class Drift:
     yaw_drift: float  # radians per metre travelled
     threshold: float  # c̄ of the truncated quadratic, in normalised units
 
+    @property
+    def heading_weight(self) -> float:
+        """Return the weight of a radian of heading against a metre of position (``drift / yaw_drift``)."""
+        return self.drift / self.yaw_drift
+
 
 @dataclass(frozen=True, slots=True)
 class RobustResult:
@@ -387,7 +392,7 @@ class _Problem:
         self.solves += 1
         scored = pose
         if self.joint:
-            scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.drift / self.drift.yaw_drift)
+            scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.heading_weight)
         z = normalised_residuals(scored, self.src, self.dst, self.transform, self.length, self.drift)
         c2 = self.drift.threshold**2
         fixed = ~self.can & active  # standby links count while they stand in
