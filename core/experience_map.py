@@ -54,6 +54,7 @@ from core.lattice import wrap_angle, wrap_scalar
 from core.relaxation import (
     Incidence,
     Worklist,
+    length_weights,
     member_of,
     refine_jointly,
     residuals,
@@ -62,7 +63,7 @@ from core.relaxation import (
     solve_block,
     sorted_unique,
 )
-from core.robust import SWITCHABLE_KINDS, Drift, switch_off_outliers
+from core.robust import SWITCHABLE_KINDS, Drift, link_length, switch_off_outliers
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -630,9 +631,10 @@ class ExperienceMap:
     def _refine_jointly(self) -> None:
         """Move the settled map to the joint least squares over its active links (``exp_relax_joint``)."""
         active = np.flatnonzero(self._active.view)
+        weight = length_weights(self._distance.view[active], link_length(self._distance.view, self._kind.view))
         self._pose.view[:] = refine_jointly(
             self._pose.view, self._from.view[active], self._to.view[active], self._transform.view[active],
-            self.anchors(), heading_weight=self._drift().heading_weight, iterations=5,
+            self.anchors(), heading_weight=self._drift().heading_weight, iterations=5, weight=weight,
         )  # fmt: skip
 
     def iterate_openratslam(self) -> None:

@@ -71,7 +71,10 @@ world: alone 12.05 m APE, 2.62 m now, 2.92 m for the log's odometry):
   with the fold, 128 with its eight links off). But each false closure contradicts the odometry of the
   route between its own ends: the one-link cycle test of :func:`core.pcm.single_consistency` against the
   dead reckoning (odometry and standby links, no fold) flags it, and flagged links are switched off
-  whatever the cost (:func:`contradicts_odometry`) (``UNARY_THRESHOLD`` has the measured figures).
+  whatever the cost (:func:`contradicts_odometry`) (``UNARY_THRESHOLD`` has the measured figures). Over a
+  long cycle the odometry's heading bias shrinks a mirror closure's turn (π + b·S) until it passes for
+  drift, so the turn is also tested with the bias the map's long cycles show taken out
+  (:func:`core.pcm.heading_bias`).
 - *Folds across sessions.* Links whose ends the odometry does not join (a session joined to the map
   only by merge links) are tested along the merge links, by the heading their cycle turns only: a merge
   turns a map by a few degrees, a place that looks like its mirror image turns it by about π
@@ -105,7 +108,7 @@ from core.pcm import (
     single_consistency,
     turn_allowance,
 )
-from core.relaxation import refine_jointly, residuals, roots, solve, sums_to_root
+from core.relaxation import length_weights, refine_jointly, residuals, roots, solve, sums_to_root
 
 #: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
 SWITCHABLE_KINDS = (1, 2)
@@ -216,6 +219,7 @@ def switch_off_outliers(
     if standby_closure is not None:
         problem.standby_closure = np.asarray(standby_closure, dtype=np.int64)
     problem.joint = joint
+    problem.weight = length_weights(np.asarray(distance, dtype=np.float64), length)
     problem.closures = problem.can & switchable(kind)  # not a relocalisation's odometry link
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
@@ -354,6 +358,7 @@ class _Problem:
         self.gated = np.zeros(src.size, dtype=bool)  # off whatever the cost: contradicts_odometry
         self.closures = can  # loop and merge links: those :meth:`switch_off_strained` tries
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
+        self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
         self.joint = False  # score on the joint least squares (exp_relax_joint), not RatSLAM's fixed point
 
@@ -392,7 +397,8 @@ class _Problem:
         self.solves += 1
         scored = pose
         if self.joint:
-            scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.heading_weight)
+            scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.heading_weight,
+                                    weight=self.weight[on])  # fmt: skip
         z = normalised_residuals(scored, self.src, self.dst, self.transform, self.length, self.drift)
         c2 = self.drift.threshold**2
         fixed = ~self.can & active  # standby links count while they stand in

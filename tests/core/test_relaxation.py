@@ -301,3 +301,27 @@ def test_the_joint_refinement_leaves_a_consistent_graph_where_it_is() -> None:
     np.testing.assert_allclose(joint[:, :3], truth[:, :3], atol=1e-12)
     np.testing.assert_allclose(np.remainder(joint[:, 3] - truth[:, 3] + math.pi, 2 * math.pi) - math.pi, 0.0,
                                atol=1e-12)  # fmt: skip
+
+
+@pytest.mark.parametrize(("weighted", "end"), [(False, 100.0 / 11.0), (True, 9.5)])
+def test_a_long_link_weighs_as_the_odometry_it_spans_in_the_joint_refinement(weighted: bool, end: float) -> None:
+    """Ten 1 m odometry links along x and one 10 m link from the first experience to the last that says 9 m
+    (a reckoning link 1 m off). Least squares over the total T: unit weights give 10·(T/10 − 1)² + (T − 9)²,
+    minimal at T = 100/11; with the long link's variance ten links' worth (w² = 1/10, ``length_weights``)
+    (T/10 − 1)·2 + 0.2·(T − 9) = 0, T = 9.5: the chain and the link trusted alike, as each spans 10 m."""
+    from core.relaxation import length_weights, refine_jointly
+
+    pose = np.zeros((11, 4))
+    pose[:, 0] = np.arange(11.0)
+    src, dst = np.append(np.arange(10), 0), np.append(np.arange(1, 11), 10)
+    transform = np.zeros((11, 4))
+    transform[:10, 0] = 1.0
+    transform[10, 0] = 9.0
+    distance = np.append(np.ones(10), 10.0)
+    assert length_weights(distance, 1.0).tolist() == pytest.approx([1.0] * 10 + [math.sqrt(0.1)])
+    anchor = np.zeros(11, dtype=bool)
+    anchor[0] = True
+    weight = length_weights(distance, 1.0) if weighted else None
+    joint = refine_jointly(pose, src, dst, transform, anchor, weight=weight)
+    assert joint[10, 0] == pytest.approx(end, abs=1e-9)
+    np.testing.assert_allclose(np.diff(joint[:, 0]), end / 10.0, atol=1e-9)  # the chain stretches evenly
