@@ -10,6 +10,7 @@ from core import ConfigError as CoreConfigError
 from core import Params, load_config, preset
 from core.config import params_from_dict
 from mapserver.errors import ConfigError
+from mapserver.pairs import parse_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -93,17 +94,12 @@ def with_settings(params: Params, settings: str | None) -> Params:
     Values take the key's type as in a config file (``1``/``true`` for a flag).
 
     Raises:
-        ConfigError: an item without ``=``, an unknown key (the closest valid one is named) or an invalid value.
+        ConfigError: an item without ``=``, a key given twice, an unknown key (the closest valid one is named) or an
+            invalid value.
     """
     if not settings:
         return params
-    values: dict[str, str] = {}
-    for item in settings.split(","):
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            msg = f"--set takes KEY=VALUE items separated by commas, got {item.strip()!r}"
-            raise ConfigError(msg)
-        values[key.strip()] = value.strip()
+    values = parse_pairs(settings, flag="--set", form="KEY=VALUE", example="vt_shift_heading=1", error=ConfigError)
     try:
         return params_from_dict(values, params, where="--set")
     except CoreConfigError as err:

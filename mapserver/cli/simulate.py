@@ -10,6 +10,7 @@ from mapserver.cli._output import emit_json, info
 from mapserver.cli._progress import progress_bar
 from mapserver.errors import InputError
 from mapserver.ingest.simulator import SCENARIOS, simulate
+from mapserver.pairs import parse_pairs
 
 
 def _epilog() -> str:
@@ -62,27 +63,15 @@ def parse_params(items: list[str]) -> dict[str, float]:
         InputError: an entry without ``=``, a repeated name or a value that is not a finite number.
     """
     params: dict[str, float] = {}
-    for item in items:
-        for part in item.split(","):
-            entry = part.strip()
-            if not entry:
-                continue
-            name, sep, value = entry.partition("=")
-            name = name.strip()
-            if not sep or not name:
-                msg = f"bad --param {entry!r}: expected NAME=VALUE, e.g. laps=2"
-                raise InputError(msg)
-            if name in params:
-                msg = f"bad --param: {name!r} given twice"
-                raise InputError(msg)
-            try:
-                number = float(value)
-            except ValueError:
-                number = math.nan
-            if not math.isfinite(number):
-                msg = f"bad --param {entry!r}: {value.strip()!r} is not a finite number"
-                raise InputError(msg)
-            params[name] = number
+    for name, value in parse_pairs(items, flag="--param", form="NAME=VALUE", example="laps=2").items():
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number):
+            msg = f"bad --param {name}={value}: {value!r} is not a finite number"
+            raise InputError(msg)
+        params[name] = number
     return params
 
 

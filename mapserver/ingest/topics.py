@@ -33,6 +33,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from mapserver.errors import IngestError, InputError
+from mapserver.pairs import parse_pairs
 
 IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
@@ -234,20 +235,7 @@ def parse_topics_arg(text: str) -> dict[str, str]:
         InputError: a pair without ``=``, an empty key or a repeated key.
 
     """
-    result: dict[str, str] = {}
-    for raw in text.split(","):
-        part = raw.strip()
-        if not part:
-            continue
-        key, sep, value = part.partition("=")
-        key, value = key.strip(), value.strip()
-        if not sep or not key:
-            msg = f"bad --topics entry {part!r}: expected KEY=TOPIC, e.g. image=/camera/image"
-            raise InputError(msg)
-        if key in result:
-            msg = f"bad --topics: key {key!r} given twice"
-            raise InputError(msg)
-        result[key] = value
+    result = parse_pairs(text, flag="--topics", form="KEY=TOPIC", example="image=/camera/image")
     if not result:
         msg = f"bad --topics {text!r}: expected KEY=TOPIC[,KEY=TOPIC...]"
         raise InputError(msg)

@@ -221,7 +221,8 @@ def test_set_changes_engine_parameters_on_top_of_the_preset(
     ("setting", "message"),
     [
         ("exp_relax_jiont=1", "unknown parameter 'exp_relax_jiont' in --set (did you mean 'exp_relax_joint'?)"),
-        ("exp_relax_joint", "--set takes KEY=VALUE items separated by commas, got 'exp_relax_joint'"),
+        ("exp_relax_joint", "bad --set entry 'exp_relax_joint': expected KEY=VALUE, e.g. vt_shift_heading=1"),
+        ("exp_relax_joint=1,exp_relax_joint=0", "bad --set: 'exp_relax_joint' given twice"),
         ("vt_match_threshold=-1", "vt_match_threshold"),
     ],
 )
