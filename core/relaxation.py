@@ -425,9 +425,9 @@ def refine_jointly(
 ) -> np.ndarray:
     """Return ``pose`` moved by Gauss–Newton steps on the joint least squares over positions and headings.
 
-    Minimises ``Σ_l w_l²·(‖r_l,xyz‖² + (heading_weight · r_l,ψ)²)`` (``weight`` w, 1 when None) with r from
-    :func:`residuals` (Grisetti et al.,
-    "A Tutorial on Graph-Based SLAM", 2010, Eqs. 22–30, over SE(2) × z), from ``pose`` (normally
+    Minimises ``Σ_l w_l²·(‖r_l,xyz‖² + (heading_weight · r_l,ψ)²)`` (``weight`` w, 1 when None; see
+    :func:`length_weights`) with r from :func:`residuals` (Grisetti et al., "A Tutorial on Graph-Based
+    SLAM", 2010, Eqs. 22–30, over SE(2) × z), from ``pose`` (normally
     :func:`solve`'s fixed point). OpenRatSLAM's fixed point solves the headings from the heading
     residuals alone, so a loop whose closures carry heading errors (a forward view matched a few degrees
     round) keeps them and misses in position by that error times the loop's lever arm; here the position
