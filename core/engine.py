@@ -93,6 +93,8 @@ class Engine:
         """Per template: the experience current when it was made (−1: none yet)."""
         self.lv_place_offset: list[np.ndarray] = []
         """Per template: the odometry accumulated since that experience then (x, y, z in the map frame, heading)."""
+        self.lv_place_yaw: list[float] = []
+        """Per template: that experience's heading then, so that its place turns as relaxation turns it."""
         self.frames = 0
         self.last_stamp = math.nan
         self.loop_closures = 0
@@ -152,6 +154,8 @@ class Engine:
         if created:
             self.lv_place.append(self.map.current)
             self.lv_place_offset.append(self.map.accum[:4].copy())
+            current = self.map.current
+            self.lv_place_yaw.append(float(self.map.poses[current, 3]) if current >= 0 else 0.0)
         if not self.params.openratslam_compat:
             self.map.relax_step()
         elif action != Action.NONE:  # OpenRatSLAM relaxes after every published action
@@ -229,6 +233,7 @@ class Engine:
         state["lv_origin"] = np.asarray(self.lv_origin, dtype=np.int64)
         state["lv_place"] = np.asarray(self.lv_place, dtype=np.int64)
         state["lv_place_offset"] = np.asarray(self.lv_place_offset, dtype=np.float64).reshape(-1, 4)
+        state["lv_place_yaw"] = np.asarray(self.lv_place_yaw, dtype=np.float64)
         state.update(self.odometry.snapshot())
         state.update(self.pose_cells.snapshot())
         state.update(self.map.snapshot())
@@ -246,6 +251,7 @@ class Engine:
         engine.lv_origin = np.asarray(state["lv_origin"], dtype=np.int64).tolist()
         place, offset = template_place_rows(state, len(engine.lv_origin))
         engine.lv_place, engine.lv_place_offset = place.tolist(), list(offset)
+        engine.lv_place_yaw = template_place_yaws(state, len(engine.lv_origin)).tolist()
         engine.odometry = VisualOdometry.restore(params, state)
         engine.pose_cells = PoseCellNetwork.restore(params, state)
         engine.map = ExperienceMap.restore(params, engine.pose_cells.rank, state)
@@ -254,6 +260,19 @@ class Engine:
         engine.last_stamp = float(state["eng_last_stamp"])
         engine.loop_closures = int(state.get("eng_loop_closures", np.asarray(0)))
         return engine
+
+
+def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> np.ndarray:
+    """Return (n,) the heading of each template's experience when the template was made (``lv_place_yaw``).
+
+    NaN where unknown (templates past the key's end, or all of them in snapshots made before it): their
+    offsets' headings are then taken as they were stored (absolute), not turned with the experience.
+    """
+    yaw = np.full(n, np.nan, dtype=np.float64)
+    if "lv_place_yaw" in state:
+        stored = np.asarray(state["lv_place_yaw"], dtype=np.float64).reshape(-1)[:n]
+        yaw[: stored.size] = stored
+    return yaw
 
 
 def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -93,6 +93,7 @@ class Params:
     merge_miss_weight: float = -1.0  # a miss on mapped ground counts this many hits; −1: by front-end (Params docs)
     merge_sv_min_intersection: int = 8  # sdr-htm merge evidence: I_min of a stored map's cortex reading the session
     merge_sv_enable_f1_gate: bool = False  # sdr-htm merge evidence: the F1 gate of that reading
+    merge_sdr_min_overlap: float = 0.62  # sdr-htm merge evidence: a frame's SDR shares this share of a view cell's code
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False
     # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"
@@ -144,13 +145,23 @@ class Params:
 
         Wald's log-likelihood ratios of a frame on mapped ground, log((1 − p₀)/(1 − p₁)) / log(p₁/p₀), with
         p₁ the chance that a true alignment's predicted place is recognised and p₀ that a look-alike is:
-        ``lvc`` p₁ = 0.9, p₀ = 0.25 → 2.0; ``sdr-htm`` (a stored map's cortex reading another session, at
-        the merge gates ``merge_sv_*``) p₁ = 0.4 (measured on ``cave3d``, 0.31–0.55 over 4 seeds),
-        p₀ = 0.02 (no false match in 121 on ``aliased``, bounded) → 0.16.
+        ``lvc`` p₁ = 0.9, p₀ = 0.25 → 2.0 (the ratio is 1.57; 2 was chosen and every figure measured with it);
+        ``sdr-htm`` matching the view cells' codes (``merge_sdr_min_overlap``: p₁ 0.88–1.0 measured on
+        ``cave3d``, ``symmetric``, ``twin-overlap``) as ``lvc``; a stored ``sdr-htm`` map without codes (made
+        before ``lv_sdr``), read by its cortex at the merge gates ``merge_sv_*``: p₁ = 0.4 (measured on
+        ``cave3d``, 0.31–0.55 over 4 seeds), p₀ = 0.02 (no false match in 121 on ``aliased``, bounded) → 0.16.
+        """
+        return self.miss_weight_reading(codes=self.frontend != "sdr-htm")
+
+    def miss_weight_reading(self, *, codes: bool) -> float:
+        """Return :attr:`miss_weight` for a stored map's observations: by code, or by its cortex's descriptors.
+
+        ``codes``: ``lvc`` templates or ``sdr-htm`` view cells' codes; False: a stored ``sdr-htm`` map without
+        codes, read by its cortex.
         """
         if self.merge_miss_weight > 0:
             return self.merge_miss_weight
-        return 0.16 if self.frontend == "sdr-htm" else 2.0
+        return 2.0 if codes else 0.16
 
     @property
     def lattice_rank(self) -> int:
@@ -261,6 +272,8 @@ def _validate(p: Params) -> None:
         fail("merge_miss_weight", "must be > 0, or -1 for the front-end's own")
     if p.merge_sv_min_intersection < 1:
         fail("merge_sv_min_intersection", "must be ≥ 1")
+    if not 0.0 < p.merge_sdr_min_overlap <= 1.0:
+        fail("merge_sdr_min_overlap", "must be in (0, 1]")
     for key in ("merge_evidence_m", "merge_probation_m"):
         if getattr(p, key) < 0 and getattr(p, key) != -1.0:
             fail(key, "must be ≥ 0 metres, or -1 for the map's scale")

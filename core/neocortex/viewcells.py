@@ -9,7 +9,11 @@ matched id, or a new view cell whose prototype is D_t (Eq. 4.10). The interface 
 
 Snapshot: the prototypes are the ``lv_templates`` rows, float32 (N, 1, topk) holding cell ids (exact:
 ids < 2²⁴) padded with −1, ``lv_means`` their sizes, so the store, archives and merges treat them as
-templates. The projection (``nc_projection``, or for CNN embeddings too big to store its SHA-256
+templates. ``lv_sdr`` (N, L/8) uint8 keeps each view cell's *code*: the packed fused SDR (Eq. 4.3) of the
+frame that made it. Unlike a prototype it does not depend on what the pooler learnt (the projection is
+fixed and seeded), so another session's frames can be compared with it (the merge's observations,
+``mapserver.merge.cortex``); a snapshot made before the key existed restores with zero codes.
+The projection (``nc_projection``, or for CNN embeddings too big to store its SHA-256
 ``nc_projection_digest``, checked on restore), the pooler (``nc_sp_*``), the temporal memory
 (``nc_tm_*``) and the descriptor's window (``nc_history*``, ``nc_run``) are plain arrays too.
 """
@@ -66,12 +70,15 @@ class NeocortexViewCells:
         self.run = 0
         self._prototypes = np.empty((0, params.sv_tm_topk), dtype=np.int64)
         self._sizes = np.empty(0, dtype=np.int64)
+        self._codes = np.empty((0, code_bytes(params.lsbh_bits)), dtype=np.uint8)
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
         self.last_view: np.ndarray | None = None
         self.last_mean = 0.0
         self.last_match: Match | None = None
+        self.last_code: np.ndarray | None = None
+        """The packed fused SDR (L/8 uint8) of the last frame processed or read."""
 
     @property
     def count(self) -> int:
@@ -83,11 +90,22 @@ class NeocortexViewCells:
         """Return (cells (N, topk) int64 padded −1, sizes (N,))."""
         return self._prototypes, self._sizes
 
-    def add_prototypes(self, cells: np.ndarray, sizes: np.ndarray) -> None:
-        """Append prototypes (−1 padded rows of ``sv_tm_topk`` cell ids) with their sizes."""
+    @property
+    def codes(self) -> np.ndarray:
+        """Return every view cell's code: (N, L/8) uint8, the packed SDR of the frame that made it (0: unknown)."""
+        return self._codes
+
+    def add_prototypes(self, cells: np.ndarray, sizes: np.ndarray, codes: np.ndarray | None = None) -> None:
+        """Append prototypes (−1 padded rows of ``sv_tm_topk`` cell ids) with their sizes and codes (0: unknown)."""
         rows = np.asarray(cells, dtype=np.int64).reshape(-1, self.params.sv_tm_topk)
+        width = code_bytes(self.params.lsbh_bits)
+        packed = np.zeros((rows.shape[0], width), dtype=np.uint8)
+        if codes is not None:
+            given = np.asarray(codes, dtype=np.uint8).reshape(-1, width)[: rows.shape[0]]
+            packed[: given.shape[0]] = given
         self._prototypes = np.concatenate([self._prototypes, rows])
         self._sizes = np.concatenate([self._sizes, np.asarray(sizes, dtype=np.int64).reshape(-1)])
+        self._codes = np.concatenate([self._codes, packed])
 
     # ------------------------------------------------------------------ step
     def sdr(self, image: np.ndarray, sonar: np.ndarray | None = None) -> torch.Tensor:
@@ -120,7 +138,9 @@ class NeocortexViewCells:
 
     def process(self, image: np.ndarray, sonar: np.ndarray | None = None) -> tuple[int, float, bool]:
         """Encode, pool, sequence and match ``image`` (and ``sonar``); return (view cell id, 0.0, created)."""
-        columns = self.sp.compute(self.sdr(image, sonar), learn=self.params.sp_learn)
+        code = self.sdr(image, sonar)
+        self.last_code = np.packbits(code.cpu().numpy())
+        columns = self.sp.compute(code, learn=self.params.sp_learn)
         _, winners = self.tm.compute(columns, learn=True)
         source = columns if self.params.sv_descriptor_source == "sp" else winners  # sp: no sequence memory
         d = self.descriptor(source.cpu().numpy().astype(np.int64))
@@ -132,7 +152,7 @@ class NeocortexViewCells:
             return match.index, 0.0, False
         row = np.full((1, self.params.sv_tm_topk), -1, dtype=np.int64)
         row[0, : d.size] = d
-        self.add_prototypes(row, np.array([d.size]))
+        self.add_prototypes(row, np.array([d.size]), self.last_code[None, :])
         self.current = self.count - 1
         return self.current, 0.0, True
 
@@ -144,7 +164,9 @@ class NeocortexViewCells:
         observations, ``mapserver.merge.cortex``). The sequence state (active cells, winners, the descriptor
         window) advances as in :meth:`process`; the learnt state (permanences, segments) does not change.
         """
-        columns = self.sp.compute(self.sdr(image, sonar), learn=False)
+        code = self.sdr(image, sonar)
+        self.last_code = np.packbits(code.cpu().numpy())
+        columns = self.sp.compute(code, learn=False)
         _, winners = self.tm.compute(columns, learn=False)
         source = columns if self.params.sv_descriptor_source == "sp" else winners
         d = self.descriptor(source.cpu().numpy().astype(np.int64))
@@ -169,6 +191,7 @@ class NeocortexViewCells:
         state = {
             "lv_templates": self._prototypes.astype(np.float32)[:, None, :],
             "lv_means": self._sizes.astype(np.float64),
+            "lv_sdr": self._codes.copy(),
             "lv_current": np.asarray(self.current, dtype=np.int64),
             "lv_previous": np.asarray(self.previous, dtype=np.int64),
             "lv_relative_rad": np.asarray(self.relative_rad, dtype=np.float64),
@@ -226,7 +249,9 @@ class NeocortexViewCells:
                 msg = "the stored sonar LSBH projection differs from the one regenerated from lsbh_seed"
                 raise ValueError(msg)
         templates = np.asarray(state["lv_templates"], dtype=np.float32)
-        cells.add_prototypes(templates.reshape(-1, params.sv_tm_topk).astype(np.int64), state["lv_means"])
+        cells.add_prototypes(
+            templates.reshape(-1, params.sv_tm_topk).astype(np.int64), state["lv_means"], state.get("lv_sdr")
+        )
         cells.current = int(state["lv_current"])
         cells.previous = int(state["lv_previous"])
         cells.relative_rad = float(state["lv_relative_rad"])
@@ -234,6 +259,11 @@ class NeocortexViewCells:
         cells.tm.load(state, "nc_tm_")
         cells.load_sequence_state(state)
         return cells
+
+
+def code_bytes(bits: int) -> int:
+    """Return the bytes of a packed SDR of ``bits`` bits (``np.packbits``: the last byte zero-padded)."""
+    return (int(bits) + 7) // 8
 
 
 def tm_config(params: Params) -> TMConfig:

@@ -1,26 +1,35 @@
-"""Merge observations for maps of the ``sdr-htm`` front-end: the stored map's own cortex reads the session.
+"""Merge observations for maps of the ``sdr-htm`` front-end: the session's SDRs against the view cells' codes.
 
 A view cell of the neocortical front-end (``core.neocortex``) is a set of its own temporal memory's
 cells, and a spatial pooler that learnt on other frames maps the same image to other columns (measured
 on ``cave3d``: after session 1, its pooler and session 2's agree on 35 % of the active columns for the
 same image, median; matching session 2's descriptors against session 1's prototypes column by column
-found no match at all). Two sessions' view cells are therefore not comparable. Each stored ``sdr-htm``
-candidate map gets a **reader** instead: a copy of the map's cortex restored from its snapshot, stepped on
-every frame of the running session with learning off (:meth:`NeocortexViewCells.read`), so it describes
-the session's frames in the map's own cells (sequence context included); its descriptor is matched
-against the map's prototypes (overlap recall R, I_min, τ_R, F1, IoU: PoseidonSLAM Eqs 4.6–4.9) with the
-session's τ_R and the merge gates ``merge_sv_min_intersection`` (8) and ``merge_sv_enable_f1_gate`` (off):
-at the thesis's gates (I_min 12 of 15, F1 ≥ 0.55) the reader recognised under 1.4 m of 23 m of shared
-``cave3d`` ground on 3 of 4 seeds, too little to decide anything; a reading is only evidence here, weighed
-by the sequential test with the front-end's own miss weight (``Params.miss_weight``: p₁ = 0.4, p₀ = 0.02).
-An accepted match is an observation like an LVC template match (error reported as ``limit · (1 − R)``, so
-"error ≤ threshold" means accepted; no heading offset), and the same hypotheses, evidence test and
-probation decide and verify the merge (:mod:`mapserver.merge.online`).
+found no match at all). Two sessions' view cells are therefore not comparable through their prototypes.
+What is comparable is the code they were made from: the LSBH SDR (Eqs 4.1–4.3, a fixed seeded projection,
+no learning), which every view cell keeps (``lv_sdr``, the packed SDR of the frame that made it). An
+**observation** is the frame's SDR matched against those codes: overlap recall R = |c ∩ c_ℓ| / |c| (Eq.
+4.6 on codes), the best view cell accepted when R ≥ ``merge_sdr_min_overlap`` (0.62; ties to the lower
+id). Measured with the weight-free encoder (session 2's frames against session 1's, ground truth): at the
+true place (within 1.5 m and 15°) the best code overlaps 0.67–0.87 of the bits (10th percentile; R ≥ 0.62
+for 0.96–1.0 of the frames on ``cave3d``, ``symmetric`` and ``twin-overlap``), at other places 0.41–0.62
+(90th percentile, look-alikes excepted). So a miss means what an LVC miss means, and the sequential test
+and the probation weigh it as LVC's (``Params.miss_weight_reading``: 2). Before codes, the stored map's
+cortex read the session (below) and its matches — p₁ = 0.4 — were the observations; a miss then weighed 0.16
+and a look-alike holding turns kept 2–4 false merges in 5 (README). Stored maps made before ``lv_sdr``
+existed (zero codes) are still observed that way.
 
-Merging (Algorithm 1's operation (i) for SDR views): the partial map's view cells are re-expressed in the
-map's cells: each gets the reader's descriptor at the frame that created it (:meth:`CortexReader.remember`);
-the merged engine continues in the reader's cortex (the map's learnt state, the session's current
-sequence state) and learns from then on, so the merged map has one cortex and every prototype in its cells.
+Each stored ``sdr-htm`` candidate map also gets a **reader**: its own cortex, restored from its snapshot and
+stepped on every frame of the running session with learning off (:meth:`NeocortexViewCells.read`), so it
+describes the session's frames in the map's own cells (sequence context included). The reader gives the
+merged map one cortex: on a merge (Algorithm 1's operation (i) for SDR views) each of the partial map's view
+cells gets the reader's descriptor at the frame that created it as its prototype
+(:meth:`CortexReader.remember`), keeping its own code, and the merged engine continues in the reader's
+cortex (the map's learnt state, the session's current sequence state) and learns from then on. For maps
+without codes the reader's descriptor is matched against the map's prototypes (overlap recall R, I_min,
+τ_R, F1, IoU: PoseidonSLAM Eqs 4.6–4.9) at the merge gates ``merge_sv_min_intersection`` (8) and
+``merge_sv_enable_f1_gate`` (off). An accepted match is an observation like an LVC template match (error
+reported so that "error ≤ threshold" means accepted; no heading offset), and the same hypotheses, evidence
+test and probation decide and verify the merge (:mod:`mapserver.merge.online`).
 
 Limits (stated in the README): a session joins at most one ``sdr-htm`` map (the first map's prototypes
 were never read by a second map's cortex, so no bridge); maps merge only online, while the frames are
@@ -37,7 +46,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from core.neocortex.viewcells import NeocortexViewCells
+from core.neocortex.viewcells import NeocortexViewCells, code_bytes
 
 if TYPE_CHECKING:
     from core import Params
@@ -61,15 +70,15 @@ def structural_difference(loaded: Params, partial: Params) -> str | None:
 
 
 class CortexReader:
-    """A stored ``sdr-htm`` map's cortex reading the session's frames; a place matcher over its prototypes.
+    """A stored ``sdr-htm`` map's place matcher (view cells' codes) and its cortex reading the session's frames.
 
     It answers the matcher calls of :class:`mapserver.merge.hypotheses.StoredPlaces` (``count``,
-    ``match``, ``match_among``) for views that are the stacked readers' descriptors of one frame
-    (:meth:`read` gives this reader's row, ``-1`` padded to ``sv_tm_topk``).
+    ``match``, ``match_among``) for views that are the stacked readers' rows of one frame (:meth:`read`
+    gives this reader's row: the descriptor, −1 padded to ``sv_tm_topk``, then the frame's packed SDR).
 
     Args:
         params: the session's parameters (its gates and threshold).
-        state: the stored map's engine snapshot (prototypes and cortex).
+        state: the stored map's engine snapshot (prototypes, codes and cortex).
         row: this reader's row in the stacked views.
     """
 
@@ -81,7 +90,16 @@ class CortexReader:
         self.row = row
         self.topk = params.sv_tm_topk
         self.limit = params.vt_match_threshold
+        self.min_overlap = params.merge_sdr_min_overlap
         self.translations: dict[int, np.ndarray] = {}
+        codes = np.unpackbits(self.cells.codes, axis=1)[:, : params.lsbh_bits]
+        self.codes = codes.astype(np.float32) if codes.any() else None
+        """(N, L) the view cells' codes as 0/1, or None: the map has none (made before ``lv_sdr``)."""
+        self.miss_weight = params.miss_weight_reading(codes=self.codes is not None)
+        self._recall_key = b""
+        self._recall_of = np.zeros(0, dtype=np.float32)
+        self.places_loosely = True
+        """View cells sit at sparse experiences plus odometry (``StoredPlaces._placed_near``)."""
 
     @property
     def count(self) -> int:
@@ -89,32 +107,61 @@ class CortexReader:
         return self.cells.count
 
     def read(self, image: np.ndarray, sonar: np.ndarray | None = None) -> np.ndarray:
-        """Step the cortex on ``image`` (and ``sonar``; no learning); return its descriptor, −1 padded to top-k."""
+        """Step the cortex on ``image`` (and ``sonar``; no learning); return its row: descriptor, then packed SDR."""
         d = self.cells.read(image, sonar)
-        out = np.full(self.topk, -1, dtype=np.int64)
+        out = np.full(self.topk + code_bytes(self.cells.params.lsbh_bits), -1, dtype=np.int64)
         out[: d.size] = d
+        out[self.topk :] = self.cells.last_code
         return out
 
     def remember(self, template: int, view: np.ndarray) -> None:
         """Keep this frame's descriptor as the map-cell prototype of the session's new view cell ``template``."""
-        self.translations.setdefault(int(template), np.asarray(view)[self.row].copy())
+        self.translations.setdefault(int(template), np.asarray(view)[self.row, : self.topk].astype(np.int64))
 
     def match(self, view: np.ndarray, mean: float, limit: float | None = None) -> tuple[int, float, float]:
-        """Return (best accepted prototype or −1, ``limit·(1 − R)`` or inf, 0.0) for a frame's stacked views."""
+        """Return (best accepted view cell or −1, an error ≤ ``limit`` when accepted else inf, 0.0) for a frame."""
+        if self.codes is not None:
+            return self._code_answer(view, None, limit)
         return self._answer(self.cells.match(self._descriptor(view)), limit)
 
     def match_among(
         self, view: np.ndarray, mean: float, ids: np.ndarray, limit: float | None = None
     ) -> tuple[int, float, float]:
-        """Return :meth:`match`'s answer restricted to the prototypes ``ids``."""
+        """Return :meth:`match`'s answer restricted to the view cells ``ids``."""
         ids = np.asarray(ids, dtype=np.int64)
         if ids.size == 0:
             return -1, math.inf, 0.0
+        if self.codes is not None:
+            return self._code_answer(view, np.unique(ids), limit)
         return self._answer(self.cells.match_among(self._descriptor(view), ids), limit)
 
     def _descriptor(self, view: np.ndarray) -> np.ndarray:
-        row = np.asarray(view)[self.row]
+        row = np.asarray(view)[self.row, : self.topk].astype(np.int64)
         return row[row >= 0]
+
+    def _code_answer(self, view: np.ndarray, ids: np.ndarray | None, limit: float | None) -> tuple[int, float, float]:
+        """Return the best code match: R = |c ∩ c_ℓ| / |c| ≥ ``merge_sdr_min_overlap``; error ``limit·(1−R)/(1−θ)``."""
+        every = self._recall(np.asarray(view)[self.row, self.topk :].astype(np.uint8))
+        recall = every if ids is None else every[ids]
+        if recall.size == 0:
+            return -1, math.inf, 0.0
+        best = int(np.argmax(recall))  # the first of equal overlaps: the lower id
+        if recall[best] < self.min_overlap:
+            return -1, math.inf, 0.0
+        scale = self.limit if limit is None else limit
+        index = best if ids is None else int(ids[best])
+        return index, scale * (1.0 - float(recall[best])) / max(1.0 - self.min_overlap, 1e-9), 0.0
+
+    def _recall(self, packed: np.ndarray) -> np.ndarray:
+        """Return R of a packed SDR against every view cell's code (the last frame's, kept: one product a frame)."""
+        key = packed.tobytes()
+        if key != self._recall_key:
+            assert self.codes is not None
+            code = np.unpackbits(packed)[: self.codes.shape[1]].astype(np.float32)
+            ones = float(code.sum())
+            self._recall_key = key
+            self._recall_of = (self.codes @ code) / ones if ones else np.zeros(self.codes.shape[0], np.float32)
+        return self._recall_of
 
     def _answer(self, found: Match | None, limit: float | None) -> tuple[int, float, float]:
         if found is None or not found.accepted:

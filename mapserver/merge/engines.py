@@ -10,7 +10,7 @@ import numpy as np
 
 from core import Engine, LinkKind
 from mapserver.errors import MergeError
-from mapserver.merge.places import merged_template_places
+from mapserver.merge.places import merged_template_codes, merged_template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.snapshot import params_incompatibility
 from mapserver.merge.states import merge_states
@@ -101,6 +101,7 @@ def merge_engine(
     state.update(merged_template_places(stored.state, partial, record))
     if cortex is not None:
         state.update(cortex)
+        state.update(merged_template_codes(stored.state, partial, record))
     merged = restore_merged(engine.params, state, record, origin=engine.origin)
     merged.loop_closures = engine.loop_closures
     return merged, record

@@ -215,14 +215,16 @@ class OnlineMerger:
             return [s.key for s in self._stored if s.key not in self.skipped]
         return [c.stored.key for c in self._candidates]
 
-    def _rule(self, stored: StoredMap, params: Any) -> EvidenceRule:
+    def _rule(self, stored: StoredMap, params: Any, cells: Any) -> EvidenceRule:
+        """Return the evidence rule for ``stored``; a miss weighs as its matcher's observations say."""
         tolerance = self._position_tolerance
         if tolerance is None:
             tolerance = default_position_tolerance(stored)
         evidence = params.merge_evidence_m if self._evidence_m is None else self._evidence_m
         probation = params.merge_probation_m if self._probation_m is None else self._probation_m
         return EvidenceRule.for_map(
-            map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation, params.miss_weight
+            map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation,
+            getattr(cells, "miss_weight", params.miss_weight),
         )
 
     def _prepare(self, engine: Engine) -> list[_Candidate]:
@@ -239,7 +241,7 @@ class OnlineMerger:
             poses, templates, anchors = _predicting_places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
             cells = self._matcher(engine, state, stored.key)
-            rule = self._rule(stored, engine.params)
+            rule = self._rule(stored, engine.params, cells)
             places = StoredPlaces(
                 cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic, rule
             )

@@ -7,9 +7,16 @@ absolute), so it follows the experience through relaxation. Most view cells of t
 have no experience of their own (a new view cell nearly every frame, experiences only where the gates
 allow one), so its merge observations locate a matched view cell by its place (:mod:`mapserver.merge.online`).
 
+The offset is recorded in the map frame, with the experience's heading at that moment
+(``lv_place_yaw``): when relaxation later turns the experience, the place turns with it (the offset rotated
+by the experience's turn since, the facing too). Without that, a view cell's place kept its first facing
+while its experience turned: on ``cave3d`` (session 1 alone, settled) places came out 30–42° off the way
+their views were seen, and the merge's observations missed there. Snapshots made before the key have no
+yaw: their offsets are used as stored.
+
 A merge keeps the loaded map's places and moves the partial map's with it: their experience renumbered
-(``MergeRecord.experience_map``), their offset turned by the merge transform's yaw (as the robot's own
-accumulated odometry, Algorithm 1 operation (iv)).
+(``MergeRecord.experience_map``), their offset and recorded yaw turned by the merge transform's yaw (as
+the robot's own accumulated odometry, Algorithm 1 operation (iv)).
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from core.engine import template_place_rows
+from core.engine import template_place_rows, template_place_yaws
 from core.se3 import wrap_angle
 from mapserver.merge.record import MergeRecord
 
@@ -34,24 +41,35 @@ def _rows(state: State) -> tuple[np.ndarray, np.ndarray]:
 def template_places(state: State) -> tuple[np.ndarray, np.ndarray]:
     """Return (pose (N, 4), experience (N,)) of every template's place; −1 where it has none.
 
-    pose = the experience's (x, y, z) + the offset's (x, y, z), heading = the offset's (absolute) heading.
+    With t = the experience's heading now − its heading when the template was made (``lv_place_yaw``; 0
+    when unknown): pose = the experience's (x, y, z) + the offset's (x, y) turned by t (z as it is), heading =
+    the offset's heading + t.
     """
     place, offset = _rows(state)
     poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
     place[(place < 0) | (place >= poses.shape[0])] = -1
     out = np.full((place.size, 4), np.nan)
     ok = place >= 0
-    out[ok, :3] = poses[place[ok], :3] + offset[ok, :3]
-    out[ok, 3] = offset[ok, 3]
+    base = poses[place[ok]]
+    turn = wrap_angle(base[:, 3] - template_place_yaws(state, place.size)[ok])
+    turn = np.where(np.isnan(turn), 0.0, turn)  # no yaw recorded: the offset as stored
+    c, s = np.cos(turn), np.sin(turn)
+    dx, dy = offset[ok, 0], offset[ok, 1]
+    out[ok, 0] = base[:, 0] + c * dx - s * dy
+    out[ok, 1] = base[:, 1] + s * dx + c * dy
+    out[ok, 2] = base[:, 2] + offset[ok, 2]
+    out[ok, 3] = wrap_angle(offset[ok, 3] + turn)
     return out, place
 
 
 def merged_template_places(loaded: State, partial: State, record: MergeRecord) -> dict[str, np.ndarray]:
-    """Return ``lv_place`` and ``lv_place_offset`` of the merged snapshot ``merge_states`` made from these two."""
+    """Return ``lv_place``, ``lv_place_offset`` and ``lv_place_yaw`` of the merged snapshot ``merge_states`` made."""
     l_place, l_offset = _rows(loaded)
     p_place, p_offset = _rows(partial)
+    l_yaw = template_place_yaws(loaded, l_place.size)
     kept = np.asarray(record.template_map) >= record.template_offset
     p_place, p_offset = p_place[kept], p_offset[kept].copy()
+    p_yaw = template_place_yaws(partial, kept.size)[kept]
     emap = np.asarray(record.experience_map, dtype=np.int64)
     has = (p_place >= 0) & (p_place < emap.size)
     p_place = np.where(has, emap[np.clip(p_place, 0, max(emap.size - 1, 0))] if emap.size else -1, -1)
@@ -63,4 +81,27 @@ def merged_template_places(loaded: State, partial: State, record: MergeRecord) -
     return {
         "lv_place": np.concatenate([l_place, p_place]).astype(np.int64),
         "lv_place_offset": np.concatenate([l_offset, p_offset]),
+        "lv_place_yaw": np.concatenate([l_yaw, wrap_angle(p_yaw + yaw)]),  # NaN (unknown) stays NaN
     }
+
+
+def merged_template_codes(loaded: State, partial: State, record: MergeRecord) -> dict[str, np.ndarray]:
+    """Return ``lv_sdr`` of the merged snapshot: the loaded view cells' codes, then the partial's kept ones.
+
+    ``sdr-htm`` view cells keep the packed SDR of the frame that made it (``core.neocortex``); a map made
+    before the key existed has zero codes. Empty when neither snapshot has codes (``lvc`` maps).
+    """
+    if "lv_sdr" not in loaded and "lv_sdr" not in partial:
+        return {}
+    width = int(np.shape(loaded.get("lv_sdr", partial.get("lv_sdr")))[1])
+
+    def codes(state: State) -> np.ndarray:
+        n = int(np.shape(state["lv_means"])[0])
+        out = np.zeros((n, width), dtype=np.uint8)
+        if "lv_sdr" in state:
+            given = np.asarray(state["lv_sdr"], dtype=np.uint8).reshape(-1, width)[:n]
+            out[: given.shape[0]] = given
+        return out
+
+    kept = np.asarray(record.template_map) >= record.template_offset
+    return {"lv_sdr": np.concatenate([codes(loaded), codes(partial)[kept]])}

@@ -63,6 +63,24 @@ def test_split_run_equals_one_run_bit_for_bit() -> None:
     assert whole.loop_closures > 0  # the second lap was recognised
 
 
+def test_each_view_cell_keeps_the_packed_sdr_of_the_frame_that_made_it() -> None:
+    """``lv_sdr`` row i = packbits(SDR of the frame that created cell i), computed again by an independent cortex."""
+    frames = list(StripWorld(perimeter_m=30.0, seed=5).drive(laps=0.6))
+    engine = Engine(SMALL)
+    made = [i for i, (_, created) in enumerate(_run(engine, frames)) if created]
+    codes = engine.snapshot()["lv_sdr"]
+    assert codes.shape == (len(made), SMALL.lsbh_bits // 8) and codes.dtype == np.uint8
+    fresh = NeocortexViewCells(SMALL)  # the projection is fixed: a new cortex gives the same SDR
+    for cell, frame in enumerate(made[:5]):
+        expected = np.packbits(fresh.sdr(frames[frame][0]).numpy())
+        np.testing.assert_array_equal(codes[cell], expected)
+        assert int(np.unpackbits(codes[cell]).sum()) == 2 * int(SMALL.lsbh_s * SMALL.lsbh_bits / 2)  # 2k ones
+    again = Engine.restore(SMALL, engine.snapshot())
+    np.testing.assert_array_equal(again.snapshot()["lv_sdr"], codes)
+    older = {k: v for k, v in engine.snapshot().items() if k != "lv_sdr"}  # stored before the key
+    assert not Engine.restore(SMALL, older).snapshot()["lv_sdr"].any()
+
+
 def test_restore_refuses_a_projection_of_another_seed() -> None:
     engine = Engine(SMALL)
     _run(engine, list(StripWorld().drive(laps=0.1)))

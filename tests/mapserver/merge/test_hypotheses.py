@@ -88,6 +88,23 @@ def test_a_view_whose_best_match_has_no_place_says_nothing() -> None:
     assert places.test(np.array([1.0, 0.0, 0.0, 0.0]), *_view(4))[0] == MISS  # 4 has its place, 3 m away
 
 
+def test_a_loosely_placed_view_recognised_near_the_prediction_facing_elsewhere_says_nothing() -> None:
+    """``sdr-htm`` readers (``places_loosely``): the view's best match is placed 1.2 m from the prediction,
+    35° off (outside the facing tolerance, 0.5 rad): no trial; placed 3 m away (beyond the 1.5 m position
+    tolerance), or nowhere: a miss, as for LVC, whose strict placing keeps the miss at 1.2 m too."""
+    poses = np.array([[0.0, 0.0, 0.0, 0.0], [1.2, 0.0, 0.0, math.radians(35.0)], [3.0, 0.0, 0.0, 0.0]])
+    strict = StoredPlaces(_places().cells, poses, np.arange(3), PARAMS.vt_match_threshold, False, RULE)
+    loose = StoredPlaces(_places().cells, poses, np.arange(3), PARAMS.vt_match_threshold, False, RULE)
+    loose.cells = type("Loose", (), {"places_loosely": True, "count": 6,
+                                     "match": strict.cells.match, "match_among": strict.cells.match_among})()
+    here = np.array([0.0, 0.0, 0.0, 0.0])
+    assert strict.test(here, *_view(1))[0] == MISS
+    assert loose.test(here, *_view(1))[0] == UNMAPPED
+    assert loose.test(here, *_view(2))[0] == MISS  # must still: recognised 3 m away
+    assert loose.test(here, *_view(-1))[0] == MISS  # must still: recognised nowhere
+    assert loose.test(here, *_view(0))[0] == HIT
+
+
 def _observation(frame: int, odometry: np.ndarray, seen: np.ndarray, template: int) -> Observation:
     return Observation(frame=frame, stored_template=template, stored_experience=template, error=0.0,
                        relative_rad=0.0, partial_template=frame, odometry=odometry, packet=np.zeros(3),
