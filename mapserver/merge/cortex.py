@@ -106,10 +106,15 @@ class CortexReader:
         """Return the number of the stored map's view cells."""
         return self.cells.count
 
+    @property
+    def width(self) -> int:
+        """Return the length of this reader's row in a frame's views: ``sv_tm_topk`` + the packed SDR's bytes."""
+        return self.topk + code_bytes(self.cells.params.lsbh_bits)
+
     def read(self, image: np.ndarray, sonar: np.ndarray | None = None) -> np.ndarray:
         """Step the cortex on ``image`` (and ``sonar``; no learning); return its row: descriptor, then packed SDR."""
         d = self.cells.read(image, sonar)
-        out = np.full(self.topk + code_bytes(self.cells.params.lsbh_bits), -1, dtype=np.int64)
+        out = np.full(self.width, -1, dtype=np.int64)
         out[: d.size] = d
         out[self.topk :] = self.cells.last_code
         return out
@@ -154,13 +159,16 @@ class CortexReader:
 
     def _recall(self, packed: np.ndarray) -> np.ndarray:
         """Return R of a packed SDR against every view cell's code (the last frame's, kept: one product a frame)."""
+        assert self.codes is not None
         key = packed.tobytes()
         if key != self._recall_key:
-            assert self.codes is not None
             code = np.unpackbits(packed)[: self.codes.shape[1]].astype(np.float32)
             ones = float(code.sum())
             self._recall_key = key
-            self._recall_of = (self.codes @ code) / ones if ones else np.zeros(self.codes.shape[0], np.float32)
+            if ones and code.size == self.codes.shape[1]:
+                self._recall_of = (self.codes @ code) / ones
+            else:  # no SDR in the row (a track row of a session resumed from before lv_sdr): nothing matches
+                self._recall_of = np.zeros(self.codes.shape[0], np.float32)
         return self._recall_of
 
     def _answer(self, found: Match | None, limit: float | None) -> tuple[int, float, float]:

@@ -258,6 +258,9 @@ class OnlineMerger:
         """Continue the readers from a resumed state; False when its readers are not these (maps changed)."""
         if [int(k) for k, _ in state.readers] != [int(r.key) for r in self._readers]:  # type: ignore[call-overload]
             return False
+        widths = {np.shape(f[3])[-1] for f in state.track.frames} if state.track is not None else set()
+        if widths - {self._readers[0].width}:  # views of another layout (stopped before lv_sdr existed)
+            return False
         for reader, (_, arrays) in zip(self._readers, state.readers, strict=True):
             reader.load(arrays)
         return True

@@ -15,8 +15,10 @@ from core.engine import Engine
 from mapserver.ingest.simulator.output import simulate
 from mapserver.merge.cortex import CortexReader
 from mapserver.merge.engines import StoredMap
+from mapserver.merge.hypotheses import Hypothesis, Track
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.places import merged_template_codes, merged_template_places, template_places
+from mapserver.merge.resume import MergerState
 from mapserver.merge.snapshot import params_incompatibility
 from mapserver.run import run_engine
 from tests.mapserver.merge.scenario_metrics import true_alignment
@@ -132,6 +134,8 @@ def test_a_frames_sdr_matches_the_view_cell_code_it_overlaps_most_above_the_gate
     assert reader.match_among(view, 0.0, np.array([3]))[0] == -1  # must not: nothing shared
     strict = CortexReader(SDR.replace(merge_sdr_min_overlap=0.81), {**state, "lv_sdr": codes}, row=0)
     assert strict.match(view, 0.0)[0] == -1  # 0.8 < 0.81
+    narrow = view[:, : SDR.sv_tm_topk]  # a track row without the SDR (a session resumed from before lv_sdr)
+    assert reader.match(narrow, 0.0) == (-1, math.inf, 0.0)
 
 
 def test_a_merge_keeps_the_loaded_codes_and_appends_the_partials_new_ones() -> None:
@@ -250,3 +254,22 @@ def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_tru
     assert events[0].evidence["verification"]["status"] == "passed"
     t = events[0].record.transform
     assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 5.0 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.35
+
+
+@pytest.mark.parametrize("width", [SDR.sv_tm_topk, ROW])
+def test_a_session_stopped_before_lv_sdr_existed_restarts_its_readers(width: int) -> None:
+    """A resumed merge state whose track views lack the SDR (stored by a version before ``lv_sdr``) restarts
+    the readers and hypotheses instead of matching rows of another layout; rows of this layout resume."""
+    engine, frames = _session(StripWorld(seed=3), laps=0.2)
+    state = engine.snapshot()
+    track = Track(0.0)
+    track.add(7, np.zeros(4), 0.0, np.full((1, width), -1, dtype=np.float32), 0.0)  # frame 7 of a stopped run
+    reader = CortexReader(SDR, state, row=0, key=1)
+    resume = MergerState(np.zeros(4), (), {1: ((Hypothesis(np.zeros(4), born=0),), ())}, track,
+                         ((1, reader.state()),))  # fmt: skip
+    merger = OnlineMerger([StoredMap(1, SDR, state)], resume=resume)
+    session = Engine(SDR, origin=2)
+    image, motion, stamp = frames[0]
+    merger.observe(session, session.step(image, motion, stamp), SimpleNamespace(image=image, sonar=None))
+    resumed = 7 in [f[0] for f in merger._track.frames]
+    assert resumed == (width == ROW)
