@@ -7,7 +7,9 @@ map session 1 alone with the preset (``--set``: parameter changes; default ``fro
 session 2 through the online merge driver against it (``mapserver.merge.online.OnlineMerger``, the
 driver ``process`` uses, without the database). Every merge is printed with its transform's error against
 the true alignment of the two map frames (at the map origin: it grows with session 2's drift before the
-merge), every rollback with its reason, and the surviving merges with their verification status
+merge) and with its place error (``place_error_m``/``_deg``: where it put the robot against where session 1 saw
+that place; a false merge is metres to tens of metres off, a true one within a few), every rollback
+with its reason, and the surviving merges with their verification status
 (``passed``, or ``incomplete`` when the log ended during the probation and what it saw did not speak
 against the merge; otherwise the log's end rolls it back). In ``twin`` every merge is false.
 Last stdout line: one JSON object.
@@ -28,6 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
 from core import Engine, preset
+from mapserver.formats import yaw_from_quaternion
 from mapserver.ingest.simulator.output import simulate
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
@@ -43,6 +46,27 @@ def _pairs(text: str) -> dict[str, Any]:
     return out
 
 
+def place_error(
+    stored: dict[str, np.ndarray], merged: Engine, truth: tuple[np.ndarray, np.ndarray], stamp: float
+) -> tuple[float, float]:
+    """Metres and degrees, in the world, between where session 2 truly was at ``stamp`` and the stored place the
+    merge put it at: session 1's experience nearest to the robot's pose in the merged map right after the merge
+    (loaded experiences come first), as seen by session 1 in the ground truth; degrees: the robot's heading
+    relative to that experience, merged against true (as ``bench/lookalike_sweep.py``'s ``place_error_m``: the
+    stored map's own drift does not count)."""
+    gt1, gt2 = truth
+    n1 = int(np.shape(stored["em_stamp"])[0])
+    poses = merged.map.poses
+    here = poses[merged.map.current]
+    nearest = int(np.argmin(np.linalg.norm(poses[:n1, :3] - here[:3], axis=1)))
+    seen = gt1[int(np.argmin(np.abs(gt1[:, 0] - float(stored["em_stamp"][nearest]))))]
+    truly = gt2[int(np.argmin(np.abs(gt2[:, 0] - stamp)))]
+    turn_true = yaw_from_quaternion(*truly[4:8]) - yaw_from_quaternion(*seen[4:8])
+    turn_merge = float(here[3] - poses[nearest, 3])
+    degrees = abs(math.degrees(math.remainder(turn_merge - turn_true, math.tau)))
+    return round(float(np.linalg.norm(seen[1:3] - truly[1:3])), 2), round(degrees, 1)
+
+
 def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: Any) -> dict[str, Any]:
     """Simulate one seed, map session 1, run session 2 through the merge driver; return its merges."""
     info = simulate(scenario, out, seed=seed, params=sim)
@@ -50,8 +74,10 @@ def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: A
     stored = Engine(params, origin=1)
     run_engine(stored, out / s1["log"])
     stored.settle()
-    merger = OnlineMerger([StoredMap(1, params, stored.snapshot())])
+    snapshot = stored.snapshot()
+    merger = OnlineMerger([StoredMap(1, params, snapshot)])
     truth = true_alignment(out, s1, s2, math.radians(params.exp_initial_em_deg))
+    worlds = (np.loadtxt(out / s1["ground_truth"], ndmin=2), np.loadtxt(out / s2["ground_truth"], ndmin=2))
     events: list[dict[str, Any]] = []
 
     def hook(frame: Any, result: Any) -> Engine | None:
@@ -60,7 +86,9 @@ def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: A
             t = event.record.transform
             error_m = float(np.hypot(t[0] - truth[0], t[1] - truth[1]))
             error_deg = abs(math.degrees(math.remainder(t[3] - truth[3], math.tau)))
-            events.append({"frame": result.frame, "error_m": round(error_m, 2), "error_deg": round(error_deg, 1)})
+            place_m, place_deg = place_error(snapshot, event.engine, worlds, event.stamp)
+            events.append({"frame": result.frame, "error_m": round(error_m, 2), "error_deg": round(error_deg, 1),
+                           "place_error_m": place_m, "place_error_deg": place_deg})  # fmt: skip
             current[0] = event.engine
             return event.engine
         if isinstance(event, Rollback):

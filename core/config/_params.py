@@ -93,7 +93,7 @@ class Params:
     merge_miss_weight: float = -1.0  # a miss on mapped ground counts this many hits; −1: by front-end (Params docs)
     merge_sv_min_intersection: int = 8  # sdr-htm merge evidence: I_min of a stored map's cortex reading the session
     merge_sv_enable_f1_gate: bool = False  # sdr-htm merge evidence: the F1 gate of that reading
-    merge_sdr_min_overlap: float = 0.62  # sdr-htm merge evidence: a frame's SDR shares this share of a view cell's code
+    merge_sdr_min_overlap: float = 0.68  # sdr-htm merge evidence: a frame's SDR shares this share of a view cell's code
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False
     # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"

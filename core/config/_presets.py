@@ -66,6 +66,9 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             template_x_size=64, template_y_size=24, vt_match_threshold=0.06, vt_shift_match=4, vt_step_match=1,
             vt_normalisation=0.5, vt_active_decay=1.0, pc_vt_inject_energy=0.1, exp_delta_pc_threshold=2.0,
             exp_loops=20, exp_initial_em_deg=0.0,
+            # sdr-htm merges (poseidon-sdr): the cave's SDRs overlap less at a true place than a street's; at the
+            # default 0.68 cave3d's true merges fail (9 of 10 seeds), at 0.62 none (README, 2026-11-27)
+            merge_sdr_min_overlap=0.62,
         ),
     }
 )

@@ -120,11 +120,11 @@ def test_a_frames_sdr_matches_the_view_cell_code_it_overlaps_most_above_the_gate
     n = int(state["lv_means"].size)
     assert n >= 4
     codes = np.zeros((n, SDR.lsbh_bits // 8), dtype=np.uint8)  # by hand: a frame with bits 0..99
-    codes[0] = _code(list(range(0, 70)))  # R = 70/100: accepted at θ = 0.62
+    codes[0] = _code(list(range(0, 70)))  # R = 70/100: accepted at θ = 0.62 (poseidon's gate)
     codes[1] = _code(list(range(20, 100)))  # R = 80/100: the best
     codes[2] = _code(list(range(30, 110)))  # R = 70/100
     codes[3] = _code(list(range(1000, 1100)))  # R = 0
-    reader = CortexReader(SDR, {**state, "lv_sdr": codes}, row=0)
+    reader = CortexReader(SDR.replace(merge_sdr_min_overlap=0.62), {**state, "lv_sdr": codes}, row=0)
     view = np.full((1, ROW), -1, dtype=np.int64)
     view[0, SDR.sv_tm_topk :] = _code(list(range(100)))
     u, error, _ = reader.match(view, 0.0, limit=0.1)
@@ -134,6 +134,9 @@ def test_a_frames_sdr_matches_the_view_cell_code_it_overlaps_most_above_the_gate
     assert reader.match_among(view, 0.0, np.array([3]))[0] == -1  # must not: nothing shared
     strict = CortexReader(SDR.replace(merge_sdr_min_overlap=0.81), {**state, "lv_sdr": codes}, row=0)
     assert strict.match(view, 0.0)[0] == -1  # 0.8 < 0.81
+    default = CortexReader(SDR, {**state, "lv_sdr": codes}, row=0)  # 0.68: only cells 0 (0.7), 1 (0.8), 2 (0.7)
+    assert default.match_among(view, 0.0, np.array([2]))[1] == pytest.approx(SDR.vt_match_threshold * 0.3 / 0.32)
+    assert preset("poseidon-sdr").merge_sdr_min_overlap == 0.62 and SDR.merge_sdr_min_overlap == 0.68
     narrow = view[:, : SDR.sv_tm_topk]  # a track row without the SDR (a session resumed from before lv_sdr)
     assert reader.match(narrow, 0.0) == (-1, math.inf, 0.0)
 
@@ -242,8 +245,8 @@ def _online(directory: Path, scenario: str, params: Any, **sim: float) -> tuple[
 def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_true_one_stands(tmp_path: Path) -> None:
     """Issue 12 for the ``sdr-htm`` front-end: ``twin`` with a 20 m look-alike holding two quarter turns (seed
     0). The view cells' codes recognise session 1's look-alike, the merge is made inside it, and its
-    probation's mismatches after the structure roll it back (``bench/sdr_merge_sweep.py``, 10 seeds: 1
-    survives; with the cortex's own readings as the only observations, 4 of 5 did). The same stretch in one
+    probation rolls it back after the structure (``bench/sdr_merge_sweep.py``, 10 seeds: none survives at the
+    default gate; with the cortex's own readings as the only observations, 4 of 5 did). The same stretch in one
     world (``twin-overlap``) merges at its true place and passes."""
     params = preset("circle").replace(frontend="sdr-htm")
     events, rollbacks, _ = _online(tmp_path / "twin", "twin", params, lookalike_m=20.0, lookalike_turns=1.0)
