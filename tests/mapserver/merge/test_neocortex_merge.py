@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core.config import ConfigError, preset
 from core.engine import Engine
@@ -276,3 +278,28 @@ def test_a_session_stopped_before_lv_sdr_existed_restarts_its_readers(width: int
     merger.observe(session, session.step(image, motion, stamp), SimpleNamespace(image=image, sonar=None))
     resumed = 7 in [f[0] for f in merger._track.frames]
     assert resumed == (width == ROW)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.tuples(*[st.floats(-50.0, 50.0)] * 3), st.floats(-math.pi, math.pi),
+    st.tuples(*[st.floats(-5.0, 5.0)] * 3), st.floats(-math.pi, math.pi), st.floats(-math.pi, math.pi),
+)
+def test_a_place_keeps_its_distance_and_bearing_from_its_experience_as_relaxation_turns_it(
+    xyz: tuple[float, float, float], yaw: float, offset: tuple[float, float, float], facing: float, turn: float
+) -> None:
+    """Turning the experience by ``turn`` turns its cell's place about it by ``turn``: the same distance, the
+    bearing and the facing relative to the experience unchanged (the place is rigid with its experience)."""
+    def place(experience_yaw: float) -> np.ndarray:
+        state = {"em_pose": np.array([[*xyz, experience_yaw]]), "lv_means": np.zeros(1), "lv_place": np.array([0]),
+                 "lv_place_offset": np.array([[*offset, facing]]), "lv_place_yaw": np.array([yaw])}  # fmt: skip
+        return template_places(state)[0][0]
+
+    before, after = place(yaw), place(yaw + turn)
+    d0, d1 = before[:2] - np.array(xyz[:2]), after[:2] - np.array(xyz[:2])
+    assert np.linalg.norm(d1) == pytest.approx(np.linalg.norm(d0), abs=1e-9)
+    if np.linalg.norm(d0) > 1e-6:
+        bearing = math.atan2(d1[1], d1[0]) - math.atan2(d0[1], d0[0])
+        assert math.remainder(bearing - turn, math.tau) == pytest.approx(0.0, abs=1e-6)
+    assert math.remainder(after[3] - before[3] - turn, math.tau) == pytest.approx(0.0, abs=1e-9)
+    assert after[2] == pytest.approx(before[2])  # heights do not turn
