@@ -28,6 +28,8 @@ place are consistent with one another.
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
@@ -84,8 +86,6 @@ class TreePaths:
     def __init__(self, n: int, src: np.ndarray, dst: np.ndarray, length: np.ndarray, roots: np.ndarray) -> None:
         graph = sp.csr_matrix((np.abs(length) + 1e-12, (src, dst)), shape=(n, n))
         graph = graph.maximum(graph.T).tocsr()
-        way = sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n))
-        way = (way - way.T).tocsr()  # +1 where a link runs parent → child, −1 against it
         parent = np.arange(n)
         component = np.full(n, -1, dtype=np.int64)
         for root in np.flatnonzero(roots).tolist():
@@ -98,10 +98,7 @@ class TreePaths:
         step = np.zeros(n)
         step[child] = np.asarray(graph[parent[child], child]).ravel()
         from_root, _ = sums_to_root(parent, step)
-        signed = np.zeros(n)
-        if child.size:
-            signed[child] = step[child] * np.sign(np.asarray(way[parent[child], child]).ravel())
-        self.travelled, _ = sums_to_root(parent, signed)
+        self._links, self._parent, self._child, self._step = (n, src, dst), parent, child, step
         depth, _ = sums_to_root(parent, (parent != np.arange(n)).astype(np.int64))
         self.component, self.depth, self.from_root = component, depth, from_root
         levels = max(1, int(depth.max(initial=0)).bit_length())
@@ -128,6 +125,18 @@ class TreePaths:
         out = self.from_root[a] + self.from_root[b] - 2.0 * self.from_root[lca]
         joined = (self.component[a] == self.component[b]) & (self.component[a] >= 0)
         return np.where(joined, out, np.inf)
+
+    @cached_property
+    def travelled(self) -> np.ndarray:
+        """Return (n,) the metres from each tree's root counted along the links' direction (made when first asked)."""
+        n, src, dst = self._links
+        way = sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n))
+        way = (way - way.T).tocsr()  # +1 where a link runs parent → child, −1 against it
+        signed = np.zeros(n)
+        child, parent = self._child, self._parent
+        if child.size:
+            signed[child] = self._step[child] * np.sign(np.asarray(way[parent[child], child]).ravel())
+        return sums_to_root(parent, signed)[0]
 
     def along(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Return the metres from ``a[k]`` to ``b[k]`` counted along the links' direction (inf: no path).

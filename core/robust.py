@@ -219,7 +219,8 @@ def switch_off_outliers(
     if standby_closure is not None:
         problem.standby_closure = np.asarray(standby_closure, dtype=np.int64)
     problem.joint = joint
-    problem.weight = length_weights(np.asarray(distance, dtype=np.float64), length)
+    if joint:  # only the joint least squares weighs links by the odometry they span
+        problem.weight = length_weights(np.asarray(distance, dtype=np.float64), length)
     problem.closures = problem.can & switchable(kind)  # not a relocalisation's odometry link
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
