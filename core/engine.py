@@ -26,6 +26,7 @@ from enum import IntEnum
 from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from core.experience_map import ExperienceMap, LinkKind
 from core.gate import EventGate
@@ -262,17 +263,28 @@ class Engine:
         return engine
 
 
+def template_rows(
+    state: Mapping[str, np.ndarray], key: str, n: int, fill: float, dtype: npt.DTypeLike, width: int | None = None
+) -> np.ndarray:
+    """Return a snapshot's optional per-template array ``key`` as its first n rows ((n,) or (n, width)).
+
+    Rows past the stored array's end, or all of them when the snapshot predates the key, are ``fill``.
+    """
+    shape = (n,) if width is None else (n, width)
+    out = np.full(shape, fill, dtype=dtype)
+    if key in state:
+        stored = np.asarray(state[key], dtype=dtype).reshape((-1, *shape[1:]))[:n]
+        out[: stored.shape[0]] = stored
+    return out
+
+
 def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> np.ndarray:
     """Return (n,) the heading of each template's experience when the template was made (``lv_place_yaw``).
 
     NaN where unknown (templates past the key's end, or all of them in snapshots made before it): their
     offsets' headings are then taken as they were stored (absolute), not turned with the experience.
     """
-    yaw = np.full(n, np.nan, dtype=np.float64)
-    if "lv_place_yaw" in state:
-        stored = np.asarray(state["lv_place_yaw"], dtype=np.float64).reshape(-1)[:n]
-        yaw[: stored.size] = stored
-    return yaw
+    return template_rows(state, "lv_place_yaw", n, np.nan, np.float64)
 
 
 def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -281,10 +293,6 @@ def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[np.nda
     The keys are optional: templates past their end, or all of them in snapshots made before the keys
     existed, have no place (−1, zero offset).
     """
-    place = np.full(n, -1, dtype=np.int64)
-    offset = np.zeros((n, 4), dtype=np.float64)
-    if "lv_place" in state:
-        stored = np.asarray(state["lv_place"], dtype=np.int64).reshape(-1)[:n]
-        place[: stored.size] = stored
-        offset[: stored.size] = np.asarray(state["lv_place_offset"], dtype=np.float64).reshape(-1, 4)[: stored.size]
+    place = template_rows(state, "lv_place", n, -1, np.int64)
+    offset = template_rows(state, "lv_place_offset", n, 0.0, np.float64, width=4)
     return place, offset

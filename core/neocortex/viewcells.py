@@ -123,6 +123,12 @@ class NeocortexViewCells:
             bits.append(lsbh_bits((self.encoder(sonar) @ self.sonar_projection)[0], self.k))
         return fuse(bits)
 
+    def _keep_code(self, image: np.ndarray, sonar: np.ndarray | None) -> torch.Tensor:
+        """Return the frame's SDR (:meth:`sdr`) and keep it packed as :attr:`last_code`."""
+        code = self.sdr(image, sonar)
+        self.last_code = np.packbits(code.cpu().numpy())
+        return code
+
     def descriptor(self, winners: np.ndarray) -> np.ndarray:
         """Push this step's winner cells and return D_t (see :mod:`core.neocortex.descriptor`)."""
         p = self.params
@@ -138,9 +144,7 @@ class NeocortexViewCells:
 
     def process(self, image: np.ndarray, sonar: np.ndarray | None = None) -> tuple[int, float, bool]:
         """Encode, pool, sequence and match ``image`` (and ``sonar``); return (view cell id, 0.0, created)."""
-        code = self.sdr(image, sonar)
-        self.last_code = np.packbits(code.cpu().numpy())
-        columns = self.sp.compute(code, learn=self.params.sp_learn)
+        columns = self.sp.compute(self._keep_code(image, sonar), learn=self.params.sp_learn)
         _, winners = self.tm.compute(columns, learn=True)
         source = columns if self.params.sv_descriptor_source == "sp" else winners  # sp: no sequence memory
         d = self.descriptor(source.cpu().numpy().astype(np.int64))
@@ -164,9 +168,7 @@ class NeocortexViewCells:
         observations, ``mapserver.merge.cortex``). The sequence state (active cells, winners, the descriptor
         window) advances as in :meth:`process`; the learnt state (permanences, segments) does not change.
         """
-        code = self.sdr(image, sonar)
-        self.last_code = np.packbits(code.cpu().numpy())
-        columns = self.sp.compute(code, learn=False)
+        columns = self.sp.compute(self._keep_code(image, sonar), learn=False)
         _, winners = self.tm.compute(columns, learn=False)
         source = columns if self.params.sv_descriptor_source == "sp" else winners
         d = self.descriptor(source.cpu().numpy().astype(np.int64))

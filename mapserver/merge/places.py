@@ -21,13 +21,12 @@ the robot's own accumulated odometry, Algorithm 1 operation (iv)).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import numpy as np
 
-from core.engine import template_place_rows, template_place_yaws
-from core.se3 import wrap_angle
+from core.engine import template_place_rows, template_place_yaws, template_rows
+from core.se3 import compose, wrap_angle
 from mapserver.merge.record import MergeRecord
 
 State = Mapping[str, np.ndarray]
@@ -50,15 +49,10 @@ def template_places(state: State) -> tuple[np.ndarray, np.ndarray]:
     place[(place < 0) | (place >= poses.shape[0])] = -1
     out = np.full((place.size, 4), np.nan)
     ok = place >= 0
-    base = poses[place[ok]]
+    base = poses[place[ok]].copy()
     turn = wrap_angle(base[:, 3] - template_place_yaws(state, place.size)[ok])
-    turn = np.where(np.isnan(turn), 0.0, turn)  # no yaw recorded: the offset as stored
-    c, s = np.cos(turn), np.sin(turn)
-    dx, dy = offset[ok, 0], offset[ok, 1]
-    out[ok, 0] = base[:, 0] + c * dx - s * dy
-    out[ok, 1] = base[:, 1] + s * dx + c * dy
-    out[ok, 2] = base[:, 2] + offset[ok, 2]
-    out[ok, 3] = wrap_angle(offset[ok, 3] + turn)
+    base[:, 3] = np.where(np.isnan(turn), 0.0, turn)  # no yaw recorded: the offset as stored
+    out[ok] = compose(base, offset[ok])  # the experience's position, turned since by ``turn``
     return out, place
 
 
@@ -74,10 +68,7 @@ def merged_template_places(loaded: State, partial: State, record: MergeRecord) -
     has = (p_place >= 0) & (p_place < emap.size)
     p_place = np.where(has, emap[np.clip(p_place, 0, max(emap.size - 1, 0))] if emap.size else -1, -1)
     yaw = float(record.transform[3])
-    c, s = math.cos(yaw), math.sin(yaw)
-    x, y = p_offset[:, 0].copy(), p_offset[:, 1].copy()
-    p_offset[:, 0], p_offset[:, 1] = c * x - s * y, s * x + c * y
-    p_offset[:, 3] = wrap_angle(p_offset[:, 3] + yaw)
+    p_offset = compose(np.array([0.0, 0.0, 0.0, yaw]), p_offset)  # turned by T's yaw, as the robot's odometry
     return {
         "lv_place": np.concatenate([l_place, p_place]).astype(np.int64),
         "lv_place_offset": np.concatenate([l_offset, p_offset]),
@@ -94,14 +85,7 @@ def merged_template_codes(loaded: State, partial: State, record: MergeRecord) ->
     if "lv_sdr" not in loaded and "lv_sdr" not in partial:
         return {}
     width = int(np.shape(loaded.get("lv_sdr", partial.get("lv_sdr")))[1])
-
-    def codes(state: State) -> np.ndarray:
-        n = int(np.shape(state["lv_means"])[0])
-        out = np.zeros((n, width), dtype=np.uint8)
-        if "lv_sdr" in state:
-            given = np.asarray(state["lv_sdr"], dtype=np.uint8).reshape(-1, width)[:n]
-            out[: given.shape[0]] = given
-        return out
-
+    l_codes, p_codes = (template_rows(s, "lv_sdr", int(np.shape(s["lv_means"])[0]), 0, np.uint8, width)
+                        for s in (loaded, partial))  # fmt: skip
     kept = np.asarray(record.template_map) >= record.template_offset
-    return {"lv_sdr": np.concatenate([codes(loaded), codes(partial)[kept]])}
+    return {"lv_sdr": np.concatenate([l_codes, p_codes[kept]])}
