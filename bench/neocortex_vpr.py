@@ -1,8 +1,8 @@
 """Issue 17 figures: place recognition of the ``lvc`` and ``sdr-htm`` front-ends, VPR Guard on and off.
 
-Usage: python bench/neocortex_vpr.py [--out DIR] [--seed 0] [--scale 1.0] [--scenarios aliased,cave3d]
-       [--frontends lvc,sdr-htm,sdr-htm-imin8,sdr-htm+sonar] [--sim sonar=1,turbidity=3] [--guards on,off]
-       [--reuse]
+Usage: python bench/neocortex_vpr.py [--out DIR] [--seed 0 | --seeds 0,1,2] [--scale 1.0]
+       [--scenarios aliased,cave3d] [--frontends lvc,sdr-htm,sdr-htm-imin8,sdr-htm+sonar]
+       [--sim sonar=1,turbidity=3] [--guards on,off] [--reuse]
 
 For each scenario the simulator writes its logs (all sessions, then the single run when there is one);
 every session log of a scenario goes through ONE engine in turn (so a later session's look-alike places
@@ -20,7 +20,9 @@ A variant with ``+sonar`` also reads the log's sonar topic (``--sim sonar=1`` ma
 :func:`mapserver.evaluation.place_recognition` (recall = revisit_match_rate; precision = 1 −
 false_match_rate, with the evaluation's default radii), the loop-closure links judged against the ground
 truth (TP when the two experiences' true positions are within 5 m, the thesis's d_thr), the counts, and
-the front-end throughput (frames/s of the whole engine). The last stdout line is one JSON object.
+the front-end throughput (frames/s of the whole engine). With ``--seeds`` every scenario is simulated
+once per seed and each variant's counts are summed over the seeds (recall and precision of the sums;
+printed as ``total/...`` keys). The last stdout line is one JSON object.
 """
 
 from __future__ import annotations
@@ -107,11 +109,25 @@ def _run(
     }
 
 
+COUNTS = ("revisit_frames", "revisit_matched", "matched_frames", "false_matches", "loop_links", "tp", "fp",
+          "view_cells", "experiences", "frames")
+
+
+def _totals(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Return the counts of several seeds' runs summed, with recall and precision of the sums."""
+    total = {key: int(sum(r[key] for r in runs)) for key in COUNTS}
+    total["recall"] = total["revisit_matched"] / total["revisit_frames"] if total["revisit_frames"] else None
+    total["precision"] = 1.0 - total["false_matches"] / total["matched_frames"] if total["matched_frames"] else None
+    total["seeds"] = len(runs)
+    return total
+
+
 def main() -> None:
     """Simulate, run every variant and print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", default="", help="several simulator seeds, e.g. 0,1,2 (counts summed)")
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--scenarios", default="aliased,cave3d")
     parser.add_argument("--frontends", default="lvc,sdr-htm")
@@ -122,23 +138,30 @@ def main() -> None:
     sim = {k: float(v) for k, v in (item.split("=", 1) for item in filter(None, args.sim.split(",")))}
     out = args.out or Path(tempfile.mkdtemp(prefix="neocortex-vpr-"))
     figures: dict[str, Any] = {}
-    for name in args.scenarios.split(","):
-        directory = out / name
-        if args.reuse and (directory / "scenario.json").is_file():
-            info = json.loads((directory / "scenario.json").read_text(encoding="utf-8"))
-        else:
-            info = simulate(name, directory, seed=args.seed, scale=args.scale, params=sim or None)
-        logs = list(info["sessions"]) + ([info["single"]] if info.get("single") else [])
-        gt = _ground_truth(directory, logs)
-        base = preset(info["preset"])
-        for variant in args.frontends.split(","):
-            front, _, extra = variant.partition("+")
-            params = base.replace(**VARIANTS[front])
-            topics = {"sonar": info["sonar"]["topic"]} if extra == "sonar" else None
-            for guard in (g == "on" for g in args.guards.split(",")):
-                key = f"{name}/{variant}/guard-{'on' if guard else 'off'}"
-                figures[key] = _run(directory, logs, params.replace(vpr_guard=guard), gt, topics)
-                print(key, json.dumps(figures[key]), flush=True)
+    seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
+    for seed in seeds:
+        for name in args.scenarios.split(","):
+            directory = out / (name if len(seeds) == 1 else f"{name}-{seed}")
+            if args.reuse and (directory / "scenario.json").is_file():
+                info = json.loads((directory / "scenario.json").read_text(encoding="utf-8"))
+            else:
+                info = simulate(name, directory, seed=seed, scale=args.scale, params=sim or None)
+            logs = list(info["sessions"]) + ([info["single"]] if info.get("single") else [])
+            gt = _ground_truth(directory, logs)
+            base = preset(info["preset"])
+            for variant in args.frontends.split(","):
+                front, _, extra = variant.partition("+")
+                params = base.replace(**VARIANTS[front])
+                topics = {"sonar": info["sonar"]["topic"]} if extra == "sonar" else None
+                for guard in (g == "on" for g in args.guards.split(",")):
+                    key = f"{name}/{variant}/guard-{'on' if guard else 'off'}"
+                    key = key if len(seeds) == 1 else f"{key}/seed-{seed}"
+                    figures[key] = _run(directory, logs, params.replace(vpr_guard=guard), gt, topics)
+                    print(key, json.dumps(figures[key]), flush=True)
+    if len(seeds) > 1:
+        for key in sorted({k.rsplit("/seed-", 1)[0] for k in figures}):
+            figures[f"total/{key}"] = _totals([v for k, v in figures.items() if k.rsplit("/seed-", 1)[0] == key])
+            print(f"total/{key}", json.dumps(figures[f"total/{key}"]), flush=True)
     print(json.dumps(figures))
 
 
