@@ -1,7 +1,7 @@
 """Issue 12 part 4: robust relaxation against injected wrong loop links, swept over k and their size.
 
 Usage: python bench/robust_relaxation.py [--out DIR] [--seeds 10] [--sizes 0.5,1,2,5,10] [--counts 1,5,20]
-[--scenarios loop,cave3d] [--map-seeds 0]
+[--scenarios loop,cave3d] [--map-seeds 0] [--set K=V,...]
 
 Simulates ``loop`` (3-DoF, preset circle) and ``cave3d`` (4-DoF, preset poseidon), processes each
 single-session log, then for every k (wrong links) and size (how far apart, in metres, the two
@@ -13,6 +13,7 @@ residual before/after, and whether the row meets the issue's bound (max APE rati
 line of stdout is one JSON object with every row. ``--map-seeds`` simulates each scenario's stored map
 with several simulator seeds (each its own table): the maps differ most in how many loop closures they
 hold (``loop``: 12 at seed 0, 1-10 at seeds 1-4), and a map with few holds few witnesses against a wrong link.
+``--set``: engine parameters on top of each scenario's preset (``process --set``'s syntax).
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ def main() -> int:
     parser.add_argument("--counts", default="1,5,20")
     parser.add_argument("--scenarios", default="loop,cave3d")
     parser.add_argument("--map-seeds", default="0", help="simulator seeds of the stored maps, e.g. 0,1,2,3,4")
+    parser.add_argument("--set", dest="settings", default=None, help="engine parameters on top of the preset")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="robust-"))
     sizes = [float(v) for v in args.sizes.split(",")]
@@ -74,7 +76,7 @@ def main() -> int:
     report: dict[str, Any] = {}
     for scenario, map_seed in ((s, int(m)) for s in args.scenarios.split(",") for m in args.map_seeds.split(",")):
         name = scenario if map_seed == 0 else f"{scenario}-seed{map_seed}"
-        sim = simulate_single(out / name, scenario, seed=map_seed)
+        sim = simulate_single(out / name, scenario, seed=map_seed, settings=args.settings)
         clean = map_ape(sim.state["em_pose"], sim.state["em_stamp"], sim.truth)
         rows = []
         print(f"\n{name}: clean APE {clean:.3f} m, health {map_health(sim.params, sim.state)}")

@@ -474,13 +474,15 @@ class ExperienceMap:
         check switches that odometry link off, the reckoning link joins the map as an odometry
         link, so a false relocalisation's fold is undone, not only its closure.
         """
-        self._checked = self._switchable
+        checked, self._checked = self._checked, self._switchable
         if self._switchable == 0:
             return False
         p = self.params
         drift = self._drift()
         src, dst, transform, _, distance, kind = self.links
         standby = self._standby(src, dst, kind)
+        previous = self._active.view.copy()  # the status quo: the switches as they stand, new links off
+        previous[np.flatnonzero(np.isin(kind, SWITCHABLE_KINDS))[checked:]] = False
         k = src.size
         odometry = np.zeros(standby.src.size, np.int8)
         result = switch_off_outliers(
@@ -488,6 +490,7 @@ class ExperienceMap:
             np.concatenate([transform, standby.link[:, :4]]), np.concatenate([kind, odometry]),
             np.concatenate([distance, standby.link[:, 5]]), self.anchors(), drift, standby=standby.partner,
             also_switchable=standby.switchable, standby_closure=standby.closure, joint=p.exp_relax_joint,
+            previous=previous,
         )  # fmt: skip
         joined = np.flatnonzero(result.active[k:])
         if np.array_equal(result.active[:k], self._active.view) and joined.size == 0:

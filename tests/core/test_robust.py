@@ -795,3 +795,25 @@ def test_the_joint_scoring_switches_wrong_links_off_where_ratslams_does(separati
             true_off += int(np.count_nonzero(~result.active[:n]))
         assert switched == off
         assert true_off == (1 if joint and separation == 3.0 else 0)
+
+
+def test_the_check_passes_the_switches_as_they_stood_with_the_links_added_since_off(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The status quo of a robust check (:func:`core.robust._search`): the previous check's switches, new links off."""
+    em = _lap_map(Params())
+    em.settle()
+    before = em.link_count
+    assert em.add_link_raw(3, 11, np.array([0.1, 0.0, 0.0, 0.0]), 1.0, 0.1, LinkKind.LOOP)
+    assert em.add_link_raw(5, 13, np.array([0.1, 0.0, 0.0, 0.0]), 1.0, 0.1, LinkKind.LOOP)
+    seen: list[np.ndarray] = []
+    original = robust.switch_off_outliers
+
+    def spy(*args: object, **kwargs: object) -> robust.RobustResult:
+        seen.append(np.asarray(kwargs["previous"]).copy())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr("core.experience_map.switch_off_outliers", spy)
+    em.settle()
+    assert seen and seen[0].tolist() == [True] * before + [False, False]
+    assert em.link_active.tolist() == [True] * before + [False, False]  # both wrong links off, the closures on

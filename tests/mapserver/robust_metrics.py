@@ -14,6 +14,7 @@ from core.robust import false_loop_links
 from mapserver.cli import main
 from mapserver.evaluation import ape_positions, interpolate_poses
 from mapserver.formats import Trajectory, read_tum
+from mapserver.params import with_settings
 from mapserver.pipeline import process_log
 
 
@@ -36,11 +37,14 @@ class Injected:
     true_loops_on: int  # of those, still active
 
 
-def simulate_single(out: Path, scenario: str, seed: int = 0) -> Simulated:
-    """Simulate ``scenario`` into ``out`` and process its single-session log with the scenario's preset."""
+def simulate_single(out: Path, scenario: str, seed: int = 0, settings: str | None = None) -> Simulated:
+    """Simulate ``scenario`` into ``out`` and process its single-session log with the scenario's preset.
+
+    ``settings``: engine parameters on top of the preset (``process --set``'s syntax, e.g. ``exp_relax_joint=1``).
+    """
     assert main(["simulate", scenario, "--out", str(out), "--seed", str(seed)]) == 0
     info = json.loads((out / "scenario.json").read_text(encoding="utf-8"))
-    params = preset(info["preset"])
+    params = with_settings(preset(info["preset"]), settings)
     result = process_log(out / info["single"]["log"], params)
     return Simulated(params, result.engine.snapshot(), read_tum(out / info["single"]["ground_truth"]))
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core import robust as robust_module
 from mapserver.evaluation import interpolate_poses
 from mapserver.store.health import map_health
 from tests.mapserver.robust_metrics import Simulated, inject, map_ape, simulate_single
@@ -71,3 +72,34 @@ def test_a_mirror_fold_over_a_long_cycle_is_told_by_the_odometrys_heading_bias(t
     assert np.count_nonzero(gap >= 3.0) >= 3 and not active[gap >= 3.0].any()
     src, dst = state["em_link_from"][loops], state["em_link_to"][loops]
     assert active[(src == 80) & (dst == 5)].tolist() == [True]
+
+
+def test_a_batch_of_wrong_links_is_measured_against_the_map_as_it_stood(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``loop`` map seed 3 holds two true closures (its lap closure 68 → 0 itself 1.8 m off in the world). Five
+    wrong links of 2-3 m (injection seeds 1-3) join the lap's ends beside it: from all links on, the descent
+    keeps two of them and switches both true closures off (APE 3.2-3.4× the clean map's), although the map as
+    it stood, with the batch off, costs less (TLS 82.4 against 117.9-121.6). With the status-quo start every
+    wrong link is off, both true closures stay on and the APE is the clean map's. Paired: without that start
+    the failure is back."""
+    sim = simulate_single(tmp_path / "loop", "loop", seed=3)
+    stamps = sim.state["em_stamp"]
+    clean_ape = map_ape(sim.state["em_pose"], stamps, sim.truth)
+
+    def ratios() -> list[float]:
+        return [map_ape(inject(sim, 5, SIZE_M, seed=s).engine.map.poses, stamps, sim.truth) / clean_ape
+                for s in (1, 2, 3)]  # fmt: skip
+
+    assert max(ratios()) <= 1.01
+    for s in (1, 2, 3):
+        robust = inject(sim, 5, SIZE_M, seed=s)
+        assert robust.true_loops == 2 and robust.true_loops_on == 2
+        assert not robust.engine.map.link_active[robust.injected[:5]].any()
+    original = robust_module._search
+
+    def without_status_quo(problem: object, best: object, distance: object, _status_quo: object = None) -> object:
+        return original(problem, best, distance)
+
+    monkeypatch.setattr(robust_module, "_search", without_status_quo)
+    assert min(ratios()) > 2.5
