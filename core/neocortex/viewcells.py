@@ -160,15 +160,23 @@ class NeocortexViewCells:
         self.current = self.count - 1
         return self.current, 0.0, True
 
-    def read(self, image: np.ndarray, sonar: np.ndarray | None = None) -> np.ndarray:
+    def read(self, image: np.ndarray, sonar: np.ndarray | None = None, code: np.ndarray | None = None) -> np.ndarray:
         """Return D_t of ``image`` through this cortex without learning and without making a view cell.
 
         Inference only (spatial pooler and temporal memory with learning off): a stored map's cortex reads
         another session's frames in its own cell space, so that its prototypes can be matched (the merge's
         observations, ``mapserver.merge.cortex``). The sequence state (active cells, winners, the descriptor
         window) advances as in :meth:`process`; the learnt state (permanences, segments) does not change.
+        ``code``: the frame's packed SDR when another cortex with the same encoder and projection has made it
+        already (the running session's, :attr:`last_code`): the frame is then not encoded again.
         """
-        columns = self.sp.compute(self._keep_code(image, sonar), learn=False)
+        if code is None:
+            sdr = self._keep_code(image, sonar)
+        else:
+            self.last_code = np.asarray(code, dtype=np.uint8).copy()
+            bits = np.unpackbits(self.last_code)[: self.params.lsbh_bits].astype(bool)
+            sdr = torch.from_numpy(bits).to(self.device)
+        columns = self.sp.compute(sdr, learn=False)
         _, winners = self.tm.compute(columns, learn=False)
         source = columns if self.params.sv_descriptor_source == "sp" else winners
         d = self.descriptor(source.cpu().numpy().astype(np.int64))

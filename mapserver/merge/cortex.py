@@ -113,9 +113,15 @@ class CortexReader:
         """Return the length of this reader's row in a frame's views: ``sv_tm_topk`` + the packed SDR's bytes."""
         return self.topk + code_bytes(self.cells.params.lsbh_bits)
 
-    def read(self, image: np.ndarray, sonar: np.ndarray | None = None) -> np.ndarray:
-        """Step the cortex on ``image`` (and ``sonar``; no learning); return its row: descriptor, then packed SDR."""
-        d = self.cells.read(image, sonar)
+    def read(self, image: np.ndarray, sonar: np.ndarray | None = None, code: np.ndarray | None = None) -> np.ndarray:
+        """Step the cortex on ``image`` (and ``sonar``; no learning); return its row: descriptor, then packed SDR.
+
+        ``code``: the frame's packed SDR as the running session encoded it. The reader's encoder and projection
+        are the session's (its parameters, and ``lsbh_*`` and the backbone are :data:`STRUCTURAL_KEYS`; the
+        projection is regenerated from ``lsbh_seed`` and checked on restore), so the reader takes it instead of
+        encoding the frame again (a second backbone pass per candidate map with ShuffleNetV2 or AlexNet).
+        """
+        d = self.cells.read(image, sonar, code)
         out = np.full(self.width, -1, dtype=np.int64)
         out[: d.size] = d
         out[self.topk :] = self.cells.last_code

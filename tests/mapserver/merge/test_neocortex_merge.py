@@ -303,3 +303,26 @@ def test_a_place_keeps_its_distance_and_bearing_from_its_experience_as_relaxatio
         assert math.remainder(bearing - turn, math.tau) == pytest.approx(0.0, abs=1e-6)
     assert math.remainder(after[3] - before[3] - turn, math.tau) == pytest.approx(0.0, abs=1e-9)
     assert after[2] == pytest.approx(before[2])  # heights do not turn
+
+
+def test_a_reader_given_the_sessions_sdr_reads_exactly_as_one_that_encodes_the_frame() -> None:
+    """The reader takes the frame's SDR from the running session instead of encoding it again (the same encoder and
+    projection); its rows, codes and sequence state are bit for bit those of a reader that encodes the image."""
+    engine, _ = _session(StripWorld(seed=3), laps=1.0)
+    state = engine.snapshot()
+    encodes, given = CortexReader(SDR, state, row=0), CortexReader(SDR, state, row=0)
+
+    def encode_again(*_args: object) -> None:
+        raise AssertionError("the reader encoded a frame the session had encoded")
+
+    given.cells.sdr = encode_again  # type: ignore[method-assign]
+    session = Engine(SDR)
+    for frame in StripWorld(seed=3).drive(laps=0.6):
+        session.step(*frame)
+        code = session.local_view.last_code
+        assert code is not None
+        a, b = encodes.read(frame[0]), given.read(frame[0], None, code)
+        assert np.array_equal(a, b) and np.array_equal(encodes.cells.last_code, code)
+    left, right = encodes.state(), given.state()
+    assert left.keys() == right.keys() and all(np.array_equal(left[k], right[k]) for k in left)
+    assert (np.asarray(a)[: SDR.sv_tm_topk] >= 0).any()  # the reader read something
