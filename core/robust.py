@@ -329,7 +329,9 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
         if clique.cost < best.cost - margin:
             best = clique
     if descended and status_quo is not None and problem.solves < problem.max_solves:
-        kept = problem.switch_back_on(problem.eliminate(status_quo))
+        # links added since the last check may be all that joins a component (a merge's links): those stay on
+        whole = keep_connected(problem.start.shape[0], problem.src, problem.dst, status_quo, best.z)
+        kept = problem.switch_back_on(problem.eliminate(whole))
         if kept.cost < best.cost - margin:
             best = kept
     return best

@@ -817,3 +817,23 @@ def test_the_check_passes_the_switches_as_they_stood_with_the_links_added_since_
     em.settle()
     assert seen and seen[0].tolist() == [True] * before + [False, False]
     assert em.link_active.tolist() == [True] * before + [False, False]  # both wrong links off, the closures on
+
+
+def test_the_status_quo_keeps_the_new_links_that_alone_join_the_map() -> None:
+    """Links added since the last check can be all that joins two parts (a merge's): the status-quo start keeps
+    them on instead of solving a disconnected graph (``Factor is exactly singular``: ``twin-overlap`` 20 m with
+    turns alike, seed 5, session 2), and the answer keeps the true closures and drops the wrong link."""
+    truth, src, dst, transform, kind, distance = _circle_graph()
+    cut = np.flatnonzero((src == STEPS - 1) & (dst == STEPS))  # lap 2 joined to lap 1 by its closures only
+    keep = np.ones(src.size, dtype=bool)
+    keep[cut] = False
+    graph = (truth, src[keep], dst[keep], transform[keep], kind[keep], distance[keep])
+    graph, _ = _with_false(graph, 1, 3.0, seed=1)
+    truth, src, dst, transform, kind, distance = graph
+    previous = kind == 0  # the two laps' odometry stood before; every closure and the wrong link are new
+    start = np.zeros_like(truth)
+    start[0] = truth[0]
+    anchor = component_anchors(truth.shape[0], src, dst)
+    result = switch_off_outliers(start, src, dst, transform, kind, distance, anchor, DRIFT, previous=previous)
+    assert result.active[kind == 0].all() and np.isfinite(result.pose).all()
+    assert result.active[:-1].all() and not result.active[-1]  # the closures on, the wrong link off
