@@ -100,8 +100,6 @@ class CortexReader:
         self.miss_weight = params.miss_weight_reading(codes=self.codes is not None)
         self._recall_key = b""
         self._recall_of = np.zeros(0, dtype=np.float32)
-        self.places_loosely = True
-        """View cells sit at sparse experiences plus odometry (``StoredPlaces._placed_near``)."""
 
     @property
     def count(self) -> int:

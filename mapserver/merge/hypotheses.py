@@ -147,6 +147,7 @@ class StoredPlaces:
         threshold: the match threshold (the engine's own).
         panoramic: panoramic views match at any heading; forward views only facing the same way.
         rule: the tolerances (:class:`EvidenceRule`).
+        loose: the matcher's views are placed loosely (``sdr-htm`` view cells: :meth:`_placed_near`).
     """
 
     def __init__(
@@ -157,8 +158,11 @@ class StoredPlaces:
         threshold: float,
         panoramic: bool,
         rule: EvidenceRule,
+        *,
+        loose: bool = False,
     ) -> None:
         self.cells = cells
+        self.loose = loose
         self.poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
         self.templates = np.asarray(templates, dtype=np.int64).reshape(-1)
         self.threshold = threshold
@@ -179,7 +183,7 @@ class StoredPlaces:
         return np.sort(near)
 
     def _placed_near(self, template: int, pose: np.ndarray) -> bool:
-        """Whether a matcher that places its views loosely (``places_loosely``) has ``template`` near ``pose``.
+        """Whether a matcher that places its views loosely (``loose``) has ``template`` near ``pose``.
 
         ``sdr-htm`` view cells sit at their experience plus the odometry since it (:mod:`mapserver.merge.places`),
         from experiences made sparsely (``cave3d`` session 1: 289 cells, 15 experiences): measured on ``cave3d``
@@ -188,7 +192,7 @@ class StoredPlaces:
         outside the facing tolerance. A view recognised that close to the prediction, facing any way, says
         nothing against the alignment: no trial. LVC templates are placed at their experiences: unchanged.
         """
-        if not getattr(self.cells, "places_loosely", False):
+        if not self.loose:
             return False
         mine = np.flatnonzero(self.templates == template)
         gap = np.linalg.norm(self.poses[mine, :3] - pose[:3], axis=1)

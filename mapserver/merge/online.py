@@ -242,9 +242,8 @@ class OnlineMerger:
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
             cells = self._matcher(engine, state, stored.key)
             rule = self._rule(stored, engine.params, cells)
-            places = StoredPlaces(
-                cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic, rule
-            )
+            places = StoredPlaces(cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic,
+                                  rule, loose=engine.params.frontend == "sdr-htm")  # fmt: skip
             candidates.append(_Candidate(stored, cells, order, starts, HypothesisSet(places, rule), anchors))
         self._track.keep_m = max((c.hypotheses.rule.history_m for c in candidates), default=0.0)
         if self._resume is not None:

@@ -89,14 +89,12 @@ def test_a_view_whose_best_match_has_no_place_says_nothing() -> None:
 
 
 def test_a_loosely_placed_view_recognised_near_the_prediction_facing_elsewhere_says_nothing() -> None:
-    """``sdr-htm`` readers (``places_loosely``): the view's best match is placed 1.2 m from the prediction,
+    """``sdr-htm`` readers (``loose``): the view's best match is placed 1.2 m from the prediction,
     35° off (outside the facing tolerance, 0.5 rad): no trial; placed 3 m away (beyond the 1.5 m position
     tolerance), or nowhere: a miss, as for LVC, whose strict placing keeps the miss at 1.2 m too."""
     poses = np.array([[0.0, 0.0, 0.0, 0.0], [1.2, 0.0, 0.0, math.radians(35.0)], [3.0, 0.0, 0.0, 0.0]])
     strict = StoredPlaces(_places().cells, poses, np.arange(3), PARAMS.vt_match_threshold, False, RULE)
-    loose = StoredPlaces(_places().cells, poses, np.arange(3), PARAMS.vt_match_threshold, False, RULE)
-    loose.cells = type("Loose", (), {"places_loosely": True, "count": 6,
-                                     "match": strict.cells.match, "match_among": strict.cells.match_among})()
+    loose = StoredPlaces(_places().cells, poses, np.arange(3), PARAMS.vt_match_threshold, False, RULE, loose=True)
     here = np.array([0.0, 0.0, 0.0, 0.0])
     assert strict.test(here, *_view(1))[0] == MISS
     assert loose.test(here, *_view(1))[0] == UNMAPPED
