@@ -174,8 +174,7 @@ class NeocortexViewCells:
             sdr = self._keep_code(image, sonar)
         else:
             self.last_code = np.asarray(code, dtype=np.uint8).copy()
-            bits = np.unpackbits(self.last_code)[: self.params.lsbh_bits].astype(bool)
-            sdr = torch.from_numpy(bits).to(self.device)
+            sdr = torch.from_numpy(unpack_codes(self.last_code, self.params.lsbh_bits).astype(bool)).to(self.device)
         columns = self.sp.compute(sdr, learn=False)
         _, winners = self.tm.compute(columns, learn=False)
         source = columns if self.params.sv_descriptor_source == "sp" else winners
@@ -274,6 +273,11 @@ class NeocortexViewCells:
 def code_bytes(bits: int) -> int:
     """Return the bytes of a packed SDR of ``bits`` bits (``np.packbits``: the last byte zero-padded)."""
     return (int(bits) + 7) // 8
+
+
+def unpack_codes(packed: np.ndarray, bits: int) -> np.ndarray:
+    """Return packed SDRs (…, ``code_bytes(bits)``) as 0/1 uint8 (…, ``bits``): the inverse of ``np.packbits``."""
+    return np.unpackbits(np.asarray(packed, dtype=np.uint8), axis=-1)[..., : int(bits)]
 
 
 def tm_config(params: Params) -> TMConfig:

@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from core.neocortex.viewcells import NeocortexViewCells, code_bytes
+from core.neocortex.viewcells import NeocortexViewCells, code_bytes, unpack_codes
 
 if TYPE_CHECKING:
     from core import Params
@@ -94,7 +94,7 @@ class CortexReader:
         self.limit = params.vt_match_threshold
         self.min_overlap = params.merge_sdr_min_overlap
         self.translations: dict[int, np.ndarray] = {}
-        codes = np.unpackbits(self.cells.codes, axis=1)[:, : params.lsbh_bits]
+        codes = unpack_codes(self.cells.codes, params.lsbh_bits)
         self.codes = codes.astype(np.float32) if codes.any() else None
         """(N, L) the view cells' codes as 0/1, or None: the map has none (made before ``lv_sdr``)."""
         self.miss_weight = params.miss_weight_reading(codes=self.codes is not None)
@@ -168,7 +168,7 @@ class CortexReader:
         assert self.codes is not None
         key = packed.tobytes()
         if key != self._recall_key:
-            code = np.unpackbits(packed)[: self.codes.shape[1]].astype(np.float32)
+            code = unpack_codes(packed, self.codes.shape[1]).astype(np.float32)
             ones = float(code.sum())
             self._recall_key = key
             if ones and code.size == self.codes.shape[1]:

@@ -286,7 +286,7 @@ class OnlineMerger:
             msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
         sonar = getattr(frame, "sonar", None)
-        code = getattr(lv, "last_code", None)  # the frame's SDR, as the session's own cortex just encoded it
+        code = lv.last_code  # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
         view = np.stack([reader.read(frame.image, sonar, code) for reader in self._readers])
         if result.template_created and not self.absorbed:  # a view cell of the session's own cortex
             for reader in self._readers:
