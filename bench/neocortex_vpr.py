@@ -14,7 +14,10 @@ meet the earlier sessions' view cells) with the scenario's preset and its varian
 * ``sdr-sp``, ``sdr-sp-imin8`` (on request): the descriptor from the SP's columns instead of the TM's
   winner cells (``sv_descriptor_source = "sp"``): the same pipeline without sequence memory;
 
-A variant with ``+sonar`` also reads the log's sonar topic (``--sim sonar=1`` makes ``cave3d`` write one;
+A variant may add parameters after ``@`` (``;``-separated), e.g.
+``sdr-sp@sv_min_intersection=6;sv_enable_f1_gate=0``: the same pipeline at other gates, for a
+precision-recall sweep (quote the list in a shell). A variant with ``+sonar`` also reads the log's sonar
+topic (``--sim sonar=1`` makes ``cave3d`` write one;
 ``turbidity=T`` fogs its camera) as the front-end's second modality (Eq. 4.3, OR fusion). Each runs with
 ``vpr_guard`` on and off (``--guards``). Per run it prints the place-recognition rates of
 :func:`mapserver.evaluation.place_recognition` (recall = revisit_match_rate; precision = 1 −
@@ -122,6 +125,16 @@ def _totals(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return total
 
 
+def _overrides(given: str, base: Any) -> dict[str, Any]:
+    """Return a variant's ``@k=v;k=v`` parameters, each value cast to the type of the preset's own."""
+    out: dict[str, Any] = {}
+    for item in filter(None, given.split(";")):
+        key, _, value = item.partition("=")
+        current = getattr(base, key)
+        out[key] = (value.lower() in ("1", "true")) if isinstance(current, bool) else type(current)(value)
+    return out
+
+
 def main() -> None:
     """Simulate, run every variant and print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -151,7 +164,8 @@ def main() -> None:
             base = preset(info["preset"])
             for variant in args.frontends.split(","):
                 front, _, extra = variant.partition("+")
-                params = base.replace(**VARIANTS[front])
+                front, _, given = front.partition("@")
+                params = base.replace(**VARIANTS[front], **_overrides(given, base))
                 topics = {"sonar": info["sonar"]["topic"]} if extra == "sonar" else None
                 for guard in (g == "on" for g in args.guards.split(",")):
                     key = f"{name}/{variant}/guard-{'on' if guard else 'off'}"
