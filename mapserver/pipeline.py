@@ -27,6 +27,7 @@ from mapserver.run import (  # re-exported: the pipeline is where callers find t
     ProcessResult,
     ProgressCallback,
     StepHook,
+    load_frontend,
     process_log,
     run_engine,
 )
@@ -145,6 +146,7 @@ def process_into_store(
     if confirm is not None and confirm < 1:
         msg = f"--confirm must be at least 1, got {confirm!r}"
         raise InputError(msg)
+    load_frontend(params)
     started = time.perf_counter()
     options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice)
     with open_log(log_path, topics) as log, open_database(db_url) as db:

@@ -1,6 +1,8 @@
 """numpy arrays ↔ database blobs, exactly (dtype, shape and every bit).
 
-* :func:`pack_npz` / :func:`unpack_npz`: a dict of arrays as a zlib-compressed ``.npz`` (no pickles).
+* :func:`pack_npz` / :func:`unpack_npz`: a dict of arrays as a zlib-compressed ``.npz`` (no pickles; level
+  :data:`ZLIB_LEVEL`, arrays that do not shrink stored as they are: an ``sdr-htm`` snapshot took 1.5 s to
+  compress at numpy's level 6).
 * :func:`pack_raw` / :func:`unpack_raw`: one array's raw little-endian bytes, zlib-compressed; the
   dtype and shape travel separately (the state manifest).
 * :func:`negative_zeros`: where an array holds ``-0.0``. SQLite stores a REAL that has an integral
@@ -21,7 +23,12 @@ import numpy.typing as npt
 from mapserver.errors import StoreError
 
 ZLIB_LEVEL = 1
-"""zlib level for raw arrays: level 1 is several times faster than 6 and pose-cell activity is mostly zeros."""
+"""zlib level for raw arrays and npz archives: level 1 is several times faster than 6 and pose-cell activity is
+mostly zeros."""
+
+
+COMPRESS_SAMPLE = 65536
+"""Bytes of an array tried before deflating it whole (:func:`_compresses`)."""
 
 
 def _little_endian(array: np.ndarray) -> np.ndarray:
@@ -44,9 +51,25 @@ def pack_npz(arrays: Mapping[str, npt.ArrayLike]) -> bytes:
             msg = f"snapshot array {key!r} has dtype object and cannot be stored"
             raise StoreError(msg)
         plain[key] = array
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, allow_pickle=False, **plain)  # type: ignore[arg-type]
+    buffer = io.BytesIO()  # np.savez_compressed's layout (one ``KEY.npy`` per array), at ZLIB_LEVEL, not 6
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED, compresslevel=ZLIB_LEVEL) as archive:
+        for key, array in plain.items():
+            member = zipfile.ZipInfo(f"{key}.npy")  # a fixed date: the same arrays give the same bytes
+            member.compress_type = zipfile.ZIP_DEFLATED if _compresses(array) else zipfile.ZIP_STORED
+            with archive.open(member, "w", force_zip64=True) as out:
+                np.lib.format.write_array(out, array, allow_pickle=False)
     return buffer.getvalue()
+
+
+def _compresses(array: np.ndarray) -> bool:
+    """Whether deflating ``array`` pays: its first 64 KiB shrink below 80 %.
+
+    Random floats do not: an ``sdr-htm`` snapshot's LSBH projection (6.3 MB) deflates to 93 % in 0.2 s and its
+    pooler's permanences (4.9 MB) to 88 % in 0.16 s, and a merge archives three snapshots. Lattices, links
+    and packed codes do (to 1–20 %).
+    """
+    head = np.ascontiguousarray(array).reshape(-1)[: COMPRESS_SAMPLE // max(array.itemsize, 1)].tobytes()
+    return len(head) < 1024 or len(zlib.compress(head, ZLIB_LEVEL)) < 0.8 * len(head)
 
 
 def unpack_npz(blob: bytes) -> dict[str, np.ndarray]:

@@ -196,3 +196,19 @@ def test_iou_breaks_recall_ties() -> None:
     assert inter.tolist() == [15, 15] and recall.tolist() == [1.0, 1.0] and iou.tolist() == [0.75, 1.0]
     assert best_match(d, protos, sizes, MatchGates()).index == 1
     assert best_match(d, protos, sizes, MatchGates(iou_tiebreak=False)).index == 0
+
+
+def test_pools_drawn_once_per_seed_are_handed_out_as_independent_copies() -> None:
+    """Poolers built from one seed start equal; one pooler's learning never reaches the next one built."""
+    from core.neocortex.spatial_pooler import initial_pools
+
+    first, first_perm = initial_pools(64, 32, 16, 0.5, 0.2, seed=7)
+    first_perm += 1.0  # what learning in place would do to a shared tensor
+    first[0, :] = ~first[0, :]
+    second, second_perm = initial_pools(64, 32, 16, 0.5, 0.2, seed=7)
+    again, again_perm = initial_pools(64, 32, 16, 0.5, 0.2, seed=7)
+    assert torch.equal(second, again) and torch.equal(second_perm, again_perm)
+    assert not torch.equal(first, second) and float(second_perm.max()) <= 1.0
+    assert torch.equal(second_perm > 0, second)  # permanences only on the potential pool
+    other, _ = initial_pools(64, 32, 16, 0.5, 0.2, seed=8)
+    assert not torch.equal(other, second)

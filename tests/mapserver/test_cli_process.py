@@ -202,6 +202,35 @@ def test_the_rate_counts_the_frames_of_this_run() -> None:
     assert resumed.summary()["frames_per_s"] == 5.0
 
 
+@pytest.mark.parametrize("with_db", [False, True])
+def test_the_clock_starts_after_the_front_end_is_loaded(
+    small_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, with_db: bool
+) -> None:
+    """Loading the view module's libraries (torch: ~2 s) is program start, not the log's processing."""
+    import time
+
+    import mapserver.run
+    from core.config import preset
+    from mapserver.pipeline import process_into_store, process_log
+
+    loaded = []
+
+    def slow_load(params: object) -> type:
+        time.sleep(0.6)
+        loaded.append(params)
+        return object
+
+    monkeypatch.setattr(mapserver.run, "view_cells_class", slow_load)
+    started = time.perf_counter()
+    if with_db:
+        result = process_into_store(small_log, preset("poseidon"), db_url=f"sqlite:///{tmp_path / 'db.sqlite'}")
+    else:
+        result = process_log(small_log, preset("poseidon"))
+    elapsed = time.perf_counter() - started
+    assert len(loaded) == 1 and result.frames == 30
+    assert result.seconds < elapsed - 0.5  # the 0.6 s load is outside the run's seconds
+
+
 def test_set_changes_engine_parameters_on_top_of_the_preset(
     small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
