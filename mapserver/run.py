@@ -71,7 +71,8 @@ def load_frontend(params: Params) -> None:
     """Import the libraries of ``params``' view module (torch for ``sdr-htm``) before a run's clock starts.
 
     The other libraries load when the program starts; torch loads on first use, ~2 s here, which counted
-    in ``seconds`` made a 306-frame ``cave3d`` session look 70 frames/s instead of ~135.
+    in ``seconds`` made a 306-frame ``cave3d`` session of ``process --db`` read 70 frames/s (97–109 with the
+    libraries loaded first).
     """
     view_cells_class(params)
 
