@@ -48,6 +48,7 @@ from core.experience_map import LinkKind
 from mapserver.evaluation import interpolate_poses, place_recognition
 from mapserver.formats import Trajectory, read_tum
 from mapserver.ingest.simulator.output import simulate
+from mapserver.params import with_settings
 from mapserver.pipeline import run_engine
 
 D_THR = 5.0
@@ -125,16 +126,6 @@ def _totals(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return total
 
 
-def _overrides(given: str, base: Any) -> dict[str, Any]:
-    """Return a variant's ``@k=v;k=v`` parameters, each value cast to the type of the preset's own."""
-    out: dict[str, Any] = {}
-    for item in filter(None, given.split(";")):
-        key, _, value = item.partition("=")
-        current = getattr(base, key)
-        out[key] = (value.lower() in ("1", "true")) if isinstance(current, bool) else type(current)(value)
-    return out
-
-
 def main() -> None:
     """Simulate, run every variant and print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -165,7 +156,7 @@ def main() -> None:
             for variant in args.frontends.split(","):
                 front, _, extra = variant.partition("+")
                 front, _, given = front.partition("@")
-                params = base.replace(**VARIANTS[front], **_overrides(given, base))
+                params = with_settings(base.replace(**VARIANTS[front]), given.replace(";", ","))  # process --set's
                 topics = {"sonar": info["sonar"]["topic"]} if extra == "sonar" else None
                 for guard in (g == "on" for g in args.guards.split(",")):
                     key = f"{name}/{variant}/guard-{'on' if guard else 'off'}"
