@@ -294,11 +294,15 @@ class OnlineMerger:
         return view, 0.0
 
     def _remember_shadow(self, probation: Probation) -> None:
-        """During a probation the session's own cortex is the shadow's: keep its new view cells' descriptors."""
-        if self._readers and probation.seen and probation.seen[-1][2]:
-            view = self._track.last[3]
+        """During a probation the session's own cortex is the shadow's: keep its new view cells' descriptors.
+
+        The shadow steps when it catches up (:meth:`Probation.catch_up`); each view cell it made comes with the
+        readers' view of its frame, noted when the frame was verified.
+        """
+        for template, view in probation.new_views:
             for reader in self._readers:
-                reader.remember(probation.seen[-1][1], view)
+                reader.remember(template, view)
+        probation.new_views.clear()
 
     def observe(self, engine: Engine, result: StepResult, frame: Any = None) -> MergeEvent | Rollback | None:
         """Match the frame just processed against the candidates; merge, verify or roll back.
@@ -325,7 +329,7 @@ class OnlineMerger:
         self._track.add(result.frame, self._odometry, moved, view, mean)
         if self.probation is not None:
             probation = self.probation
-            verdict = self._verify(result, frame)
+            verdict = self._verify(result, frame, view if self._readers else None)
             self._remember_shadow(probation)
             if verdict is not None or self.probation is None or not probation.held_open(self._track.distance):
                 return verdict
@@ -466,14 +470,14 @@ class OnlineMerger:
             self._probation_event = event
         return event
 
-    def _verify(self, result: StepResult, frame: Any) -> Rollback | None:
-        """Step the probation; pass (drop the shadow) or roll the merge back."""
+    def _verify(self, result: StepResult, frame: Any, view: np.ndarray | None) -> Rollback | None:
+        """Step the probation (``view``: the readers' view of the frame, kept for the shadow); pass or roll back."""
         probation = self.probation
         assert probation is not None
         if frame is None:
             msg = "a merge on probation needs the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
-        verdict = probation.step(self._track, result, frame)
+        verdict = probation.step(self._track, result, frame, view)
         return None if verdict is None else self._settle_probation(verdict, result.frame)
 
     def _settle_probation(self, verdict: str, frame: int, status: str | None = None) -> Rollback | None:
@@ -498,7 +502,9 @@ class OnlineMerger:
             candidate.hypotheses.hypotheses.clear()
             self.skipped.pop(candidate.stored.key, None)
         probation.hset.ban(probation.hypothesis)
-        rollback = Rollback(event, probation.shadow, frame, tuple(probation.created), tuple(probation.seen))
+        shadow = probation.catch_up()
+        self._remember_shadow(probation)
+        rollback = Rollback(event, shadow, frame, tuple(probation.created), tuple(probation.seen))
         self.rollbacks.append(rollback)
         return rollback
 

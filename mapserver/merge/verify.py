@@ -17,9 +17,12 @@ comes after it can tell. It does not end on a run of mismatches longer than leav
 explains (:meth:`Probation.held_open`): it stays open until matches come back, the run rejects the merge,
 the cap, or the session merges into another stored map.
 
-Meanwhile the session's engine *without* the merge (the *shadow*) is stepped on the same
-frames. A contradiction — ``evidence_m`` metres of mismatches in a row (no match between them: the
-look-alike's own matches no longer outweigh what follows it; for a front-end whose misses weigh less than
+Meanwhile the session's engine *without* the merge (the *shadow*) is kept with the probation's frames,
+and stepped through them only when the merge is rolled back (or when the frames held pass
+``LAZY_SHADOW_BYTES``: it then catches up and steps each later frame) — the engine is deterministic, so
+replaying the frames gives the engine that stepping alongside would have given, bit for bit, and a merge that
+passes costs no second engine. A contradiction — ``evidence_m`` metres of mismatches in a row (no match between
+them: the look-alike's own matches no longer outweigh what follows it; for a front-end whose misses weigh less than
 LVC's, ``miss_weight`` below 2 (``sdr-htm``), a run needs proportionally more, and Page's CUSUM of the
 mismatches against the matches reaching ``CUSUM_EVIDENCE`` · ``evidence_m`` decides instead, because such a
 front-end misses long runs of true places), the post-merge score (hits −
@@ -28,7 +31,7 @@ agreeing ones, or, when the probation ends, a post-merge score below half the de
 (the probation did not confirm the merge) — rolls the merge back inside the running session: the session
 continues in the shadow, exactly the engine
 it would be had the merge never happened, and the merge is recorded as ``rejected`` with this
-evidence. Passing the probation drops the shadow.
+evidence. Passing the probation drops the shadow and its frames.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from core import Action, Engine, StepResult
 from mapserver.merge.hypotheses import HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
@@ -56,6 +60,12 @@ mark where a run of them stops (gaps of 6 m on true ground), so its probations r
 their length. Measured (``bench/sdr_merge_sweep.py``, 4–5 seeds): at 8 a false merge has time to reach the
 other mirror of a look-alike and pass (``symmetric``: 2 of 4 seeds kept the 180° merge, ``twin`` turns alike
 20 m: 4 of 4), at 4 none of the 180° merges and 3 of 5 twin merges were rolled back."""
+LAZY_SHADOW_BYTES = 256 << 20
+"""Image bytes a probation holds for its shadow before it steps the shadow through them and then frame by frame.
+
+Holding the frames costs their images (a 306-frame ``cave3d`` probation: 2.4 MB); stepping the shadow alongside
+cost a second engine per frame (``cave3d`` session 2 with ``poseidon-sdr``: 1.7 s of 6.5 s). The bound keeps a
+long probation of large images (8 probation distances of 640 × 480 RGB frames: ~0.9 GB) in memory's reach."""
 CUSUM_EVIDENCE = 3.0
 """A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
 
@@ -69,7 +79,8 @@ class Probation:
         key: the stored map merged into.
         hypothesis: the alignment that won (tested on).
         hset: its hypothesis set (the stored map's places and the rule).
-        shadow: the session's engine without the merge, stepped alongside.
+        shadow: the session's engine without the merge, stepped through the probation's frames on a rollback
+            (:meth:`catch_up`).
         start_m: the track distance at the merge.
         loaded_experiences: experiences of the stored map (ids below this in the merged engine are its).
         frames: frames verified so far.
@@ -95,20 +106,25 @@ class Probation:
     """Page's CUSUM against the merge, in miss metres (front-ends with weak misses, :meth:`_cusum`)."""
     reason: str = ""
     created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
+    """Experiences the shadow made (id, stamp, camera image): their evidence if the merge is rolled back."""
     seen: list[tuple[float, int, bool]] = field(default_factory=list, repr=False)
     """The shadow's active template per frame (stamp, template, created): the session's timeline on a rollback."""
-    """Experiences the shadow made (id, stamp, camera image): their evidence if the merge is rolled back."""
+    pending: list[tuple[Any, Any]] = field(default_factory=list, repr=False)
+    """Frames not yet stepped through the shadow, each with the caller's note for it (:meth:`catch_up`)."""
+    pending_bytes: int = 0
+    new_views: list[tuple[int, Any]] = field(default_factory=list, repr=False)
+    """View cells the shadow made while catching up, (template, note of its frame): drained by the caller."""
 
-    def step(self, track: Track, result: StepResult, frame: Any) -> str | None:
+    def step(self, track: Track, result: StepResult, frame: Any, note: Any = None) -> str | None:
         """Verify the newest frame (``result``: the merged engine's step); return PASSED, REJECTED or None.
 
-        ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is stepped through the shadow engine first.
+        ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is held for the shadow engine (:meth:`catch_up`),
+        with ``note`` (the merge driver's per-frame view, handed back in :attr:`new_views`).
         """
-        stamp = frame.stamp_ns * 1e-9
-        shadow = self.shadow.step(frame.image, frame.motion, stamp, getattr(frame, "sonar", None))
-        if shadow.action == Action.CREATE_NODE:
-            self.created.append((shadow.experience, stamp, frame.image))
-        self.seen.append((stamp, shadow.template, shadow.template_created))
+        self.pending.append((frame, note))
+        self.pending_bytes += _image_bytes(frame)
+        if self.pending_bytes > LAZY_SHADOW_BYTES:
+            self.catch_up()
         self.frames += 1
         missed_before, hit_before = self.hypothesis.post_miss_m, self.hypothesis.post_hit_m
         outcome = self.hset.test_after_merge(self.hypothesis, track)
@@ -149,6 +165,24 @@ class Probation:
         if self._may_conclude(track.distance):
             return self._conclude()
         return None
+
+    def catch_up(self) -> Engine:
+        """Step the shadow through the frames held (in order) and return it: the engine that never merged.
+
+        Fills :attr:`created` and :attr:`seen` as stepping alongside would have, and :attr:`new_views` with the
+        view cells made. After the held frames pass ``LAZY_SHADOW_BYTES`` it is called on every frame.
+        """
+        with threadpool_limits(limits=1, user_api="blas"):  # as run_engine steps: the same arithmetic
+            for frame, note in self.pending:
+                stamp = frame.stamp_ns * 1e-9
+                shadow = self.shadow.step(frame.image, frame.motion, stamp, getattr(frame, "sonar", None))
+                if shadow.action == Action.CREATE_NODE:
+                    self.created.append((shadow.experience, stamp, frame.image))
+                self.seen.append((stamp, shadow.template, shadow.template_created))
+                if shadow.template_created:
+                    self.new_views.append((shadow.template, note))
+        self.pending.clear()
+        return self.shadow
 
     def _weak_misses(self) -> bool:
         """Whether a miss weighs less than LVC's (``sdr-htm``): runs of misses then say little, the CUSUM decides."""
@@ -313,3 +347,9 @@ class Probation:
             "miss_run_m": round(self.miss_run_m, 3), "cusum_m": round(self.cusum_m, 3),
             "since_match_m": round(self.since_match_m(track.distance), 3),
         }  # fmt: skip
+
+
+def _image_bytes(frame: Any) -> int:
+    """Return the bytes of a frame's images (camera, and sonar when it has one)."""
+    sonar = getattr(frame, "sonar", None)
+    return int(np.asarray(frame.image).nbytes) + (0 if sonar is None else int(np.asarray(sonar).nbytes))

@@ -9,7 +9,7 @@ import pytest
 
 from core import Engine, Params, preset
 from core.se3 import compose, wrap_angle
-from mapserver.merge import OnlineMerger, StoredMap
+from mapserver.merge import OnlineMerger, StoredMap, verify
 from mapserver.merge.hypotheses import MIN_TURN_RAD
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, run_session, true_alignment
 from tests.mapserver.merge.world import LoopWorld
@@ -145,6 +145,42 @@ def test_a_false_merge_is_rolled_back_by_its_verification_and_the_true_one_still
     assert shadow.experience_count <= alone.experience_count
     n = shadow.experience_count
     np.testing.assert_array_equal(shadow.map.poses[:n], alone.map.poses[:n])
+
+
+def test_the_engine_without_the_merge_steps_only_when_the_merge_is_rolled_back(
+    first_half: StoredMap, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A merge that stands never steps the engine without it; one rolled back steps it through the
+    probation's frames then, and gives the engine that stepping alongside gives (the memory bound set to 0
+    bytes steps it on every frame)."""
+    stepped: list[int] = []
+    catch_up = verify.Probation.catch_up
+
+    def counting(self: verify.Probation) -> Engine:
+        stepped.append(len(self.pending))
+        return catch_up(self)
+
+    monkeypatch.setattr(verify.Probation, "catch_up", counting)
+    kept = run_session(WORLD, 24.0, 100.0, [first_half])  # on the stored ground to the log's end: kept
+    probation = kept.driver.probation
+    assert probation is not None and len(probation.pending) == probation.frames > 100
+    assert kept.driver.finish() is None and kept.events[0].evidence["verification"]["status"] == "incomplete"
+    assert stepped == []  # not one of its frames went through a second engine
+    world = LoopWorld(perimeter=40.0, alias=(2.0, 25.0, 10.0))  # a 10 m look-alike: matches, then the truth
+    stored = map_stretch(world, 0.0, 20.0, 1)
+    lazy = run_session(world, 22.0, 25.0, [stored], confirm=1, evidence_m=0.0)
+    held = len(lazy.rollbacks[0].seen)
+    assert len(lazy.rollbacks) == 1 and stepped == [held] and held > 10  # all of the probation's frames, at once
+    monkeypatch.setattr(verify, "LAZY_SHADOW_BYTES", 0)
+    stepped.clear()
+    eager = run_session(world, 22.0, 25.0, [stored], confirm=1, evidence_m=0.0)
+    assert stepped[: held + 1] == [1] * held + [0]  # one frame at a time, nothing left at the rollback
+    assert set(stepped[held + 1 :]) == {1}  # (and so the true merge's probation after it)
+    a, b = lazy.rollbacks[0], eager.rollbacks[0]
+    assert a.frame == b.frame and a.seen == b.seen and [c[:2] for c in a.created] == [c[:2] for c in b.created]
+    assert lazy.merged_frames == eager.merged_frames  # the session after it: the same true merge, the same map
+    np.testing.assert_array_equal(lazy.engine.map.poses, eager.engine.map.poses)
+    np.testing.assert_array_equal(lazy.engine.snapshot()["lv_templates"], eager.engine.snapshot()["lv_templates"])
 
 
 def test_a_log_that_ends_during_the_probation_keeps_the_merge_only_without_contradiction(
