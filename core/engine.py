@@ -79,12 +79,14 @@ class Engine:
         params: the parameter set (``core.config.Params``).
         origin: opaque tag stamped on templates and experiences created from now on
             (the store uses the session id); change it with :attr:`origin`.
+        local_view: the view module to start from (:meth:`restore` passes the restored one); None builds an
+            empty one of ``params.frontend``.
     """
 
-    def __init__(self, params: Params, origin: int = 0) -> None:
+    def __init__(self, params: Params, origin: int = 0, *, local_view: LocalViewCells | None = None) -> None:
         self.params = params
         self.origin = origin
-        self.local_view = view_cells_class(params)(params)
+        self.local_view = view_cells_class(params)(params) if local_view is None else local_view
         self.odometry = VisualOdometry(params)
         self.pose_cells = PoseCellNetwork(params)
         self.map = ExperienceMap(params, self.pose_cells.rank)
@@ -247,8 +249,7 @@ class Engine:
     @classmethod
     def restore(cls, params: Params, state: Mapping[str, np.ndarray], origin: int = 0) -> Engine:
         """Rebuild an engine from :meth:`snapshot` arrays so that it continues bit for bit."""
-        engine = cls(params, origin)
-        engine.local_view = view_cells_class(params).restore(params, state)
+        engine = cls(params, origin, local_view=view_cells_class(params).restore(params, state))
         engine.lv_origin = np.asarray(state["lv_origin"], dtype=np.int64).tolist()
         place, offset = template_place_rows(state, len(engine.lv_origin))
         engine.lv_place, engine.lv_place_offset = place.tolist(), list(offset)

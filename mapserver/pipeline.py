@@ -137,8 +137,10 @@ def process_into_store(
         ConflictError: concurrent writers changed the maps this session reads or may merge into during
             each of ``STALE_ATTEMPTS`` runs.
     """
+    from mapserver.live import LiveSession  # noqa: F401  (with the store: loaded before the clock starts)
     from mapserver.store import StaleMapError, open_database
     from mapserver.store.db import commit_gate
+    from mapserver.store.evidence import EvidenceCollector  # noqa: F401
 
     if stop_after is not None and stop_after < 1:
         msg = f"--stop-after must be at least 1, got {stop_after!r}"

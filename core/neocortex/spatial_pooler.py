@@ -53,7 +53,10 @@ class SpatialPooler:
         self.connected, self.inc, self.dec = connected, inc, dec
         self.boost_strength, self.period, self.stimulus = boost_strength, duty_cycle_period, stimulus_threshold
         self.device = torch.device(device)
-        potential, perm = initial_pools(inputs, columns, potential_radius, potential_pct, connected, seed)
+        pool = (inputs, columns, potential_radius, potential_pct, connected, seed)
+        potential, perm = initial_pools(*pool)
+        self.pool_digest = _drawn_pools(*pool)[2].copy()
+        """SHA-256 of the potential pools (float32 bytes), checked when a snapshot is loaded."""
         self.potential = potential.to(self.device)
         self.permanence = perm.to(self.device)
         self._connected_t = (self.permanence >= connected).to(torch.float32).T.contiguous()  # (inputs, columns)
@@ -114,7 +117,7 @@ class SpatialPooler:
         """Return the learnt state: the pool's permanences (row-major order of the seeded pool mask) and duties."""
         return {
             prefix + "permanence": self.permanence[self.potential].cpu().numpy().copy(),
-            prefix + "pool_digest": digest(self.potential.to(torch.float32)),
+            prefix + "pool_digest": self.pool_digest.copy(),
             prefix + "active_duty": self.active_duty.cpu().numpy().copy(),
             prefix + "overlap_duty": self.overlap_duty.cpu().numpy().copy(),
             prefix + "iteration": np.asarray(self.iteration, dtype=np.int64),
@@ -123,9 +126,8 @@ class SpatialPooler:
     def load(self, state: Mapping[str, np.ndarray], prefix: str = "sp_") -> None:
         """Overwrite the learnt state with :meth:`snapshot` arrays, exactly."""
         values = torch.from_numpy(np.array(state[prefix + "permanence"], dtype=np.float32)).reshape(-1)
-        pool_digest = digest(self.potential.to(torch.float32))
-        same_pool = np.array_equal(state[prefix + "pool_digest"], pool_digest)
-        if values.numel() != int(self.potential.sum()) or not same_pool:
+        same_pool = np.array_equal(state[prefix + "pool_digest"], self.pool_digest)
+        if values.numel() != int(torch.count_nonzero(self.potential)) or not same_pool:
             msg = "the stored spatial pooler does not fit the potential pools regenerated from its seed"
             raise ValueError(msg)
         perm = torch.zeros((self.columns, self.inputs), dtype=torch.float32, device=self.device)
@@ -145,21 +147,21 @@ def initial_pools(
     Drawn once per argument set and copied after (a session builds several poolers from one seed: its
     own, each candidate map's reader, a merged or restored one; 0.3 s a draw at 2048 × 2048).
     """
-    potential, perm = _drawn_pools(inputs, columns, radius, pct, connected, seed)
+    potential, perm, _ = _drawn_pools(inputs, columns, radius, pct, connected, seed)
     return potential.clone(), perm.clone()
 
 
 @functools.lru_cache(maxsize=2)
 def _drawn_pools(
     inputs: int, columns: int, radius: int, pct: float, connected: float, seed: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """Return (potential, permanence, the potential's digest) of one argument set (cached: never modify them)."""
     generator = torch.Generator(device="cpu").manual_seed(int(seed))
-    centre = ((torch.arange(columns, dtype=torch.float64) + 0.5) * inputs / columns).floor().to(torch.int64)
-    offset = torch.arange(inputs, dtype=torch.int64)[None, :] - centre[:, None]
-    ring = torch.minimum(offset.remainder(inputs), (-offset).remainder(inputs))
-    near = ring <= radius
+    centre = ((torch.arange(columns, dtype=torch.float64) + 0.5) * inputs / columns).floor().to(torch.int32)
+    offset = (torch.arange(inputs, dtype=torch.int32)[None, :] - centre[:, None]).remainder_(inputs)
+    near = (offset <= radius) | (offset >= inputs - radius)  # ring distance min(o, n − o) ≤ radius
     draw = torch.rand((columns, inputs), generator=generator, dtype=torch.float32)
     potential = near & (draw < pct)
     start = torch.rand((columns, inputs), generator=generator, dtype=torch.float32)
-    perm = torch.where(potential, (connected - 0.1) + 0.2 * start, torch.zeros_like(start)).clamp_(0.0, 1.0)
-    return potential, perm
+    perm = ((connected - 0.1) + 0.2 * start).clamp_(0.0, 1.0).mul_(potential)  # ≥ 0: outside the pool +0.0
+    return potential, perm, digest(potential.to(torch.float32))
