@@ -125,6 +125,12 @@ class CortexReader:
         out[self.topk :] = self.cells.last_code
         return out
 
+    def code_row(self, code: np.ndarray) -> np.ndarray:
+        """Return a row that carries the frame's packed SDR ``code`` and no descriptor (−1): read by codes only."""
+        out = np.full(self.width, -1, dtype=np.int64)
+        out[self.topk :] = np.asarray(code, dtype=np.uint8)
+        return out
+
     def remember(self, template: int, view: np.ndarray) -> None:
         """Keep this frame's descriptor as the map-cell prototype of the session's new view cell ``template``."""
         self.translations.setdefault(int(template), np.asarray(view)[self.row, : self.topk].astype(np.int64))

@@ -119,6 +119,13 @@ class Rollback:
     seen: tuple[tuple[float, int, bool], ...] = field(default=(), repr=False)
 
 
+@dataclass(frozen=True, eq=False)
+class _Unread:
+    """A probation frame the ``sdr-htm`` readers have not read yet: its packed SDR, read if the merge rolls back."""
+
+    code: np.ndarray
+
+
 @dataclass(eq=False)
 class _Candidate:
     stored: StoredMap
@@ -277,32 +284,48 @@ class OnlineMerger:
         self._readers.append(reader)
         return reader
 
-    def _view(self, engine: Engine, result: StepResult, frame: Any) -> tuple[np.ndarray, float]:
-        """Return the frame's view for the candidates: the engine's template, or every reader's descriptor."""
+    def _view(self, engine: Engine, result: StepResult, frame: Any) -> tuple[np.ndarray, float, Any]:
+        """Return the frame's view for the candidates, its mean, and what a probation keeps of it for the shadow.
+
+        The view is the engine's template, or every reader's row; the probation keeps None (no readers), the rows,
+        or an :class:`_Unread` frame. During an ``sdr-htm`` probation whose maps all keep view-cell codes the
+        readers' descriptors are not observations (the codes are, :meth:`CortexReader.match`), so the rows carry
+        the frame's code alone and the readers read the frame only if the merge is rolled back
+        (:meth:`_remember_shadow`), in order.
+        """
         lv = engine.local_view
         if not self._readers or (not self._candidates and self.probation is None):
-            return lv.last_view, lv.last_mean
+            return lv.last_view, lv.last_mean, None
         if frame is None:
             msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
-        sonar = getattr(frame, "sonar", None)
         code = lv.last_code  # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
-        view = np.stack([reader.read(frame.image, sonar, code) for reader in self._readers])
+        if self.probation is not None and not self._candidates and all(r.codes is not None for r in self._readers):
+            return np.stack([reader.code_row(code) for reader in self._readers]), 0.0, _Unread(np.array(code))
+        view = self._read(frame, code)
         if result.template_created and not self.absorbed:  # a view cell of the session's own cortex
             for reader in self._readers:
                 reader.remember(result.template, view)
-        return view, 0.0
+        return view, 0.0, view
+
+    def _read(self, frame: Any, code: np.ndarray) -> np.ndarray:
+        """Step every reader's cortex on the frame (its SDR ``code``); return their rows, stacked."""
+        sonar = getattr(frame, "sonar", None)
+        return np.stack([reader.read(frame.image, sonar, code) for reader in self._readers])
 
     def _remember_shadow(self, probation: Probation) -> None:
         """During a probation the session's own cortex is the shadow's: keep its new view cells' descriptors.
 
-        The shadow steps when it catches up (:meth:`Probation.catch_up`); each view cell it made comes with the
-        readers' view of its frame, noted when the frame was verified.
+        The shadow steps when it catches up (:meth:`Probation.catch_up`); each frame it stepped comes with what
+        was noted when the frame was verified: the readers' rows, or (reads deferred) the frame's code, which the
+        readers read now, in the frames' order, so that their sequence state is the one reading alongside gives.
         """
-        for template, view in probation.new_views:
-            for reader in self._readers:
-                reader.remember(template, view)
-        probation.new_views.clear()
+        for frame, note, template, created in probation.stepped:
+            view = self._read(frame, note.code) if isinstance(note, _Unread) else note
+            if created and view is not None:
+                for reader in self._readers:
+                    reader.remember(template, view)
+        probation.stepped.clear()
 
     def observe(self, engine: Engine, result: StepResult, frame: Any = None) -> MergeEvent | Rollback | None:
         """Match the frame just processed against the candidates; merge, verify or roll back.
@@ -324,12 +347,12 @@ class OnlineMerger:
         self._odometry = compose(self._odometry, step)
         if engine.local_view.last_view is None:
             return None
-        view, mean = self._view(engine, result, frame)
+        view, mean, note = self._view(engine, result, frame)
         moved = float(np.linalg.norm(step[:3]))
         self._track.add(result.frame, self._odometry, moved, view, mean)
         if self.probation is not None:
             probation = self.probation
-            verdict = self._verify(result, frame, view if self._readers else None)
+            verdict = self._verify(result, frame, note)
             self._remember_shadow(probation)
             if verdict is not None or self.probation is None or not probation.held_open(self._track.distance):
                 return verdict
@@ -470,14 +493,14 @@ class OnlineMerger:
             self._probation_event = event
         return event
 
-    def _verify(self, result: StepResult, frame: Any, view: np.ndarray | None) -> Rollback | None:
-        """Step the probation (``view``: the readers' view of the frame, kept for the shadow); pass or roll back."""
+    def _verify(self, result: StepResult, frame: Any, note: Any) -> Rollback | None:
+        """Step the probation (``note``: what the shadow keeps of the frame, :meth:`_view`); pass or roll back."""
         probation = self.probation
         assert probation is not None
         if frame is None:
             msg = "a merge on probation needs the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
-        verdict = probation.step(self._track, result, frame, view)
+        verdict = probation.step(self._track, result, frame, note)
         return None if verdict is None else self._settle_probation(verdict, result.frame)
 
     def _settle_probation(self, verdict: str, frame: int, status: str | None = None) -> Rollback | None:

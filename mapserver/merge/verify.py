@@ -112,14 +112,14 @@ class Probation:
     pending: list[tuple[Any, Any]] = field(default_factory=list, repr=False)
     """Frames not yet stepped through the shadow, each with the caller's note for it (:meth:`catch_up`)."""
     pending_bytes: int = 0
-    new_views: list[tuple[int, Any]] = field(default_factory=list, repr=False)
-    """View cells the shadow made while catching up, (template, note of its frame): drained by the caller."""
+    stepped: list[tuple[Any, Any, int, bool]] = field(default_factory=list, repr=False)
+    """Frames the shadow stepped while catching up, (frame, its note, template, created): drained by the caller."""
 
     def step(self, track: Track, result: StepResult, frame: Any, note: Any = None) -> str | None:
         """Verify the newest frame (``result``: the merged engine's step); return PASSED, REJECTED or None.
 
         ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is held for the shadow engine (:meth:`catch_up`),
-        with ``note`` (the merge driver's per-frame view, handed back in :attr:`new_views`).
+        with ``note`` (what the merge driver keeps of the frame, handed back in :attr:`stepped`).
         """
         self.pending.append((frame, note))
         self.pending_bytes += _image_bytes(frame)
@@ -169,8 +169,8 @@ class Probation:
     def catch_up(self) -> Engine:
         """Step the shadow through the frames held (in order) and return it: the engine that never merged.
 
-        Fills :attr:`created` and :attr:`seen` as stepping alongside would have, and :attr:`new_views` with the
-        view cells made. After the held frames pass ``LAZY_SHADOW_BYTES`` it is called on every frame.
+        Fills :attr:`created` and :attr:`seen` as stepping alongside would have, and :attr:`stepped` with every
+        frame stepped. After the held frames pass ``LAZY_SHADOW_BYTES`` it is called on every frame.
         """
         with threadpool_limits(limits=1, user_api="blas"):  # as run_engine steps: the same arithmetic
             for frame, note in self.pending:
@@ -179,8 +179,7 @@ class Probation:
                 if shadow.action == Action.CREATE_NODE:
                     self.created.append((shadow.experience, stamp, frame.image))
                 self.seen.append((stamp, shadow.template, shadow.template_created))
-                if shadow.template_created:
-                    self.new_views.append((shadow.template, note))
+                self.stepped.append((frame, note, shadow.template, shadow.template_created))
         self.pending.clear()
         return self.shadow
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -221,8 +222,13 @@ def test_the_engine_records_where_each_view_cell_was_made_and_restores_it() -> N
     assert (Engine.restore(SDR, older).snapshot()["lv_place"] == -1).all()  # maps stored before the key
 
 
-def _online(directory: Path, scenario: str, params: Any, **sim: float) -> tuple[list[Any], list[Any], Any]:
-    """Simulate seed 0, map session 1 alone, run session 2 through the online merge driver against it."""
+def _online(
+    directory: Path, scenario: str, params: Any, frames: list[bytes] | None = None, **sim: float
+) -> tuple[list[Any], list[Any], Any]:
+    """Simulate seed 0, map session 1 alone, run session 2 through the online merge driver against it.
+
+    ``frames``: receives the digest of each of session 2's camera images, in order.
+    """
     info = simulate(scenario, directory, seed=0, params=sim)
     s1, s2 = info["sessions"][:2]
     stored = Engine(params, origin=1)
@@ -232,6 +238,8 @@ def _online(directory: Path, scenario: str, params: Any, **sim: float) -> tuple[
     current = [Engine(params, origin=2)]
 
     def hook(frame: Any, result: Any) -> Engine | None:
+        if frames is not None:
+            frames.append(_image_digest(frame.image))
         event = merger.observe(current[0], result, frame)
         if isinstance(event, MergeEvent | Rollback):
             current[0] = event.engine
@@ -244,19 +252,42 @@ def _online(directory: Path, scenario: str, params: Any, **sim: float) -> tuple[
     return merger.events, merger.rollbacks, truth
 
 
-def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_true_one_stands(tmp_path: Path) -> None:
+def _image_digest(image: np.ndarray) -> bytes:
+    return hashlib.sha256(np.ascontiguousarray(image).tobytes()).digest()
+
+
+def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_true_one_stands(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Issue 12 for the ``sdr-htm`` front-end: ``twin`` with a 20 m look-alike holding two quarter turns (seed
     0). The view cells' codes recognise session 1's look-alike, the merge is made inside it, and its
     probation rolls it back after the structure (``bench/sdr_merge_sweep.py``, 10 seeds: none survives at the
     default gate; with the cortex's own readings as the only observations, 4 of 5 did). The same stretch in one
-    world (``twin-overlap``) merges at its true place and passes."""
+    world (``twin-overlap``) merges at its true place and passes.
+
+    The stored map's cortex reads no frame of a probation unless its merge is rolled back; then it reads them
+    all, in order, before the next frame (so it reads every frame once, as reading alongside did); after a
+    merge that stands it reads none."""
+    read: list[bytes] = []
+    reader_read = CortexReader.read
+
+    def recording(self: CortexReader, image: np.ndarray, *args: Any) -> np.ndarray:
+        read.append(_image_digest(image))
+        return reader_read(self, image, *args)
+
+    monkeypatch.setattr(CortexReader, "read", recording)
     params = preset("circle").replace(frontend="sdr-htm")
-    events, rollbacks, _ = _online(tmp_path / "twin", "twin", params, lookalike_m=20.0, lookalike_turns=1.0)
+    frames: list[bytes] = []
+    events, rollbacks, _ = _online(tmp_path / "twin", "twin", params, frames, lookalike_m=20.0, lookalike_turns=1.0)
     assert len(rollbacks) >= 1 and events == []  # must not: a merge into the other world survives
-    events, rollbacks, truth = _online(tmp_path / "overlap", "twin-overlap", params, lookalike_m=20.0,
+    assert read == frames[: len(read)] and len(read) > rollbacks[-1].frame  # each frame once, in order
+    read.clear()
+    frames.clear()
+    events, rollbacks, truth = _online(tmp_path / "overlap", "twin-overlap", params, frames, lookalike_m=20.0,
                                        lookalike_turns=1.0)  # fmt: skip
     assert rollbacks == [] and len(events) == 1  # must still: the true merge
     assert events[0].evidence["verification"]["status"] == "passed"
+    assert read == frames[: events[0].frame + 1]  # up to the merge's frame, none of its probation's
     t = events[0].record.transform
     assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 5.0 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.35
 
