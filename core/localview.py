@@ -44,6 +44,7 @@ from scipy.ndimage import uniform_filter
 
 from core._buffers import GrowBuffer
 from core._match_kernel import best_pair, fixed_point_bits, quantise
+from core._match_kernel import load_compiled as load_compiled  # re-exported: callers load the kernel early
 
 if TYPE_CHECKING:
     from core.config import Params

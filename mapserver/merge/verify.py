@@ -52,8 +52,8 @@ PROBATION_CAP = 8.0
 Measured (``bench/lookalike_sweep.py --param lookalike_turns=1``, 10 seeds): at 4 the probation of 3 of 10
 false merges at a 40 m look-alike holding turns ended inside the look-alike (48 m of matches with the
 ``circle`` preset's 12 m probation) and the merges stayed; at 8 none did, and 2 of 10 at 60 m: the cap is the
-longest look-alike the probation can see the end of. The cost is the shadow engine stepped for up to 8
-probation distances on a session that stays on the stored map's ground."""
+longest look-alike the probation can see the end of. The cost is the probation's frames held for up to 8
+probation distances (``LAZY_SHADOW_BYTES``), and the shadow stepped through them if the merge is rolled back."""
 WEAK_MISS_PROBATION_CAP = 4.0
 """The cap for a front-end whose misses weigh less than LVC's (``sdr-htm``). Its matches are too sparse to
 mark where a run of them stops (gaps of 6 m on true ground), so its probations run to the cap and the cap is

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core._match_kernel import _best_pair_numpy, _compiled, fixed_point_bits, quantise
+from core.config import preset
 
 
 def _loop_reference(templates, rows, view, offsets, width, start, limit_sum):  # type: ignore[no-untyped-def]
@@ -52,3 +54,30 @@ def test_fixed_point_keeps_float32_precision_and_fits_int32_rows() -> None:
     assert abs(q[4] / 2**24 - float(values[4])) <= 2.0**-25
     worst = 2**24 * 60 * 2  # |difference| ≤ 2^24 per value over 60 columns twice over: still int32
     assert worst < 2**31
+
+
+def test_loading_the_kernel_early_gives_it_the_types_the_matcher_calls_it_with(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``load_compiled`` (called before a run's clock) loads the one signature the matcher then uses: its calls,
+    over a real template store and a prefiltered candidate list, compile nothing more (each new signature is a
+    compile or cache load, ~0.3 s, that would fall inside the clock)."""
+    from core import _match_kernel
+    from core.localview import LocalViewCells, load_compiled
+
+    load_compiled()
+    loaded = list(_compiled().signatures)
+    assert len(loaded) >= 1
+    monkeypatch.setattr(_match_kernel, "_use_compiled", True)  # the compiled path from the first frame
+    params = preset("circle")
+    cells = LocalViewCells(params)
+    rng = np.random.default_rng(4)
+    images = rng.integers(0, 255, (6, 120, 160), dtype=np.uint8)
+    for image in images:
+        cells.process(image)
+    template, mean = cells.make_template(images[2] // 2 + 40)
+    answers = cells.match(template, mean), cells.match_among(template, mean, np.arange(cells.count))
+    assert cells.count >= 2 and answers[0] == answers[1]
+    assert list(_compiled().signatures) == loaded
+    monkeypatch.setattr(_match_kernel, "_use_compiled", False)  # numpy's sums: the same answer
+    assert cells.match(template, mean) == answers[0]
