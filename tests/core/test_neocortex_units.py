@@ -56,7 +56,7 @@ def _tiny_sp(perm: list[list[float]], active: int = 2) -> SpatialPooler:
     sp = SpatialPooler(6, 4, active, potential_radius=6, potential_pct=1.0, connected=0.5, inc=0.1, dec=0.05)
     sp.potential = torch.ones((4, 6), dtype=torch.bool)
     sp.permanence = torch.tensor(perm, dtype=torch.float32)
-    sp._connected_t = (sp.permanence >= 0.5).to(torch.float32).T.contiguous()
+    sp.sync_connected()
     return sp
 
 
@@ -80,6 +80,29 @@ def test_spatial_pooler_overlap_inhibition_and_learning_by_hand() -> None:
     for _ in range(3):  # three more wins: 0.2 → 0.5 connects input 0 of column 2
         sp.compute(x, learn=True)
     assert sp.permanence[2, 0].item() == pytest.approx(0.5) and sp.overlaps(x).tolist()[2] == 3
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), inputs=st.integers(1, 200), share=st.floats(0.0, 1.0))
+def test_the_cpus_bit_rows_count_the_overlaps_the_float_rows_count(seed: int, inputs: int, share: float) -> None:
+    """On the CPU a column's overlap is a popcount of bit rows (any input width, padded to 64); elsewhere a sum
+    of float rows. Both give #{i : x_i ∧ perm(c, i) ≥ connected}, counted here directly, and so the same winners
+    and the same learning over several steps."""
+    def pooler(bits: bool) -> SpatialPooler:
+        sp = SpatialPooler(inputs, 24, 5, potential_radius=inputs, potential_pct=0.7, connected=0.5, inc=0.1,
+                           dec=0.05, seed=seed)  # fmt: skip
+        sp._bits = bits
+        sp.sync_connected()
+        return sp
+
+    cpu, other = pooler(True), pooler(False)
+    rng = np.random.default_rng(seed)
+    for _ in range(6):
+        x = torch.from_numpy(rng.random(inputs) < share)
+        direct = ((cpu.permanence >= 0.5) & x[None, :]).sum(dim=1)
+        assert cpu.overlaps(x).tolist() == other.overlaps(x).tolist() == direct.tolist()
+        assert torch.equal(cpu.compute(x, learn=True), other.compute(x, learn=True))
+        assert torch.equal(cpu.permanence, other.permanence)
 
 
 def test_spatial_pooler_ties_go_to_the_lower_column_and_zero_overlap_never_wins() -> None:
