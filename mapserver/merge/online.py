@@ -59,7 +59,7 @@ from mapserver.merge.places import template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.resume import MergerState
 from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
-from mapserver.merge.verify import PASSED, REJECTED, Probation
+from mapserver.merge.verify import LAZY_SHADOW_BYTES, PASSED, REJECTED, Probation, image_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -197,6 +197,9 @@ class OnlineMerger:
         self._probation_m = probation_m
         self._candidates: list[_Candidate] | None = None
         self._readers: list[Any] = []
+        self._unread: list[tuple[Any, np.ndarray, int, bool]] = []
+        """Frames the readers have not read yet (frame, its code, the session's view cell, made there)."""
+        self._unread_bytes = 0
         """sdr-htm maps: every prepared candidate's :class:`mapserver.merge.cortex.CortexReader` (rows of the views)."""
         self._before_merge: list[_Candidate] = []
         self.skipped: dict[object, str] = {}
@@ -288,10 +291,10 @@ class OnlineMerger:
         """Return the frame's view for the candidates, its mean, and what a probation keeps of it for the shadow.
 
         The view is the engine's template, or every reader's row; the probation keeps None (no readers), the rows,
-        or an :class:`_Unread` frame. During an ``sdr-htm`` probation whose maps all keep view-cell codes the
-        readers' descriptors are not observations (the codes are, :meth:`CortexReader.match`), so the rows carry
-        the frame's code alone and the readers read the frame only if the merge is rolled back
-        (:meth:`_remember_shadow`), in order.
+        or an :class:`_Unread` frame. Where the ``sdr-htm`` maps all keep view-cell codes the readers' descriptors
+        are not observations (the codes are, :meth:`CortexReader.match`), so the rows carry the frame's code alone
+        and the readers read the frame later, in order: before a merge when a merge or a resume needs them
+        (:meth:`_read_unread`), during a probation only if the merge is rolled back (:meth:`_remember_shadow`).
         """
         lv = engine.local_view
         if not self._readers or (not self._candidates and self.probation is None):
@@ -300,13 +303,38 @@ class OnlineMerger:
             msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
         code = lv.last_code  # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
-        if self.probation is not None and not self._candidates and all(r.codes is not None for r in self._readers):
-            return np.stack([reader.code_row(code) for reader in self._readers]), 0.0, _Unread(np.array(code))
+        if all(r.codes is not None for r in self._readers):
+            rows = np.stack([reader.code_row(code) for reader in self._readers])
+            if self.probation is not None and not self._candidates:
+                return rows, 0.0, _Unread(np.array(code))
+            if not self.absorbed:  # read when a merge (or a resume) needs the readers: :meth:`_read_unread`
+                self._unread.append((frame, np.array(code), result.template, result.template_created))
+                self._unread_bytes += image_bytes(frame)
+                if self._unread_bytes > LAZY_SHADOW_BYTES:
+                    self._read_unread()
+                return rows, 0.0, rows
         view = self._read(frame, code)
         if result.template_created and not self.absorbed:  # a view cell of the session's own cortex
             for reader in self._readers:
                 reader.remember(result.template, view)
         return view, 0.0, view
+
+    def _read_unread(self) -> None:
+        """Let the readers read the frames they have not read, in order, and keep the session's new view cells.
+
+        Before a merge the observations are the view cells' codes, so the readers' descriptors serve only the merge
+        (the session's view cells re-expressed in the map's cortex, :meth:`CortexReader.translated`) and a resume
+        (their state): a session that never merges never reads, and one that merges reads each frame once, as
+        reading alongside did. Called by :meth:`_merge`, :meth:`export_state`, and past ``LAZY_SHADOW_BYTES`` of
+        held images.
+        """
+        for frame, code, template, created in self._unread:
+            view = self._read(frame, code)
+            if created:
+                for reader in self._readers:
+                    reader.remember(template, view)
+        self._unread.clear()
+        self._unread_bytes = 0
 
     def _read(self, frame: Any, code: np.ndarray) -> np.ndarray:
         """Step every reader's cortex on the frame (its SDR ``code``); return their rows, stacked."""
@@ -434,6 +462,7 @@ class OnlineMerger:
         self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult, frame: Any
     ) -> MergeEvent:
         """Apply Algorithm 1 with the winning hypothesis's anchor and pairs; start its probation."""
+        self._read_unread()
         self.observed.add(candidate.stored.key)
         anchor = winner.anchor
         pose = self._robot_pose(engine, anchor.odometry)
@@ -554,6 +583,7 @@ class OnlineMerger:
         if self.probation is not None:
             msg = "a merge is on probation: run on until it concludes (or call finish()) before exporting the state"
             raise RuntimeError(msg)
+        self._read_unread()
         hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:

@@ -122,7 +122,7 @@ class Probation:
         with ``note`` (what the merge driver keeps of the frame, handed back in :attr:`stepped`).
         """
         self.pending.append((frame, note))
-        self.pending_bytes += _image_bytes(frame)
+        self.pending_bytes += image_bytes(frame)
         if self.pending_bytes > LAZY_SHADOW_BYTES:
             self.catch_up()
         self.frames += 1
@@ -348,7 +348,7 @@ class Probation:
         }  # fmt: skip
 
 
-def _image_bytes(frame: Any) -> int:
+def image_bytes(frame: Any) -> int:
     """Return the bytes of a frame's images (camera, and sonar when it has one)."""
     sonar = getattr(frame, "sonar", None)
     return int(np.asarray(frame.image).nbytes) + (0 if sonar is None else int(np.asarray(sonar).nbytes))

@@ -81,6 +81,42 @@ def test_a_stored_maps_cortex_recognises_its_place_in_another_session_and_not_an
 ROW = SDR.sv_tm_topk + SDR.lsbh_bits // 8  # a reader's row: descriptor, then the frame's packed SDR
 
 
+def test_a_session_that_merges_nowhere_never_runs_the_stored_maps_cortex_until_its_state_is_asked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before a merge the observations are the view cells' codes: the stored map's cortex reads the session's
+    frames only when a merge or a resume needs it, then all of them, in order, with the session's new view cells
+    remembered as reading alongside remembers them (compared with a reader that read every frame)."""
+    stored, _ = _session(StripWorld(seed=3), laps=0.4)
+    read: list[bytes] = []
+    reader_read = CortexReader.read
+
+    def recording(self: CortexReader, image: np.ndarray, *args: Any) -> np.ndarray:
+        read.append(_image_digest(image))
+        return reader_read(self, image, *args)
+
+    monkeypatch.setattr(CortexReader, "read", recording)
+    merger = OnlineMerger([StoredMap(1, SDR, stored.snapshot())])
+    session = Engine(SDR, origin=2)
+    frames = [SimpleNamespace(image=image, motion=motion, stamp_ns=round(stamp * 1e9), sonar=None)
+              for image, motion, stamp in StripWorld(seed=11).drive(laps=0.3)]  # another world: no merge
+    alongside = CortexReader(SDR, stored.snapshot(), row=0, key=1)
+    for frame in frames:
+        result = session.step(frame.image, frame.motion, frame.stamp_ns * 1e-9)
+        assert merger.observe(session, result, frame) is None
+        view = reader_read(alongside, frame.image, None, session.local_view.last_code)[None, :]
+        if result.template_created:
+            alongside.remember(result.template, view)
+    assert read == [] and merger.events == []  # must not: a second cortex per frame for nothing
+    state = merger.export_state()  # a resume needs the readers' state: now they read
+    assert read == [_image_digest(f.image) for f in frames]
+    (key, arrays), = state.readers
+    expected = alongside.state()
+    assert key == 1 and arrays.keys() == expected.keys()
+    for name in expected:
+        np.testing.assert_array_equal(arrays[name], expected[name])
+
+
 @pytest.mark.parametrize("codes", [True, False])
 def test_a_reading_is_reported_like_a_template_match(codes: bool) -> None:
     engine, frames = _session(StripWorld(seed=3), laps=0.4)
