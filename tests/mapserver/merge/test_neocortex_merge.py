@@ -81,13 +81,8 @@ def test_a_stored_maps_cortex_recognises_its_place_in_another_session_and_not_an
 ROW = SDR.sv_tm_topk + SDR.lsbh_bits // 8  # a reader's row: descriptor, then the frame's packed SDR
 
 
-def test_a_session_that_merges_nowhere_never_runs_the_stored_maps_cortex_until_its_state_is_asked(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """Before a merge the observations are the view cells' codes: the stored map's cortex reads the session's
-    frames only when a merge or a resume needs it, then all of them, in order, with the session's new view cells
-    remembered as reading alongside remembers them (compared with a reader that read every frame)."""
-    stored, _ = _session(StripWorld(seed=3), laps=0.4)
+def _record_reads(monkeypatch: pytest.MonkeyPatch) -> list[bytes]:
+    """Make every ``CortexReader.read`` append the digest of the image it reads to the list returned."""
     read: list[bytes] = []
     reader_read = CortexReader.read
 
@@ -96,6 +91,22 @@ def test_a_session_that_merges_nowhere_never_runs_the_stored_maps_cortex_until_i
         return reader_read(self, image, *args)
 
     monkeypatch.setattr(CortexReader, "read", recording)
+    return read
+
+
+def _image_digest(image: np.ndarray) -> bytes:
+    return hashlib.sha256(np.ascontiguousarray(image).tobytes()).digest()
+
+
+def test_a_session_that_merges_nowhere_never_runs_the_stored_maps_cortex_until_its_state_is_asked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before a merge the observations are the view cells' codes: the stored map's cortex reads the session's
+    frames only when a merge or a resume needs it, then all of them, in order, with the session's new view cells
+    remembered as reading alongside remembers them (compared with a reader that read every frame)."""
+    stored, _ = _session(StripWorld(seed=3), laps=0.4)
+    reader_read = CortexReader.read
+    read = _record_reads(monkeypatch)
     merger = OnlineMerger([StoredMap(1, SDR, stored.snapshot())])
     session = Engine(SDR, origin=2)
     frames = [SimpleNamespace(image=image, motion=motion, stamp_ns=round(stamp * 1e9), sonar=None)
@@ -288,10 +299,6 @@ def _online(
     return merger.events, merger.rollbacks, truth
 
 
-def _image_digest(image: np.ndarray) -> bytes:
-    return hashlib.sha256(np.ascontiguousarray(image).tobytes()).digest()
-
-
 def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_true_one_stands(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -304,14 +311,7 @@ def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_tru
     The stored map's cortex reads no frame of a probation unless its merge is rolled back; then it reads them
     all, in order, before the next frame (so it reads every frame once, as reading alongside did); after a
     merge that stands it reads none."""
-    read: list[bytes] = []
-    reader_read = CortexReader.read
-
-    def recording(self: CortexReader, image: np.ndarray, *args: Any) -> np.ndarray:
-        read.append(_image_digest(image))
-        return reader_read(self, image, *args)
-
-    monkeypatch.setattr(CortexReader, "read", recording)
+    read = _record_reads(monkeypatch)
     params = preset("circle").replace(frontend="sdr-htm")
     frames: list[bytes] = []
     events, rollbacks, _ = _online(tmp_path / "twin", "twin", params, frames, lookalike_m=20.0, lookalike_turns=1.0)
