@@ -197,10 +197,10 @@ class OnlineMerger:
         self._probation_m = probation_m
         self._candidates: list[_Candidate] | None = None
         self._readers: list[Any] = []
+        """sdr-htm maps: every prepared candidate's :class:`mapserver.merge.cortex.CortexReader` (rows of the views)."""
         self._unread: list[tuple[Any, np.ndarray, int, bool]] = []
         """Frames the readers have not read yet (frame, its code, the session's view cell, made there)."""
         self._unread_bytes = 0
-        """sdr-htm maps: every prepared candidate's :class:`mapserver.merge.cortex.CortexReader` (rows of the views)."""
         self._before_merge: list[_Candidate] = []
         self.skipped: dict[object, str] = {}
         self.absorbed: list[object] = []
