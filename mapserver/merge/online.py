@@ -121,7 +121,7 @@ class Rollback:
 
 @dataclass(frozen=True, eq=False)
 class _Unread:
-    """A probation frame the ``sdr-htm`` readers have not read yet: its packed SDR, read if the merge rolls back."""
+    """A frame the ``sdr-htm`` readers have not read yet: its packed SDR, read when a merge, resume or rollback asks."""
 
     code: np.ndarray
 
@@ -198,7 +198,7 @@ class OnlineMerger:
         self._candidates: list[_Candidate] | None = None
         self._readers: list[Any] = []
         """sdr-htm maps: every prepared candidate's :class:`mapserver.merge.cortex.CortexReader` (rows of the views)."""
-        self._unread: list[tuple[Any, np.ndarray, int, bool]] = []
+        self._unread: list[tuple[Any, _Unread, int, bool]] = []
         """Frames the readers have not read yet (frame, its code, the session's view cell, made there)."""
         self._unread_bytes = 0
         self._before_merge: list[_Candidate] = []
@@ -308,15 +308,14 @@ class OnlineMerger:
             if self.probation is not None and not self._candidates:
                 return rows, 0.0, _Unread(np.array(code))
             if not self.absorbed:  # read when a merge (or a resume) needs the readers: :meth:`_read_unread`
-                self._unread.append((frame, np.array(code), result.template, result.template_created))
+                self._unread.append((frame, _Unread(np.array(code)), result.template, result.template_created))
                 self._unread_bytes += image_bytes(frame)
                 if self._unread_bytes > LAZY_SHADOW_BYTES:
                     self._read_unread()
                 return rows, 0.0, rows
         view = self._read(frame, code)
-        if result.template_created and not self.absorbed:  # a view cell of the session's own cortex
-            for reader in self._readers:
-                reader.remember(result.template, view)
+        if not self.absorbed:  # a view cell of the session's own cortex
+            self._remember([(frame, view, result.template, result.template_created)])
         return view, 0.0, view
 
     def _read_unread(self) -> None:
@@ -328,13 +327,21 @@ class OnlineMerger:
         reading alongside did. Called by :meth:`_merge`, :meth:`export_state`, and past ``LAZY_SHADOW_BYTES`` of
         held images.
         """
-        for frame, code, template, created in self._unread:
-            view = self._read(frame, code)
-            if created:
-                for reader in self._readers:
-                    reader.remember(template, view)
+        self._remember(self._unread)
         self._unread.clear()
         self._unread_bytes = 0
+
+    def _remember(self, frames: list[tuple[Any, Any, int, bool]]) -> None:
+        """Keep the descriptors of the session's new view cells, frame by frame in order.
+
+        Each entry is (frame, note, view cell, made there); the note is the readers' rows, or an :class:`_Unread`
+        frame, which the readers read now (so that their sequence state is the one reading alongside gives).
+        """
+        for frame, note, template, created in frames:
+            view = self._read(frame, note.code) if isinstance(note, _Unread) else note
+            if created and view is not None:
+                for reader in self._readers:
+                    reader.remember(template, view)
 
     def _read(self, frame: Any, code: np.ndarray) -> np.ndarray:
         """Step every reader's cortex on the frame (its SDR ``code``); return their rows, stacked."""
@@ -348,11 +355,7 @@ class OnlineMerger:
         was noted when the frame was verified: the readers' rows, or (reads deferred) the frame's code, which the
         readers read now, in the frames' order, so that their sequence state is the one reading alongside gives.
         """
-        for frame, note, template, created in probation.stepped:
-            view = self._read(frame, note.code) if isinstance(note, _Unread) else note
-            if created and view is not None:
-                for reader in self._readers:
-                    reader.remember(template, view)
+        self._remember(probation.stepped)
         probation.stepped.clear()
 
     def observe(self, engine: Engine, result: StepResult, frame: Any = None) -> MergeEvent | Rollback | None:
