@@ -109,7 +109,7 @@ def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: A
         verification = kept.evidence.get("verification", {})
         event["status"] = verification.get("status")
         event["verification"] = {k: verification.get(k) for k in ("distance_m", "post_hit_m", "post_miss_m", "cusum_m")}
-    return {"seed": seed, "merges": events}
+    return {"seed": seed, "gate": [round(g, 3) for g in merger.sdr_gates.values()], "merges": events}
 
 
 def main() -> None:
@@ -128,7 +128,8 @@ def main() -> None:
     for seed in (int(s) for s in args.seeds.split(",")):
         row = run_seed(root / f"{args.scenario}-{seed}", args.scenario, seed, _pairs(args.sim), params)
         rows.append(row)
-        print(f"{args.scenario} {args.sim or '-'} seed {seed}: {json.dumps(row['merges'])}", flush=True)
+        label = f"{args.scenario} {args.sim or '-'} seed {seed} gate {row['gate']}"
+        print(f"{label}: {json.dumps(row['merges'])}", flush=True)
     print(json.dumps({"scenario": args.scenario, "sim": args.sim, "preset": args.preset, "set": args.set,
                       "runs": rows}))  # fmt: skip
 

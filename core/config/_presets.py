@@ -67,8 +67,9 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             vt_normalisation=0.5, vt_active_decay=1.0, pc_vt_inject_energy=0.1, exp_delta_pc_threshold=2.0,
             exp_loops=20, exp_initial_em_deg=0.0,
             # sdr-htm merges (poseidon-sdr): the cave's SDRs overlap less at a true place than a street's; at the
-            # default 0.68 cave3d's true merges fail (9 of 10 seeds), at 0.62 none (README, 2026-11-27)
-            merge_sdr_min_overlap=0.62,
+            # default 0.68 cave3d's true merges fail (9 of 10 seeds), at 0.62 none (README, 2026-11-27); raised per
+            # map to the 95th percentile of its own look-alikes, so a street-like map gets a street's gate (stop 34)
+            merge_sdr_min_overlap=0.62, merge_sdr_null_quantile=0.95,
         ),
     }
 )

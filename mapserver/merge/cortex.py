@@ -14,7 +14,10 @@ place (within 1.5 m and 15°) the best code overlaps 0.67–0.77 of the bits at 
 and ``symmetric`` the lower), at other places 0.41–0.62 at the 90th (look-alikes aside). The gate is a
 calibration of the imagery: 0.68 by default (at 0.62 the approach to a straight copied street matched well
 enough for 2 of 10 ``twin`` runs to merge falsely; none at 0.65 or 0.68), 0.62 in ``poseidon`` (at 0.68 the
-cave's true merges fail on 9 of 10 seeds, at 0.62 none). A miss then means what an LVC miss means, and the
+cave's true merges fail on 9 of 10 seeds, at 0.62 none). ``merge_sdr_null_quantile`` (0.95 in ``poseidon``)
+raises it per stored map to that quantile of the map's own look-alike overlaps (:func:`null_overlap`): a map
+whose far places overlap as much as a street's gets a street's gate, a cave keeps its own (the gate each merge
+passed is in its evidence, ``rule.sdr_min_overlap``). A miss then means what an LVC miss means, and the
 sequential test and the probation weigh it as LVC's (``Params.miss_weight_reading``: 2). Before codes, the
 stored map's cortex read the session (below) and its matches — p₁ = 0.4 — were the observations; a miss then
 weighed 0.16 and a look-alike holding turns kept 2–4 false merges in 5 (README). Stored maps made before
@@ -49,6 +52,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from core.neocortex.viewcells import NeocortexViewCells, code_bytes, unpack_codes
+from mapserver.merge.places import template_places
 
 if TYPE_CHECKING:
     from core import Params
@@ -71,6 +75,35 @@ def structural_difference(loaded: Params, partial: Params) -> str | None:
     return None
 
 
+NULL_SAMPLE = 1024  # view cells (evenly spaced ids) whose codes estimate a map's look-alike overlaps
+NULL_MIN_CELLS = 16  # fewer placed view cells than this: no estimate (the gate stays as given)
+
+
+def null_overlap(codes: np.ndarray, places: np.ndarray, far_m: float, quantile: float) -> float:
+    """Return the ``quantile`` of a map's look-alike overlaps: how well its views match places elsewhere in it.
+
+    For each view cell i (up to :data:`NULL_SAMPLE`, evenly spaced ids, with a place), the best overlap
+    recall R_ij = |c_i ∩ c_j| / |c_i| (Eq. 4.6 on the codes) over the view cells j placed more than ``far_m``
+    metres from it: what a frame of place i would score against the wrong places of this very map. Their
+    ``quantile`` (numpy's linear interpolation) is the overlap that the map's own imagery reaches by
+    aliasing, so a gate below it accepts look-alikes as readily as the place itself; 0.0 when fewer than
+    :data:`NULL_MIN_CELLS` cells have a place and a far partner. A calibration per map of the gate
+    ``merge_sdr_min_overlap`` (measured: a street world's far views overlap 0.67–0.86 at the 99th percentile,
+    a cave's 0.55–0.65; README, 2026-11-27, stop 34).
+    """
+    placed = np.flatnonzero(np.isfinite(places[:, 0]) & (codes.sum(axis=1) > 0))
+    if placed.size > NULL_SAMPLE:
+        placed = placed[np.linspace(0, placed.size - 1, NULL_SAMPLE).round().astype(np.int64)]
+    if placed.size < NULL_MIN_CELLS:
+        return 0.0
+    sample, where = codes[placed], places[placed, :3]
+    recall = (sample @ sample.T) / sample.sum(axis=1)[:, None]
+    far = np.linalg.norm(where[:, None, :] - where[None, :, :], axis=2) > far_m
+    best = np.where(far, recall, -1.0).max(axis=1)
+    best = best[best >= 0.0]
+    return float(np.quantile(best, quantile)) if best.size >= NULL_MIN_CELLS else 0.0
+
+
 class CortexReader:
     """A stored ``sdr-htm`` map's place matcher (view cells' codes) and its cortex reading the session's frames.
 
@@ -84,7 +117,9 @@ class CortexReader:
         row: this reader's row in the stacked views.
     """
 
-    def __init__(self, params: Params, state: Mapping[str, np.ndarray], row: int, key: object = None) -> None:
+    def __init__(
+        self, params: Params, state: Mapping[str, np.ndarray], row: int, key: object = None, far_m: float = math.inf
+    ) -> None:
         gates = {"sv_min_intersection": min(params.merge_sv_min_intersection, params.sv_tm_topk),
                  "sv_enable_f1_gate": params.merge_sv_enable_f1_gate}  # fmt: skip
         self.cells = NeocortexViewCells.restore(params.replace(**gates), state)
@@ -92,11 +127,15 @@ class CortexReader:
         self.row = row
         self.topk = params.sv_tm_topk
         self.limit = params.vt_match_threshold
-        self.min_overlap = params.merge_sdr_min_overlap
         self.translations: dict[int, np.ndarray] = {}
         codes = unpack_codes(self.cells.codes, params.lsbh_bits)
         self.codes = codes.astype(np.float32) if codes.any() else None
         """(N, L) the view cells' codes as 0/1, or None: the map has none (made before ``lv_sdr``)."""
+        self.min_overlap = params.merge_sdr_min_overlap
+        """The gate R ≥ θ: ``merge_sdr_min_overlap``, raised to the map's own look-alikes (:func:`null_overlap`)."""
+        if self.codes is not None and params.merge_sdr_null_quantile > 0.0:
+            null = null_overlap(self.codes, template_places(state)[0], far_m, params.merge_sdr_null_quantile)
+            self.min_overlap = max(self.min_overlap, null)
         self.miss_weight = params.miss_weight_reading(codes=self.codes is not None)
         self._recall_key = b""
         self._recall_of = np.zeros(0, dtype=np.float32)

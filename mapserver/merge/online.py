@@ -219,6 +219,11 @@ class OnlineMerger:
             self.absorbed = list(resume.absorbed)
 
     @property
+    def sdr_gates(self) -> dict[object, float]:
+        """Return each ``sdr-htm`` candidate map's code gate θ (``CortexReader.min_overlap``) by map key."""
+        return {reader.key: reader.min_overlap for reader in self._readers}
+
+    @property
     def candidates(self) -> list[object]:
         """Return the keys of the stored maps still considered."""
         if self._candidates is None:
@@ -250,7 +255,7 @@ class OnlineMerger:
             state = stored.state
             poses, templates, anchors = _predicting_places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
-            cells = self._matcher(engine, state, stored.key)
+            cells = self._matcher(engine, state, stored.key, default_position_tolerance(stored))
             rule = self._rule(stored, engine.params, cells)
             places = StoredPlaces(cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic,
                                   rule, loose=engine.params.frontend == "sdr-htm")  # fmt: skip
@@ -274,8 +279,11 @@ class OnlineMerger:
             reader.load(arrays)
         return True
 
-    def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray], key: object) -> Any:
-        """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader."""
+    def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray], key: object, far_m: float) -> Any:
+        """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader.
+
+        ``far_m``: places further apart than this are different places to the reader's gate calibration.
+        """
         if engine.params.frontend != "sdr-htm":
             cells = LocalViewCells.restore(engine.params, state)
             if engine.local_view.column_rad > 0:  # the session's camera, for vt_shift_heading
@@ -283,7 +291,7 @@ class OnlineMerger:
             return cells
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm sessions
 
-        reader = CortexReader(engine.params, state, row=len(self._readers), key=key)
+        reader = CortexReader(engine.params, state, row=len(self._readers), key=key, far_m=far_m)
         self._readers.append(reader)
         return reader
 
@@ -493,6 +501,8 @@ class OnlineMerger:
                      "miss_weight": rule.miss_weight},
             "distance_m": round(self._track.distance, 3),
         }  # fmt: skip
+        if getattr(reader, "codes", None) is not None:  # the code gate this map's observations passed
+            evidence["rule"]["sdr_min_overlap"] = round(float(reader.min_overlap), 4)
         event = MergeEvent(
             key=candidate.stored.key, engine=merged, record=record, frame=result.frame,
             stamp=float(engine.last_stamp), absorbed=tuple(self.absorbed), match=match, partial=partial,

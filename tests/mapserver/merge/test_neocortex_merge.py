@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from core.config import ConfigError, preset
 from core.engine import Engine
 from mapserver.ingest.simulator.output import simulate
-from mapserver.merge.cortex import CortexReader
+from mapserver.merge.cortex import NULL_MIN_CELLS, CortexReader, null_overlap
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.hypotheses import Hypothesis, Track
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
@@ -187,8 +187,53 @@ def test_a_frames_sdr_matches_the_view_cell_code_it_overlaps_most_above_the_gate
     default = CortexReader(SDR, {**state, "lv_sdr": codes}, row=0)  # 0.68: only cells 0 (0.7), 1 (0.8), 2 (0.7)
     assert default.match_among(view, 0.0, np.array([2]))[1] == pytest.approx(SDR.vt_match_threshold * 0.3 / 0.32)
     assert preset("poseidon-sdr").merge_sdr_min_overlap == 0.62 and SDR.merge_sdr_min_overlap == 0.68
+    assert preset("poseidon-sdr").merge_sdr_null_quantile == 0.95 and SDR.merge_sdr_null_quantile == 0.0
     narrow = view[:, : SDR.sv_tm_topk]  # a track row without the SDR (a session resumed from before lv_sdr)
     assert reader.match(narrow, 0.0) == (-1, math.inf, 0.0)
+
+
+def test_a_maps_look_alike_overlap_is_the_quantile_of_each_views_best_overlap_with_places_far_from_it() -> None:
+    bits = 2000
+    codes = np.zeros((21, bits), dtype=np.float32)
+    for i in range(21):
+        codes[i, 100 * (i % 20) : 100 * (i % 20) + 100] = 1  # 100 bits each, disjoint: R = 0 between cells
+    codes[10, 0:80] = 1  # cell 10 also holds 80 of cell 0's bits: R(0, 10) = 80/100, R(10, 0) = 80/180
+    codes[10, 1000:1100] = 0
+    codes[10, 1080:1100] = 1  # now 100 bits again (80 of cell 0's, 20 of its own): R both ways 0.8
+    codes[15, 500:560] = 1
+    codes[15, 1500:1560] = 0  # cell 15: 60 of cell 5's bits and 40 of its own: R = 0.6
+    codes[2, 100:190] = 1
+    codes[2, 200:290] = 0  # cell 2: 90 of cell 1's bits, but 1 m from it: the same place, never a look-alike
+    places = np.zeros((21, 4))
+    places[:, 0] = np.arange(21.0)  # on a line, 1 m apart
+    places[20] = np.nan  # cell 20 (a copy of cell 0) has no place: not counted
+    # best far overlaps: cells 0, 10 → 0.8; 5, 15 → 0.6; every other cell (1 and 2 are near) → 0
+    assert null_overlap(codes, places, 3.0, 1.0) == pytest.approx(0.8)
+    assert null_overlap(codes, places, 3.0, 0.9) == pytest.approx(0.6 + 0.1 * 0.2)  # 0.9 · 19 = 17.1: linear
+    assert null_overlap(codes, places, 3.0, 0.5) == 0.0
+    assert null_overlap(codes, places, 0.5, 1.0) == pytest.approx(0.9)  # must: with 1 m "far", cells 1, 2 count
+    assert null_overlap(codes[:NULL_MIN_CELLS - 1], places[:NULL_MIN_CELLS - 1], 3.0, 1.0) == 0.0  # too few
+
+
+def test_a_readers_gate_rises_to_its_maps_own_look_alikes_and_stays_where_its_views_differ() -> None:
+    engine, _ = _session(StripWorld(seed=3), laps=0.4)
+    state = engine.snapshot()
+    n = int(state["lv_means"].size)
+    distinct = np.zeros((n, SDR.lsbh_bits), dtype=np.uint8)
+    for i in range(n):
+        distinct[i, (np.arange(40) + 17 * i) % SDR.lsbh_bits] = 1  # neighbours share 23 of 40 bits, others none
+    same = np.zeros_like(distinct)
+    same[:, :40] = 1  # every view alike: a frame of any place overlaps the wrong places fully
+    params = SDR.replace(merge_sdr_min_overlap=0.62, merge_sdr_null_quantile=0.95)
+    readers = {name: CortexReader(params, {**state, "lv_sdr": np.packbits(codes, axis=1)}, row=0, far_m=1.5)
+               for name, codes in (("distinct", distinct), ("same", same))}  # fmt: skip
+    assert readers["distinct"].min_overlap == 0.62  # must not rise: no place looks like another
+    assert readers["same"].min_overlap == 1.0  # must rise: R = 1 elsewhere in the map
+    off = CortexReader(params.replace(merge_sdr_null_quantile=0.0), {**state, "lv_sdr": np.packbits(same, axis=1)},
+                       row=0, far_m=1.5)  # fmt: skip
+    assert off.min_overlap == 0.62
+    with pytest.raises(ConfigError, match="merge_sdr_null_quantile"):
+        SDR.replace(merge_sdr_null_quantile=1.5)
 
 
 def test_a_merge_keeps_the_loaded_codes_and_appends_the_partials_new_ones() -> None:
@@ -323,6 +368,7 @@ def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_tru
                                        lookalike_turns=1.0)  # fmt: skip
     assert rollbacks == [] and len(events) == 1  # must still: the true merge
     assert events[0].evidence["verification"]["status"] == "passed"
+    assert events[0].evidence["rule"]["sdr_min_overlap"] == params.merge_sdr_min_overlap  # the gate it passed
     assert read == frames[: events[0].frame + 1]  # up to the merge's frame, none of its probation's
     t = events[0].record.transform
     assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 5.0 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.35
