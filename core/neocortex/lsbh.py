@@ -9,6 +9,7 @@ has exactly 2k ones (the thesis's "2k active bits"; notes §11.2). Modalities ar
 
 from __future__ import annotations
 
+import functools
 import hashlib
 
 import numpy as np
@@ -16,11 +17,25 @@ import torch
 
 
 def projection(dims: int, half: int, seed: int) -> torch.Tensor:
-    """Return the (dims, half) float32 LSBH matrix: N(0, 1) from a CPU generator seeded ``seed``, unit columns."""
-    generator = torch.Generator(device="cpu").manual_seed(int(seed))
+    """Return the (dims, half) float32 LSBH matrix: N(0, 1) from a CPU generator seeded ``seed``, unit columns.
+
+    Drawn once per argument set and handed out as copies (a session builds several cortices from one seed).
+    """
+    return _drawn_projection(int(dims), int(half), int(seed))[0].clone()
+
+
+def projection_digest(dims: int, half: int, seed: int) -> np.ndarray:
+    """Return :func:`digest` of :func:`projection` ``(dims, half, seed)`` (computed once per argument set)."""
+    return _drawn_projection(int(dims), int(half), int(seed))[1].copy()
+
+
+@functools.lru_cache(maxsize=2)
+def _drawn_projection(dims: int, half: int, seed: int) -> tuple[torch.Tensor, np.ndarray]:
+    """Return the projection of one argument set and its digest (cached: never modify them)."""
+    generator = torch.Generator(device="cpu").manual_seed(seed)
     matrix = torch.randn(dims, half, generator=generator, dtype=torch.float32)
     matrix /= torch.linalg.vector_norm(matrix, dim=0, keepdim=True).clamp_min(1e-12)
-    return matrix
+    return matrix, digest(matrix)
 
 
 def digest(matrix: torch.Tensor | np.ndarray) -> np.ndarray:

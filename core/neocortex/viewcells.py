@@ -28,7 +28,7 @@ import torch
 
 from core.neocortex.descriptor import Match, MatchGates, best_match, cap_topk, interval_length
 from core.neocortex.encoder import Encoder, resolve_device
-from core.neocortex.lsbh import digest, fuse, lsbh_bits, projection
+from core.neocortex.lsbh import digest, fuse, lsbh_bits, projection, projection_digest
 from core.neocortex.spatial_pooler import SpatialPooler
 from core.neocortex.temporal_memory import TemporalMemory, TMConfig
 
@@ -52,6 +52,8 @@ class NeocortexViewCells:
         half = params.lsbh_bits // 2
         self.k = int(params.lsbh_s * half)
         self.projection = projection(self.encoder.dims, half, params.lsbh_seed).to(self.device)
+        self.projection_digest = projection_digest(self.encoder.dims, half, params.lsbh_seed)
+        """:func:`~core.neocortex.lsbh.digest` of :attr:`projection` (kept with it: the matrix never changes)."""
         self.sonar_projection: torch.Tensor | None = None
         self.sp = SpatialPooler(
             params.lsbh_bits, params.sp_columns, params.sp_num_active_columns,
@@ -204,7 +206,7 @@ class NeocortexViewCells:
             "lv_current": np.asarray(self.current, dtype=np.int64),
             "lv_previous": np.asarray(self.previous, dtype=np.int64),
             "lv_relative_rad": np.asarray(self.relative_rad, dtype=np.float64),
-            "nc_projection_digest": digest(self.projection),
+            "nc_projection_digest": self.projection_digest.copy(),
             **self.sequence_state(),
         }
         if self.projection.numel() <= STORED_PROJECTION_MAX:
@@ -247,8 +249,11 @@ class NeocortexViewCells:
             if tuple(stored.shape) != tuple(cells.projection.shape):
                 msg = f"nc_projection has shape {tuple(stored.shape)}, expected {tuple(cells.projection.shape)}"
                 raise ValueError(msg)
-            cells.projection = stored.to(cells.device)
-        if not np.array_equal(np.asarray(state["nc_projection_digest"]), digest(cells.projection)):
+            regenerated = cells.projection.cpu().numpy()
+            if not np.array_equal(stored.numpy().view(np.uint32), regenerated.view(np.uint32)):  # bits differ
+                cells.projection = stored.to(cells.device)
+                cells.projection_digest = digest(stored)
+        if not np.array_equal(np.asarray(state["nc_projection_digest"]), cells.projection_digest):
             msg = "the stored LSBH projection differs from the one regenerated from lsbh_seed"
             raise ValueError(msg)
         if "nc_sonar_projection_digest" in state:

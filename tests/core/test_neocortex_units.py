@@ -221,6 +221,31 @@ def test_iou_breaks_recall_ties() -> None:
     assert best_match(d, protos, sizes, MatchGates(iou_tiebreak=False)).index == 0
 
 
+def test_a_poolers_snapshot_keeps_its_pools_permanences_in_the_masks_order_and_loads_them_back() -> None:
+    sp = SpatialPooler(64, 32, 4, potential_radius=16, potential_pct=0.5, connected=0.2, inc=0.1, dec=0.05, seed=3)
+    generator = torch.Generator().manual_seed(0)
+    sp.permanence = torch.rand((32, 64), generator=generator) * sp.potential  # as learning leaves it
+    state = sp.snapshot()
+    assert np.array_equal(state["sp_permanence"], sp.permanence[sp.potential].numpy())  # by the boolean mask
+    other = SpatialPooler(64, 32, 4, potential_radius=16, potential_pct=0.5, connected=0.2, inc=0.1, dec=0.05, seed=3)
+    other.load(state)
+    assert torch.equal(other.permanence, sp.permanence)
+    sp.potential = sp.potential.clone()
+    sp.potential[0] = False  # a pool replaced: its ids found again
+    assert sp.snapshot()["sp_permanence"].size == int(sp.potential.sum())
+
+
+def test_projections_drawn_once_per_seed_are_handed_out_as_independent_copies() -> None:
+    from core.neocortex.lsbh import digest, projection_digest
+
+    first = projection(30, 8, 42)
+    first += 1.0  # must not reach the next one
+    again = projection(30, 8, 42)
+    assert torch.allclose(torch.linalg.vector_norm(again, dim=0), torch.ones(8), atol=1e-6)
+    assert np.array_equal(projection_digest(30, 8, 42), digest(again))
+    assert not np.array_equal(projection_digest(30, 8, 43), digest(again))
+
+
 def test_pools_drawn_once_per_seed_are_handed_out_as_independent_copies() -> None:
     """Poolers built from one seed start equal; one pooler's learning never reaches the next one built."""
     from core.neocortex.spatial_pooler import initial_pools
