@@ -66,12 +66,14 @@ class TemporalMemory:
         self.prev_active = torch.zeros(self.cells, dtype=torch.bool, device=self.device)
         self.prev_winners = torch.empty(0, dtype=torch.int64, device=self.device)
         self.step_count = 0
+        self._no_cell = torch.zeros(1, dtype=torch.bool, device=self.device)
 
     # ------------------------------------------------------------------ step
     def synapse_activity(self) -> torch.Tensor:
         """Return the (G, M) bool mask of synapses whose presynaptic cell is in a′."""
         pre = self.syn_pre[: self.segments]
-        return (pre >= 0) & torch.take(self.prev_active, pre.clamp(min=0))
+        padded = torch.cat([self.prev_active, self._no_cell])  # an empty slot (−1) reads the False at the end
+        return torch.take(padded, pre)
 
     def segment_activity(self, pre_act: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Return (active (G,), matching (G,), numActivePotential (G,)) of every segment against a′."""
@@ -99,13 +101,18 @@ class TemporalMemory:
         seg_col = seg_cell // cpc
         col_on = torch.zeros(cfg.columns, dtype=torch.bool, device=self.device)
         col_on[active_columns.to(self.device)] = True
-        predicted = torch.zeros(self.cells, dtype=torch.bool, device=self.device)
-        predicted[seg_cell[seg_active]] = True
-        predicted_cols = predicted.view(cfg.columns, cpc).any(dim=1) & col_on
+        # in cell ids, not masks over every cell: a step touches the few active columns' cells
+        predicted_ids = seg_cell[seg_active]  # cells with an active segment (repeated per segment)
+        predicted_cols = torch.zeros(cfg.columns, dtype=torch.bool, device=self.device)
+        predicted_cols[predicted_ids // cpc] = True
+        predicted_cols &= col_on
         bursting = col_on & ~predicted_cols
-        correct = (predicted.view(cfg.columns, cpc) & predicted_cols[:, None]).flatten()
-        active = correct | (bursting[:, None].expand(-1, cpc)).flatten()
+        correct_ids = torch.unique(predicted_ids[predicted_cols[predicted_ids // cpc]])  # sorted
         burst_cols = torch.nonzero(bursting).flatten()
+        burst_ids = (burst_cols[:, None] * cpc + torch.arange(cpc, device=self.device)).flatten()
+        active_ids = torch.sort(torch.cat([correct_ids, burst_ids])).values  # disjoint: their columns differ
+        active = torch.zeros(self.cells, dtype=torch.bool, device=self.device)
+        active[active_ids] = True
         best_seg = self._best_matching(seg_match, seg_col, n_pot, bursting, burst_cols)
         matched = best_seg >= 0
         winners_burst = torch.where(matched, seg_cell[best_seg.clamp(min=0)] if g else best_seg, -1)
@@ -113,7 +120,7 @@ class TemporalMemory:
         least = self._least_used(unmatched_cols)
         winners_burst = winners_burst.clone()
         winners_burst[~matched] = least
-        winners = torch.sort(torch.cat([torch.nonzero(correct).flatten(), winners_burst])).values
+        winners = torch.sort(torch.cat([correct_ids, winners_burst])).values
         if learn:
             learning = seg_active & predicted_cols[seg_col]
             learning[best_seg[matched]] = True
@@ -121,7 +128,7 @@ class TemporalMemory:
         self.prev_active = active
         self.prev_winners = winners
         self.step_count += 1
-        return torch.nonzero(active).flatten(), winners
+        return active_ids, winners
 
     def _best_matching(
         self, seg_match: torch.Tensor, seg_col: torch.Tensor, n_pot: torch.Tensor, bursting: torch.Tensor,

@@ -127,6 +127,41 @@ def _present(tm: TemporalMemory, names: str, learn: bool) -> list[tuple[torch.Te
     return [tm.compute(SEQ[n], learn=learn) for n in names]
 
 
+def _dense_step(tm: TemporalMemory, columns: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The TM's active cells and its correctly predicted cells by masks over every cell (the oracle)."""
+    cfg, g = tm.cfg, tm.segments
+    pre, perm = tm.syn_pre[:g], tm.syn_perm[:g]
+    pre_act = (pre >= 0) & tm.prev_active[pre.clamp(min=0)]
+    seg_active = (pre_act & (perm >= cfg.connected_permanence)).sum(dim=1) >= cfg.activation_threshold
+    col_on = torch.zeros(cfg.columns, dtype=torch.bool)
+    col_on[columns] = True
+    predicted = torch.zeros(tm.cells, dtype=torch.bool)
+    predicted[tm.seg_cell[:g][seg_active]] = True
+    grid = predicted.view(cfg.columns, cfg.cells_per_column)
+    predicted_cols = grid.any(dim=1) & col_on
+    correct = (grid & predicted_cols[:, None]).flatten()
+    active = correct | (col_on & ~predicted_cols)[:, None].expand(-1, cfg.cells_per_column).flatten()
+    return torch.nonzero(active).flatten(), torch.nonzero(correct).flatten()
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 6))
+def test_the_tms_step_by_cell_ids_activates_the_cells_masks_over_every_cell_would(seed: int, period: int) -> None:
+    generator = torch.Generator().manual_seed(seed)
+    tm = _tm()
+    inputs = [torch.randperm(32, generator=generator)[:4].sort().values for _ in range(period)]
+    for step in range(30):  # a repeating sequence (predictions) with a novel input now and then (bursts)
+        columns = inputs[step % period] if step % 7 else torch.randperm(32, generator=generator)[:4].sort().values
+        active_ref, correct_ref = _dense_step(tm, columns)
+        pre_act = tm.synapse_activity()
+        pre = tm.syn_pre[: tm.segments]
+        assert torch.equal(pre_act, (pre >= 0) & tm.prev_active[pre.clamp(min=0)])
+        active, winners = tm.compute(columns, learn=step % 5 != 4)
+        assert torch.equal(active, active_ref)
+        assert torch.equal(torch.isin(correct_ref, winners), torch.ones(correct_ref.numel(), dtype=torch.bool))
+        assert winners.numel() == correct_ref.numel() + int(columns.numel() - torch.unique(correct_ref // 4).numel())
+
+
 def test_temporal_memory_predicts_a_learnt_sequence_and_bursts_on_a_novel_one() -> None:
     """After A-B-C-D is learnt, A predicts B's columns (one cell each, 4 active cells); X-B bursts (16 cells)."""
     tm = _tm()
