@@ -145,10 +145,34 @@ def _dense_step(tm: TemporalMemory, columns: torch.Tensor) -> tuple[torch.Tensor
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**31 - 1), st.integers(1, 6))
-def test_the_tms_step_by_cell_ids_activates_the_cells_masks_over_every_cell_would(seed: int, period: int) -> None:
+@given(st.integers(0, 2**31 - 1), st.integers(1, 6), st.sampled_from([0, 4096]), st.sampled_from([0.0, 0.02]),
+       st.sampled_from([0.01, 0.3]))  # fmt: skip
+def test_the_tms_step_by_cell_ids_activates_the_cells_masks_over_every_cell_would(
+    seed: int, period: int, rebuild_min: int, punish: float, decrement: float
+) -> None:
+    """The step through the synapse index (rebuilt every few steps, or never in 30) against masks over every
+    segment and cell, learning on and off, with and without punishing matching segments of inactive columns;
+    with a decrement of 0.3 synapses die after two misses and full segments overwrite their weakest slots, so
+    the index holds slots that no longer point where it says."""
+    import dataclasses
+
+    from core.neocortex import temporal_memory
+
     generator = torch.Generator().manual_seed(seed)
     tm = _tm()
+    tm.cfg = dataclasses.replace(tm.cfg, predicted_segment_decrement=punish, permanence_decrement=decrement,
+                                 max_synapses_per_segment=8 if decrement < 0.1 else 4)  # fmt: skip
+    m = tm.cfg.max_synapses_per_segment
+    tm.syn_pre, tm.syn_perm = tm.syn_pre[:, :m], tm.syn_perm[:, :m]
+    saved = temporal_memory.INDEX_REBUILD_MIN
+    temporal_memory.INDEX_REBUILD_MIN = rebuild_min
+    try:
+        _drive_against_masks(tm, generator, period)
+    finally:
+        temporal_memory.INDEX_REBUILD_MIN = saved
+
+
+def _drive_against_masks(tm: TemporalMemory, generator: torch.Generator, period: int) -> None:
     inputs = [torch.randperm(32, generator=generator)[:4].sort().values for _ in range(period)]
     for step in range(30):  # a repeating sequence (predictions) with a novel input now and then (bursts)
         columns = inputs[step % period] if step % 7 else torch.randperm(32, generator=generator)[:4].sort().values
