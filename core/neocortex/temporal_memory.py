@@ -32,7 +32,7 @@ import torch
 
 HASH_A = 2654435761  # Knuth's multiplicative hash constant
 HASH_B = 40503
-INDEX_REBUILD_MIN = 4096  # slots written since the synapse index was built that always wait for a rebuild
+INDEX_REBUILD_MIN = 4096  # the synapse index is rebuilt after this many slots written (or a quarter of its own)
 
 
 @dataclass(frozen=True)
@@ -80,13 +80,13 @@ class SynapseIndex:
 
     def wrote(self, slots: torch.Tensor) -> None:
         """Note flat slots given a new presynaptic cell since the last rebuild."""
-        n, end = int(slots.numel()), self.recent_count + int(slots.numel())
+        end = self.recent_count + int(slots.numel())
         if end > self._recent.numel():
             grown = torch.empty(max(end, 2 * self._recent.numel()), dtype=torch.int64, device=self.device)
             grown[: self.recent_count] = self._recent[: self.recent_count]
             self._recent = grown
         self._recent[self.recent_count : end] = slots.reshape(-1)
-        self.recent_count = end if n else self.recent_count
+        self.recent_count = end
 
     def due(self) -> bool:
         """Return whether a rebuild is due (built never, or a quarter of the indexed slots written since)."""
