@@ -255,7 +255,8 @@ class OnlineMerger:
             state = stored.state
             poses, templates, anchors = _predicting_places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
-            cells = self._matcher(engine, state, stored.key, default_position_tolerance(stored))
+            far = self._position_tolerance if self._position_tolerance is not None else default_position_tolerance(stored)
+            cells = self._matcher(engine, state, stored.key, far)
             rule = self._rule(stored, engine.params, cells)
             places = StoredPlaces(cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic,
                                   rule, loose=engine.params.frontend == "sdr-htm")  # fmt: skip
