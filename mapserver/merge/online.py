@@ -232,15 +232,17 @@ class OnlineMerger:
 
     def _rule(self, stored: StoredMap, params: Any, cells: Any) -> EvidenceRule:
         """Return the evidence rule for ``stored``; a miss weighs as its matcher's observations say."""
-        tolerance = self._position_tolerance
-        if tolerance is None:
-            tolerance = default_position_tolerance(stored)
+        tolerance = self._tolerance(stored)
         evidence = params.merge_evidence_m if self._evidence_m is None else self._evidence_m
         probation = params.merge_probation_m if self._probation_m is None else self._probation_m
         return EvidenceRule.for_map(
             map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation,
             getattr(cells, "miss_weight", params.miss_weight),
         )
+
+    def _tolerance(self, stored: StoredMap) -> float:
+        """Return the position tolerance for ``stored``: as given, or :func:`default_position_tolerance`."""
+        return default_position_tolerance(stored) if self._position_tolerance is None else self._position_tolerance
 
     def _prepare(self, engine: Engine) -> list[_Candidate]:
         candidates: list[_Candidate] = []
@@ -255,8 +257,7 @@ class OnlineMerger:
             state = stored.state
             poses, templates, anchors = _predicting_places(state, with_views=engine.params.frontend == "sdr-htm")
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
-            far = self._position_tolerance if self._position_tolerance is not None else default_position_tolerance(stored)
-            cells = self._matcher(engine, state, stored.key, far)
+            cells = self._matcher(engine, state, stored.key, self._tolerance(stored))
             rule = self._rule(stored, engine.params, cells)
             places = StoredPlaces(cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic,
                                   rule, loose=engine.params.frontend == "sdr-htm")  # fmt: skip
