@@ -276,8 +276,15 @@ class Probation:
         not stopped rolled back all 20, and the ``bridge`` scenario's second merge with them (its session ends
         on the second map's ground). The full pass line (half ``evidence_m``, :meth:`_conclude`) is not asked
         of a probation cut short (``cave3d``, ``sdr-htm``: a true merge whose log ended at 66 % of its
-        probation had net +1.78 m of the 1.93 m its share of the line asks).
+        probation had net +1.78 m of the 1.93 m its share of the line asks). But a probation held open
+        (:meth:`held_open`: past its distance, its matches stopped ``evidence_m`` back, open only for a run of
+        mismatches since) was not cut short: it would have concluded but for that run, which can only add
+        evidence against the merge, so it gets the full line (``twin`` turns alike 5 m seed 5 with
+        ``poseidon``'s ``sdr-htm`` gate: a false merge kept with net +1.18 m, its newest match 54 m before the
+        log's end, 3.9 m of mismatches in a row).
         """
+        if self.held_open(distance):
+            return self._conclude()
         hit, miss = self.hypothesis.post_hit_m, self.hypothesis.post_miss_m
         net = hit - self.hset.rule.miss_weight * miss
         since = self.since_match_m(distance)

@@ -65,6 +65,22 @@ def test_a_probation_the_log_cut_short_is_judged_on_what_it_saw() -> None:
     assert matching.conclude_at_end(120.0) == PASSED and "newest match 3.00 m before its end" in matching.reason
 
 
+def test_a_probation_held_open_on_mismatches_when_the_log_ends_is_judged_as_one_that_ran_its_distance() -> None:
+    held = _probation(last_hit_m=110.3)  # matches stopped 54 m before the end, then 3.9 m of mismatches in a row
+    held.miss_run_m = 3.9  # > the coverage radius (1.5 m): held open
+    held.hypothesis = SimpleNamespace(post_hit_m=9.85, post_miss_m=4.335)  # net 9.85 − 2 · 4.335 = 1.18 m
+    assert held.held_open(164.3)
+    assert held.conclude_at_end(164.3) == REJECTED and "needed 2.00 m" in held.reason  # half of evidence_m
+    confirmed = _probation(last_hit_m=110.3)  # must still: the same hold with the merge confirmed first
+    confirmed.miss_run_m = 3.9
+    confirmed.hypothesis = SimpleNamespace(post_hit_m=12.0, post_miss_m=4.0)  # net 4 m
+    assert confirmed.conclude_at_end(164.3) == PASSED
+    short = _probation(last_hit_m=110.3)  # a run of mismatches before the probation distance: cut short, lenient
+    short.miss_run_m = 3.9
+    short.hypothesis = SimpleNamespace(post_hit_m=9.85, post_miss_m=4.335)
+    assert not short.held_open(111.0) and short.conclude_at_end(111.0) == PASSED
+
+
 def test_a_weak_miss_front_end_keeps_the_shorter_cap() -> None:
     sdr = _probation(last_hit_m=100.0 + WEAK_MISS_PROBATION_CAP * 12.0 - 0.5)
     sdr.hset.rule.miss_weight = 0.16  # sdr-htm: its probation's length is the cap
