@@ -133,25 +133,12 @@ class TemporalMemory:
 
     # ------------------------------------------------------------------ step
     def synapse_activity(self) -> torch.Tensor:
-        """Return the (G, M) bool mask of synapses whose presynaptic cell is in a′."""
-        pre = self.syn_pre[: self.segments]
-        padded = torch.cat([self.prev_active, self._no_cell])  # an empty slot (−1) reads the False at the end
-        return torch.take(padded, pre)
+        """Return the (G, M) bool mask of synapses whose presynaptic cell is in a′ (every slot of every segment)."""
+        return torch.take(self._padded_active(), self.syn_pre[: self.segments])
 
-    def segment_activity(self, pre_act: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Return (active (G,), matching (G,), numActivePotential (G,)) of every segment against a′."""
-        pre_act = self.synapse_activity() if pre_act is None else pre_act
-        perm = self.syn_perm[: self.segments]
-        connected = (pre_act & (perm >= self.cfg.connected_permanence)).sum(dim=1, dtype=torch.int32)
-        potential = pre_act.sum(dim=1, dtype=torch.int32).to(torch.int64)
-        return connected >= self.cfg.activation_threshold, potential >= self.cfg.min_threshold, potential
-
-    def predicted_cells(self) -> torch.Tensor:
-        """Return the (cells,) bool mask of cells with an active segment (predicted for the next step)."""
-        active, _, _ = self.segment_activity()
-        mask = torch.zeros(self.cells, dtype=torch.bool, device=self.device)
-        mask[self.seg_cell[: self.segments][active]] = True
-        return mask
+    def _padded_active(self) -> torch.Tensor:
+        """Return a′ as a mask with a False appended: an empty synapse slot (−1) reads that False."""
+        return torch.cat([self.prev_active, self._no_cell])
 
     def compute(self, active_columns: torch.Tensor, learn: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Advance one step; return (active cells, winner cells), both sorted int64 cell ids.
@@ -162,7 +149,7 @@ class TemporalMemory:
         """
         cfg = self.cfg
         cpc = cfg.cells_per_column
-        padded = torch.cat([self.prev_active, self._no_cell])  # an empty slot (−1) reads the False at the end
+        padded = self._padded_active()
         seg, n_pot, connected = self._indexed_activity(padded)
         seg_active = connected >= cfg.activation_threshold
         seg_match = n_pot >= cfg.min_threshold
@@ -202,9 +189,9 @@ class TemporalMemory:
     def _indexed_activity(self, padded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Return (segments with a synapse to a′, ascending; their numActivePotential; their connected count).
 
-        :meth:`segment_activity`'s counts from a′'s synapses alone (:class:`SynapseIndex`) instead of every slot
-        of every segment: a step costs the active cells' fan-out, not the pool's size. With a threshold below 1
-        a segment without such a synapse could match, so then every segment is returned.
+        Counted over a′'s synapses alone (:class:`SynapseIndex`) instead of every slot of every segment
+        (:meth:`synapse_activity`): a step costs the active cells' fan-out, not the pool's size. With a threshold
+        below 1 a segment without such a synapse could match, so then every segment is returned.
         """
         g, m = self.segments, self.cfg.max_synapses_per_segment
         pre = self.syn_pre[:g].reshape(-1)
