@@ -54,6 +54,21 @@ Measured (``bench/lookalike_sweep.py``, 10 seeds): the false merges of ``twin`` 
 on 66–104°; 30° let 3 of 10 ``twin`` runs merge falsely at 10 m and 20 m stretches, 7 of 10 at 40 m."""
 
 HIT, MISS, UNMAPPED = 1, -1, 0
+HELD = 2
+"""A loosely placed view's hit at the place the hypothesis already stands on, past that place's extent
+(:data:`PLACE_EXTENT`): the views still match there, which keeps a probation open, but they add no metres."""
+PLACE_EXTENT = 1.0
+"""Metres of hits one place can give a hypothesis in a row, in position tolerances (front-ends that place views
+loosely: ``sdr-htm``).
+
+A hit re-anchors the alignment on the place matched, so where a stretch's views are all accepted at one place
+the robot's prediction stays on that place however far it drives, and every frame is a hit there. Measured on
+``twin`` with a 40 m look-alike holding turns (seed 0, ``sdr-htm`` at ``poseidon``'s gate): one view place won
+every frame of 33 m of the stretch, so a false merge's probation counted 33.5 m of matches, its prediction then
+lay 33 m behind the robot on ground the stored map never saw (no trials there), and it passed. A place cannot
+witness more than the ground it covers, so hits at one place count for this many position tolerances of
+travel, and after that hold (:data:`HELD`) until a hit elsewhere. At 1: that merge is rolled back at the
+probation's end (2.89 m of matches, 1.97 m of mismatches; at 2 it would pass by 0.02 m)."""
 
 
 @dataclass(frozen=True)
@@ -257,6 +272,10 @@ class Hypothesis:
     post_miss_m: float = 0.0
     turn: np.ndarray = field(default_factory=lambda: np.array([np.nan, 0.0, 0.0]))
     """Odometry heading of the first hit, and the least and greatest heading of the hits relative to it."""
+    held_place: np.ndarray | None = None
+    """The place (4,) of the newest hit (loosely placed views; None: none yet)."""
+    held_m: float = 0.0
+    """Metres of hits at ``held_place`` since a hit elsewhere (:data:`PLACE_EXTENT`)."""
 
     def record_turn(self, yaw: float) -> None:
         """Widen the span of headings the hits were seen at."""
@@ -380,6 +399,9 @@ class HypothesisSet:
         matched: int | None = None,
     ) -> int:
         outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean, matched)
+        if outcome == HIT and self.places.loose and self._held(hypothesis, seen, step):
+            hypothesis.alignment = alignment(seen, odometry)
+            return HELD
         if outcome == HIT:
             if after_merge:
                 hypothesis.post_hit_m += step
@@ -393,6 +415,18 @@ class HypothesisSet:
             else:
                 hypothesis.miss_m += step
         return outcome
+
+    def _held(self, hypothesis: Hypothesis, seen: np.ndarray, step: float) -> bool:
+        """Whether a hit at ``seen`` is past its place's extent (:data:`PLACE_EXTENT`).
+
+        Past it: hits there in a row, since one elsewhere, have covered more than ``PLACE_EXTENT`` position
+        tolerances (this hit's ``step`` included).
+        """
+        if hypothesis.held_place is not None and np.array_equal(seen, hypothesis.held_place):
+            hypothesis.held_m += step
+        else:
+            hypothesis.held_place, hypothesis.held_m = np.array(seen, dtype=np.float64), 0.0
+        return hypothesis.held_m > PLACE_EXTENT * self.rule.position_tolerance
 
     def _test_history(self, hypothesis: Hypothesis, track: Track) -> None:
         """Test a new hypothesis on the frames before it, at most one per quarter coverage radius travelled."""

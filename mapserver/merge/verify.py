@@ -43,7 +43,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from core import Action, Engine, StepResult
-from mapserver.merge.hypotheses import HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
+from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
 PROBATION_CAP = 8.0
@@ -130,7 +130,7 @@ class Probation:
         outcome = self.hset.test_after_merge(self.hypothesis, track)
         self.hits += outcome == HIT
         self.misses += outcome == MISS
-        if outcome == HIT:
+        if outcome in (HIT, HELD):  # a held hit adds no metres but the views still match: the matches go on
             self.last_hit_m, self.miss_run_m = track.distance, 0.0
         elif outcome == MISS:
             self.miss_run_m += self.hypothesis.post_miss_m - missed_before

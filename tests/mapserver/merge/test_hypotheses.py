@@ -13,8 +13,10 @@ from core.localview import LocalViewCells
 from core.se3 import compose
 from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import (
+    HELD,
     HIT,
     MISS,
+    PLACE_EXTENT,
     UNMAPPED,
     EvidenceRule,
     Hypothesis,
@@ -101,6 +103,43 @@ def test_a_loosely_placed_view_recognised_near_the_prediction_facing_elsewhere_s
     assert loose.test(here, *_view(2))[0] == MISS  # must still: recognised 3 m away
     assert loose.test(here, *_view(-1))[0] == MISS  # must still: recognised nowhere
     assert loose.test(here, *_view(0))[0] == HIT
+
+
+@pytest.mark.parametrize("loose", [True, False])
+def test_hits_at_one_loosely_placed_place_count_for_its_extent_and_then_hold(loose: bool) -> None:
+    """Two places, template 0 at x = 0 and template 1 at x = 3; the robot drives east 1 m a frame seeing template
+    0's view four times, then template 1's. Each hit re-anchors the alignment on place 0, so the prediction
+    never leaves it. Loosely placed views (``sdr-htm``): hits at place 0 count while they span at most
+    ``PLACE_EXTENT`` · 1.5 m (frames 1: 1 m), then hold (frames 2 and 3: 2 and 3 m > 1.5 m) — no metres, the
+    prediction still re-anchored; the hit at place 1 counts again. LVC (strict) counts every hit, as before."""
+    assert PLACE_EXTENT == 1.0
+    poses = np.array([[0.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0]])
+    places = StoredPlaces(_places().cells, poses, np.arange(2), PARAMS.vt_match_threshold, False, RULE, loose=loose)
+    hset, h = HypothesisSet(places, RULE), Hypothesis(alignment=np.zeros(4), born=0)
+    outcomes = []
+    for x, (template, step) in enumerate([(0, 0.0), (0, 1.0), (0, 1.0), (0, 1.0)]):
+        odometry = np.array([float(x), 0.0, 0.0, 0.0])
+        outcomes.append(hset._test(h, odometry, *_view(template), step, after_merge=True))
+        np.testing.assert_allclose(h.predict(odometry), [0.0, 0.0, 0.0, 0.0], atol=1e-12)  # re-anchored on place 0
+    odometry = np.array([4.0, 0.0, 0.0, 0.0])
+    h.alignment = np.array([-1.0, 0.0, 0.0, 0.0])  # put the prediction at x = 3 to meet place 1
+    outcomes.append(hset._test(h, odometry, *_view(1), 1.0, after_merge=True))
+    if loose:
+        assert outcomes == [HIT, HIT, HELD, HELD, HIT] and h.post_hit_m == 2.0
+    else:
+        assert outcomes == [HIT] * 5 and h.post_hit_m == 4.0  # must still: every hit counts for LVC
+    assert h.post_miss_m == 0.0
+
+
+def test_held_hits_keep_no_metres_before_a_merge_either() -> None:
+    """The decision's hypotheses count metres the same way: a held hit adds neither hit metres nor turn."""
+    poses = np.array([[0.0, 0.0, 0.0, 0.0]])
+    places = StoredPlaces(_places().cells, poses, np.arange(1), PARAMS.vt_match_threshold, True, RULE, loose=True)
+    hset, h = HypothesisSet(places, RULE), Hypothesis(alignment=np.zeros(4), born=0)
+    outcomes = [hset._test(h, np.array([0.5 * k, 0.0, 0.0, 0.1 * k]), *_view(0), 1.0, after_merge=False)
+                for k in range(4)]  # fmt: skip
+    assert outcomes == [HIT, HIT, HELD, HELD]  # held 0 and 1 m count; 2 and 3 m > 1.5 m hold
+    assert h.hit_m == 2.0 and h.turn_rad == pytest.approx(0.1)  # the held frames' headings (0.2, 0.3) not taken
 
 
 def _observation(frame: int, odometry: np.ndarray, seen: np.ndarray, template: int) -> Observation:
@@ -220,3 +259,19 @@ def test_the_resume_arrays_hold_hypotheses_bans_and_track_exactly() -> None:
     (h,) = MergerState.from_arrays(arrays).hypotheses[1][0]
     assert (h.hit_m, h.miss_m, [o.frame for o in h.support]) == (hset.hypotheses[0].hit_m,
                                                                   hset.hypotheses[0].miss_m, [0, 1, 3])  # fmt: skip
+
+
+def test_the_resume_arrays_keep_a_held_place_and_read_states_stored_before_it() -> None:
+    """A hypothesis's held place and metres come back from the resume arrays; a state stored before they existed
+    (13 columns a hypothesis) loads with none held, its other figures as stored."""
+    h = Hypothesis(alignment=np.array([1.0, 2.0, 0.0, 0.5]), born=4, hit_m=3.0, post_hit_m=1.0,
+                   held_place=np.array([5.0, 6.0, 0.0, 0.25]), held_m=1.25)  # fmt: skip
+    arrays = MergerState(np.zeros(4), (), {1: ((h,), ())}).to_arrays()
+    assert arrays["hypotheses"].shape == (1, 18)
+    (back,) = MergerState.from_arrays(arrays).hypotheses[1][0]
+    np.testing.assert_array_equal(back.held_place, [5.0, 6.0, 0.0, 0.25])
+    assert back.held_m == 1.25 and back.hit_m == 3.0
+    before = {**arrays, "hypotheses": arrays["hypotheses"][:, :13]}
+    (old,) = MergerState.from_arrays(before).hypotheses[1][0]
+    assert old.held_place is None and old.held_m == 0.0 and (old.hit_m, old.post_hit_m, old.born) == (3.0, 1.0, 4)
+    np.testing.assert_array_equal(old.alignment, [1.0, 2.0, 0.0, 0.5])

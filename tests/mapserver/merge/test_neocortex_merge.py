@@ -439,3 +439,27 @@ def test_a_reader_given_the_sessions_sdr_reads_exactly_as_one_that_encodes_the_f
     left, right = encodes.state(), given.state()
     assert left.keys() == right.keys() and all(np.array_equal(left[k], right[k]) for k in left)
     assert (np.asarray(a)[: SDR.sv_tm_topk] >= 0).any()  # the reader read something
+
+
+def test_a_look_alike_longer_than_the_probation_cannot_pin_an_sdr_merge_on_one_place(tmp_path: Path) -> None:
+    """Issue 12 for ``sdr-htm`` at ``poseidon``'s gate: ``twin`` with a 40 m look-alike holding turns, seed 0.
+
+    The merge is made 4 m into the look-alike; along it the views are accepted at one place of session 1's map
+    (R 0.76–0.91 against a gate of 0.71), each hit re-anchored the probation's prediction there, and 33 m of
+    such hits let the merge pass though the robot then drove ground the stored map never saw (the one false
+    merge of 60 that survived stop 34). With a place's hits counted for its extent only
+    (:data:`mapserver.merge.hypotheses.PLACE_EXTENT`) the probation sees 2.89 m of matches against 1.97 m of
+    mismatches and rolls it back. Must still: in one world (``twin-overlap``) the session merges at its true
+    place, and that merge stands (after a first one rolled back on loop links, as before the rule).
+    """
+    params = preset("circle").replace(frontend="sdr-htm", merge_sdr_min_overlap=0.62, merge_sdr_null_quantile=0.95)
+    events, rollbacks, _ = _online(tmp_path / "twin", "twin", params, lookalike_m=40.0, lookalike_turns=1.0)
+    assert events == [] and len(rollbacks) == 1  # must not: a merge into the other world survives
+    verification = rollbacks[0].event.evidence["verification"]
+    assert verification["post_hit_m"] == pytest.approx(2.89, abs=0.01)  # was 33.53 m
+    assert "did not confirm" in verification["reason"]
+    events, rollbacks, truth = _online(tmp_path / "overlap", "twin-overlap", params, lookalike_m=40.0,
+                                       lookalike_turns=1.0)  # fmt: skip
+    assert len(events) == 1 and events[0].evidence["verification"]["status"] == "passed"  # must still: merge
+    t = events[0].record.transform
+    assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 6.0 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.35
