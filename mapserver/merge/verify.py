@@ -95,6 +95,8 @@ class Probation:
     frames: int = 0
     hits: int = 0
     misses: int = 0
+    held: int = 0
+    """Frames whose match was held (:data:`mapserver.merge.hypotheses.HELD`): matching, but adding no metres."""
     links_agree: int = 0
     links_disagree: int = 0
     worst_link_m: float = 0.0
@@ -130,6 +132,7 @@ class Probation:
         outcome = self.hset.test_after_merge(self.hypothesis, track)
         self.hits += outcome == HIT
         self.misses += outcome == MISS
+        self.held += outcome == HELD
         if outcome in (HIT, HELD):  # a held hit adds no metres but the views still match: the matches go on
             self.last_hit_m, self.miss_run_m = track.distance, 0.0
         elif outcome == MISS:
@@ -347,6 +350,7 @@ class Probation:
             "status": status, "reason": self.reason or "the log ended during the probation",
             "distance_m": round(track.distance - self.start_m, 3), "probation_m": round(rule.probation_m, 3),
             "frames": self.frames, "hit_frames": self.hits, "miss_frames": self.misses,
+            "held_frames": self.held,
             "post_hit_m": round(self.hypothesis.post_hit_m, 3), "post_miss_m": round(self.hypothesis.post_miss_m, 3),
             "reject_m": round(rule.reject_m, 3), "links_agree": self.links_agree,
             "links_disagree": self.links_disagree, "worst_link_m": round(self.worst_link_m, 3),

@@ -457,6 +457,7 @@ def test_a_look_alike_longer_than_the_probation_cannot_pin_an_sdr_merge_on_one_p
     assert events == [] and len(rollbacks) == 1  # must not: a merge into the other world survives
     verification = rollbacks[0].event.evidence["verification"]
     assert verification["post_hit_m"] == pytest.approx(2.89, abs=0.01)  # was 33.53 m
+    assert verification["held_frames"] > verification["hit_frames"]  # the stretch's matches, held at one place
     assert "did not confirm" in verification["reason"]
     events, rollbacks, truth = _online(tmp_path / "overlap", "twin-overlap", params, lookalike_m=40.0,
                                        lookalike_turns=1.0)  # fmt: skip
