@@ -452,7 +452,7 @@ class HypothesisSet:
             last_tested = travelled
 
     def test_after_merge(self, hypothesis: Hypothesis, track: Track) -> int:
-        """Test the merged hypothesis on the newest frame (probation); return HIT, MISS or UNMAPPED."""
+        """Test the merged hypothesis on the newest frame (probation); return HIT, MISS, UNMAPPED or HELD."""
         _frame, odometry, _, view, mean = track.last
         return self._test(hypothesis, odometry, view, mean, track.step_of(len(track.frames) - 1), after_merge=True)
 

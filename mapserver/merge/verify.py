@@ -5,7 +5,9 @@ winning hypothesis keeps being tested for ``probation_m`` metres on two things:
 
 * **views where the merged map predicts them**: at every frame the alignment predicts the
   robot's place in the stored map; where the stored map has been, the view must match one of
-  its templates there (the same hit/miss trials as before the merge, counted apart);
+  its templates there (the same hit/miss trials as before the merge, counted apart; a loosely placed
+  view's hits at one place count for that place's extent only, then are held: matching, no metres —
+  :data:`mapserver.merge.hypotheses.PLACE_EXTENT`);
 * **new loop links agree with the merge transform**: a loop closure of the merged engine onto a
   stored experience must land where the alignment puts the robot (within twice the position
   tolerance).
