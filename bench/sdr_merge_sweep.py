@@ -108,7 +108,8 @@ def run_seed(out: Path, scenario: str, seed: int, sim: dict[str, Any], params: A
     for event, kept in zip(surviving, merger.events, strict=False):
         verification = kept.evidence.get("verification", {})
         event["status"] = verification.get("status")
-        event["verification"] = {k: verification.get(k) for k in ("distance_m", "post_hit_m", "post_miss_m", "cusum_m")}
+        kept_keys = ("distance_m", "post_hit_m", "post_miss_m", "cusum_m", "held_frames")
+        event["verification"] = {k: verification.get(k) for k in kept_keys}
     return {"seed": seed, "gate": [round(g, 3) for g in merger.sdr_gates.values()], "merges": events}
 
 
