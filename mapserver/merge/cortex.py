@@ -115,10 +115,19 @@ class CortexReader:
         params: the session's parameters (its gates and threshold).
         state: the stored map's engine snapshot (prototypes, codes and cortex).
         row: this reader's row in the stacked views.
+        key: the stored map's key.
+        far_m: places further apart than this are different places to the gate's calibration.
+        places: (N, 4) the view cells' places (:func:`mapserver.merge.places.template_places`), computed when None.
     """
 
     def __init__(
-        self, params: Params, state: Mapping[str, np.ndarray], row: int, key: object = None, far_m: float = math.inf
+        self,
+        params: Params,
+        state: Mapping[str, np.ndarray],
+        row: int,
+        key: object = None,
+        far_m: float = math.inf,
+        places: np.ndarray | None = None,
     ) -> None:
         gates = {"sv_min_intersection": min(params.merge_sv_min_intersection, params.sv_tm_topk),
                  "sv_enable_f1_gate": params.merge_sv_enable_f1_gate}  # fmt: skip
@@ -134,7 +143,8 @@ class CortexReader:
         self.min_overlap = params.merge_sdr_min_overlap
         """The gate R ≥ θ: ``merge_sdr_min_overlap``, raised to the map's own look-alikes (:func:`null_overlap`)."""
         if self.codes is not None and params.merge_sdr_null_quantile > 0.0:
-            null = null_overlap(self.codes, template_places(state)[0], far_m, params.merge_sdr_null_quantile)
+            where = template_places(state)[0] if places is None else places
+            null = null_overlap(self.codes, where, far_m, params.merge_sdr_null_quantile)
             self.min_overlap = max(self.min_overlap, null)
         self.miss_weight = params.miss_weight_reading(codes=self.codes is not None)
         self._recall_key = b""

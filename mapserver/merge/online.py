@@ -255,9 +255,10 @@ class OnlineMerger:
                 logger.info("map %r is not a merge candidate: %s", stored.key, reason)
                 continue
             state = stored.state
-            poses, templates, anchors = _predicting_places(state, with_views=engine.params.frontend == "sdr-htm")
+            views = template_places(state) if engine.params.frontend == "sdr-htm" else None
+            poses, templates, anchors = _predicting_places(state, views)
             order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
-            cells = self._matcher(engine, state, stored.key, self._tolerance(stored))
+            cells = self._matcher(engine, state, stored.key, self._tolerance(stored), views)
             rule = self._rule(stored, engine.params, cells)
             places = StoredPlaces(cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic,
                                   rule, loose=engine.params.frontend == "sdr-htm")  # fmt: skip
@@ -281,10 +282,14 @@ class OnlineMerger:
             reader.load(arrays)
         return True
 
-    def _matcher(self, engine: Engine, state: Mapping[str, np.ndarray], key: object, far_m: float) -> Any:
+    def _matcher(
+        self, engine: Engine, state: Mapping[str, np.ndarray], key: object, far_m: float,
+        views: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Any:
         """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader.
 
-        ``far_m``: places further apart than this are different places to the reader's gate calibration.
+        ``far_m``: places further apart than this are different places to the reader's gate calibration;
+        ``views``: the map's view-cell places (:func:`mapserver.merge.places.template_places`), when known.
         """
         if engine.params.frontend != "sdr-htm":
             cells = LocalViewCells.restore(engine.params, state)
@@ -293,7 +298,8 @@ class OnlineMerger:
             return cells
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm sessions
 
-        reader = CortexReader(engine.params, state, row=len(self._readers), key=key, far_m=far_m)
+        places = None if views is None else views[0]
+        reader = CortexReader(engine.params, state, row=len(self._readers), key=key, far_m=far_m, places=places)
         self._readers.append(reader)
         return reader
 
@@ -620,19 +626,19 @@ def _heading(rad: float) -> np.ndarray:
 
 
 def _predicting_places(
-    state: Mapping[str, np.ndarray], *, with_views: bool
+    state: Mapping[str, np.ndarray], views: tuple[np.ndarray, np.ndarray] | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (poses (P, 4), templates (P,), anchor experiences (P,)) of the places a stored map predicts views at.
 
-    The experiences; with ``with_views`` (sdr-htm maps) also every view cell's own place
-    (:func:`mapserver.merge.places.template_places`), anchored on the experience it was made after.
+    The experiences; with ``views`` (sdr-htm maps: every view cell's own place and the experience it was made
+    after, :func:`mapserver.merge.places.template_places`) also those places.
     """
     poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
     templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
     anchors = np.arange(poses.shape[0], dtype=np.int64)
-    if not with_views:
+    if views is None:
         return poses, templates, anchors
-    view_poses, view_anchor = template_places(state)
+    view_poses, view_anchor = views
     placed = np.flatnonzero(view_anchor >= 0)
     return (
         np.concatenate([poses, view_poses[placed]]),
