@@ -181,6 +181,13 @@ class Engine:
         "matched experience is the current one and the template is unchanged: create"
         — cannot fire there (the current experience is skipped in the search), so the
         no-match case covers it; SET_NODE never arises either.
+
+        An experience that a merge moved into this lattice (``ExperienceMap.lattice_levers``) gets a wider
+        gate: ``threshold + merge_lattice_slack · lever``, the lattice error that the merge's heading error
+        makes at that lever arm (``mapserver.merge.states``, operation iii). Of the experiences within their
+        gates the closest is linked, as OpenRatSLAM links the closest: every link OpenRatSLAM's gate makes is
+        made the same, the slack only adds links where it would create an experience. With no merge every
+        lever is 0 and the gate is OpenRatSLAM's.
         """
         em = self.map
         candidates = em.experiences_of_template(template)
@@ -193,9 +200,9 @@ class Engine:
         others = [c for c in candidates if c != em.current]
         if others:
             deltas = self.pose_cells.delta_to(em.lattice_coords[others])
-            best = int(np.argmin(deltas))
-            if float(deltas[best]) < threshold:
-                return Action.CREATE_EDGE, others[best]
+            within = deltas < threshold + self.params.merge_lattice_slack * em.lattice_levers[others]
+            if within.any():
+                return Action.CREATE_EDGE, others[int(np.argmin(np.where(within, deltas, np.inf)))]
         return Action.CREATE_NODE, -1
 
     # --------------------------------------------------------------- queries

@@ -102,6 +102,7 @@ class ExperienceMap:
         self._template = GrowBuffer((), np.int64)
         self._stamp = GrowBuffer((), np.float64)
         self._origin = GrowBuffer((), np.int64)
+        self._lever = GrowBuffer((), np.float64)  # cells from the anchors of the merges that moved it (merge)
         self._from = GrowBuffer((), np.int64)
         self._to = GrowBuffer((), np.int64)
         self._transform = GrowBuffer((4,), np.float64)
@@ -151,6 +152,16 @@ class ExperienceMap:
     def lattice_coords(self) -> np.ndarray:
         """Return experience lattice coordinates (E, D) (view)."""
         return self._pc.view
+
+    @property
+    def lattice_levers(self) -> np.ndarray:
+        """Return (E,) each experience's lattice lever arm: cells from the anchors of the merges that moved it.
+
+        A merge moves a session's lattice coordinates by one rigid lattice transform about its anchor
+        (``mapserver.merge.states``); its heading error misplaces a coordinate in proportion to this
+        distance. 0 for an experience the map made itself.
+        """
+        return self._lever.view
 
     @property
     def templates(self) -> np.ndarray:
@@ -246,6 +257,7 @@ class ExperienceMap:
         self._template.append(template)
         self._stamp.append(stamp)
         self._origin.append(origin)
+        self._lever.append(0.0)
         self._incidence.add_nodes(1)
         self._parent.append(new_id)
         self._work.reserve(new_id + 1)
@@ -663,6 +675,7 @@ class ExperienceMap:
             "em_template": self._template.copy(),
             "em_stamp": self._stamp.copy(),
             "em_origin": self._origin.copy(),
+            "em_pc_lever": self._lever.copy(),
             "em_link_from": self._from.copy(),
             "em_link_to": self._to.copy(),
             "em_link_transform": self._transform.copy(),
@@ -687,10 +700,10 @@ class ExperienceMap:
     def restore(cls, params: Params, lattice_rank: int, state: Mapping[str, np.ndarray]) -> ExperienceMap:
         """Rebuild a map from :meth:`snapshot` arrays, exactly.
 
-        ``em_link_active`` (default: every link on), ``em_robust_checked`` (default:
-        checked with every link there is) and the reckoning keys (default: none kept, no
-        experience created since) are optional. ``em_relax_queue`` is optional: without it a pending relaxation
-        (``em_relax_pending``) schedules every linked experience.
+        ``em_pc_lever`` (default: 0, no merge moved it), ``em_link_active`` (default: every link on),
+        ``em_robust_checked`` (default: checked with every link there is) and the reckoning keys (default:
+        none kept, no experience created since) are optional. ``em_relax_queue`` is optional: without it a
+        pending relaxation (``em_relax_pending``) schedules every linked experience.
         """
         em = cls(params, lattice_rank)
         em._pose = GrowBuffer.from_array(np.asarray(state["em_pose"]).reshape(-1, 4), np.float64)
@@ -698,6 +711,7 @@ class ExperienceMap:
         em._template = GrowBuffer.from_array(state["em_template"], np.int64)
         em._stamp = GrowBuffer.from_array(state["em_stamp"], np.float64)
         em._origin = GrowBuffer.from_array(state["em_origin"], np.int64)
+        em._lever = GrowBuffer.from_array(_per_experience(state, "em_pc_lever", len(em._origin.view)), np.float64)
         em._from = GrowBuffer.from_array(state["em_link_from"], np.int64)
         em._to = GrowBuffer.from_array(state["em_link_to"], np.int64)
         em._transform = GrowBuffer.from_array(np.asarray(state["em_link_transform"]).reshape(-1, 4), np.float64)
@@ -736,6 +750,14 @@ class ExperienceMap:
         elif bool(state["em_relax_pending"]):
             em.relax_pending = True
         return em
+
+
+def _per_experience(state: Mapping[str, np.ndarray], key: str, n: int) -> np.ndarray:
+    """Return the optional per-experience array ``key`` of a snapshot, zeros where a state lacks it."""
+    out = np.zeros(n, dtype=np.float64)
+    given = np.asarray(state.get(key, np.zeros(0)), dtype=np.float64).reshape(-1)[:n]
+    out[: given.size] = given
+    return out
 
 
 def _clamp(correction: np.ndarray, step_cap: float, norm_cap: float, total: np.ndarray | None) -> None:

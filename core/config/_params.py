@@ -95,6 +95,7 @@ class Params:
     merge_sv_enable_f1_gate: bool = False  # sdr-htm merge evidence: the F1 gate of that reading
     merge_sdr_min_overlap: float = 0.68  # sdr-htm merge evidence: a frame's SDR shares this share of a view cell's code
     merge_sdr_null_quantile: float = 0.0  # sdr-htm: raise it to this quantile of the map's look-alikes (0: off)
+    merge_lattice_slack: float = 0.2  # cells of closure gate per cell between a merged experience and its merge anchor
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False
     # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"
@@ -275,6 +276,8 @@ def _validate(p: Params) -> None:
         fail("merge_sv_min_intersection", "must be ≥ 1")
     if not 0.0 < p.merge_sdr_min_overlap <= 1.0:
         fail("merge_sdr_min_overlap", "must be in (0, 1]")
+    if p.merge_lattice_slack < 0:
+        fail("merge_lattice_slack", "must be ≥ 0")
     if not 0.0 <= p.merge_sdr_null_quantile <= 1.0:
         fail("merge_sdr_null_quantile", "must be in [0, 1]")
     for key in ("merge_evidence_m", "merge_probation_m"):

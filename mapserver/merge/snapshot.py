@@ -26,10 +26,10 @@ SNAPSHOT_KEYS: tuple[str, ...] = (
     "gate_history", "gate_state", "eng_frames", "eng_last_stamp",
 )
 
-#: Keys a merge writes that older states may lack (``em_link_active``: every link on when missing; the
-#: reckoning keys: none kept, no experience created since).
+#: Keys a merge writes that older states may lack (``em_pc_lever``: 0, no merge moved them; ``em_link_active``:
+#: every link on when missing; the reckoning keys: none kept, no experience created since).
 OPTIONAL_SNAPSHOT_KEYS: tuple[str, ...] = (
-    "em_link_active", "em_reckon_from", "em_reckon_to", "em_reckon_link", "em_reckon", "em_last_created",
+    "em_pc_lever", "em_link_active", "em_reckon_from", "em_reckon_to", "em_reckon_link", "em_reckon", "em_last_created",
 )  # fmt: skip
 
 

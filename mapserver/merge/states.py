@@ -36,7 +36,7 @@ import numpy as np
 from core import LinkKind
 from core.se3 import alignment, compose, relative, wrap_angle
 from mapserver.errors import MergeError
-from mapserver.merge.lattice import LatticeTransform, splat
+from mapserver.merge.lattice import LatticeTransform, signed_delta, splat
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.snapshot import (
     State,
@@ -338,7 +338,7 @@ class _Experiences:
     kept: np.ndarray  # (n_partial,) partial experiences inserted (not identified)
     n_loaded: int
     n_total: int
-    arrays: dict[str, np.ndarray]  # em_pose, em_pc, em_template, em_stamp, em_origin
+    arrays: dict[str, np.ndarray]  # em_pose, em_pc, em_template, em_stamp, em_origin, em_pc_lever
 
 
 def _merge_experiences(
@@ -372,6 +372,9 @@ def _merge_experiences(
         ),
         "em_stamp": _cat(loaded, partial, "em_stamp", np.float64, kept),
         "em_origin": _cat(loaded, partial, "em_origin", np.int64, kept),
+        "em_pc_lever": np.concatenate(
+            [_levers(loaded, n_le), _levers(partial, n_pe)[kept] + _lever_arm(f, p_pc[kept])]
+        ),
     }
     return _Experiences(T, anchor_loaded, emap, kept, n_le, n_le + int(kept.sum()), arrays)
 
@@ -479,6 +482,29 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
         "em_reckon": np.asarray(partial.get("em_reckon", np.zeros(6)), dtype=np.float64).copy(),
         "em_last_created": np.asarray(int(emap[last]) if last >= 0 and kept[last] else -1, dtype=np.int64),
     }
+
+
+def _levers(state: State, n: int) -> np.ndarray:
+    """Return a snapshot's ``em_pc_lever`` (n,), zeros where the state lacks it (no merge moved those)."""
+    out = np.zeros(n, dtype=np.float64)
+    given = np.asarray(state.get("em_pc_lever", np.zeros(0)), dtype=np.float64).reshape(-1)[:n]
+    out[: given.size] = given
+    return out
+
+
+def _lever_arm(f: LatticeTransform | None, coords: np.ndarray) -> np.ndarray:
+    """Return each partial coordinate's (x, y) distance in cells from the anchor f rotates about (0: not moved).
+
+    Operation (iii) rotates the partial lattice about the matched cell by the heading offset of one view, and
+    that offset is off by the view's heading error ε (stop 32 measured 1–17° on true merges): a coordinate r
+    cells from the anchor lands about ε·r cells from where the loaded lattice holds its place. The engine
+    widens its closure gate by ``merge_lattice_slack`` (ε) times this lever (``Engine._get_action``); levers
+    of successive merges add.
+    """
+    if f is None:
+        return np.zeros(coords.shape[0], dtype=np.float64)
+    delta = signed_delta(coords, np.asarray(f.source), np.asarray(f.dims))
+    return np.hypot(delta[:, 0], delta[:, 1])
 
 
 def _cat(loaded: State, partial: State, key: str, dtype: type, mask: np.ndarray) -> np.ndarray:

@@ -251,6 +251,8 @@ def _check_snapshot(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
     }
     if "em_link_active" in snapshot:
         expected["em_link_active"] = (k,)
+    if "em_pc_lever" in snapshot:
+        expected["em_pc_lever"] = (e,)
     for key, shape in expected.items():
         got = _array(snapshot, key).shape
         if got != shape:
@@ -630,6 +632,24 @@ def _with_link_status(snapshot: Mapping[str, Any]) -> Mapping[str, Any]:
     return {**snapshot, "em_link_active": active}
 
 
+def _with_levers(snapshot: Mapping[str, Any]) -> Mapping[str, Any]:
+    """Return ``snapshot`` with ``em_pc_lever`` fitted to the experiences, as the engine reads it.
+
+    A snapshot whose experiences were replaced (an importer starting from an empty engine's snapshot) may
+    carry levers of another length: experiences past its end have lever 0 (no merge moved them), levers past
+    the last experience are dropped (``ExperienceMap.restore``'s rule).
+    """
+    if "em_pc_lever" not in snapshot:
+        return snapshot
+    count = np.asarray(snapshot["em_pose"]).reshape(-1, 4).shape[0]
+    given = np.asarray(snapshot["em_pc_lever"], dtype=np.float64).reshape(-1)
+    if given.shape[0] == count:
+        return snapshot
+    levers = np.zeros(count, dtype=np.float64)
+    levers[: min(given.size, count)] = given[:count]
+    return {**snapshot, "em_pc_lever": levers}
+
+
 def _write_state_row(
     conn: Connection, map_id: int, snapshot: Mapping[str, Any], shapes: _Shapes, params: Any
 ) -> None:
@@ -705,7 +725,7 @@ def write_map_state(
         OwnershipError: a template or experience of the snapshot belongs to another map.
         StoreError: the snapshot is malformed, has NaN in a row table, or tags that name no session.
     """
-    snapshot = _with_link_status(snapshot)
+    snapshot = _with_levers(_with_link_status(snapshot))
     version = claim_map(conn=conn, map_id=map_id, expected_version=expected_version)
     shapes = _check_snapshot(snapshot)
     ids = [int(s) for s in session_ids]

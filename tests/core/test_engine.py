@@ -162,6 +162,40 @@ def test_get_action_follows_openratslam() -> None:
     assert _action(engine_two, 0, [6.0, 5.0, 5.0], prev_vt=1) == (Action.CREATE_EDGE, 0)
 
 
+@pytest.mark.parametrize(
+    ("lever", "slack", "expected"),
+    [
+        (0.0, 0.2, (Action.CREATE_NODE, -1)),  # made by the map itself: OpenRatSLAM's gate, 3 cells > 2
+        (12.0, 0.0, (Action.CREATE_NODE, -1)),  # moved by a merge, no slack: the same gate
+        (4.0, 0.2, (Action.CREATE_NODE, -1)),  # gate 2 + 0.2·4 = 2.8 < 3
+        (6.0, 0.2, (Action.CREATE_EDGE, 0)),  # gate 2 + 0.2·6 = 3.2 > 3: the loop closes
+    ],
+)
+def test_an_experience_a_merge_moved_gets_a_closure_gate_wider_by_its_lever(
+    lever: float, slack: float, expected: tuple[Action, int]
+) -> None:
+    """``exp_delta_pc_threshold + merge_lattice_slack · em_pc_lever``: experience 0 lies 3 cells from the packet."""
+    engine = _engine_with_experiences([[5.0, 5.0, 5.0], [10.0, 10.0, 10.0]], [0, 1])
+    state = engine.snapshot()
+    state["em_pc_lever"] = np.array([lever, 0.0])
+    restored = Engine.restore(_params(exp_delta_pc_threshold=2.0, merge_lattice_slack=slack), state)
+    assert restored.map.lattice_levers.tolist() == [lever, 0.0]
+    assert restored.snapshot()["em_pc_lever"].tolist() == [lever, 0.0]
+    assert _action(restored, 0, [8.0, 5.0, 5.0], prev_vt=1) == expected
+
+
+def test_of_the_experiences_within_their_gates_the_closest_is_linked() -> None:
+    """Template 0 has experience 0 (made by the map, 1.5 cells from the packet) and experience 1 (moved by a merge,
+    lever 20: gate 2 + 4 = 6, 1.8 cells away): OpenRatSLAM links the closest, 0, and so does the widened gate
+    (a wider gate must not trade a closure the plain gate makes for one onto the moved experience)."""
+    engine = _engine_with_experiences([[6.5, 5.0, 5.0], [9.8, 5.0, 5.0], [12.0, 12.0, 12.0]], [0, 0, 1])
+    state = engine.snapshot()
+    state["em_pc_lever"] = np.array([0.0, 20.0, 0.0])
+    restored = Engine.restore(_params(exp_delta_pc_threshold=2.0, merge_lattice_slack=0.2), state)
+    assert _action(restored, 0, [8.0, 5.0, 5.0], prev_vt=1) == (Action.CREATE_EDGE, 0)
+    assert _action(restored, 0, [11.0, 5.0, 5.0], prev_vt=1) == (Action.CREATE_EDGE, 1)  # 0 is 4.5 cells off
+
+
 def test_poseidon_state_restores_bit_for_bit() -> None:
     """4-DoF lattice, VPR Guard, motion gate and clamps: processing 1..N equals 1..k, snapshot, restore, k+1..N."""
     params = _params(pc_dim_xy=9, pc_dim_z=5, pc_dim_th=8, pc_cell_x_size=0.5, pc_cell_z_size=0.5,

@@ -321,10 +321,12 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
 
 
 
-def _merged_ape(directory: Path, info: dict[str, Any], db: str, *extra: str) -> float:
+def _merged_ape(
+    directory: Path, info: dict[str, Any], db: str, *extra: str, statuses: tuple[str, ...] = ("applied",)
+) -> float:
     """Process both sessions into ``db`` and return the merged map's APE against both ground truths."""
     result = _process_all(directory, info, db, *extra)[1]
-    assert [m["status"] for m in result["merges"]] == ["applied"]
+    assert tuple(m["status"] for m in sorted(result["merges"], key=lambda m: m["frame"])) == statuses
     doc, truth = directory / f"{result['map']}-{len(extra)}.json", directory / "both.tum"
     cli_json("export", "--db", db, "--map", result["map"], "--format", "json", "--out", str(doc))
     truth.write_text("".join((directory / s["ground_truth"]).read_text() for s in info["sessions"][:2]))
@@ -341,3 +343,18 @@ def test_a_true_merge_bent_by_its_closures_headings_is_kept_by_the_joint_least_s
     info = cli_json("simulate", "twin-overlap", "--out", str(directory), "--seed", "7", "--param", "lookalike_m=40")
     assert _merged_ape(directory, info, _db(tmp_path, "ratslam")) > 10.0
     assert _merged_ape(directory, info, _db(tmp_path, "joint"), "--set", "exp_relax_joint=1") < 1.5
+
+
+def test_a_merged_sessions_own_first_pass_closes_within_the_merges_lever_arm(tmp_path: Path) -> None:
+    """``symmetric`` seed 1 (README, stop 36): session 2 merges at frame 79 with the view's heading 8° off; its
+    first pass, 50–80 m of path before the anchor, lands 4–5 lattice cells from where the packet meets it again
+    (OpenRatSLAM's closure gate there: 4), so the second pass cannot close onto it and relocalises at the mirror
+    place. Widening the gate by ``merge_lattice_slack`` (0.2) times each experience's lattice distance from the
+    merge anchor, the second pass closes onto it: merged APE 1.32 m without the slack, 0.74 m with it (the single
+    route: 0.41 m)."""
+    directory = tmp_path / "symmetric"
+    info = cli_json("simulate", "symmetric", "--out", str(directory), "--seed", "1")
+    both = ("rejected", "applied")
+    without = _merged_ape(directory, info, _db(tmp_path, "rigid"), "--set", "merge_lattice_slack=0", statuses=both)
+    assert without > 1.2
+    assert _merged_ape(directory, info, _db(tmp_path, "lever"), statuses=both) < 0.9

@@ -295,6 +295,25 @@ def test_reckoning_links_are_renumbered_and_those_with_an_identified_end_dropped
     assert plain["em_reckon_from"].size == 0 and int(plain["em_last_created"]) == -1  # states without them
 
 
+def test_each_moved_experience_carries_its_lattice_distance_from_the_merge_anchor() -> None:
+    """Operation (iii)'s lever arms: the anchor is partial experience 3 (loaded lattice (7, 10, 0)); the kept
+    partial experiences 0, 1, 2 land at (4, 10, 0), (5, 10, 0), (6, 10, 0), so 3, 2 and 1 cells from it — in
+    the partial lattice too, which the merge turned by 90° (a rotation keeps distances). Levers add up over
+    successive merges; the loaded map's stay; with operation (iii) skipped nothing moved."""
+    match_args = {"stored_template": 2, "stored_experience": 2}
+    partial = partial_state(TURN)
+    state, record = merge_states(loaded_state(), partial, Match.at_experience(partial, 3, **match_args))
+    assert record.experience_map.tolist() == [6, 7, 8, 2]
+    assert state["em_pc_lever"] == pytest.approx([0.0] * 6 + [3.0, 2.0, 1.0], abs=1e-9)
+    loaded, again = loaded_state(), partial_state(TURN)
+    loaded["em_pc_lever"] = np.full(6, 0.25)
+    again["em_pc_lever"] = np.array([0.5, 1.0, 1.5, 2.0])
+    state, _ = merge_states(loaded, again, Match.at_experience(again, 3, **match_args))
+    assert state["em_pc_lever"] == pytest.approx([0.25] * 6 + [3.5, 3.0, 2.5], abs=1e-9)
+    plain, _ = merge_states(loaded, again, Match.at_experience(again, 3, **match_args), shift_lattice=False)
+    assert plain["em_pc_lever"] == pytest.approx([0.25] * 6 + [0.5, 1.0, 1.5], abs=1e-9)
+
+
 def test_a_last_created_experience_identified_by_the_merge_starts_no_reckoning_link() -> None:
     """The partial's last created experience 3 is identified with the loaded 2: the merge, not the robot's
     odometry, joins what comes next to the loaded map, so no reckoning link may start there (it would join

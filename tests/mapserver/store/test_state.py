@@ -113,6 +113,28 @@ def test_nan_in_a_row_table_is_refused_and_nothing_is_written(db: Database, engi
         load_map(db, name="bad")
 
 
+def test_merge_levers_round_trip_and_are_fitted_to_the_experiences_as_the_engine_reads_them(
+    db: Database, engine: Engine
+) -> None:
+    """``em_pc_lever`` (one per experience, the merge's lattice lever arms) is stored exactly; levers of another
+    length (an importer's snapshot started from an empty engine's) are stored as ``ExperienceMap.restore`` reads
+    them: experiences past the end have lever 0, levers past the last experience are dropped."""
+    snap = engine.snapshot()
+    n = snap["em_pose"].shape[0]
+    snap["em_pc_lever"] = np.linspace(0.5, 7.5, n)
+    save_map(db, name="levers", params=engine.params, snapshot=snap, sessions=[_session()])
+    assert np.array_equal(load_map(db, name="levers").snapshot["em_pc_lever"], snap["em_pc_lever"])
+    save_map(db, name="short", params=engine.params, snapshot={**snap, "em_pc_lever": snap["em_pc_lever"][:2]},
+             sessions=[_session("short")])  # fmt: skip
+    short = load_map(db, name="short").snapshot["em_pc_lever"]
+    assert short.tolist() == [0.5, snap["em_pc_lever"][1]] + [0.0] * (n - 2)
+    save_map(db, name="long", params=engine.params, snapshot={**snap, "em_pc_lever": np.ones(n + 3)},
+             sessions=[_session("long")])  # fmt: skip
+    assert load_map(db, name="long").snapshot["em_pc_lever"].tolist() == [1.0] * n
+    restored = Engine.restore(engine.params, {**snap, "em_pc_lever": snap["em_pc_lever"][:2]})
+    assert np.array_equal(restored.map.lattice_levers, short)
+
+
 def test_a_stale_version_is_refused_and_the_map_is_unchanged(db: Database, engine: Engine) -> None:
     snap = engine.snapshot()
     save_map(db, name="lab", params=engine.params, snapshot=snap, sessions=[_session()])
