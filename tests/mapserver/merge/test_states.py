@@ -314,6 +314,16 @@ def test_each_moved_experience_carries_its_lattice_distance_from_the_merge_ancho
     assert plain["em_pc_lever"] == pytest.approx([0.25] * 6 + [0.5, 1.0, 1.5], abs=1e-9)
 
 
+def test_a_lever_arm_is_the_wrapped_planar_distance_from_the_anchor_in_a_4dof_lattice() -> None:
+    """Only (x, y) count (the merge rotates about the vertical axis; z and θ are only shifted), across the faces."""
+    from mapserver.merge.states import _lever_arm
+
+    f = LatticeTransform.between((21, 21, 9, 36), source=(2.0, 17.0, 4.0, 0.0), target=(7.0, 10.0, 1.0, 9.0))
+    coords = np.array([[5.0, 17.0, 8.0, 30.0], [20.0, 17.0, 4.0, 0.0], [2.0, 1.0, 0.0, 5.0], [5.0, 13.0, 4.0, 0.0]])
+    assert _lever_arm(f, coords) == pytest.approx([3.0, 3.0, 5.0, 5.0])
+    assert _lever_arm(None, coords).tolist() == [0.0] * 4
+
+
 def test_a_last_created_experience_identified_by_the_merge_starts_no_reckoning_link() -> None:
     """The partial's last created experience 3 is identified with the loaded 2: the merge, not the robot's
     odometry, joins what comes next to the loaded map, so no reckoning link may start there (it would join
