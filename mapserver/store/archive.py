@@ -31,6 +31,7 @@ from sqlalchemy import Connection, insert, select
 
 from mapserver.errors import NotFoundError, StoreError
 from mapserver.store.arrays import pack_npz, unpack_npz
+from mapserver.store.blobs import resolve_arrays, share_arrays
 from mapserver.store.bulk import fetch_tuples
 from mapserver.store.maps import clear_map, create_map, find_map, get_map_by_id
 from mapserver.store.models import MapArchive, Template
@@ -137,7 +138,7 @@ def archive_state(
         "n_templates": int(templates.shape[0]),
         "n_experiences": int(ids["experience_index"].shape[0]),  # checked against the snapshot's experiences
         "n_links": int(np.asarray(arrays.get("em_link_from", np.zeros(0))).reshape(-1).shape[0]),
-        "state": pack_npz(content),
+        "state": pack_npz(share_arrays(conn, content)),
     }
     return int(conn.execute(insert(MapArchive).values(**row).returning(MapArchive.id)).scalar_one())
 
@@ -247,7 +248,7 @@ def load_archive(*, conn: Connection, archive_id: int) -> ArchivedState:
     if row is None:
         msg = f"no archived map state with id {archive_id!r}"
         raise NotFoundError(msg)
-    content = unpack_npz(row[7])
+    content = resolve_arrays(conn, unpack_npz(row[7]), f"archive {archive_id}")
     keys = [str(k) for k in content.pop(_META + "keys")]
     ids = {key: content.pop(_META + key).astype(np.int64) for key in _IDENTITIES}
     inline_mask = content.pop(_TEMPLATE_INLINE).astype(bool)

@@ -375,6 +375,21 @@ class MapArchive(Base):
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
 
+class Blob(Base):
+    """A large array many map states share, stored once per database under its SHA-256 (``mapserver.store.blobs``).
+
+    ``data`` is the array's ``.npy`` bytes (dtype, shape and every bit); map states and archives hold its digest.
+    Today: the ``sdr-htm`` front-end's LSBH projection, the same for every map made with one seed and size.
+    """
+
+    __tablename__ = "blobs"
+
+    digest: Mapped[str] = mapped_column(String(64), primary_key=True)
+    nbytes: Mapped[int] = mapped_column(BigInteger)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
 class ApiToken(Base):
     """A REST API bearer token; only its SHA-256 is stored."""
 

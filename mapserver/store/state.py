@@ -52,6 +52,7 @@ from mapserver.store.arrays import (
     unpack_npz,
     unpack_raw,
 )
+from mapserver.store.blobs import resolve_arrays, share_arrays
 from mapserver.store.bulk import bulk_insert, fetch_tuples
 from mapserver.store.errors import CorruptStateError, OwnershipError
 from mapserver.store.health import map_health
@@ -678,7 +679,7 @@ def _write_state_row(
         "n_links": shapes.links,
         "n_pose_cell_links": shapes.pc_links,
         "pc_activity": pack_raw(np.asarray(snapshot[ACTIVITY_KEY])),
-        "arrays": pack_npz(extra),
+        "arrays": pack_npz(share_arrays(conn, extra)),
         "manifest": manifest,
         "health": map_health(params, snapshot),
         "updated_at": utcnow(),
@@ -889,7 +890,8 @@ def read_map_state(*, conn: Connection, map_id: int) -> MapContent:
     _read_pose_cell_links(conn, map_id, rank, built)
     experience_session, experience_index = _read_experiences(conn, map_id, rank, built)
     _read_links(conn, map_id, built)
-    snapshot = _assemble_snapshot(record.name, manifest, unpack_npz(state[1]), state[2], built)
+    arrays = resolve_arrays(conn, unpack_npz(state[1]), f"map {record.name!r}")
+    snapshot = _assemble_snapshot(record.name, manifest, arrays, state[2], built)
     sessions = tuple(sessions_of_map(conn=conn, map_id=map_id))
     meta = MapMeta(record, sessions, template_session, template_index, experience_session, experience_index)
     return MapContent(dict(record.params), snapshot, meta)
