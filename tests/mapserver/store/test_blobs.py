@@ -103,3 +103,26 @@ def test_storing_a_blob_twice_is_a_no_op(db: Database) -> None:
         assert np.array_equal(first["__blob__.nc_projection"], second["__blob__.nc_projection"])
         back = blob_module.resolve_arrays(conn, first, "test")
     assert back["nc_projection"].tobytes() == arrays["nc_projection"].tobytes() and back["other"].tolist() == [0, 1, 2]
+
+
+def test_a_database_of_revision_0005_upgrades_and_its_maps_read_as_before(
+    db_url: str, engine: Engine, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A map written before the ``blobs`` table existed (its projection inline) reads the same after
+    ``db upgrade``; writing it again moves the projection into a blob."""
+    from mapserver.store import create_db_engine, upgrade
+
+    projection = _projection()
+    with Database(create_db_engine(db_url)) as old:
+        assert upgrade(old, "0005") == "0005"
+        monkeypatch.setattr(blob_module, "SHARED_KEYS", ())  # what the code before 0006 wrote
+        _save(old, engine, "old", projection)
+        monkeypatch.undo()
+        assert upgrade(old) == "0006"
+        before = load_map(old, name="old")
+        assert before.snapshot["nc_projection"].tobytes() == projection.tobytes()
+        assert _sizes(old)[0] == 0
+        save_map(old, name="old", params=small_params(), snapshot=before.snapshot,
+                 sessions=[s.id for s in before.meta.sessions], expected_version=before.meta.map.version)  # fmt: skip
+        assert _sizes(old)[0] == 1
+        assert load_map(old, name="old").snapshot["nc_projection"].tobytes() == projection.tobytes()
