@@ -254,6 +254,10 @@ def _check_snapshot(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
         expected["em_link_active"] = (k,)
     if "em_pc_lever" in snapshot:
         expected["em_pc_lever"] = (e,)
+        levers = _array(snapshot, "em_pc_lever")
+        if levers.size and not (np.all(np.isfinite(levers)) and levers.min() >= 0.0):
+            msg = "snapshot 'em_pc_lever' must hold finite lattice distances ≥ 0 (a merge's lever arms)"
+            raise StoreError(msg)
     for key, shape in expected.items():
         got = _array(snapshot, key).shape
         if got != shape:

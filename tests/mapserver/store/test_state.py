@@ -118,7 +118,8 @@ def test_merge_levers_round_trip_and_are_fitted_to_the_experiences_as_the_engine
 ) -> None:
     """``em_pc_lever`` (one per experience, the merge's lattice lever arms) is stored exactly; levers of another
     length (an importer's snapshot started from an empty engine's) are stored as ``ExperienceMap.restore`` reads
-    them: experiences past the end have lever 0, levers past the last experience are dropped."""
+    them: experiences past the end have lever 0, levers past the last experience are dropped. A lever that is NaN
+    or negative is refused, and nothing is written."""
     snap = engine.snapshot()
     n = snap["em_pose"].shape[0]
     snap["em_pc_lever"] = np.linspace(0.5, 7.5, n)
@@ -133,6 +134,14 @@ def test_merge_levers_round_trip_and_are_fitted_to_the_experiences_as_the_engine
     assert load_map(db, name="long").snapshot["em_pc_lever"].tolist() == [1.0] * n
     restored = Engine.restore(engine.params, {**snap, "em_pc_lever": snap["em_pc_lever"][:2]})
     assert np.array_equal(restored.map.lattice_levers, short)
+    before = row_counts(db)
+    for bad in (np.nan, -1.0):
+        wrong = snap["em_pc_lever"].copy()
+        wrong[3] = bad
+        with pytest.raises(StoreError, match="em_pc_lever"):
+            save_map(db, name="bad", params=engine.params, snapshot={**snap, "em_pc_lever": wrong},
+                     sessions=[_session("bad")])  # fmt: skip
+    assert row_counts(db) == before
 
 
 def test_a_stale_version_is_refused_and_the_map_is_unchanged(db: Database, engine: Engine) -> None:
