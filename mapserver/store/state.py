@@ -220,6 +220,13 @@ def _check_snapshot(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
         if key.startswith("__"):
             msg = f"snapshot key {key!r} is reserved (keys starting with '__')"
             raise StoreError(msg)
+    shapes = _check_shapes(snapshot)
+    _check_values(snapshot, shapes)
+    return shapes
+
+
+def _check_shapes(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
+    """Check every row-table array's shape against the templates, experiences, links and pose-cell links."""
     templates = _array(snapshot, "lv_templates")
     if templates.ndim != 3 or templates.dtype != np.float32:
         msg = f"lv_templates must be float32 (N, ty, tx), got {templates.dtype} {templates.shape!r}"
@@ -234,35 +241,24 @@ def _check_snapshot(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
     k = _array(snapshot, "em_link_from").reshape(-1).shape[0]
     lpc = _array(snapshot, "pc_link_template").reshape(-1).shape[0]
     expected = {
-        "lv_means": (n,),
-        "lv_origin": (n,),
-        "pc_link_coords": (lpc, rank),
-        "pc_link_strength": (lpc,),
-        "pc_link_decay": (lpc,),
-        "em_pose": (e, 4),
-        "em_pc": (e, rank),
-        "em_template": (e,),
-        "em_stamp": (e,),
-        "em_origin": (e,),
-        "em_link_to": (k,),
-        "em_link_transform": (k, 4),
-        "em_link_dt": (k,),
-        "em_link_distance": (k,),
+        "lv_means": (n,), "lv_origin": (n,),
+        "pc_link_coords": (lpc, rank), "pc_link_strength": (lpc,), "pc_link_decay": (lpc,),
+        "em_pose": (e, 4), "em_pc": (e, rank), "em_template": (e,), "em_stamp": (e,), "em_origin": (e,),
+        "em_link_to": (k,), "em_link_transform": (k, 4), "em_link_dt": (k,), "em_link_distance": (k,),
         "em_link_kind": (k,),
-    }
-    if "em_link_active" in snapshot:
-        expected["em_link_active"] = (k,)
-    if "em_pc_lever" in snapshot:
-        expected["em_pc_lever"] = (e,)
-        levers = _array(snapshot, "em_pc_lever")
-        if levers.size and not (np.all(np.isfinite(levers)) and levers.min() >= 0.0):
-            msg = "snapshot 'em_pc_lever' must hold finite lattice distances ≥ 0 (a merge's lever arms)"
-            raise StoreError(msg)
+    }  # fmt: skip
+    optional = {"em_link_active": (k,), "em_pc_lever": (e,)}
+    expected.update({key: shape for key, shape in optional.items() if key in snapshot})
     for key, shape in expected.items():
         got = _array(snapshot, key).shape
         if got != shape:
             msg = f"snapshot {key!r} has shape {got!r}, expected {shape!r}"
             raise StoreError(msg)
+    return _Shapes(n, h, w, e, k, lpc, rank)
+
+
+def _check_values(snapshot: Mapping[str, npt.ArrayLike], shapes: _Shapes) -> None:
+    """Check the values: no NaN in a row table, finite poses, known link kinds, ids in range, levers ≥ 0."""
     for key in _ROW_FLOAT_KEYS:
         values = _array(snapshot, key)
         if values.size and not np.all(np.isfinite(values) | np.isinf(values)):
@@ -279,16 +275,19 @@ def _check_snapshot(snapshot: Mapping[str, npt.ArrayLike]) -> _Shapes:
         msg = f"em_link_kind holds unknown codes {sorted(set(kinds.tolist()) - set(range(4)))!r}"
         raise StoreError(msg)
     for key, limit, what in (
-        ("em_template", n, "templates"),
-        ("pc_link_template", n, "templates"),
-        ("em_link_from", e, "experiences"),
-        ("em_link_to", e, "experiences"),
+        ("em_template", shapes.templates, "templates"),
+        ("pc_link_template", shapes.templates, "templates"),
+        ("em_link_from", shapes.experiences, "experiences"),
+        ("em_link_to", shapes.experiences, "experiences"),
     ):
         values = _array(snapshot, key)
         if values.size and (values.min() < 0 or values.max() >= limit):
             msg = f"snapshot {key!r} refers to {what} outside [0, {limit})"
             raise StoreError(msg)
-    return _Shapes(n, h, w, e, k, lpc, rank)
+    levers = _array(snapshot, "em_pc_lever") if "em_pc_lever" in snapshot else np.zeros(0)
+    if levers.size and not (np.all(np.isfinite(levers)) and levers.min() >= 0.0):
+        msg = "snapshot 'em_pc_lever' must hold finite lattice distances ≥ 0 (a merge's lever arms)"
+        raise StoreError(msg)
 
 
 # ------------------------------------------------------------------------------------------------ identities
