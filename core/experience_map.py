@@ -711,7 +711,7 @@ class ExperienceMap:
         em._template = GrowBuffer.from_array(state["em_template"], np.int64)
         em._stamp = GrowBuffer.from_array(state["em_stamp"], np.float64)
         em._origin = GrowBuffer.from_array(state["em_origin"], np.int64)
-        em._lever = GrowBuffer.from_array(_per_experience(state, "em_pc_lever", len(em._origin.view)), np.float64)
+        em._lever = GrowBuffer.from_array(per_experience_array(state, "em_pc_lever", len(em._origin.view)), np.float64)
         em._from = GrowBuffer.from_array(state["em_link_from"], np.int64)
         em._to = GrowBuffer.from_array(state["em_link_to"], np.int64)
         em._transform = GrowBuffer.from_array(np.asarray(state["em_link_transform"]).reshape(-1, 4), np.float64)
@@ -752,8 +752,12 @@ class ExperienceMap:
         return em
 
 
-def _per_experience(state: Mapping[str, np.ndarray], key: str, n: int) -> np.ndarray:
-    """Return the optional per-experience array ``key`` of a snapshot, zeros where a state lacks it."""
+def per_experience_array(state: Mapping[str, object], key: str, n: int) -> np.ndarray:
+    """Return the optional per-experience float array ``key`` of a snapshot fitted to ``n`` experiences.
+
+    Experiences past the end of the stored array (or all, when the state lacks it) get 0; entries past the
+    ``n``-th are dropped. Used for ``em_pc_lever`` by the map, the merge and the store alike.
+    """
     out = np.zeros(n, dtype=np.float64)
     given = np.asarray(state.get(key, np.zeros(0)), dtype=np.float64).reshape(-1)[:n]
     out[: given.size] = given

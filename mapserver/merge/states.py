@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core import LinkKind
+from core.experience_map import per_experience_array
 from core.se3 import alignment, compose, relative, wrap_angle
 from mapserver.errors import MergeError
 from mapserver.merge.lattice import LatticeTransform, signed_delta, splat
@@ -373,7 +374,8 @@ def _merge_experiences(
         "em_stamp": _cat(loaded, partial, "em_stamp", np.float64, kept),
         "em_origin": _cat(loaded, partial, "em_origin", np.int64, kept),
         "em_pc_lever": np.concatenate(
-            [_levers(loaded, n_le), _levers(partial, n_pe)[kept] + _lever_arm(f, p_pc[kept])]
+            [per_experience_array(loaded, "em_pc_lever", n_le),
+             per_experience_array(partial, "em_pc_lever", n_pe)[kept] + _lever_arm(f, p_pc[kept])]
         ),
     }
     return _Experiences(T, anchor_loaded, emap, kept, n_le, n_le + int(kept.sum()), arrays)
@@ -482,14 +484,6 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
         "em_reckon": np.asarray(partial.get("em_reckon", np.zeros(6)), dtype=np.float64).copy(),
         "em_last_created": np.asarray(int(emap[last]) if last >= 0 and kept[last] else -1, dtype=np.int64),
     }
-
-
-def _levers(state: State, n: int) -> np.ndarray:
-    """Return a snapshot's ``em_pc_lever`` (n,), zeros where the state lacks it (no merge moved those)."""
-    out = np.zeros(n, dtype=np.float64)
-    given = np.asarray(state.get("em_pc_lever", np.zeros(0)), dtype=np.float64).reshape(-1)[:n]
-    out[: given.size] = given
-    return out
 
 
 def _lever_arm(f: LatticeTransform | None, coords: np.ndarray) -> np.ndarray:

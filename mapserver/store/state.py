@@ -43,6 +43,7 @@ import numpy as np
 import numpy.typing as npt
 from sqlalchemy import Connection, Update, bindparam, case, func, insert, or_, select, update
 
+from core.experience_map import per_experience_array
 from mapserver.errors import StoreError
 from mapserver.store.arrays import (
     negative_zeros,
@@ -646,12 +647,9 @@ def _with_levers(snapshot: Mapping[str, Any]) -> Mapping[str, Any]:
     if "em_pc_lever" not in snapshot:
         return snapshot
     count = np.asarray(snapshot["em_pose"]).reshape(-1, 4).shape[0]
-    given = np.asarray(snapshot["em_pc_lever"], dtype=np.float64).reshape(-1)
-    if given.shape[0] == count:
+    if np.asarray(snapshot["em_pc_lever"]).reshape(-1).shape[0] == count:
         return snapshot
-    levers = np.zeros(count, dtype=np.float64)
-    levers[: min(given.size, count)] = given[:count]
-    return {**snapshot, "em_pc_lever": levers}
+    return {**snapshot, "em_pc_lever": per_experience_array(snapshot, "em_pc_lever", count)}
 
 
 def _write_state_row(
