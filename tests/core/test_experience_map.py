@@ -161,3 +161,23 @@ def test_a_relocalisation_keeps_the_robots_own_odometry_between_the_experiences_
     assert state["em_last_created"] == e2 and not state["em_reckon"].any()
     again = ExperienceMap.restore(em.params, 3, state)
     assert all(np.array_equal(v, again.snapshot()[k]) for k, v in state.items())
+
+
+@pytest.mark.parametrize(
+    ("kind", "changes", "joint"),
+    [
+        (LinkKind.LOOP, {}, False),  # a single session's map: RatSLAM's fixed point, as OpenRatSLAM
+        (LinkKind.MERGE, {}, True),  # a merged map: the joint least squares (merge_relax_joint, default on)
+        (LinkKind.MERGE, {"merge_relax_joint": False}, False),
+        (LinkKind.LOOP, {"exp_relax_joint": True}, True),  # every map
+    ],
+)
+def test_a_map_holding_a_merge_link_is_settled_on_the_joint_least_squares(
+    kind: LinkKind, changes: dict[str, bool], joint: bool
+) -> None:
+    em = _em(**changes)
+    for k in range(3):
+        em.create_experience(k, np.array([float(k), 0.0, 0.0]), float(k), 0)
+    assert not em.joint or changes.get("exp_relax_joint", False)  # no merge link yet
+    assert em.add_link_raw(2, 0, np.array([-2.0, 0.0, 0.0, 0.0]), 1.0, 2.0, kind)
+    assert em.joint is joint
