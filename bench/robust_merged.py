@@ -1,0 +1,90 @@
+"""Wrong loop links injected into *merged* maps: the robust check with and without ``merge_relax_joint``.
+
+Usage: python bench/robust_merged.py [--out DIR] [--seeds 5] [--sizes 0.5,1,2,5] [--counts 1,5,20]
+[--maps cave3d:0:poseidon,symmetric:0:circle,twin-overlap:3:circle]
+
+``bench/robust_relaxation.py`` injects into single-session maps, which ``merge_relax_joint`` leaves alone. Here
+each ``SCENARIO:SEED:PRESET`` is simulated and both sessions are processed into one database with the contract's
+commands (``mapserver simulate``, ``mapserver process --db``), so session 2 merges into session 1's map; the
+merged map is then loaded and, for every k and size (how far apart in metres the two experiences a wrong link
+joins really are) and injection seed, k wrong loop links (``core.robust.false_loop_links``) are added and the map
+settled, once with ``merge_relax_joint`` off and once on. Prints per row the APE ratio against the same map
+settled without injection (median and max over seeds) and whether the row meets issue 12's bound (max ≤ 1.25).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
+
+from core import Engine, LinkKind, params_from_dict
+from core.robust import false_loop_links
+from mapserver.formats import Trajectory, read_tum
+from mapserver.store import MapContent, load_map, open_database
+from tests.mapserver.merge.scenario_metrics import cli_json
+from tests.mapserver.robust_metrics import map_ape
+
+
+def merged_map(out: Path, scenario: str, seed: int, preset: str) -> tuple[MapContent, Trajectory]:
+    """Simulate, process both sessions into one database, return the map holding both and their ground truth."""
+    info = cli_json("simulate", scenario, "--out", str(out), "--seed", str(seed))
+    db = f"sqlite:///{out / 'db.sqlite'}"
+    for session in info["sessions"][:2]:
+        cli_json("process", str(out / session["log"]), "--db", db, "--preset", preset)
+    truth = out / "both.tum"
+    truth.write_text("".join((out / s["ground_truth"]).read_text() for s in info["sessions"][:2]))
+    name = max(cli_json("maps", "--db", db)["maps"], key=lambda m: m["sessions"])["name"]
+    with open_database(db) as handle:
+        return load_map(handle, name=name), read_tum(truth)
+
+
+def settled_ape(content: MapContent, truth: Trajectory, joint: bool, count: int, size: float, seed: int) -> float:
+    """APE of the map settled after ``count`` wrong links of ``size`` metres (injection ``seed``)."""
+    engine = Engine.restore(params_from_dict(content.params).replace(merge_relax_joint=joint), content.snapshot)
+    if count:
+        src, dst, transform = false_loop_links(engine.map.poses, count, size, seed)
+        for a, b, t in zip(src.tolist(), dst.tolist(), transform, strict=True):
+            engine.map.add_link_raw(a, b, t, 1.0, float(np.linalg.norm(t[:3])), LinkKind.LOOP)
+    engine.settle()
+    return map_ape(engine.map.poses, engine.snapshot()["em_stamp"], truth)
+
+
+def main() -> None:
+    """Print one table per merged map and setting, then one JSON object."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--sizes", default="0.5,1,2,5")
+    parser.add_argument("--counts", default="1,5,20")
+    parser.add_argument("--maps", default="cave3d:0:poseidon,symmetric:0:circle,twin-overlap:3:circle")
+    args = parser.parse_args()
+    out = args.out or Path(tempfile.mkdtemp(prefix="robust-merged-"))
+    rows = []
+    for spec in args.maps.split(","):
+        scenario, seed, preset = spec.split(":")
+        content, truth = merged_map(out / f"{scenario}-{seed}", scenario, int(seed), preset)
+        for joint in (False, True):
+            clean = settled_ape(content, truth, joint, 0, 0.0, 0)
+            print(f"{scenario} seed {seed} ({preset}), merge_relax_joint={int(joint)}: clean APE {clean:.3f} m")
+            for count in (int(c) for c in args.counts.split(",")):
+                for size in (float(s) for s in args.sizes.split(",")):
+                    ratio = [settled_ape(content, truth, joint, count, size, s) / clean for s in range(args.seeds)]
+                    ok = max(ratio) <= 1.25
+                    print(f"   k {count:2d}  size {size:4.1f} m  APE ratio med {statistics.median(ratio):.2f} "
+                          f"max {max(ratio):.2f}  {'ok' if ok else 'FAIL'}")  # fmt: skip
+                    rows.append({"map": spec, "joint": joint, "k": count, "size_m": size, "clean_m": clean,
+                                 "ratio": ratio, "ok": ok})  # fmt: skip
+            sys.stdout.flush()
+    print(json.dumps({"rows": rows}))
+
+
+if __name__ == "__main__":
+    main()
