@@ -25,36 +25,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
-from core import Engine, LinkKind, params_from_dict
+from core import Engine, LinkKind
 from core.robust import false_loop_links
-from mapserver.formats import Trajectory, read_tum
-from mapserver.store import MapContent, load_map, open_database
-from tests.mapserver.merge.scenario_metrics import cli_json
-from tests.mapserver.robust_metrics import map_ape
+from tests.mapserver.robust_metrics import Simulated, map_ape, simulate_merged
 
 
-def merged_map(out: Path, scenario: str, seed: int, preset: str) -> tuple[MapContent, Trajectory]:
-    """Simulate, process both sessions into one database, return the map holding both and their ground truth."""
-    info = cli_json("simulate", scenario, "--out", str(out), "--seed", str(seed))
-    db = f"sqlite:///{out / 'db.sqlite'}"
-    for session in info["sessions"][:2]:
-        cli_json("process", str(out / session["log"]), "--db", db, "--preset", preset)
-    truth = out / "both.tum"
-    truth.write_text("".join((out / s["ground_truth"]).read_text() for s in info["sessions"][:2]))
-    name = max(cli_json("maps", "--db", db)["maps"], key=lambda m: m["sessions"])["name"]
-    with open_database(db) as handle:
-        return load_map(handle, name=name), read_tum(truth)
-
-
-def settled_ape(content: MapContent, truth: Trajectory, joint: bool, count: int, size: float, seed: int) -> float:
+def settled_ape(merged: Simulated, joint: bool, count: int, size: float, seed: int) -> float:
     """APE of the map settled after ``count`` wrong links of ``size`` metres (injection ``seed``)."""
-    engine = Engine.restore(params_from_dict(content.params).replace(merge_relax_joint=joint), content.snapshot)
+    engine = Engine.restore(merged.params.replace(merge_relax_joint=joint), merged.state)
     if count:
         src, dst, transform = false_loop_links(engine.map.poses, count, size, seed)
         for a, b, t in zip(src.tolist(), dst.tolist(), transform, strict=True):
             engine.map.add_link_raw(a, b, t, 1.0, float(np.linalg.norm(t[:3])), LinkKind.LOOP)
     engine.settle()
-    return map_ape(engine.map.poses, engine.snapshot()["em_stamp"], truth)
+    return map_ape(engine.map.poses, engine.snapshot()["em_stamp"], merged.truth)
 
 
 def main() -> None:
@@ -70,13 +54,13 @@ def main() -> None:
     rows = []
     for spec in args.maps.split(","):
         scenario, seed, preset = spec.split(":")
-        content, truth = merged_map(out / f"{scenario}-{seed}", scenario, int(seed), preset)
+        merged = simulate_merged(out / f"{scenario}-{seed}", scenario, int(seed), preset)
         for joint in (False, True):
-            clean = settled_ape(content, truth, joint, 0, 0.0, 0)
+            clean = settled_ape(merged, joint, 0, 0.0, 0)
             print(f"{scenario} seed {seed} ({preset}), merge_relax_joint={int(joint)}: clean APE {clean:.3f} m")
             for count in (int(c) for c in args.counts.split(",")):
                 for size in (float(s) for s in args.sizes.split(",")):
-                    ratio = [settled_ape(content, truth, joint, count, size, s) / clean for s in range(args.seeds)]
+                    ratio = [settled_ape(merged, joint, count, size, s) / clean for s in range(args.seeds)]
                     ok = max(ratio) <= 1.25
                     print(f"   k {count:2d}  size {size:4.1f} m  APE ratio med {statistics.median(ratio):.2f} "
                           f"max {max(ratio):.2f}  {'ok' if ok else 'FAIL'}")  # fmt: skip

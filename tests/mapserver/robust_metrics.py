@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from core import Engine, LinkKind, Params, preset
+from core import Engine, LinkKind, Params, params_from_dict, preset
 from core.robust import false_loop_links
 from mapserver.cli import main
 from mapserver.evaluation import ape_positions, interpolate_poses
 from mapserver.formats import Trajectory, read_tum
 from mapserver.params import with_settings
 from mapserver.pipeline import process_log
+from mapserver.store import list_maps, load_map, open_database
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,26 @@ def simulate_single(out: Path, scenario: str, seed: int = 0, settings: str | Non
     params = with_settings(preset(info["preset"]), settings)
     result = process_log(out / info["single"]["log"], params)
     return Simulated(params, result.engine.snapshot(), read_tum(out / info["single"]["ground_truth"]))
+
+
+def simulate_merged(out: Path, scenario: str, seed: int = 0, preset_name: str | None = None) -> Simulated:
+    """Simulate ``scenario`` into ``out``, process sessions 1 and 2 into one database with ``mapserver process --db``
+    (session 2 merges into session 1's map) and return the map holding most sessions with both sessions' ground truth.
+
+    ``preset_name``: the engine preset (default: the scenario's).
+    """
+    assert main(["simulate", scenario, "--out", str(out), "--seed", str(seed)]) == 0
+    info = json.loads((out / "scenario.json").read_text(encoding="utf-8"))
+    db = f"sqlite:///{out / 'db.sqlite'}"
+    for session in info["sessions"][:2]:
+        assert main(["process", str(out / session["log"]), "--db", db, "--preset", preset_name or info["preset"]]) == 0
+    truth = out / "both.tum"
+    truth.write_text("".join((out / s["ground_truth"]).read_text(encoding="utf-8") for s in info["sessions"][:2]))
+    with open_database(db) as handle:
+        with handle.read() as conn:
+            name = max(list_maps(conn=conn), key=lambda m: m.sessions).name
+        content = load_map(handle, name=name)
+    return Simulated(params_from_dict(content.params), content.snapshot, read_tum(truth))
 
 
 def inject(sim: Simulated, count: int, separation: float, seed: int, robust: bool = True) -> Injected:
