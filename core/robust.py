@@ -319,7 +319,6 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
     strained = float(best.z[fixed & best.active].max(initial=0.0)) > 0.5 * problem.drift.threshold
     strained = strained or problem.overreached(best.active, best.z) > 0
     descended = not first_active[problem.can].all()
-    wants_clique = False
     if problem.can.any() and (strained or descended):
         n, src, dst = problem.start.shape[0], problem.src, problem.dst
         bare_active = problem.couple(keep_connected(n, src, dst, fixed, best.z), best.z)  # bridges stay on
@@ -330,17 +329,16 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
             fits = problem.eliminate(keep_connected(n, src, dst, fixed | (bare.z <= problem.drift.threshold), bare.z))
             if _better(fits, best):
                 best = fits
-        # Wrong links that outnumber the true ones near them: start also from a pairwise-consistent set, and
-        # from the status quo, where the descent found outliers (docstring).
-        wants_clique = descended
     best = problem.switch_back_on(problem.switch_off_strained(best))
     margin = problem.drift.threshold**2  # one outlier's worth
-    if wants_clique:
+    # Wrong links that outnumber the true ones near them: start also from a pairwise-consistent set, and from the
+    # status quo, where the descent found outliers (docstring; ``descended`` implies ``bare`` was solved above).
+    if descended:
         problem.fresh_budget()
         clique = _pairwise_start(problem, bare, bare_active, distance)
         if clique is not None:
             clique = problem.switch_back_on(clique)
-            if clique.cost < best.cost - margin:
+            if _better(clique, best, margin):
                 best = clique
     if descended and status_quo is not None:
         problem.fresh_budget()
