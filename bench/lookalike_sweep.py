@@ -1,7 +1,7 @@
 """False and true merges of the merge decision on the look-alike scenarios (issue 12), swept over strength.
 
 Usage: python bench/lookalike_sweep.py [--out DIR] [--seeds 3] [--rows twin:5,twin:10,...] [--param K=V,...]
-[--set K=V,...]
+[--set K=V,...] [--alone]
 
 Each row is ``SCENARIO`` or ``SCENARIO:STRENGTH`` (``lookalike_m`` for twin, ``symmetric_deg`` for
 symmetric). Per seed it runs the contract's commands: ``mapserver simulate SCENARIO --out D --seed N
@@ -16,7 +16,9 @@ the two sessions' map frames (``error_m``, ``error_deg``: it grows with either s
 merge) and, for an applied merge, the final map's error near it (``local_error_m``: the median distance of
 session 2's experiences within 10 s of it from their true positions in session 1's map frame, which counts the
 stored map's own drift; until 2026-11-26 this judged applied merges, and called a merge onto the right place of
-a map drifted 9 m there false).
+a map drifted 9 m there false). With ``--alone`` each merged run also processes both sessions alone and prints
+them against their parts of the merged map (each part aligned on its own): whether a merge made either
+session's ground worse, apart from the single route's own odometry noise.
 Prints one line per row and, last, one JSON object with every figure.
 """
 
@@ -133,16 +135,36 @@ def _merge_poses(db: str) -> dict[int, np.ndarray]:
     return out
 
 
+def _sessions_alone(directory: Path, sessions: list[dict], set_args: list[str]) -> dict:
+    """Each session processed alone (``--no-merge``) and its part of the final map, APE RMSE in metres.
+
+    ``part``: the final map's experiences of that session aligned on their own (``evaluate --session``), so
+    a part can be compared with the same session alone: what the merge did to that session's ground.
+    """
+    out = {}
+    final = directory / "final.json"
+    for s in sessions:
+        name = Path(s["log"]).name.split(".")[0]
+        alone_db = f"sqlite:///{directory / f'{name}-alone.sqlite'}"
+        cli_json("process", str(directory / s["log"]), "--db", alone_db, "--no-merge", *set_args)
+        alone = _ape(directory, alone_db, name, [s], f"{name}-alone")
+        part = float(cli_json("evaluate", str(final), "--ground-truth", str(directory / "final.gt.tum"),
+                              "--session", s["name"])["ape_rmse"])  # fmt: skip
+        out[s["name"]] = {"alone": round(alone, 3), "part": round(part, 3)}
+    return out
+
+
 def run_once(
     out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float, extra: str = "",
-    settings: str = "",
+    settings: str = "", alone: bool = False,
 ) -> dict:
     """Simulate one seed of a row, process its two sessions into one database, classify the merges.
 
     A merge counts as surviving when its status is ``applied``; ``rejected`` ones were rolled back by their
     verification. Also: metres session 2 drove on session 1's ground before its first surviving merge,
     the APE of session 2's final map and the APE of session 2 processed alone (twin) or of the ``single``
-    route (the others). ``settings`` (``--set``) go to every ``mapserver process``.
+    route (the others). ``settings`` (``--set``) go to every ``mapserver process``. ``alone``: also each
+    session processed alone and its part of the final map (:func:`_sessions_alone`; merged runs only).
     """
     directory = out / f"{scenario}-{strength if strength is not None else 'default'}-seed{seed}"
     argv = ["simulate", scenario, "--out", str(directory), "--seed", str(seed)]
@@ -186,7 +208,10 @@ def run_once(
     cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge", *set_args)
     ref_name = Path(reference["log"]).name.split(".")[0]
     ape_alone = _ape(directory, alone_db, ref_name, [reference], "alone")
-    return {"seed": seed, "merges": merges, "shared_m_before_merge": shared, "ape": ape, "ape_reference": ape_alone}
+    run = {"seed": seed, "merges": merges, "shared_m_before_merge": shared, "ape": ape, "ape_reference": ape_alone}
+    if alone and applied:
+        run["sessions"] = _sessions_alone(directory, in_map, set_args)
+    return run
 
 
 def main() -> None:
@@ -201,13 +226,15 @@ def main() -> None:
     parser.add_argument("--param", default="", help="more simulator parameters for every row, e.g. lookalike_turns=1")
     parser.add_argument("--set", dest="settings", default="",
                         help="engine parameters for every process run, e.g. vt_shift_heading=1,exp_relax_joint=1")
+    parser.add_argument("--alone", action="store_true",
+                        help="also process each session alone and print it against its part of the merged map")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="lookalike-"))
     figures: dict[str, Any] = {}
     for row in args.rows.split(","):
         scenario, _, value = row.partition(":")
         strength = float(value) if value else None
-        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param, args.settings)
+        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param, args.settings, args.alone)
                 for seed in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
         surviving = sum(any(m["false"] and m["status"] == "applied" for m in r["merges"]) for r in runs)
         rolled = sum(any(m["false"] and m["status"] == "rejected" for m in r["merges"]) for r in runs)
@@ -221,6 +248,12 @@ def main() -> None:
         print(f"{row:<20} seeds {len(runs)}  surviving false {surviving}  rolled back {rolled}  true {true}  "
               f"shared m before merge (median/max) {med}  APE ratio median {np.median(ratios):.2f} "
               f"max {max(ratios):.2f}", flush=True)  # fmt: skip
+        for r in runs:
+            if "sessions" in r:
+                parts = "  ".join(f"{k}: alone {v['alone']:.2f}, in the map {v['part']:.2f}"
+                                  for k, v in r["sessions"].items())
+                print(f"  seed {r['seed']:<3} merged {r['ape']:.2f} / reference {r['ape_reference']:.2f} "
+                      f"= {r['ape'] / r['ape_reference']:.2f}   {parts}", flush=True)
     print(json.dumps(figures))
 
 

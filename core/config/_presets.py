@@ -80,6 +80,12 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
 # gates I_min 12, τ_R 0.30, F1 0.55, IoU tie-break). Weight-free encoder unless frontend_backbone/weights
 # are given. A separate preset: "poseidon" keeps the LVC front-end its tests and figures were made with.
 _SDR_HTM = {"frontend": "sdr-htm"}
+# poseidon-sdr's weight-free encoder (ours; the thesis's CNN has no weights here): the cave image at 16×6
+# before the projection and I_min 8 of 15 (thesis: 12 with its CNN). At poseidon's 64×24 and I_min 12 a
+# revisit 0.2-0.4 m off keeps too few descriptor bits: cave3d single routes closed no loop (seeds 0-4,
+# 0.78-1.04 m APE against LVC's 0.12-0.19 m); at 16×6 and I_min 8 they close 3-8 loops, 0.11-0.28 m, and
+# session 2 merges at its true place on 10 of 10 seeds, never into another cave (README, stop 38).
+_POSEIDON_ENCODER = {"template_x_size": 16, "template_y_size": 6, "sv_min_intersection": 8}
 # fjscoelho/ratslam config/neoslam_robotarium.yaml (OpenRatSLAM2's NeoSLAM run): its pose-cell and
 # experience-map keys; the neocortex (SDR/HTM, Table 5.1 values) replaces the intensity templates. The
 # template size feeds the weight-free encoder only (chosen by us: the file has no local-view keys).
@@ -92,7 +98,7 @@ _NEOSLAM_YAML = {
 PRESETS = MappingProxyType(
     {
         **PRESETS,
-        "poseidon-sdr": PRESETS["poseidon"].replace(**_SDR_HTM),
+        "poseidon-sdr": PRESETS["poseidon"].replace(**_SDR_HTM, **_POSEIDON_ENCODER),
         "neoslam": _DEFAULT.replace(**_NEOSLAM_YAML, **_SDR_HTM, template_x_size=64, template_y_size=24),
     }
 )

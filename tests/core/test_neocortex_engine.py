@@ -98,7 +98,10 @@ def test_lvc_presets_keep_lvc_and_the_sdr_presets_select_it() -> None:
     sdr = preset("poseidon-sdr")
     assert (sdr.sp_columns, sdr.sp_num_active_columns, sdr.sp_potential_radius, sdr.tm_cells_per_column) == (
         2048, 20, 600, 40)
-    assert (sdr.sv_tm_window, sdr.sv_tm_topk, sdr.sv_min_intersection, sdr.sv_tm_match_threshold) == (7, 15, 12, 0.3)
+    assert (sdr.sv_tm_window, sdr.sv_tm_topk, sdr.sv_tm_match_threshold) == (7, 15, 0.3)
+    # the weight-free encoder's input and gate are ours (README, stop 38); NeoSLAM keeps the thesis's I_min 12
+    assert (sdr.template_x_size, sdr.template_y_size, sdr.sv_min_intersection) == (16, 6, 8)
+    assert preset("neoslam").sv_min_intersection == 12
     with pytest.raises(ConfigError, match="frontend"):
         preset("poseidon").replace(frontend="cnn")
 
