@@ -344,6 +344,26 @@ def _online(
     return merger.events, merger.rollbacks, truth
 
 
+def test_neoslam_raises_its_code_gate_to_its_maps_own_look_alikes(tmp_path: Path) -> None:
+    """Issue 12 for the ``neoslam`` preset (README, stop 38): ``twin`` with a 20 m look-alike holding turns, seed 0.
+
+    At the plain code gate (0.68, ``merge_sdr_null_quantile`` 0, the preset until stop 38) session 2 merges into the
+    other world and the merge passes its probation (3 of 10 seeds, and 3 of 10 at 40 m); with the gate raised to
+    the 0.95 quantile of the stored map's own look-alikes (0.72 here) that merge is rolled back and none survives
+    (0 of 20). Must still: in one world (``twin-overlap``, 20 m) the session merges at its true place and stays."""
+    neoslam = preset("neoslam")
+    assert (neoslam.merge_sdr_min_overlap, neoslam.merge_sdr_null_quantile) == (0.68, 0.95)
+    twin = {"lookalike_m": 20.0, "lookalike_turns": 1.0}
+    events, _, _ = _online(tmp_path / "plain", "twin", neoslam.replace(merge_sdr_null_quantile=0.0), **twin)
+    assert len(events) == 1  # twin's worlds never overlap: every merge is false, and this one survived
+    events, rollbacks, _ = _online(tmp_path / "calibrated", "twin", neoslam, **twin)
+    assert events == [] and len(rollbacks) >= 1  # must not: the false merge is made, then rolled back
+    events, _, truth = _online(tmp_path / "overlap", "twin-overlap", neoslam, lookalike_m=20.0)
+    assert len(events) == 1 and events[0].evidence["verification"]["status"] == "passed"  # must still: merge
+    t = events[0].record.transform
+    assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 6.0 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.35
+
+
 def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_true_one_stands(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
