@@ -135,6 +135,13 @@ def _merge_poses(db: str) -> dict[int, np.ndarray]:
     return out
 
 
+def _ape_alone(directory: Path, session: dict, set_args: list[str], tag: str) -> float:
+    """APE RMSE of ``session``'s log processed on its own (``--no-merge``, database ``TAG.sqlite``)."""
+    db = f"sqlite:///{directory / f'{tag}.sqlite'}"
+    cli_json("process", str(directory / session["log"]), "--db", db, "--no-merge", *set_args)
+    return _ape(directory, db, Path(session["log"]).name.split(".")[0], [session], tag)
+
+
 def _sessions_alone(directory: Path, sessions: list[dict], set_args: list[str]) -> dict:
     """Each session processed alone (``--no-merge``) and its part of the final map, APE RMSE in metres.
 
@@ -142,14 +149,10 @@ def _sessions_alone(directory: Path, sessions: list[dict], set_args: list[str]) 
     a part can be compared with the same session alone: what the merge did to that session's ground.
     """
     out = {}
-    final = directory / "final.json"
     for s in sessions:
-        name = Path(s["log"]).name.split(".")[0]
-        alone_db = f"sqlite:///{directory / f'{name}-alone.sqlite'}"
-        cli_json("process", str(directory / s["log"]), "--db", alone_db, "--no-merge", *set_args)
-        alone = _ape(directory, alone_db, name, [s], f"{name}-alone")
-        part = float(cli_json("evaluate", str(final), "--ground-truth", str(directory / "final.gt.tum"),
-                              "--session", s["name"])["ape_rmse"])  # fmt: skip
+        alone = _ape_alone(directory, s, set_args, f"{s['name']}-alone")
+        part = float(cli_json("evaluate", str(directory / "final.json"), "--ground-truth",
+                              str(directory / "final.gt.tum"), "--session", s["name"])["ape_rmse"])  # fmt: skip
         out[s["name"]] = {"alone": round(alone, 3), "part": round(part, 3)}
     return out
 
@@ -203,11 +206,8 @@ def run_once(
                 m["false"] = m["place_error_m"] > tol_m or m["place_error_deg"] > tol_deg
     for m in applied:  # and in the final map near the merge (the stored map's own drift counts here)
         m["local_error_m"] = _local_error(directory, doc, s1, s2, m["stamp"])
-    alone_db = f"sqlite:///{directory / 'alone.sqlite'}"
     reference = doc["single"] if scenario != "twin" and doc.get("single") else s2
-    cli_json("process", str(directory / reference["log"]), "--db", alone_db, "--no-merge", *set_args)
-    ref_name = Path(reference["log"]).name.split(".")[0]
-    ape_alone = _ape(directory, alone_db, ref_name, [reference], "alone")
+    ape_alone = _ape_alone(directory, reference, set_args, "alone")
     run = {"seed": seed, "merges": merges, "shared_m_before_merge": shared, "ape": ape, "ape_reference": ape_alone}
     if alone and applied:
         run["sessions"] = _sessions_alone(directory, in_map, set_args)
