@@ -22,8 +22,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", help=f"parameter preset ({', '.join(PRESETS)})")
     group.add_argument("--config", help="OpenRatSLAM config_*.txt or OpenRatSLAM2 YAML file")
-    parser.add_argument("--set", dest="settings", metavar="KEY=VALUE,...",
-                        help="engine parameters on top of the preset or config, e.g. vt_shift_heading=1")
+    parser.add_argument("--set", dest="settings", metavar="KEY=VALUE,...", action="append",
+                        help="engine parameters on top of the preset or config, e.g. vt_shift_heading=1 "
+                             "(repeatable: every --set applies)")
     parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt (none: off); "
                         "sonar=/t adds a sonar image topic (sdr-htm front-end)")
     parser.add_argument("--out", help="write the map JSON here")
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if not log.exists():
         msg = f"log not found: {str(log)!r}"
         raise InputError(msg)
-    params = with_settings(resolve_params(args.preset, args.config, log), args.settings)
+    params = with_settings(resolve_params(args.preset, args.config, log), ",".join(args.settings or []))
     params = with_frontend(params, args.backbone, args.weights)
     overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
     overrides = {k: v for k, v in overrides.items() if v is not None}

@@ -244,6 +244,10 @@ def test_set_changes_engine_parameters_on_top_of_the_preset(
     assert (before["exp_relax_joint"], after["exp_relax_joint"]) == (False, True)
     assert (before["vt_match_threshold"], after["vt_match_threshold"]) == (0.06, 0.07)
     assert after["pc_dim_xy"] == before["pc_dim_xy"] == 15  # the rest is poseidon's
+    repeated = tmp_path / "repeated.json"  # every --set applies (the last one alone did, silently, until stop 39)
+    code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(repeated),
+                      "--set", "exp_relax_joint=1", "--set", "vt_match_threshold=0.07")  # fmt: skip
+    assert code == 0 and read_map_json(repeated)["params"] == after
 
 
 @pytest.mark.parametrize(
@@ -252,13 +256,15 @@ def test_set_changes_engine_parameters_on_top_of_the_preset(
         ("exp_relax_jiont=1", "unknown parameter 'exp_relax_jiont' in --set (did you mean 'exp_relax_joint'?)"),
         ("exp_relax_joint", "bad --set entry 'exp_relax_joint': expected KEY=VALUE, e.g. vt_shift_heading=1"),
         ("exp_relax_joint=1,exp_relax_joint=0", "bad --set: 'exp_relax_joint' given twice"),
+        (("exp_relax_joint=1", "exp_relax_joint=0"), "bad --set: 'exp_relax_joint' given twice"),  # two --set
         ("vt_match_threshold=-1", "vt_match_threshold"),
     ],
 )
 def test_a_bad_set_is_exit_2_and_writes_nothing(
-    small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], setting: str, message: str
+    small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], setting: str | tuple[str, ...], message: str
 ) -> None:
     out_map = tmp_path / "map.json"
-    code, _, err = _run(capsys, "process", str(small_log), "--out", str(out_map), "--set", setting)
+    sets = [f"--set={s}" for s in ((setting,) if isinstance(setting, str) else setting)]
+    code, _, err = _run(capsys, "process", str(small_log), "--out", str(out_map), *sets)
     assert code == 2 and message in err and err.count("\n") == 1
     assert not out_map.exists()
