@@ -5,7 +5,9 @@ session ids), the stable identities of its templates and experiences, and the ma
 Template pixels are *not* copied when the template is already stored as a ``templates`` row with the
 same identity, shape and mean (templates are immutable): the archive keeps a reference and the row's
 blob is reused on restore. Template rows are never deleted while their session exists, so references
-stay valid.
+stay valid. ``sdr-htm`` view cells are the exception: a merge re-expresses a view cell's prototype in the
+stored map's cortex and the store rewrites its row (``state._rewrite_reexpressed_templates``), often at the
+same size (its "mean"), so their archives keep every prototype inline (a few hundred bytes each).
 
 Unmerge recipe (what ``mapserver unmerge`` does, issue 5)::
 
@@ -35,7 +37,7 @@ from mapserver.store.blobs import resolve_arrays, share_arrays
 from mapserver.store.bulk import fetch_tuples
 from mapserver.store.maps import clear_map, create_map, find_map, get_map_by_id
 from mapserver.store.models import MapArchive, Template
-from mapserver.store.state import WriteResult, plain_params, read_map_state, write_map_state
+from mapserver.store.state import WriteResult, frontend_of, plain_params, read_map_state, write_map_state
 
 _META = "__archive__."
 _TEMPLATE_REF = _META + "template_ref"
@@ -126,7 +128,7 @@ def archive_state(
     arrays = {key: np.asarray(value) for key, value in snapshot.items()}
     templates = _snapshot_templates(arrays)
     ids = _checked_identities(arrays, templates, template_session, template_index, experience_session, experience_index)
-    content = _archive_content(conn, arrays, templates, ids)
+    content = _archive_content(conn, arrays, templates, ids, reference=frontend_of(params) != "sdr-htm")
     row = {
         "event_id": event_id,
         "role": role,
@@ -189,11 +191,18 @@ def _archive_content(
     arrays: Mapping[str, np.ndarray],
     templates: np.ndarray,
     ids: Mapping[str, npt.NDArray[np.int64]],
+    *,
+    reference: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Return the arrays the archive's npz holds: the snapshot with only unreferenced templates inline, and ids."""
+    """Return the arrays the archive's npz holds: the snapshot with only unreferenced templates inline, and ids.
+
+    ``reference``: templates stored as rows are referenced (False: every template inline; mutable rows).
+    """
     n = templates.shape[0]
     means = np.asarray(arrays.get("lv_means", np.zeros(n)), dtype=np.float64).reshape(-1)
-    referenced = _template_refs(conn, ids["template_session"], ids["template_index"], means, templates.shape[1:])
+    referenced = np.zeros(n, dtype=bool)
+    if reference:
+        referenced = _template_refs(conn, ids["template_session"], ids["template_index"], means, templates.shape[1:])
     content = {k: v for k, v in arrays.items() if k != "lv_templates"}
     content[_META + "keys"] = np.asarray(list(arrays), dtype=str)
     content["__lv_templates_inline"] = np.ascontiguousarray(templates[~referenced])

@@ -358,7 +358,7 @@ def _identities(
 # ------------------------------------------------------------------------------------------------ writing
 
 
-def _frontend(params: Any) -> str:
+def frontend_of(params: Any) -> str:
     """Return the view front-end named by engine parameters (``core.Params`` or its dict)."""
     value = params.get("frontend", "lvc") if isinstance(params, Mapping) else getattr(params, "frontend", "lvc")
     return str(value)
@@ -777,7 +777,7 @@ def _replace_rows(
         conn.execute(table.__table__.delete().where(table.map_id == map_id))
     _check_experience_owners(conn, map_id, rows.experience_sessions, rows.experience_index)
     templates, means = np.asarray(snapshot["lv_templates"]), np.asarray(snapshot["lv_means"])
-    if _frontend(params) == "sdr-htm":
+    if frontend_of(params) == "sdr-htm":
         _rewrite_reexpressed_templates(conn, templates, means, rows.template_sessions, rows.template_index)
     _sync_templates(conn, map_id, templates, means, rows.template_sessions, rows.template_index)
     _insert_pose_cell_links(conn, map_id, snapshot, shapes.rank)

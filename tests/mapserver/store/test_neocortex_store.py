@@ -35,3 +35,26 @@ def test_stop_after_then_resume_equals_one_run(tmp_path: Path, db_url: str, make
         assert key in whole.snapshot, key
     assert whole.snapshot["lv_templates"].shape[1:] == (1, PARAMS.sv_tm_topk)
     assert np.array_equal(whole.snapshot["lv_means"], np.sum(whole.snapshot["lv_templates"][:, 0] >= 0, axis=1))
+
+
+def test_an_archive_keeps_sdr_prototypes_inline_since_a_merge_rewrites_their_rows(tmp_path: Path, db_url: str) -> None:
+    """An archive references stored template rows by identity, shape and mean (templates are immutable); an
+    ``sdr-htm`` view cell's row is rewritten when a merge re-expresses its prototype, usually at the same size,
+    so an archive that referenced it would restore the merged map's prototype (an offline merge's unmerge did,
+    until stop 39). Its archives keep every prototype inline and restore the map as archived."""
+    from sqlalchemy import update
+
+    from mapserver.store.archive import archive_map_state, load_archive
+    from mapserver.store.models import Template
+
+    log = write_loop_log(tmp_path / "loop.bag", laps=1.0)
+    pipeline.process_into_store(log, PARAMS, db_url=db_url)
+    with open_database(db_url) as db:
+        stored = load_map(db, name="loop")
+        with db.write() as conn:
+            archive = archive_map_state(conn=conn, map_id=stored.meta.map.id)
+            other = np.full(PARAMS.sv_tm_topk, 7.0, dtype="<f4").tobytes()  # another prototype of the same size
+            conn.execute(update(Template).values(data=other))  # as a merge's re-expression rewrites the rows
+        with db.read() as conn:
+            restored = load_archive(conn=conn, archive_id=archive).snapshot
+    np.testing.assert_array_equal(restored["lv_templates"], stored.snapshot["lv_templates"])
