@@ -37,8 +37,10 @@ reported so that "error ≤ threshold" means accepted; no heading offset), and t
 test and probation decide and verify the merge (:mod:`mapserver.merge.online`).
 
 Limits (stated in the README): a session joins at most one ``sdr-htm`` map (the first map's prototypes
-were never read by a second map's cortex, so no bridge); maps merge only online, while the frames are
-read (offline ``merge`` and ``--redo`` refuse them). A session stopped with ``--stop-after`` keeps its
+were never read by a second map's cortex, so no bridge). Offline (``merge``, ``merge --redo``) there are no
+frames: the partial map's view cells are compared by their codes (:mod:`mapserver.merge.offline_views`) and
+re-expressed in the loaded cortex by reading those codes in creation order (:func:`translate_offline`).
+A session stopped with ``--stop-after`` keeps its
 readers' sequence state and translations with its merge driver's state (``MergerState.readers``), so it
 resumes as one run; when a candidate map changed meanwhile, its readers and hypotheses restart instead.
 """
@@ -266,3 +268,23 @@ class CortexReader:
     def cortex(self) -> dict[str, np.ndarray]:
         """Return the reader's cortex as snapshot arrays (``nc_*``): the merged engine continues in it."""
         return {k: v for k, v in self.cells.snapshot().items() if k.startswith("nc_")}
+
+
+def translate_offline(
+    params: Params, loaded: Mapping[str, np.ndarray], partial: Mapping[str, np.ndarray]
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Return (the partial snapshot in the loaded map's cells, the cortex to continue in) for an offline merge.
+
+    Online, the stored map's cortex reads the session's frames and each of the session's view cells gets the
+    descriptor read at the frame that made it (:meth:`CortexReader.remember`). Offline there are no frames; what
+    the partial map keeps of them is each view cell's code, the SDR of the frame that made it (``lv_sdr``), in
+    creation order. The loaded map's cortex (learning off) reads those codes in that order and each view cell
+    gets the descriptor read at its own code: the same sequence of inputs where the partial map made a view cell
+    at every frame (``sdr-htm`` makes one nearly every frame), a sparser one where it recognised its own cells.
+    """
+    reader = CortexReader(params, loaded, row=0)
+    codes = np.asarray(partial["lv_sdr"], dtype=np.uint8)
+    for template in range(codes.shape[0]):
+        reader.remember(template, reader.read(np.zeros(0), code=codes[template])[None, :])
+    return reader.translated(partial), reader.cortex()
+

@@ -10,6 +10,7 @@ import numpy as np
 
 from core import Engine, LinkKind
 from mapserver.errors import MergeError
+from mapserver.merge.offline_views import offline_incompatibility
 from mapserver.merge.places import merged_template_codes, merged_template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.snapshot import params_incompatibility
@@ -118,20 +119,30 @@ def merge_snapshots(
 ) -> tuple[Engine, MergeRecord]:
     """Merge stored map ``partial`` into stored map ``loaded`` (offline); return the merged engine and record.
 
-    The merged map keeps ``loaded``'s parameters. With ``settle`` the merged graph is moved to
-    the fixed point of relaxation (``Engine.settle``), as a finished session's map is.
+    The merged map keeps ``loaded``'s parameters; ``sdr-htm`` maps continue in ``loaded``'s cortex, the
+    partial's view cells re-expressed in its cells (:func:`mapserver.merge.cortex.translate_offline`). With
+    ``settle`` the merged graph is moved to the fixed point of relaxation (``Engine.settle``), as a finished
+    session's map is.
 
     Raises:
         MergeError: the two maps cannot be merged.
     """
-    reason = params_incompatibility(loaded.params, partial.params)
+    reason = offline_incompatibility(loaded, partial)
     if reason:
         msg = f"cannot merge map {partial.key!r} into {loaded.key!r}: {reason}"
         raise MergeError(msg)
+    partial_state, cortex = partial.state, None
+    if loaded.params.frontend == "sdr-htm":
+        from mapserver.merge.cortex import translate_offline  # torch only for sdr-htm maps
+
+        partial_state, cortex = translate_offline(loaded.params, loaded.state, partial.state)
     state, record = merge_states(
-        loaded.state, partial.state, match, shift_lattice=shift_lattice, identify_within=identify_within
+        loaded.state, partial_state, match, shift_lattice=shift_lattice, identify_within=identify_within
     )
-    state.update(merged_template_places(loaded.state, partial.state, record))
+    state.update(merged_template_places(loaded.state, partial_state, record))
+    if cortex is not None:
+        state.update(cortex)
+        state.update(merged_template_codes(loaded.state, partial_state, record))
     merged = restore_merged(loaded.params, state, record)
     if settle:
         merged.settle()

@@ -1,14 +1,14 @@
 """Offline merge of two stored maps (``mapserver merge --map A --into B``).
 
-Map A's templates, taken in creation order (which follows A's trajectory), are matched
-against map B's with B's matcher and threshold (``LocalViewCells.match``, vectorised over
-B's templates). A run of consecutive matching A templates is confirmed by the same rule
-as online (:mod:`mapserver.merge.confirm`), A's experience poses standing in for the
-odometry: the matched B experiences must advance as A's experiences do, under one rigid
-alignment. The best-supported run is the one with the most agreeing templates (then the
-lowest mean error); it must hold K of them (K from ``--confirm`` or A's
-``Params.merge_confirm``) and two distinct B templates when K ≥ 2. A is then merged into B
-anchored at the run's best-matching template, every pair of the run identified.
+Map A's views, taken in creation order (which follows A's trajectory), are matched against map B's
+with B's matcher and threshold (:mod:`mapserver.merge.offline_views`: LVC templates with
+``LocalViewCells.match``, vectorised over B's templates; ``sdr-htm`` view cells by their codes'
+overlap recall). A run of consecutive matching A views is confirmed by the same rule as online
+(:mod:`mapserver.merge.confirm`), where A saw each view standing in for the odometry: the matched B
+places must advance as A's do, under one rigid alignment. The best-supported run is the one with the
+most agreeing views (then the lowest mean error); it must hold K of them (K from ``--confirm`` or A's
+``Params.merge_confirm``) and two distinct B views when K ≥ 2. A is then merged into B anchored at the
+run's best-matching view, every pair of the run identified.
 """
 
 from __future__ import annotations
@@ -20,20 +20,21 @@ from typing import Any
 import numpy as np
 
 from core import Engine
-from core.localview import LocalViewCells
-from core.se3 import compose
+from core.se3 import compose, relative
 from mapserver.errors import MergeError, NoConfirmedMatchError
 from mapserver.merge.confirm import Observation, Streak
 from mapserver.merge.engines import StoredMap, merge_snapshots
+from mapserver.merge.offline_views import (
+    PartialViews,
+    StoredViews,
+    offline_incompatibility,
+    partial_views,
+    stored_views,
+)
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance
 from mapserver.merge.record import Match, MergeRecord
-from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
 
 logger = logging.getLogger(__name__)
-
-
-def _experience_for(order: np.ndarray, starts: np.ndarray, template: int) -> np.ndarray:
-    return order[starts[template] : starts[template + 1]]
 
 
 def find_match(
@@ -84,27 +85,27 @@ def candidate_matches(
         empty = partial.key if n_a == 0 else loaded.key
         msg = f"map {empty!r} has no templates to match"
         raise MergeError(msg)
-    cells = LocalViewCells.restore(loaded.params, loaded.state)
     threshold = loaded.params.vt_match_threshold
-    arrays = _MatchArrays.of(partial.state, loaded.state, n_a, n_b)
-    scan = _scan_runs(cells, threshold, arrays, Streak(needed, tolerance, yaw_tolerance))
+    mine, theirs = partial_views(partial), stored_views(loaded, loaded.params, tolerance)
+    scan = _scan_runs(mine, theirs, threshold, Streak(needed, tolerance, yaw_tolerance))
     if not scan.runs:
+        what = "view cell" if theirs.loose else "template"
         if scan.matched == 0:
-            msg = f"no template of map {partial.key!r} matches map {loaded.key!r} (threshold {threshold!r})"
+            msg = f"no {what} of map {partial.key!r} matches map {loaded.key!r} (threshold {threshold!r})"
         else:
             msg = (
-                f"no confirmed match of map {partial.key!r} in map {loaded.key!r}: {scan.matched} templates match "
+                f"no confirmed match of map {partial.key!r} in map {loaded.key!r}: {scan.matched} {what}s match "
                 f"but the longest agreeing run has {scan.longest} (needs {needed}, along two distinct stored "
-                "templates)"
+                f"{what}s)"
             )
         raise NoConfirmedMatchError(msg)
     ranked = sorted(scan.runs.values(), key=lambda r: _score(r[0]), reverse=True)
-    return [_match_of(partial.state, arrays.a_order, arrays.a_starts, entries, pairs) for entries, pairs in ranked]
+    return [_match_of(partial.state, mine, theirs, entries, pairs) for entries, pairs in ranked]
 
 
 def _needed_confirmations(partial: StoredMap, loaded: StoredMap, confirm: int | None) -> int:
     """Return K, the agreeing templates a run needs, once the maps are known to be mergeable."""
-    reason = params_incompatibility(loaded.params, partial.params)
+    reason = offline_incompatibility(loaded, partial)
     if reason:
         msg = f"cannot merge map {partial.key!r} into {loaded.key!r}: {reason}"
         raise MergeError(msg)
@@ -113,39 +114,6 @@ def _needed_confirmations(partial: StoredMap, loaded: StoredMap, confirm: int | 
         msg = f"--confirm must be at least 1, got {needed!r}"
         raise MergeError(msg)
     return needed
-
-
-@dataclass(frozen=True)
-class _MatchArrays:
-    """A's templates and experience poses and both maps' template → experience indices, as the scan reads them."""
-
-    a_templates: np.ndarray
-    a_means: np.ndarray
-    a_order: np.ndarray
-    a_starts: np.ndarray
-    b_order: np.ndarray
-    b_starts: np.ndarray
-    a_pose: np.ndarray
-    a_pc: np.ndarray
-    b_pose: np.ndarray
-
-    @classmethod
-    def of(cls, a: Any, b: Any, n_a: int, n_b: int) -> _MatchArrays:
-        """Return the arrays of snapshots ``a`` (map A, ``n_a`` templates) and ``b`` (map B, ``n_b``)."""
-        a_order, a_starts = experiences_by_template(np.asarray(a["em_template"]), n_a)
-        b_order, b_starts = experiences_by_template(np.asarray(b["em_template"]), n_b)
-        a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
-        return cls(
-            a_templates=np.asarray(a["lv_templates"], dtype=np.float32),
-            a_means=np.asarray(a["lv_means"], dtype=np.float64),
-            a_order=a_order,
-            a_starts=a_starts,
-            b_order=b_order,
-            b_starts=b_starts,
-            a_pose=a_pose,
-            a_pc=np.asarray(a["em_pc"], dtype=np.float64).reshape(a_pose.shape[0], -1),
-            b_pose=np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4),
-        )
 
 
 @dataclass
@@ -157,19 +125,19 @@ class _Scan:
     longest: int = 0
 
 
-def _scan_runs(cells: LocalViewCells, threshold: float, arrays: _MatchArrays, streak: Streak) -> _Scan:
-    """Match A's templates in creation order against B's; return every run's best confirmed state."""
+def _scan_runs(mine: PartialViews, theirs: StoredViews, threshold: float, streak: Streak) -> _Scan:
+    """Match A's views in creation order against B's; return every run's best confirmed state."""
     scan = _Scan()
     run = 0
-    for i in range(arrays.a_means.shape[0]):
-        u, error, relative = cells.match(arrays.a_templates[i], float(arrays.a_means[i]), limit=threshold)
+    for i in range(mine.means.shape[0]):
+        u, error, rel = theirs.matcher.match(mine.views[i], float(mine.means[i]), limit=threshold)
         if u < 0 or error > threshold:
             streak.reset()
             run += 1
             continue
         scan.matched += 1
         before = len(streak.entries)
-        streak.add(_observation(arrays, streak, i, u, error, relative))
+        streak.add(_observation(mine, theirs, streak, i, u, error, rel))
         run += len(streak.entries) <= before  # the streak restarted: a new run
         scan.longest = max(scan.longest, len(streak.entries))
         if streak.confirmed and _score(streak.entries) > _score(scan.runs.get(run, ([], ()))[0]):
@@ -177,29 +145,33 @@ def _scan_runs(cells: LocalViewCells, threshold: float, arrays: _MatchArrays, st
     return scan
 
 
-def _observation(arrays: _MatchArrays, streak: Streak, i: int, u: int, error: float, relative: float) -> Observation:
-    """Return A's template ``i`` matching B's template ``u`` as an observation of the streak."""
-    mine = _experience_for(arrays.a_order, arrays.a_starts, i)
-    theirs = _experience_for(arrays.b_order, arrays.b_starts, u)
-    exp_a = int(mine[0]) if mine.size else -1
-    exp_b = -1
-    if theirs.size and exp_a >= 0:
-        predicted = streak.predict(arrays.a_pose[exp_a])
-        if predicted is None or theirs.size == 1:
-            exp_b = int(theirs[0])
+def _observation(
+    mine: PartialViews, theirs: StoredViews, streak: Streak, i: int, u: int, error: float, rel: float
+) -> Observation:
+    """Return A's view ``i`` matching B's view ``u`` as an observation of the streak.
+
+    Where u has several places, the one nearest the streak's prediction.
+    """
+    seen_at = int(mine.experiences[i])
+    places = theirs.places_of(u)
+    place = -1
+    if places.size and seen_at >= 0:
+        predicted = streak.predict(mine.poses[i])
+        if predicted is None or places.size == 1:
+            place = int(places[0])
         else:
-            distances = np.linalg.norm(arrays.b_pose[theirs, :3] - predicted[:3], axis=1)
-            exp_b = int(theirs[int(np.argmin(distances))])
-    seen = compose(arrays.b_pose[exp_b], np.array([0.0, 0.0, 0.0, relative])) if exp_b >= 0 else np.zeros(4)
+            distances = np.linalg.norm(theirs.poses[places, :3] - predicted[:3], axis=1)
+            place = int(places[int(np.argmin(distances))])
+    seen = compose(theirs.poses[place], np.array([0.0, 0.0, 0.0, rel])) if place >= 0 else np.zeros(4)
     return Observation(
         frame=i,
         stored_template=u,
-        stored_experience=exp_b,
+        stored_experience=int(theirs.experiences[place]) if place >= 0 else -1,
         error=float(error),
-        relative_rad=float(relative),
+        relative_rad=float(rel),
         partial_template=i,
-        odometry=arrays.a_pose[exp_a] if exp_a >= 0 else np.zeros(4),
-        packet=arrays.a_pc[exp_a] if exp_a >= 0 else np.zeros(arrays.a_pc.shape[1]),
+        odometry=mine.poses[i] if seen_at >= 0 else np.zeros(4),
+        packet=mine.packets[i] if seen_at >= 0 else np.zeros(mine.packets.shape[1]),
         seen=seen,
     )
 
@@ -210,20 +182,30 @@ def _score(entries: list[Observation]) -> tuple[int, float]:
 
 
 def _match_of(
-    a: Any, a_order: np.ndarray, a_starts: np.ndarray, entries: list[Observation], pairs: tuple[tuple[int, int], ...]
+    a: Any, mine: PartialViews, theirs: StoredViews, entries: list[Observation], pairs: tuple[tuple[int, int], ...]
 ) -> Match:
-    """The match of one confirmed run, anchored at its best-matching (latest on ties) template."""
+    """The match of one confirmed run, anchored at its best-matching (latest on ties) view.
+
+    LVC: A's experience of that template ↔ B's experience (the paper's e_z ↔ e_u). ``sdr-htm``: the view was
+    seen at a place of B's, generally off its experience; A's pose is moved by the same offset so that the
+    anchor is B's experience (as online, :meth:`mapserver.merge.online.OnlineMerger._merge`).
+    """
     anchor = min(reversed(entries), key=lambda e: e.error)
-    exp_a = int(_experience_for(a_order, a_starts, anchor.partial_template)[0])
-    return Match.at_experience(
-        a,
-        exp_a,
-        anchor.stored_template,
-        anchor.stored_experience,
-        relative_rad=anchor.relative_rad,
-        confirmations=len(entries),
-        pairs=pairs,
-    )
+    heading = np.array([0.0, 0.0, 0.0, anchor.relative_rad])
+    if not theirs.loose:
+        exp_a = int(mine.experiences[anchor.partial_template])
+        return Match.at_experience(
+            a, exp_a, anchor.stored_template, anchor.stored_experience, relative_rad=anchor.relative_rad,
+            confirmations=len(entries), pairs=pairs,
+        )  # fmt: skip
+    experience = compose(theirs.poses[anchor.stored_experience], heading)  # experiences are B's first places
+    pose = compose(anchor.odometry, relative(anchor.seen, experience))
+    return Match(
+        stored_template=anchor.stored_template, stored_experience=anchor.stored_experience,
+        partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),  # type: ignore[arg-type]
+        partial_packet=tuple(float(v) for v in anchor.packet), relative_rad=anchor.relative_rad,
+        confirmations=len(entries), pairs=pairs,
+    )  # fmt: skip
 
 
 def merge_maps(

@@ -13,24 +13,34 @@ three spacings, so a jump between A's sessions weighs nothing), and the alignmen
     score = hit metres − miss_weight · miss metres ≥ evidence_m   and   the hits span MIN_TURN_RAD,
 
 the online rule's figures (Wald's SPRT over distance; a straight look-alike cannot pin an alignment).
-There is no probation offline: A's whole map is the evidence, before the merge.
+A's whole map is the evidence, before the merge; a look-alike that holds turns passes that test as a true
+overlap does (``twin`` with 10–40 m alike: 1–2 of 10 seeds merged two places, stop 39). So the winner also
+meets the rule an online merge's probation applies after it (:class:`mapserver.merge.verify.Probation`): along
+A's chain after the anchor, in A's own time order, for ``probation_m`` metres and then as long as the matches
+go on, no run of ``evidence_m`` metres of misses without a hit between them — and the same along B's chain
+after its side of the match, walked against A's places under the inverse alignment (a look-alike's exit shows
+on whichever map drove on over mapped ground).
+
+``sdr-htm`` maps (:mod:`mapserver.merge.offline_views`): the trials are A's view cells with a place, in
+creation order, and their views are their codes, matched against B's codes and placed as online.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from core.localview import LocalViewCells
-from core.se3 import alignment, compose, wrap_angle
+from core.se3 import alignment, compose, inverse, wrap_angle
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.hypotheses import HIT, MIN_TURN_RAD, MISS, EvidenceRule, StoredPlaces
 from mapserver.merge.offline import candidate_matches
+from mapserver.merge.offline_views import partial_views, stored_views, uses_codes
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance, map_spacing
 from mapserver.merge.record import Match
+from mapserver.merge.verify import PROBATION_CAP
 
 
 @dataclass(frozen=True)
@@ -47,6 +57,13 @@ class OfflineEvidence:
     misses: int
     agreeing: frozenset[int] = frozenset()
     """A's experiences whose views matched where this alignment (walked, re-anchored) put them."""
+    miss_run_m: float = 0.0
+    """The longest run of failing views along A's chain with no matching view between them, metres."""
+    reverse: OfflineEvidence | None = None
+    """The same test the other way: B's chain walked against A's places under the inverse alignment."""
+    probation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """What the online probation would have seen after the anchor, along A's chain in its own time order
+    (:func:`_probation_window`): (metres walked, longest run of misses, score hit − miss_weight · miss)."""
 
     @property
     def score_m(self) -> float:
@@ -58,12 +75,25 @@ class OfflineEvidence:
         """Whether the alignment stands (evidence 0: the paper's rule, every confirmed match stands)."""
         if self.evidence_m <= 0:
             return True
-        return self.score_m >= self.evidence_m and self.turn_rad >= MIN_TURN_RAD
+        held = self.probation[1] < self.evidence_m and (self.reverse is None or self.reverse.probation_held)
+        return self.score_m >= self.evidence_m and self.turn_rad >= MIN_TURN_RAD and held
+
+    @property
+    def probation_held(self) -> bool:
+        """Whether the probation after the anchor saw no run of ``evidence_m`` metres of misses (the online rule)."""
+        return self.probation[1] < self.evidence_m
 
     def reason(self) -> str:
         """Why the alignment does not stand (empty when it does)."""
         if self.passed:
             return ""
+        for side, evidence in (("its own", self), ("the other map's", self.reverse)):
+            if evidence is not None and not evidence.probation_held and self.score_m >= self.evidence_m:
+                return (
+                    f"after the match {side} chain meets {evidence.probation[1]:.1f} m of failing views in a row "
+                    f"where the alignment puts them (a probation rejects at {evidence.evidence_m:.1f} m): the "
+                    "views matched a look-alike stretch, not the place"
+                )
         if self.score_m < self.evidence_m:
             return (
                 f"the rest of the map does not confirm it: {self.hit_m:.1f} m of matching and {self.miss_m:.1f} m "
@@ -81,7 +111,9 @@ class OfflineEvidence:
             "hit_m": round(self.hit_m, 3), "miss_m": round(self.miss_m, 3), "unmapped_m": round(self.unmapped_m, 3),
             "score_m": round(self.score_m, 3), "turn_deg": round(float(np.degrees(self.turn_rad)), 1),
             "evidence_m": round(self.evidence_m, 3), "hits": self.hits, "misses": self.misses,
-            "passed": self.passed,
+            "miss_run_m": round(self.miss_run_m, 3), "passed": self.passed,
+            "probation": [round(v, 3) for v in self.probation],
+            **({} if self.reverse is None else {"reverse": self.reverse.as_dict()}),
         }  # fmt: skip
 
 
@@ -114,35 +146,61 @@ class _OfflineTest:
         self, partial: StoredMap, loaded: StoredMap, evidence_m: float | None, position_tolerance: float | None,
         yaw_tolerance: float,
     ) -> None:  # fmt: skip
-        a, b = partial.state, loaded.state
         tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
         spacing = map_spacing(loaded)
         wanted = partial.params.merge_evidence_m if evidence_m is None else evidence_m
-        self.rule = EvidenceRule.for_map(spacing, tolerance, yaw_tolerance, wanted, 0.0)
-        cells = LocalViewCells.restore(partial.params, b)  # A's matcher over B's templates
-        b_pose = np.asarray(b["em_pose"], dtype=np.float64).reshape(-1, 4)
+        theirs = stored_views(loaded, partial.params, tolerance)  # A's matcher (its gates) over B's views
+        miss_weight = getattr(theirs.matcher, "miss_weight", partial.params.miss_weight)
+        self.rule = EvidenceRule.for_map(spacing, tolerance, yaw_tolerance, wanted, 0.0, miss_weight)
+        self.probation_m = EvidenceRule.for_map(
+            spacing, tolerance, yaw_tolerance, wanted, partial.params.merge_probation_m, miss_weight
+        ).probation_m
         p = partial.params
-        templates = np.asarray(b["em_template"], dtype=np.int64)
-        self.places = StoredPlaces(cells, b_pose, templates, p.vt_match_threshold, p.vt_panoramic, self.rule)
+        self.places = StoredPlaces(
+            theirs.matcher, theirs.poses, theirs.templates, p.vt_match_threshold, p.vt_panoramic, self.rule,
+            loose=theirs.loose,
+        )  # fmt: skip
         self.loaded = loaded
-        self.a_pose = np.asarray(a["em_pose"], dtype=np.float64).reshape(-1, 4)
-        self.views = (np.asarray(a["lv_templates"], dtype=np.float32), np.asarray(a["lv_means"], dtype=np.float64),
-                      np.asarray(a["em_template"], dtype=np.int64))  # fmt: skip
+        mine = partial_views(partial)
+        self.unit_of_view: np.ndarray | None = None
+        """``sdr-htm``: A's view → its trial (−1: none); LVC: None (a match's anchor is its experience)."""
+        if uses_codes(partial):  # A's trials are its placed view cells, in creation order
+            seen = np.flatnonzero(mine.experiences >= 0)
+            self.a_pose, template_of = mine.poses[seen], seen
+            self.unit_of_view = np.full(mine.means.shape[0], -1, dtype=np.int64)
+            self.unit_of_view[seen] = np.arange(seen.size)
+        else:  # A's experiences, each with its template
+            self.a_pose = np.asarray(partial.state["em_pose"], dtype=np.float64).reshape(-1, 4)
+            template_of = np.asarray(partial.state["em_template"], dtype=np.int64)
+        self.views = (mine.views, mine.means, template_of)
         self.steps = np.zeros(self.a_pose.shape[0])
         if self.a_pose.shape[0] > 1:
             self.steps[1:] = np.linalg.norm(np.diff(self.a_pose[:, :3], axis=0), axis=1)
             self.steps[self.steps > 3.0 * spacing] = 0.0  # a jump between A's sessions is no distance driven
 
     def anchor(self, match: Match) -> int:
-        """Return A's experience nearest to where ``match``'s view was seen (the walk starts there)."""
-        return _anchor_experience(self.a_pose, match)
+        """Return A's trial where ``match``'s view was seen (the walk starts there): :meth:`unit_of` its view."""
+        return self.unit_of(match.partial_template, np.asarray(match.partial_pose, dtype=np.float64))
+
+    def unit_of(self, view: int, pose: np.ndarray) -> int:
+        """Return this map's trial for its own view ``view`` seen at ``pose`` (its map frame).
+
+        ``sdr-htm``: the view cell itself when it has a place (a match's pose is moved onto the other map's
+        experience, off the view cell by that map's place offset); LVC (or a view cell without a place): the
+        trial nearest to ``pose`` (an LVC match's pose is its experience's).
+        """
+        if self.unit_of_view is not None and 0 <= view < self.unit_of_view.size and self.unit_of_view[view] >= 0:
+            return int(self.unit_of_view[view])
+        return int(np.argmin(np.linalg.norm(self.a_pose[:, :3] - pose[:3], axis=1)))
 
     def weigh(self, match: Match) -> OfflineEvidence:
         """Walk A's chain both ways from the match's anchor under its alignment; return the evidence."""
+        return self.walk(offline_alignment(self.loaded, match), self.anchor(match))
+
+    def walk(self, transform: np.ndarray, anchor: int) -> OfflineEvidence:
+        """Walk A's chain both ways from its trial ``anchor`` under ``transform`` (A's frame → B's); the evidence."""
         a_pose, steps = self.a_pose, self.steps
-        transform = offline_alignment(self.loaded, match)
         outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
-        anchor = self.anchor(match)
         for chain in (np.arange(anchor, a_pose.shape[0]), np.arange(anchor, -1, -1)):
             _walk(self.places, transform, a_pose, self.views, chain, outcomes)
         hit, miss = outcomes == HIT, outcomes == MISS
@@ -154,8 +212,37 @@ class _OfflineTest:
             hit_m=float(steps[hit].sum()), miss_m=float(steps[miss].sum()),
             unmapped_m=float(steps[~hit & ~miss].sum()), turn_rad=turn, evidence_m=self.rule.evidence_m,
             miss_weight=self.rule.miss_weight, hits=int(hit.sum()), misses=int(miss.sum()),
-            agreeing=frozenset(np.flatnonzero(hit).tolist()),
+            agreeing=frozenset(np.flatnonzero(hit).tolist()), miss_run_m=_longest_miss_run(steps, hit, miss),
+            probation=_probation_window(steps[anchor + 1 :], outcomes[anchor + 1 :], self.probation_m, self.rule),
         )  # fmt: skip
+
+
+def _probation_window(
+    steps: np.ndarray, outcomes: np.ndarray, probation_m: float, rule: EvidenceRule
+) -> tuple[float, float, float]:
+    """Return (metres, longest miss run, score) of A's trials after the anchor that a probation would see.
+
+    As online (:class:`mapserver.merge.verify.Probation`): the probation lasts ``probation_m`` metres and then as
+    long as the matches go on (it ends ``evidence_m`` after the newest hit), at most ``PROBATION_CAP`` probation
+    distances.
+    """
+    travelled = np.cumsum(steps)
+    hit, miss = outcomes == HIT, outcomes == MISS
+    last_hit = np.maximum.accumulate(np.where(hit, travelled, 0.0)) if travelled.size else travelled
+    quiet = (travelled >= probation_m) & (travelled - last_hit >= rule.evidence_m)
+    over = quiet | (travelled >= PROBATION_CAP * probation_m)
+    end = int(np.argmax(over)) + 1 if over.any() else travelled.size
+    hit, miss, steps = hit[:end], miss[:end], steps[:end]
+    score = float(steps[hit].sum() - rule.miss_weight * steps[miss].sum())
+    return (float(steps.sum()), _longest_miss_run(steps, hit, miss), score)
+
+
+def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> float:
+    """Return the most miss metres along A's chain between two hits (unmapped trials neither add nor break)."""
+    if not miss.any():
+        return 0.0
+    run = np.cumsum(hit)  # trials between two hits share a run id
+    return float(np.bincount(run, weights=np.where(miss, steps, 0.0)).max())
 
 
 def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
@@ -163,11 +250,6 @@ def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
     b_pose = np.asarray(loaded.state["em_pose"], dtype=np.float64).reshape(-1, 4)
     seen = compose(b_pose[match.stored_experience], np.array([0.0, 0.0, 0.0, match.relative_rad]))
     return alignment(seen, np.asarray(match.partial_pose, dtype=np.float64))
-
-
-def _anchor_experience(a_pose: np.ndarray, match: Match) -> int:
-    """Return A's experience nearest to where the matched view was seen (the walk starts there)."""
-    return int(np.argmin(np.linalg.norm(a_pose[:, :3] - np.asarray(match.partial_pose[:3]), axis=1)))
 
 
 def _walk(
@@ -203,7 +285,9 @@ def confirmed_offline_match(
     (:func:`weigh_offline_match`). As online (:func:`mapserver.merge.hypotheses.decide`), the winner must
     pass the test and lead every rival by half the evidence distance, a rival being a run whose anchor the
     winner's walk did not find where it predicts it (another place for the same views): two places that
-    both fit (a symmetric world) merge neither.
+    both fit (a symmetric world) merge neither. The winner is then put to the online probation's run rule on
+    both maps (:attr:`OfflineEvidence.probation_held`): A's chain after the anchor, and B's chain after its
+    side of the match walked against A's places under the inverse alignment (:attr:`OfflineEvidence.reverse`).
 
     Raises:
         NoConfirmedMatchError: no confirmed run, none whose alignment stands, or no clear winner.
@@ -212,6 +296,11 @@ def confirmed_offline_match(
     test = _OfflineTest(a, b, evidence_m, None, DEFAULT_YAW_TOLERANCE)
     weighed = sorted(((test.weigh(m), m) for m in candidates), key=lambda t: -t[0].score_m)
     best, match = weighed[0]
+    if best.evidence_m > 0 and best.passed:  # the other way round: B's chain against A's places
+        back = _OfflineTest(b, a, evidence_m, None, DEFAULT_YAW_TOLERANCE)
+        b_pose = np.asarray(b.state["em_pose"], dtype=np.float64).reshape(-1, 4)[match.stored_experience]
+        anchor = back.unit_of(match.stored_template, b_pose)
+        best = replace(best, reverse=back.walk(inverse(offline_alignment(b, match)), anchor))
     if not best.passed:
         msg = (
             f"{len(candidates)} confirmed run(s) of map {a.key!r} in map {b.key!r}, none whose alignment the rest "

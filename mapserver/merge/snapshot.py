@@ -70,8 +70,10 @@ def params_incompatibility(loaded: Params, partial: Params, *, reads_frames: boo
 
     The lattice shape, the template size and the matcher's geometry (panoramic or not)
     must agree; the rest (thresholds, energies) may differ between sessions. Maps of the
-    ``sdr-htm`` front-end merge only while the stored map's cortex reads the session's frames
-    (``reads_frames``: the online merge, :mod:`mapserver.merge.cortex`), with the same cortex structure.
+    ``sdr-htm`` front-end merge only where something compares their views (``reads_frames``: online the
+    stored map's cortex reads the session's frames, :mod:`mapserver.merge.cortex`; offline both maps'
+    view-cell codes, :func:`mapserver.merge.offline_views.offline_incompatibility`), with the same cortex
+    structure.
     """
     if loaded.lattice_shape != partial.lattice_shape:
         return f"pose-cell lattices differ: {loaded.lattice_shape!r} and {partial.lattice_shape!r}"
@@ -79,8 +81,8 @@ def params_incompatibility(loaded: Params, partial: Params, *, reads_frames: boo
         return f"view front-ends differ: {loaded.frontend!r} and {partial.frontend!r}"
     if loaded.frontend == "sdr-htm":
         if not reads_frames:
-            return ("maps of the sdr-htm front-end merge only online, while the stored map's cortex reads the "
-                    "session's frames (each map's view cells are its own HTM's cells): process the log instead")
+            return ("maps of the sdr-htm front-end merge only where their views are compared (each map's view "
+                    "cells are its own HTM's cells): online, or offline by their view cells' codes")
         from mapserver.merge.cortex import structural_difference
 
         return structural_difference(loaded, partial)

@@ -35,7 +35,7 @@ def test_sdr_maps_merge_online_with_the_same_cortex_structure_and_lvc_maps_still
     assert params_incompatibility(preset("poseidon"), preset("poseidon")) is None  # must still merge
     assert "front-ends differ" in (params_incompatibility(preset("poseidon"), sdr) or "")
     assert params_incompatibility(sdr, sdr, reads_frames=True) is None
-    assert "merge only online" in (params_incompatibility(sdr, sdr) or "")  # offline: no frames to read
+    assert "merge only where their views are compared" in (params_incompatibility(sdr, sdr) or "")  # offline: codes
     assert "sp_columns" in (params_incompatibility(sdr, sdr.replace(sp_columns=1024), reads_frames=True) or "")
     assert params_incompatibility(sdr, sdr.replace(sv_min_intersection=8), reads_frames=True) is None  # a gate
 

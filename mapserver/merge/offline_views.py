@@ -1,0 +1,177 @@
+"""The two maps' views as an offline merge reads them: map A's in creation order, map B's as a place matcher.
+
+An offline merge (:mod:`mapserver.merge.offline`, :mod:`mapserver.merge.offline_evidence`) walks map A's views in
+the order they were made (which follows A's trajectory), each with where A saw it, and asks map B which of its
+views it matches and where B says that view is. What a view is depends on the front-end:
+
+* ``lvc``: A's templates, each seen at its first experience; B's templates, matched by B's (or A's) local view
+  cells (``LocalViewCells.match``), placed at their experiences.
+* ``sdr-htm``: a view cell of one map is a set of that map's own temporal-memory cells, so two maps' prototypes
+  are not comparable (:mod:`mapserver.merge.cortex`); their *codes* are: the LSBH SDR of the frame that made each
+  view cell (``lv_sdr``, Eqs 4.1–4.3, a fixed seeded projection). A's view cells are its codes, each seen at its
+  place (its experience plus the odometry since, :func:`mapserver.merge.places.template_places`); B's matcher is a
+  :class:`~mapserver.merge.cortex.CortexReader` answering by overlap recall R = |c ∩ c_ℓ| / |c| ≥ the map's
+  code gate (``merge_sdr_min_overlap``, raised to B's own look-alikes by ``merge_sdr_null_quantile``), the online
+  merge's observation, and B predicts views at its experiences and at its view cells' places (loosely placed,
+  as online: :class:`mapserver.merge.hypotheses.StoredPlaces`).
+
+Both maps of an ``sdr-htm`` merge must hold codes (maps stored before ``lv_sdr`` existed do not): without them
+nothing of A can be compared with B.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mapserver.errors import MergeError
+from mapserver.merge.places import template_places
+from mapserver.merge.snapshot import experiences_by_template
+
+if TYPE_CHECKING:
+    from core import Params
+    from mapserver.merge.engines import StoredMap
+
+
+@dataclass(frozen=True)
+class PartialViews:
+    """Map A's views in creation order, and where A saw each (its own map frame and lattice)."""
+
+    views: np.ndarray
+    """(N, ...) each view as B's matcher takes it: a template, or a code row (no descriptor, the packed SDR)."""
+    means: np.ndarray
+    """(N,) each view's mean intensity (0 for codes)."""
+    poses: np.ndarray
+    """(N, 4) where A saw each view; rows of views seen nowhere are not used (``experiences`` −1)."""
+    packets: np.ndarray
+    """(N, D) A's pose-cell packet there (its experience's)."""
+    experiences: np.ndarray
+    """(N,) the A experience each view is seen at (LVC) or placed after (``sdr-htm``); −1: none."""
+
+
+@dataclass(frozen=True)
+class StoredViews:
+    """Map B as a predictor of views: its matcher, and the places it says each of its views is at."""
+
+    matcher: Any
+    """``LocalViewCells`` or :class:`~mapserver.merge.cortex.CortexReader`: ``match``/``match_among``/``count``."""
+    poses: np.ndarray
+    """(P, 4) B's places: its experiences, then (``sdr-htm``) its view cells' places."""
+    templates: np.ndarray
+    """(P,) the view of each place."""
+    experiences: np.ndarray
+    """(P,) the experience each place belongs to (an experience's own id, or a view cell's)."""
+    order: np.ndarray
+    """Places of view u are ``order[starts[u]:starts[u + 1]]``."""
+    starts: np.ndarray
+    loose: bool
+    """Views are placed loosely (``sdr-htm``: :meth:`~mapserver.merge.hypotheses.StoredPlaces._placed_near`)."""
+
+    @property
+    def count(self) -> int:
+        """Return the number of B's views."""
+        return int(self.matcher.count)
+
+    def places_of(self, view: int) -> np.ndarray:
+        """Return the place indices of B's view ``view``."""
+        return self.order[self.starts[view] : self.starts[view + 1]]
+
+
+def uses_codes(stored: StoredMap) -> bool:
+    """Return whether the map's views are ``sdr-htm`` view cells (matched offline by their codes)."""
+    return stored.params.frontend == "sdr-htm"
+
+
+def check_codes(stored: StoredMap) -> None:
+    """Refuse an ``sdr-htm`` map without view-cell codes: stored before ``lv_sdr`` existed.
+
+    Raises:
+        MergeError: the map has view cells but no code for any of them.
+    """
+    codes = stored.state.get("lv_sdr")
+    n = int(np.shape(stored.state["lv_means"])[0])
+    if n and (codes is None or not np.asarray(codes).any()):
+        msg = (
+            f"map {stored.key!r} keeps no view-cell codes (lv_sdr: stored before they existed), so its sdr-htm view "
+            "cells cannot be compared with another map's offline; merge it online (process a log into it)"
+        )
+        raise MergeError(msg)
+
+
+def partial_views(partial: StoredMap) -> PartialViews:
+    """Return map A's views (:class:`PartialViews`): templates at their first experience, or codes at their places."""
+    state = partial.state
+    n = int(np.shape(state["lv_means"])[0])
+    em_pose = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
+    em_pc = np.asarray(state["em_pc"], dtype=np.float64).reshape(em_pose.shape[0], -1)
+    if uses_codes(partial):
+        poses, experiences = template_places(state)
+        views = code_rows(np.asarray(state["lv_sdr"], dtype=np.uint8), partial.params.sv_tm_topk)
+        means = np.zeros(n)
+    else:
+        order, starts = experiences_by_template(np.asarray(state["em_template"]), n)
+        first = np.append(order, -1)[starts[:-1]]  # each template's first experience (its lowest id)
+        experiences = np.where(starts[1:] > starts[:-1], first, -1).astype(np.int64)
+        poses = np.full((n, 4), np.nan)
+        poses[experiences >= 0] = em_pose[experiences[experiences >= 0]]
+        views = np.asarray(state["lv_templates"], dtype=np.float32)
+        means = np.asarray(state["lv_means"], dtype=np.float64)
+    packets = np.zeros((n, em_pc.shape[1]))
+    packets[experiences >= 0] = em_pc[experiences[experiences >= 0]]
+    return PartialViews(views, means, poses, packets, experiences)
+
+
+def code_rows(codes: np.ndarray, topk: int) -> np.ndarray:
+    """Return (N, 1, topk + bytes) rows that carry each packed code and no descriptor (−1): read by codes only."""
+    rows = np.full((codes.shape[0], 1, topk + codes.shape[1]), -1, dtype=np.int64)
+    rows[:, 0, topk:] = codes
+    return rows
+
+
+def stored_views(loaded: StoredMap, params: Params, far_m: float) -> StoredViews:
+    """Return map B as a place matcher with the gates of ``params`` (:class:`StoredViews`).
+
+    ``far_m``: places further apart than this are different places to the code gate's calibration
+    (:func:`mapserver.merge.cortex.null_overlap`).
+    """
+    state = loaded.state
+    poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
+    templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
+    experiences = np.arange(poses.shape[0], dtype=np.int64)
+    n = int(np.shape(state["lv_means"])[0])
+    if uses_codes(loaded):
+        from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm maps
+
+        view_poses, view_anchor = template_places(state)
+        placed = np.flatnonzero(view_anchor >= 0)
+        poses = np.concatenate([poses, view_poses[placed]])
+        templates = np.concatenate([templates, placed])
+        experiences = np.concatenate([experiences, view_anchor[placed]])
+        matcher: Any = CortexReader(params, state, row=0, key=loaded.key, far_m=far_m, places=view_poses)
+    else:
+        from core.localview import LocalViewCells
+
+        matcher = LocalViewCells.restore(params, state)
+    order, starts = experiences_by_template(templates, n)
+    return StoredViews(matcher, poses, templates, experiences, order, starts, loose=uses_codes(loaded))
+
+
+def offline_incompatibility(loaded: StoredMap, partial: StoredMap) -> str | None:
+    """Return why two stored maps cannot be merged offline (None: they can).
+
+    As :func:`mapserver.merge.snapshot.params_incompatibility`; ``sdr-htm`` maps are compared by their codes,
+    so they need the same cortex structure and both must keep codes (:func:`check_codes`).
+    """
+    from mapserver.merge.snapshot import params_incompatibility
+
+    codes = uses_codes(loaded) and uses_codes(partial)
+    reason = params_incompatibility(loaded.params, partial.params, reads_frames=codes)
+    if reason is None and codes:
+        for stored in (partial, loaded):
+            try:
+                check_codes(stored)
+            except MergeError as error:
+                return str(error)
+    return reason
