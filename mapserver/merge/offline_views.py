@@ -85,10 +85,10 @@ def uses_codes(stored: StoredMap) -> bool:
 
 
 def check_codes(stored: StoredMap) -> None:
-    """Refuse an ``sdr-htm`` map without view-cell codes: stored before ``lv_sdr`` existed.
+    """Refuse an ``sdr-htm`` map without view-cell codes or places: stored before ``lv_sdr``/``lv_place`` existed.
 
     Raises:
-        MergeError: the map has view cells but no code for any of them.
+        MergeError: the map has view cells but no code, or no place, for any of them.
     """
     codes = stored.state.get("lv_sdr")
     n = int(np.shape(stored.state["lv_means"])[0])
@@ -96,6 +96,12 @@ def check_codes(stored: StoredMap) -> None:
         msg = (
             f"map {stored.key!r} keeps no view-cell codes (lv_sdr: stored before they existed), so its sdr-htm view "
             "cells cannot be compared with another map's offline; merge it online (process a log into it)"
+        )
+        raise MergeError(msg)
+    if n and not (template_places(stored.state)[1] >= 0).any():
+        msg = (
+            f"map {stored.key!r} keeps no view-cell places (lv_place: stored before they existed), so where its "
+            "sdr-htm view cells were seen is unknown offline; merge it online (process a log into it)"
         )
         raise MergeError(msg)
 

@@ -44,6 +44,8 @@ def test_sdr_maps_merge_offline_by_their_codes_and_not_without_them(maps: tuple[
     assert offline_incompatibility(a, b) is None  # must still: codes on both sides
     no_codes = StoredMap(4, SDR, {**b.state, "lv_sdr": np.zeros_like(b.state["lv_sdr"])})
     assert "keeps no view-cell codes" in (offline_incompatibility(a, no_codes) or "")  # stored before lv_sdr
+    no_places = StoredMap(7, SDR, {k: v for k, v in b.state.items() if not k.startswith("lv_place")})
+    assert "keeps no view-cell places" in (offline_incompatibility(no_places, a) or "")  # stored before lv_place
     lvc = StoredMap(5, preset("irat"), a.state)
     assert "front-ends differ" in (offline_incompatibility(a, lvc) or "")
     other = StoredMap(6, SDR.replace(sp_columns=1024), b.state)
