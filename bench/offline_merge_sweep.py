@@ -1,7 +1,7 @@
 """Offline merges (``mapserver merge --map session2 --into session1``) on the look-alike and overlap scenarios.
 
 Usage: python bench/offline_merge_sweep.py SCENARIO [--seeds 0,1,2] [--sim K=V,...] [--preset P] [--set K=V,...]
-       [--into-seed-offset N]
+       [--into-seed-offset N] [--merge-evidence M]
 
 Per seed: simulate SCENARIO (``--sim``: simulator parameters), process its sessions 1 and 2 each alone into one
 database (``process --no-merge``, preset ``P``: default the scenario's, ``--set``: parameter changes), measure
@@ -10,7 +10,8 @@ contract's command. A merge is printed with its transform's error against the tr
 frames (at session 2's origin: it includes session 2's drift up to the anchor) and the merged map's APE against
 both sessions' ground truth (one rigid alignment); a refusal with its reason (exit 2). In ``twin`` every merge
 is false. ``--into-seed-offset N``: session 1 comes from seed s + N instead (another world of the same shape:
-every merge is false). Last stdout line: one JSON object.
+every merge is false). ``--merge-evidence M``: passed to ``merge`` (metres; default: the map's parameter).
+Last stdout line: one JSON object.
 """
 
 from __future__ import annotations
@@ -91,7 +92,8 @@ def run_seed(out: Path, args: argparse.Namespace, seed: int) -> dict[str, Any]:
         log = str(Path(session["dir"]) / session["log"])
         cli_json("process", log, "--db", db, "--preset", p, "--no-merge", "--map", f"s{number}", *sets)
     alone = [_ape(out, db, f"s{n}", [sessions[n - 1]], f"seed{seed}-s{n}") for n in (1, 2)]
-    code, err = cli_code("merge", "--db", db, "--map", "s2", "--into", "s1")
+    evidence = [] if args.merge_evidence is None else ["--merge-evidence", str(args.merge_evidence)]
+    code, err = cli_code("merge", "--db", db, "--map", "s2", "--into", "s1", *evidence)
     row: dict[str, Any] = {"seed": seed, "merged": code == 0, "alone_ape_m": alone}
     if code != 0:
         row["reason"] = err.strip().splitlines()[-1][:300] if err.strip() else f"exit {code}"
@@ -116,6 +118,7 @@ def main() -> None:
     parser.add_argument("--preset", default="", help="engine preset (default: the scenario's)")
     parser.add_argument("--set", default="", help="parameter changes K=V,...")
     parser.add_argument("--into-seed-offset", type=int, default=0, help="session 1 from seed s + N (another world)")
+    parser.add_argument("--merge-evidence", type=float, default=None, help="merge --merge-evidence M (metres)")
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
