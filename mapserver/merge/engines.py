@@ -68,6 +68,26 @@ def restore_merged(
     return engine
 
 
+def _merged_state(
+    loaded: Mapping[str, np.ndarray],
+    partial: Mapping[str, np.ndarray],
+    match: Match,
+    shift_lattice: bool,
+    identify_within: float | None,
+    cortex: Mapping[str, np.ndarray] | None,
+) -> tuple[dict[str, np.ndarray], MergeRecord]:
+    """Return the merged snapshot and its record: ``merge_states`` and the view cells' places.
+
+    ``cortex`` (``sdr-htm``): the ``nc_*`` arrays the merged map continues in; the view cells' codes are merged too.
+    """
+    state, record = merge_states(loaded, partial, match, shift_lattice=shift_lattice, identify_within=identify_within)
+    state.update(merged_template_places(loaded, partial, record))
+    if cortex is not None:
+        state.update(cortex)
+        state.update(merged_template_codes(loaded, partial, record))
+    return state, record
+
+
 def merge_engine(
     stored: StoredMap,
     engine: Engine,
@@ -96,13 +116,7 @@ def merge_engine(
         msg = f"cannot merge into map {stored.key!r}: {reason}"
         raise MergeError(msg)
     partial = engine.snapshot() if partial is None else partial
-    state, record = merge_states(
-        stored.state, partial, match, shift_lattice=shift_lattice, identify_within=identify_within
-    )
-    state.update(merged_template_places(stored.state, partial, record))
-    if cortex is not None:
-        state.update(cortex)
-        state.update(merged_template_codes(stored.state, partial, record))
+    state, record = _merged_state(stored.state, partial, match, shift_lattice, identify_within, cortex)
     merged = restore_merged(engine.params, state, record, origin=engine.origin)
     merged.loop_closures = engine.loop_closures
     return merged, record
@@ -136,13 +150,7 @@ def merge_snapshots(
         from mapserver.merge.cortex import translate_offline  # torch only for sdr-htm maps
 
         partial_state, cortex = translate_offline(loaded.params, loaded.state, partial.state)
-    state, record = merge_states(
-        loaded.state, partial_state, match, shift_lattice=shift_lattice, identify_within=identify_within
-    )
-    state.update(merged_template_places(loaded.state, partial_state, record))
-    if cortex is not None:
-        state.update(cortex)
-        state.update(merged_template_codes(loaded.state, partial_state, record))
+    state, record = _merged_state(loaded.state, partial_state, match, shift_lattice, identify_within, cortex)
     merged = restore_merged(loaded.params, state, record)
     if settle:
         merged.settle()

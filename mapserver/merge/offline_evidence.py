@@ -75,7 +75,7 @@ class OfflineEvidence:
         """Whether the alignment stands (evidence 0: the paper's rule, every confirmed match stands)."""
         if self.evidence_m <= 0:
             return True
-        held = self.probation[1] < self.evidence_m and (self.reverse is None or self.reverse.probation_held)
+        held = self.probation_held and (self.reverse is None or self.reverse.probation_held)
         return self.score_m >= self.evidence_m and self.turn_rad >= MIN_TURN_RAD and held
 
     @property

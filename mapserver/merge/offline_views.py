@@ -26,7 +26,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mapserver.errors import MergeError
 from mapserver.merge.places import template_places
 from mapserver.merge.snapshot import experiences_by_template
 
@@ -84,26 +83,24 @@ def uses_codes(stored: StoredMap) -> bool:
     return stored.params.frontend == "sdr-htm"
 
 
-def check_codes(stored: StoredMap) -> None:
-    """Refuse an ``sdr-htm`` map without view-cell codes or places: stored before ``lv_sdr``/``lv_place`` existed.
+def missing_codes(stored: StoredMap) -> str | None:
+    """Return why an ``sdr-htm`` map cannot be compared offline (None: it can, or it has no view cells).
 
-    Raises:
-        MergeError: the map has view cells but no code, or no place, for any of them.
+    Its view cells need codes and places; maps stored before ``lv_sdr``/``lv_place`` existed have neither.
     """
     codes = stored.state.get("lv_sdr")
     n = int(np.shape(stored.state["lv_means"])[0])
     if n and (codes is None or not np.asarray(codes).any()):
-        msg = (
+        return (
             f"map {stored.key!r} keeps no view-cell codes (lv_sdr: stored before they existed), so its sdr-htm view "
             "cells cannot be compared with another map's offline; merge it online (process a log into it)"
         )
-        raise MergeError(msg)
     if n and not (template_places(stored.state)[1] >= 0).any():
-        msg = (
+        return (
             f"map {stored.key!r} keeps no view-cell places (lv_place: stored before they existed), so where its "
             "sdr-htm view cells were seen is unknown offline; merge it online (process a log into it)"
         )
-        raise MergeError(msg)
+    return None
 
 
 def partial_views(partial: StoredMap) -> PartialViews:
@@ -168,16 +165,12 @@ def offline_incompatibility(loaded: StoredMap, partial: StoredMap) -> str | None
     """Return why two stored maps cannot be merged offline (None: they can).
 
     As :func:`mapserver.merge.snapshot.params_incompatibility`; ``sdr-htm`` maps are compared by their codes,
-    so they need the same cortex structure and both must keep codes (:func:`check_codes`).
+    so they need the same cortex structure and both must keep codes (:func:`missing_codes`).
     """
     from mapserver.merge.snapshot import params_incompatibility
 
     codes = uses_codes(loaded) and uses_codes(partial)
     reason = params_incompatibility(loaded.params, partial.params, reads_frames=codes)
     if reason is None and codes:
-        for stored in (partial, loaded):
-            try:
-                check_codes(stored)
-            except MergeError as error:
-                return str(error)
+        reason = missing_codes(partial) or missing_codes(loaded)
     return reason
