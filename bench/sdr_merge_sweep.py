@@ -50,14 +50,16 @@ def place_error(
     stored: dict[str, np.ndarray], merged: Engine, truth: tuple[np.ndarray, np.ndarray], stamp: float
 ) -> tuple[float, float]:
     """Metres and degrees, in the world, between where session 2 truly was at ``stamp`` and the stored place the
-    merge put it at: session 1's experience nearest to the robot's pose in the merged map right after the merge
+    merge put it at: session 1's experience nearest to the robot's pose (its current experience plus the odometry
+    since) in the merged map right after the merge
     (loaded experiences come first), as seen by session 1 in the ground truth; degrees: the robot's heading
     relative to that experience, merged against true (as ``bench/lookalike_sweep.py``'s ``place_error_m``: the
     stored map's own drift does not count)."""
     gt1, gt2 = truth
     n1 = int(np.shape(stored["em_stamp"])[0])
     poses = merged.map.poses
-    here = poses[merged.map.current]
+    accum = merged.map.accum  # the robot: its current experience plus the odometry since (heading: absolute)
+    here = np.array([*(poses[merged.map.current, :3] + accum[:3]), accum[3]])
     nearest = int(np.argmin(np.linalg.norm(poses[:n1, :3] - here[:3], axis=1)))
     seen = gt1[int(np.argmin(np.abs(gt1[:, 0] - float(stored["em_stamp"][nearest]))))]
     truly = gt2[int(np.argmin(np.abs(gt2[:, 0] - stamp)))]

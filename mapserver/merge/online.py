@@ -471,10 +471,10 @@ class OnlineMerger:
         """Return the robot's pose at an earlier frame in the session map's frame (via odometry since)."""
         em = engine.map
         a = em.accum
-        if em.current < 0:
-            return np.array([0.0, 0.0, 0.0, a[3]])
-        base = em.poses[em.current]
-        now = np.array([base[0] + a[0], base[1] + a[1], base[2] + a[2], a[3]])
+        now = a[:4].copy()  # before the first experience: where it would be made (ExperienceMap.create_experience)
+        if em.current >= 0:
+            base = em.poses[em.current]
+            now[:3] += base[:3]
         return compose(now, relative(self._odometry, odometry_then))
 
     def _merge(

@@ -447,8 +447,11 @@ def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, 
     """The robot continues in the merged map: (current, previous experience, odometry since it rotated by T)."""
     accum = np.asarray(partial["em_accum"], dtype=np.float64).copy()
     current = int(partial["em_current"])
-    if current < 0:  # no partial experience yet: the robot is at e_u (set_experience(e_u, relative_rad))
-        return match.stored_experience, -1, np.array([0.0, 0.0, 0.0, float(exp.anchor_loaded[3]), 0.0, 0.0])
+    if current < 0:  # no partial experience yet: the robot is at T ⊕ its odometry so far (accum), measured from e_u
+        here = compose(exp.T, accum[:4])
+        accum[:3] = here[:3] - exp.anchor_loaded[:3]
+        accum[3] = float(here[3])
+        return match.stored_experience, -1, accum
     previous = int(partial["em_previous"])
     c, s = math.cos(float(exp.T[3])), math.sin(float(exp.T[3]))
     accum[0], accum[1] = c * accum[0] - s * accum[1], s * accum[0] + c * accum[1]

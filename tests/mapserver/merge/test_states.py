@@ -130,6 +130,30 @@ def test_odometry_since_the_current_experience_is_carried_into_the_loaded_frame(
     assert record.transform[3] == pytest.approx(0.7)
 
 
+def test_a_session_merged_before_its_first_experience_continues_where_its_odometry_took_it() -> None:
+    """No partial experience yet (a motion gate held them): the robot is T ⊕ its odometry so far, from e_u.
+
+    Hand-computed: the anchor view was seen at (0.1, 0, 0, 0.3) in the session frame and matches stored
+    experience 2 at (2, 0, 0, 0), so T = (2 − 0.1·cos 0.3, 0.1·sin 0.3, 0, −0.3); since the session start the
+    robot went to (0.4, 0.2, 0, 0.5), i.e. to T ⊕ that = T's position + R(−0.3)(0.4, 0.2), heading 0.2. Until
+    stop 40 it was put on e_u itself facing e_u's way (here 0.36 m and 11° off; on ``cave3d`` seed 0 35° off).
+    """
+    partial = partial_state(SHIFT, world_x=(1.0,), accum=np.array([0.4, 0.2, 0.0, 0.5, 2.0, 0.45]))
+    for key in ("em_pose", "em_pc", "em_template", "em_stamp", "em_origin"):
+        partial[key] = partial[key][:0]
+    partial["em_current"], partial["em_previous"] = np.asarray(-1), np.asarray(-1)
+    match = Match(
+        stored_template=2, stored_experience=2, partial_template=0, partial_pose=(0.1, 0.0, 0.0, 0.3),
+        partial_packet=tuple(float(v) for v in partial["pc_best"]), relative_rad=0.0,
+    )  # fmt: skip
+    state, record = merge_states(loaded_state(), partial, match)
+    c, s = math.cos(0.3), math.sin(0.3)
+    assert record.transform == pytest.approx([2.0 - 0.1 * c, 0.1 * s, 0.0, -0.3])
+    robot = (2.0 - 0.1 * c + c * 0.4 + s * 0.2, 0.1 * s - s * 0.4 + c * 0.2)
+    assert int(state["em_current"]) == 2 and int(state["em_previous"]) == -1
+    assert state["em_accum"] == pytest.approx([robot[0] - 2.0, robot[1], 0.0, 0.2, 2.0, 0.45])
+
+
 def test_confirmation_pairs_are_identified_too() -> None:
     """Partial copies of stored views seen while confirming are not duplicated."""
     loaded, partial = loaded_state(), partial_state(SHIFT)
