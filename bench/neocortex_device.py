@@ -6,7 +6,7 @@ Usage:
 
 ``extract`` reads logs with the project's reader (rosbags) and writes their frames (images, motions, stamps)
 into one ``.npz``, so that ``run`` needs only ``core`` (numpy, scipy, torch, numba): the accelerator machine
-has no rosbags. ``run`` processes the frames with ``poseidon-sdr`` (weight-free encoder) once per device and
+has no rosbags. ``run`` processes the frames with ``poseidon`` (weight-free encoder) once per device and
 ``--repeat`` times on CUDA, and prints for each: frames/s end to end, the number of view cells and
 experiences, and a SHA-256 over every array of the final snapshot (the map bit for bit). Then it times the
 ShuffleNetV2 x1.0 encoder (224×224, stage 3) alone on each device, with weights the script creates (random;
@@ -71,7 +71,7 @@ def _motion(row: np.ndarray) -> Any:
 def _run_engine(frames: dict[str, np.ndarray], device: str) -> dict[str, Any]:
     from core import Engine, preset
 
-    params = preset("poseidon-sdr").replace(frontend_device=device)
+    params = preset("poseidon").replace(frontend_device=device)
     engines: dict[int, Any] = {}
     cells: list[int] = []
     started = time.perf_counter()
@@ -96,7 +96,7 @@ def _run_engine(frames: dict[str, np.ndarray], device: str) -> dict[str, Any]:
 
 
 def _time_shufflenet(frames: dict[str, np.ndarray], device: str, count: int) -> dict[str, Any]:
-    """Time ``poseidon-sdr`` with the ShuffleNetV2 x1.0 encoder (random weights, saved by the script)."""
+    """Time ``poseidon`` with the ShuffleNetV2 x1.0 encoder (random weights, saved by the script)."""
     import torch
 
     from core import Engine, preset
@@ -106,7 +106,7 @@ def _time_shufflenet(frames: dict[str, np.ndarray], device: str, count: int) -> 
         weights = Path(tmp) / "shufflenet_v2_x1_0.pth"
         torch.manual_seed(0)
         torch.save(ShuffleNetV2().state_dict(), weights)
-        params = preset("poseidon-sdr").replace(frontend_backbone="shufflenetv2", frontend_weights=str(weights),
+        params = preset("poseidon").replace(frontend_backbone="shufflenetv2", frontend_weights=str(weights),
                                                 frontend_device=device)  # fmt: skip
         engine = Engine(params)
         net = build_backbone("shufflenetv2", weights, torch.device(device))

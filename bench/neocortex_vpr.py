@@ -8,8 +8,9 @@ For each scenario the simulator writes its logs (all sessions, then the single r
 every session log of a scenario goes through ONE engine in turn (so a later session's look-alike places
 meet the earlier sessions' view cells) with the scenario's preset and its variants:
 
-* ``lvc``: the preset as it is (intensity templates);
-* ``sdr-htm``: the same preset with ``frontend = "sdr-htm"`` (weight-free encoder, thesis HTM values);
+* ``lvc``: the preset with intensity templates (``cave3d``: ``poseidon-lvc``, the preset's own LVC values);
+* ``sdr-htm``: the preset with ``frontend = "sdr-htm"`` (weight-free encoder, thesis HTM values; ``cave3d``:
+  ``poseidon`` as it is since stop 40, 16×6 encoder input, I_min 8, VPR Guard at 2 repeats);
 * ``sdr-htm-imin8`` (on request): ``sdr-htm`` with the intersection gate lowered from 12 to 8 of 15 bits;
 * ``sdr-sp``, ``sdr-sp-imin8`` (on request): the descriptor from the SP's columns instead of the TM's
   winner cells (``sv_descriptor_source = "sp"``): the same pipeline without sequence memory;
@@ -59,6 +60,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "sdr-sp": {"frontend": "sdr-htm", "sv_descriptor_source": "sp"},
     "sdr-sp-imin8": {"frontend": "sdr-htm", "sv_descriptor_source": "sp", "sv_min_intersection": 8},
 }
+
+
+LVC_PRESET = {"poseidon": "poseidon-lvc"}
+"""A scenario preset whose front-end is ``sdr-htm``, and the preset of its intensity-template values."""
 
 
 def _ground_truth(directory: Path, logs: list[dict[str, Any]]) -> Trajectory:
@@ -152,10 +157,11 @@ def main() -> None:
                 info = simulate(name, directory, seed=seed, scale=args.scale, params=sim or None)
             logs = list(info["sessions"]) + ([info["single"]] if info.get("single") else [])
             gt = _ground_truth(directory, logs)
-            base = preset(info["preset"])
             for variant in args.frontends.split(","):
                 front, _, extra = variant.partition("+")
                 front, _, given = front.partition("@")
+                lvc = LVC_PRESET.get(info["preset"]) if VARIANTS[front]["frontend"] == "lvc" else None
+                base = preset(lvc or info["preset"])
                 params = with_settings(base.replace(**VARIANTS[front]), given.replace(";", ","))  # process --set's
                 topics = {"sonar": info["sonar"]["topic"]} if extra == "sonar" else None
                 for guard in (g == "on" for g in args.guards.split(",")):

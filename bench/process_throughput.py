@@ -1,6 +1,6 @@
 """End-to-end `mapserver process --db` throughput of a scenario's two sessions: alone, then merging.
 
-Usage: python bench/process_throughput.py [--scenario cave3d] [--preset poseidon-sdr] [--seed 0] [--repeat 5]
+Usage: python bench/process_throughput.py [--scenario cave3d] [--preset poseidon] [--seed 0] [--repeat 5]
        [--set K=V,...]
 
 Simulates the scenario once, then ``--repeat`` times: session 1 into a new SQLite database, and session 2
@@ -40,7 +40,7 @@ def main() -> None:
     """Simulate, process both sessions ``--repeat`` times, print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="cave3d")
-    parser.add_argument("--preset", default="poseidon-sdr")
+    parser.add_argument("--preset", default="poseidon")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--set", dest="settings", default=None, help="engine settings, as process --set")

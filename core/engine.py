@@ -130,7 +130,7 @@ class Engine:
         elif self.params.frontend == "sdr-htm":
             template, relative_rad, created = self.local_view.process(image, sonar)
         else:
-            msg = "a sonar modality needs the sdr-htm front-end (--preset poseidon-sdr or neoslam)"
+            msg = "a sonar modality needs the sdr-htm front-end (--preset poseidon or neoslam)"
             raise ValueError(msg)
         if created:
             self.lv_origin.append(self.origin)

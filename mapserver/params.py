@@ -80,7 +80,7 @@ def with_frontend(params: Params, backbone: str | None = None, weights: str | Pa
     except CoreConfigError as err:
         raise ConfigError(str(err)) from err
     if updated.frontend != "sdr-htm":
-        msg = "--backbone/--weights apply to the sdr-htm front-end: use --preset poseidon-sdr or neoslam"
+        msg = "--backbone/--weights apply to the sdr-htm front-end: use --preset poseidon or neoslam"
         raise ConfigError(msg)
     if updated.frontend_weights and updated.frontend_backbone == "none":
         msg = "--weights needs a CNN backbone: --backbone shufflenetv2 or alexnet (or frontend_backbone in the config)"

@@ -101,9 +101,13 @@ def test_preset_values_follow_their_sources() -> None:
     poseidon = preset("poseidon")  # thesis Table 4.1
     assert poseidon.lattice_shape == (15, 15, 15, 8) and poseidon.lattice_rank == 4
     assert (poseidon.pc_cell_x_size, poseidon.pc_cell_z_size) == (0.1, 0.1)
-    assert (poseidon.vpr_guard, poseidon.vpr_window, poseidon.vpr_min_rep, poseidon.vpr_leak_rate) == (True, 26, 3, 20)
+    assert (poseidon.vpr_guard, poseidon.vpr_window, poseidon.vpr_leak_rate) == (True, 26, 20)
+    assert poseidon.vpr_min_rep == 2 and preset("poseidon-lvc").vpr_min_rep == 3  # ours for the weight-free encoder
     assert (poseidon.motion_gate, poseidon.min_event_trans_xy, poseidon.min_event_dz) == (True, 0.12, 0.05)
     assert (poseidon.max_correction_norm, poseidon.max_correction_step) == (20.0, 0.05)
+    lvc = preset("poseidon-lvc")  # the same back-end with intensity templates (poseidon until stop 40)
+    assert lvc.lattice_shape == poseidon.lattice_shape and lvc.motion_gate and lvc.vpr_guard
+    assert (lvc.template_x_size, lvc.template_y_size, lvc.vt_match_threshold) == (64, 24, 0.06)
     for name in ("irat", "stlucia", "newcollege", "lake", "circle"):  # PoseidonSLAM options are off in RatSLAM sets
         assert not preset(name).vpr_guard and not preset(name).motion_gate
 

@@ -38,14 +38,17 @@ class Injected:
     true_loops_on: int  # of those, still active
 
 
-def simulate_single(out: Path, scenario: str, seed: int = 0, settings: str | None = None) -> Simulated:
+def simulate_single(
+    out: Path, scenario: str, seed: int = 0, settings: str | None = None, preset_name: str | None = None
+) -> Simulated:
     """Simulate ``scenario`` into ``out`` and process its single-session log with the scenario's preset.
 
-    ``settings``: engine parameters on top of the preset (``process --set``'s syntax, e.g. ``exp_relax_joint=1``).
+    ``settings``: engine parameters on top of the preset (``process --set``'s syntax, e.g. ``exp_relax_joint=1``);
+    ``preset_name``: another preset.
     """
     assert main(["simulate", scenario, "--out", str(out), "--seed", str(seed)]) == 0
     info = json.loads((out / "scenario.json").read_text(encoding="utf-8"))
-    params = with_settings(preset(info["preset"]), settings)
+    params = with_settings(preset(preset_name or info["preset"]), settings)
     result = process_log(out / info["single"]["log"], params)
     return Simulated(params, result.engine.snapshot(), read_tum(out / info["single"]["ground_truth"]))
 

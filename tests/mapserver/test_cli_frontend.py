@@ -29,15 +29,15 @@ def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]
 
 def test_weights_errors_are_one_line_and_exit_2(small_log: Path, tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon-sdr", "--backbone", "alexnet",
+    code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--backbone", "alexnet",
                         "--weights", str(tmp_path / "none.pth"))
     assert code == 2 and "weights file not found" in err and len(err.strip().splitlines()) == 1
     weights = tmp_path / "shufflenet.pth"
     torch.save(ShuffleNetV2().state_dict(), weights)
-    code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--backbone", "shufflenetv2",
+    code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon-lvc", "--backbone", "shufflenetv2",
                         "--weights", str(weights))
     assert code == 2 and "sdr-htm" in err  # LVC preset: the flags do not apply
-    code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon-sdr", "--backbone", "alexnet",
+    code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--backbone", "alexnet",
                         "--weights", str(weights))
     assert code == 2 and "do not fit alexnet" in err and len(err.strip().splitlines()) == 1
 
@@ -47,7 +47,7 @@ def test_process_with_a_shufflenet_weight_file(small_log: Path, tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     weights = tmp_path / "shufflenet.pth"
     torch.save(ShuffleNetV2().state_dict(), weights)
-    code, out, err = _run(capsys, "process", str(small_log), "--preset", "poseidon-sdr", "--backbone",
+    code, out, err = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--backbone",
                           "shufflenetv2", "--weights", str(weights), "--out", str(tmp_path / "m.json"), "--json")
     assert code == 0, err
     summary = json.loads(out.strip().splitlines()[-1])

@@ -166,7 +166,7 @@ def test_bad_logs_are_one_line_exit_2_and_write_nothing(
 def test_images_too_small_for_the_preset_are_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log = write_log(tmp_path / "tiny", "bag", frame_images(3, 10.0, False), arc_odometry(7, 20.0))
     out_map = tmp_path / "map.json"
-    code, _, err = _run(capsys, "process", str(log), "--preset", "poseidon", "--out", str(out_map))
+    code, _, err = _run(capsys, "process", str(log), "--preset", "poseidon-lvc", "--out", str(out_map))
     assert code == 2 and "smaller than the 64×24 template" in err and str(log) in err
     assert not out_map.exists()
 
@@ -236,16 +236,16 @@ def test_set_changes_engine_parameters_on_top_of_the_preset(
 ) -> None:
     """``--set`` applies keys over ``--preset``: the map JSON records them and the preset's own values stay."""
     plain, joint = tmp_path / "plain.json", tmp_path / "joint.json"
-    assert _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(plain))[0] == 0
-    code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(joint),
+    assert _run(capsys, "process", str(small_log), "--preset", "poseidon-lvc", "--out", str(plain))[0] == 0
+    code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon-lvc", "--out", str(joint),
                       "--set", "exp_relax_joint=1, vt_match_threshold=0.07")  # fmt: skip
     assert code == 0
     before, after = read_map_json(plain)["params"], read_map_json(joint)["params"]
     assert (before["exp_relax_joint"], after["exp_relax_joint"]) == (False, True)
     assert (before["vt_match_threshold"], after["vt_match_threshold"]) == (0.06, 0.07)
-    assert after["pc_dim_xy"] == before["pc_dim_xy"] == 15  # the rest is poseidon's
+    assert after["pc_dim_xy"] == before["pc_dim_xy"] == 15  # the rest is poseidon-lvc's
     repeated = tmp_path / "repeated.json"  # every --set applies (the last one alone did, silently, until stop 39)
-    code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon", "--out", str(repeated),
+    code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon-lvc", "--out", str(repeated),
                       "--set", "exp_relax_joint=1", "--set", "vt_match_threshold=0.07")  # fmt: skip
     assert code == 0 and read_map_json(repeated)["params"] == after
 

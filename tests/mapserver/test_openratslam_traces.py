@@ -24,7 +24,7 @@ PARAMS = {
     "loop": preset("circle").replace(exp_loops=10),
     "figure8": preset("circle").replace(exp_loops=10),
     "ellipse": preset("circle").replace(exp_loops=10),
-    "cave3d": preset("poseidon").replace(exp_loops=10, pc_dim_z=1, vpr_guard=False, motion_gate=False),
+    "cave3d": preset("poseidon-lvc").replace(exp_loops=10, pc_dim_z=1, vpr_guard=False, motion_gate=False),
 }
 
 pytestmark = pytest.mark.slow

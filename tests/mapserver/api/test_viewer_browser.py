@@ -227,7 +227,7 @@ def test_demo_atlas_maps_node_path_merge_and_upload(page: Any, live: dict[str, A
     page.set_input_files("#upload-file", str(log))
     page.select_option("#upload-preset", "irat")
     presets = page.eval_on_selector_all("#upload-preset option", "o => o.map(x => x.value)")
-    assert {"poseidon-sdr", "neoslam"} <= set(presets)
+    assert {"poseidon", "poseidon-lvc", "neoslam"} <= set(presets)
     page.fill("#upload-map", "strip")
     page.click("#upload-form button[type=submit]")
     page.wait_for_selector("#jobs-table tr.job-done", timeout=90_000)

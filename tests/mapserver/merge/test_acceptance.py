@@ -152,6 +152,12 @@ def test_chain5_ends_in_one_connected_map(scenario: Any, tmp_path: Path) -> None
 
 
 def test_cave3d_merges_once_with_depths_as_accurate_as_one_session(scenario: Any, tmp_path: Path) -> None:
+    """``cave3d`` with ``poseidon`` (the neocortical front-end since stop 40): one merge, 4-DoF, and the merged map
+    within issue 12's 1.5× of the single route's APE, in 3-D and in depth alone (seed 0: 0.094 against 0.109 m,
+    z 0.0175 against 0.0161 m). Seeds 0–9 (``process --db``, ``export``, ``evaluate``): 10 of 10 merged, merged
+    0.089–0.137 m, z 0.014–0.028 m, z ratio to the single route 0.29–1.46; ``poseidon-lvc`` 9 of 10, merged
+    0.10–0.47 m, z ratio 0.53–2.59 (seed 1). Until stop 40 (LVC) this asserted depth ≤ the single route's, a fact
+    of seed 0 alone."""
     directory, info = scenario("cave3d")
     assert info["preset"] == "poseidon"
     db = _db(tmp_path)
@@ -167,7 +173,7 @@ def test_cave3d_merges_once_with_depths_as_accurate_as_one_session(scenario: Any
     m = cli_json("evaluate", str(merged), "--ground-truth", str(both), *radii)
     s = cli_json("evaluate", str(single), "--ground-truth", str(directory / info["single"]["ground_truth"]), *radii)
     assert m["dims"] == s["dims"] == 3
-    assert m["ape_z_rmse"] <= s["ape_z_rmse"]
+    assert m["ape_rmse"] <= 1.5 * s["ape_rmse"] and m["ape_z_rmse"] <= 1.5 * s["ape_z_rmse"] < 0.05
     z, _ = experiences(load_doc(merged), "session2")
     assert np.ptp(z[:, 2]) > 0.5  # the merged session 2 keeps its dives
 
@@ -273,10 +279,12 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
 ) -> None:
     """Issue 17 part 5: the neocortical front-end's maps merge through the same decision and probation.
 
-    Session 2 of ``cave3d`` merges into session 1 (poseidon-sdr) at its true place and the stored merged
+    Session 2 of ``cave3d`` merges into session 1 (``poseidon``) at its true place and the stored merged
     map has one cortex: it restores as an engine whose every prototype is in that cortex's cells; a stop
     before the merge resumes as one run. The same session 2 never merges into session 1 of another cave
-    (seed 1: the same shape, other rocks)."""
+    (seed 1: the same shape, other rocks). The merge comes at frame 12, before session 2's first experience (the
+    motion gate holds it): until stop 40 the robot was then taken to be at its current heading when the anchor
+    view was seen, and T was 35° off (0.61 rad, outside the bound below)."""
     from core import Engine
     from mapserver.ingest.simulator.output import simulate
     from mapserver.pipeline import process_into_store
@@ -286,25 +294,25 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     directory, info = scenario("cave3d")
     db = _db(tmp_path)
     s1, s2 = (directory / s["log"] for s in info["sessions"])
-    results = [cli_json("process", str(s1), "--db", db, "--preset", "poseidon-sdr")]
+    results = [cli_json("process", str(s1), "--db", db, "--preset", "poseidon")]
     shutil.copyfile(tmp_path / "atlas.db", tmp_path / "split.db")  # session 1 alone, for the split run below
-    results.append(cli_json("process", str(s2), "--db", db, "--preset", "poseidon-sdr"))
+    results.append(cli_json("process", str(s2), "--db", db, "--preset", "poseidon"))
     applied = [m for m in results[1]["merges"] if m["status"] == "applied"]
     assert [m["into"] for m in applied] == ["session1"]
-    initial_yaw = math.radians(preset("poseidon-sdr").exp_initial_em_deg)
+    initial_yaw = math.radians(preset("poseidon").exp_initial_em_deg)
     truth = true_alignment(directory, info["sessions"][0], info["sessions"][1], initial_yaw)
     x, y, _z, yaw = (applied[0]["transform"][k] for k in ("x", "y", "z", "yaw"))
     assert math.hypot(x - truth[0], y - truth[1]) < 3.0 and abs(math.remainder(yaw - truth[3], math.tau)) < 0.5
     stored = load_map(open_database(db), name="session1")
-    engine = Engine.restore(preset("poseidon-sdr"), stored.snapshot)
+    engine = Engine.restore(preset("poseidon"), stored.snapshot)
     cells, sizes = engine.local_view.prototypes
     assert engine.local_view.tm.cells > int(cells.max())  # every prototype names cells of the one cortex
     assert (sizes > 0).mean() > 0.95 and engine.template_count == results[1]["templates"]
-    # stopped 30 frames before its merge, the session resumes as one run: the readers' sequence state and
+    # stopped halfway to its merge, the session resumes as one run: the readers' sequence state and
     # translations travel in the merge driver's state, the store rewrites the re-expressed view cells
     split = _db(tmp_path, "split")
-    first = process_into_store(s2, preset("poseidon-sdr"), db_url=split, stop_after=applied[0]["frame"] - 30)
-    second = process_into_store(s2, preset("poseidon-sdr"), db_url=split)
+    first = process_into_store(s2, preset("poseidon"), db_url=split, stop_after=applied[0]["frame"] // 2)
+    second = process_into_store(s2, preset("poseidon"), db_url=split)
     assert first.merges == [] and [m["frame"] for m in second.merges] == [applied[0]["frame"]]
     assert_same_arrays(stored.snapshot, load_map(open_database(split), name="session1").snapshot,
                        skip=("st_next_index",))  # fmt: skip
@@ -315,25 +323,25 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     other = tmp_path / "other"
     simulate("cave3d", other, seed=1, only=["session1"])  # only the log this needs
     alien = _db(tmp_path, "alien")
-    cli_json("process", str(other / "session1.bag"), "--db", alien, "--preset", "poseidon-sdr")
-    result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon-sdr")
+    cli_json("process", str(other / "session1.bag"), "--db", alien, "--preset", "poseidon")
+    result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon")
     assert [m for m in result["merges"] if m["status"] == "applied"] == []
 
 
 def test_poseidon_sdr_closes_the_caves_loops_that_the_whole_image_at_the_thesis_gate_never_closes(
     scenario: Any,
 ) -> None:
-    """Issue 17: ``poseidon-sdr``'s weight-free encoder sees the cave at 16×6 with I_min 8 (README, stop 38).
+    """Issue 17: ``poseidon``'s weight-free encoder sees the cave at 16×6 with I_min 8 (README, stop 38).
 
     The ``cave3d`` single route (seed 0) then closes loops and its map is as accurate as LVC's (0.19 m; here
-    5 closures, 0.18 m); with the image at ``poseidon``'s 64×24 and the thesis's I_min 12 (the preset until
-    stop 38) a revisit 0.2–0.4 m off keeps too few descriptor bits: no closure, dead reckoning, 0.78 m."""
+    5 closures, 0.18 m); with the image at ``poseidon-lvc``'s 64×24 and the thesis's I_min 12 (``poseidon-sdr``
+    until stop 38) a revisit 0.2–0.4 m off keeps too few descriptor bits: no closure, dead reckoning, 0.78 m."""
     directory, info = scenario("cave3d")
     log, truth = directory / info["single"]["log"], directory / info["single"]["ground_truth"]
     figures, thesis = {}, ("--set", "template_x_size=64,template_y_size=24,sv_min_intersection=12")
     for tag, extra in (("now", ()), ("thesis", thesis)):
         doc = directory / f"poseidon-sdr-{tag}.json"
-        run = cli_json("process", str(log), "--preset", "poseidon-sdr", *extra, "--out", str(doc))
+        run = cli_json("process", str(log), "--preset", "poseidon", *extra, "--out", str(doc))
         figures[tag] = (run["loop_closures"], cli_json("evaluate", str(doc), "--ground-truth", str(truth))["ape_rmse"])
     assert figures["now"][0] >= 3 and figures["now"][1] < 0.3
     assert figures["thesis"][0] == 0 and figures["thesis"][1] > 0.5
@@ -365,7 +373,7 @@ def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_nev
     scenario: Any, tmp_path: Path
 ) -> None:
     """``mapserver merge`` of two stored ``sdr-htm`` maps (stop 39; refused before): ``cave3d`` seed 0, both sessions
-    processed alone (``--no-merge``, ``poseidon-sdr``). Session 2's map merges into session 1's at the true place
+    processed alone (``--no-merge``, ``poseidon``). Session 2's map merges into session 1's at the true place
     (``bench/offline_merge_sweep.py cave3d``: 10 of 10, merged maps 0.11–0.33 m) with every view cell kept as a
     prototype of the one cortex; ``unmerge`` restores both maps bit for bit and ``merge --redo`` makes the same
     merged map again. Must not: session 2 against session 1 of another cave (seed 1) is refused (exit 2)."""
@@ -375,7 +383,7 @@ def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_nev
     from tests.mapserver.store.conftest import assert_same_arrays
 
     directory, info = scenario("cave3d")
-    db, sdr = _db(tmp_path), ("--preset", "poseidon-sdr", "--no-merge")
+    db, sdr = _db(tmp_path), ("--preset", "poseidon", "--no-merge")
     for session in info["sessions"][:2]:
         cli_json("process", str(directory / session["log"]), "--db", db, *sdr, "--map", session["name"])
     alone = {name: load_map(open_database(db), name=name).snapshot for name in ("session1", "session2")}
@@ -383,14 +391,14 @@ def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_nev
     assert merged["merged"] and merged["map"] == "session1"
     with open_database(db) as database, database.read() as conn:
         (event,) = list_merge_events(conn=conn)
-    initial_yaw = math.radians(preset("poseidon-sdr").exp_initial_em_deg)
+    initial_yaw = math.radians(preset("poseidon").exp_initial_em_deg)
     truth = true_alignment(directory, info["sessions"][0], info["sessions"][1], initial_yaw)
     assert math.hypot(event.transform[0] - truth[0], event.transform[1] - truth[1]) < 2.0
     assert abs(math.remainder(event.yaw - truth[3], math.tau)) < 0.2
     evidence = event.details["evidence"]["offline"]
     assert evidence["passed"] and evidence["hit_m"] > 5 * evidence["miss_m"]
     stored = load_map(open_database(db), name="session1").snapshot
-    engine = Engine.restore(preset("poseidon-sdr"), stored)
+    engine = Engine.restore(preset("poseidon"), stored)
     cells, sizes = engine.local_view.prototypes
     assert engine.local_view.tm.cells > int(cells.max()) and (sizes > 0).mean() > 0.95  # one cortex's cells
     doc, both = directory / "offline-merged.json", directory / "offline-both.tum"

@@ -31,9 +31,9 @@ SDR = preset("irat").replace(frontend="sdr-htm")  # the engine tests' small sdr-
 
 
 def test_sdr_maps_merge_online_with_the_same_cortex_structure_and_lvc_maps_still_merge() -> None:
-    sdr = preset("poseidon-sdr")
-    assert params_incompatibility(preset("poseidon"), preset("poseidon")) is None  # must still merge
-    assert "front-ends differ" in (params_incompatibility(preset("poseidon"), sdr) or "")
+    sdr, lvc = preset("poseidon"), preset("poseidon-lvc")
+    assert params_incompatibility(lvc, lvc) is None  # must still merge
+    assert "front-ends differ" in (params_incompatibility(lvc, sdr) or "")  # an atlas of poseidon before stop 40
     assert params_incompatibility(sdr, sdr, reads_frames=True) is None
     assert "merge only where their views are compared" in (params_incompatibility(sdr, sdr) or "")  # offline: codes
     assert "sp_columns" in (params_incompatibility(sdr, sdr.replace(sp_columns=1024), reads_frames=True) or "")
@@ -44,8 +44,8 @@ def test_the_miss_weight_is_the_front_ends_own_unless_given() -> None:
     assert preset("circle").miss_weight == 2.0  # LVC: mapserver.merge.hypotheses.MISS_WEIGHT
     p1, p0 = 0.4, 0.02
     wald = math.log((1 - p0) / (1 - p1)) / math.log(p1 / p0)
-    assert preset("poseidon-sdr").miss_weight == pytest.approx(wald, abs=0.01)
-    assert preset("poseidon-sdr").replace(merge_miss_weight=0.5).miss_weight == 0.5
+    assert preset("poseidon").miss_weight == pytest.approx(wald, abs=0.01)
+    assert preset("poseidon").replace(merge_miss_weight=0.5).miss_weight == 0.5
     with pytest.raises(ConfigError, match="merge_miss_weight"):
         preset("circle").replace(merge_miss_weight=0.0)
 
@@ -186,8 +186,8 @@ def test_a_frames_sdr_matches_the_view_cell_code_it_overlaps_most_above_the_gate
     assert strict.match(view, 0.0)[0] == -1  # 0.8 < 0.81
     default = CortexReader(SDR, {**state, "lv_sdr": codes}, row=0)  # 0.68: only cells 0 (0.7), 1 (0.8), 2 (0.7)
     assert default.match_among(view, 0.0, np.array([2]))[1] == pytest.approx(SDR.vt_match_threshold * 0.3 / 0.32)
-    assert preset("poseidon-sdr").merge_sdr_min_overlap == 0.62 and SDR.merge_sdr_min_overlap == 0.68
-    assert preset("poseidon-sdr").merge_sdr_null_quantile == 0.95 and SDR.merge_sdr_null_quantile == 0.0
+    assert preset("poseidon").merge_sdr_min_overlap == 0.62 and SDR.merge_sdr_min_overlap == 0.68
+    assert preset("poseidon").merge_sdr_null_quantile == 0.95 and SDR.merge_sdr_null_quantile == 0.0
     narrow = view[:, : SDR.sv_tm_topk]  # a track row without the SDR (a session resumed from before lv_sdr)
     assert reader.match(narrow, 0.0) == (-1, math.inf, 0.0)
 

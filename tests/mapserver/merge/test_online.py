@@ -261,8 +261,8 @@ def test_confirmation_default_comes_from_the_parameters(first_half: StoredMap) -
 
 @pytest.mark.slow
 def test_4dof_session_merges_with_depth() -> None:
-    """PoseidonSLAM lattice (x, y, z, θ) and 4-DoF experiences on a loop that goes up and down."""
-    params = preset("poseidon")
+    """PoseidonSLAM lattice (x, y, z, θ) and 4-DoF experiences on a loop that goes up and down (LVC views)."""
+    params = preset("poseidon-lvc")
     world = LoopWorld(perimeter=4.0, px_per_m=80.0, height=24, width=64, depth=0.3, seed=4)
     step = 0.025
     stored = map_stretch(world, 0.0, 3.0, 1, params=params, step=step)
