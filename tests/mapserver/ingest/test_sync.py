@@ -1,8 +1,8 @@
 """Synchronisation: the map depends on the messages and their header stamps, never on how the log was recorded.
 
-Logs are simulated (a short 4-DoF cave run, processed with the fast ``poseidon`` preset) and then re-recorded
-with rosbags' own writers under other receive times: played back at half rate a day later, or with random
-per-message network delays that put messages out of stamp order within and across topics. Every variant,
+Logs are simulated (a short 4-DoF cave run, processed with the ``poseidon`` preset, torch front-end included) and
+then re-recorded with rosbags' own writers under other receive times: played back at half rate a day later, or
+with random per-message network delays that put messages out of stamp order within and across topics. Every variant,
 and every container (.bag, .db3, .mcap) of the same scenario, must give the same map.
 """
 
