@@ -81,8 +81,8 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
 # gates I_min 12, τ_R 0.30, F1 0.55, IoU tie-break). Weight-free encoder unless frontend_backbone/weights
 # are given; "poseidon-lvc" keeps the intensity templates of the maps made before stop 40.
 _SDR_HTM = {"frontend": "sdr-htm"}
-# poseidon-sdr's weight-free encoder (ours; the thesis's CNN has no weights here): the cave image at 16×6
-# before the projection and I_min 8 of 15 (thesis: 12 with its CNN). At poseidon's 64×24 and I_min 12 a
+# poseidon's weight-free encoder (ours; the thesis's CNN has no weights here): the cave image at 16×6
+# before the projection and I_min 8 of 15 (thesis: 12 with its CNN). At poseidon-lvc's 64×24 and I_min 12 a
 # revisit 0.2-0.4 m off keeps too few descriptor bits: cave3d single routes closed no loop (seeds 0-4,
 # 0.78-1.04 m APE against LVC's 0.12-0.19 m); at 16×6 and I_min 8 they close 3-8 loops, 0.11-0.28 m, and
 # session 2 merges at its true place on 10 of 10 seeds, never into another cave (README, stop 38).
