@@ -58,8 +58,7 @@ def place_error(
     gt1, gt2 = truth
     n1 = int(np.shape(stored["em_stamp"])[0])
     poses = merged.map.poses
-    accum = merged.map.accum  # the robot: its current experience plus the odometry since (heading: absolute)
-    here = np.array([*(poses[merged.map.current, :3] + accum[:3]), accum[3]])
+    here = merged.map.robot_pose()
     nearest = int(np.argmin(np.linalg.norm(poses[:n1, :3] - here[:3], axis=1)))
     seen = gt1[int(np.argmin(np.abs(gt1[:, 0] - float(stored["em_stamp"][nearest]))))]
     truly = gt2[int(np.argmin(np.abs(gt2[:, 0] - stamp)))]

@@ -238,6 +238,17 @@ class ExperienceMap:
             acc[4] += motion.dt
             acc[5] += step
 
+    def robot_pose(self) -> np.ndarray:
+        """Return where the robot is now (4,): the current experience plus the odometry accumulated since.
+
+        Menezes et al. Eq. 7's p_i + Δp_ij, facing the accumulated (absolute) heading; before the first
+        experience, the odometry accumulated from the start. A new experience is created here.
+        """
+        pose = self.accum[:4].copy()
+        if self.current >= 0:
+            pose[:3] += self._pose.view[self.current, :3]
+        return pose
+
     def create_experience(self, template: int, lattice: np.ndarray, stamp: float, origin: int) -> int:
         """Create an experience at the current one plus the accumulated odometry; link and select it.
 
@@ -246,13 +257,7 @@ class ExperienceMap:
         far (the origin when it is created on the first frame) with the initial
         heading ``exp_initial_em_deg`` plus any turn since.
         """
-        a = self.accum
-        if self.current < 0:
-            pose = np.array([a[0], a[1], a[2], a[3]])
-        else:
-            base = self._pose.view[self.current]
-            pose = np.array([base[0] + a[0], base[1] + a[1], base[2] + a[2], a[3]])
-        new_id = self._pose.append(pose)
+        new_id = self._pose.append(self.robot_pose())
         self._pc.append(lattice)
         self._template.append(template)
         self._stamp.append(stamp)

@@ -101,12 +101,13 @@ _NEOSLAM_YAML = {
     "exp_delta_pc_threshold": 2.0, "pc_vt_restore": 0.05, "exp_correction": 0.5, "exp_loops": 1,
     "exp_initial_em_deg": 90.0,
 }
+_POSEIDON = PRESETS["poseidon-lvc"].replace(**_SDR_HTM, **_POSEIDON_ENCODER)
 PRESETS = MappingProxyType(
     {
         **PRESETS,
         # PoseidonSLAM with its neocortical front-end; "poseidon-sdr" is the same preset under its stop 31-39 name
-        "poseidon": PRESETS["poseidon-lvc"].replace(**_SDR_HTM, **_POSEIDON_ENCODER),
-        "poseidon-sdr": PRESETS["poseidon-lvc"].replace(**_SDR_HTM, **_POSEIDON_ENCODER),
+        "poseidon": _POSEIDON,
+        "poseidon-sdr": _POSEIDON,
         # merge_sdr_null_quantile: neoslam's code gate rises to its map's own look-alikes as poseidon's does; at the
         # plain 0.68 `twin` with 20 and 40 m look-alikes holding turns kept 3 and 3 false merges of 10 (README, stop 38)
         "neoslam": _DEFAULT.replace(**_NEOSLAM_YAML, **_SDR_HTM, template_x_size=64, template_y_size=24,

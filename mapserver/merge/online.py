@@ -469,13 +469,7 @@ class OnlineMerger:
 
     def _robot_pose(self, engine: Engine, odometry_then: np.ndarray) -> np.ndarray:
         """Return the robot's pose at an earlier frame in the session map's frame (via odometry since)."""
-        em = engine.map
-        a = em.accum
-        now = a[:4].copy()  # before the first experience: where it would be made (ExperienceMap.create_experience)
-        if em.current >= 0:
-            base = em.poses[em.current]
-            now[:3] += base[:3]
-        return compose(now, relative(self._odometry, odometry_then))
+        return compose(engine.map.robot_pose(), relative(self._odometry, odometry_then))
 
     def _merge(
         self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult, frame: Any
