@@ -314,12 +314,26 @@ class ExperienceMap:
         return True
 
     def add_link_raw(
-        self, source: int, target: int, transform: np.ndarray, dt: float, distance: float, kind: LinkKind
+        self,
+        source: int,
+        target: int,
+        transform: np.ndarray,
+        dt: float,
+        distance: float,
+        kind: LinkKind,
+        active: bool = True,
     ) -> bool:
-        """Add a link with an explicit transform (merges, manual links); both ends enter the relaxation worklist."""
+        """Add a link with an explicit transform (merges, manual links); both ends enter the relaxation worklist.
+
+        ``active`` False adds it switched off (a merge link made of a link its own map's robust check had
+        switched off; the next check decides it afresh).
+        """
         if (source, target) in self._pairs or source == target:
             return False
         self._append_link(source, target, np.asarray(transform, dtype=np.float64), dt, distance, int(kind))
+        if not active:
+            self._active.view[-1] = False
+            self._off += 1
         self._work.push(np.array([source, target], dtype=np.int64))
         return True
 
@@ -489,7 +503,9 @@ class ExperienceMap:
         An odometry link that leaves an experience a loop closure chose, towards a new one, is
         switchable too, with its reckoning link on standby (:meth:`_record_reckoning`): when the
         check switches that odometry link off, the reckoning link joins the map as an odometry
-        link, so a false relocalisation's fold is undone, not only its closure.
+        link, so a false relocalisation's fold is undone, not only its closure. An odometry link that a
+        check switched off stays switchable whether or not its reckoning link is still held (the check
+        turns every link it may not switch on).
         """
         checked, self._checked = self._checked, self._switchable
         if self._switchable == 0:
@@ -505,8 +521,8 @@ class ExperienceMap:
             self._pose.view, np.concatenate([src, standby.src]), np.concatenate([dst, standby.dst]),
             np.concatenate([transform, standby.link[:, :4]]), np.concatenate([kind, odometry]),
             np.concatenate([distance, standby.link[:, 5]]), self.anchors(), drift, standby=standby.partner,
-            also_switchable=standby.switchable, standby_closure=standby.closure, joint=self.joint,
-            previous=previous,
+            also_switchable=standby.switchable | ~self._active.view, standby_closure=standby.closure, joint=self.joint,
+            previous=previous, standing=self._active.view,
         )  # fmt: skip
         joined = np.flatnonzero(result.active[k:])
         if np.array_equal(result.active[:k], self._active.view) and joined.size == 0:
@@ -553,8 +569,10 @@ class ExperienceMap:
         valid = (partner >= 0) & (src[np.maximum(partner, 0)] != a)
         switchable = np.zeros(k, dtype=bool)
         switchable[partner[valid]] = True
-        ends = np.sort(np.stack([src[odometry], dst[odometry]], axis=1), axis=1) @ np.array([1, n], dtype=np.int64)
-        held = np.isin(np.minimum(a, to) + n * np.maximum(a, to), ends)  # joined the map as an odometry link
+        joined = np.flatnonzero((kind == int(LinkKind.ODOMETRY)) | (kind == int(LinkKind.MERGE)))
+        ends = np.sort(np.stack([src[joined], dst[joined]], axis=1), axis=1) @ np.array([1, n], dtype=np.int64)
+        # joined the map as an odometry link (or as a merge link, where a merge identified an end)
+        held = np.isin(np.minimum(a, to) + n * np.maximum(a, to), ends)
         pick = valid & ~held
         closure = _last_loop_from(src, kind, a[pick], partner[pick])
         return _Standby(a[pick], to[pick], self._reckon_link.view[pick], partner[pick], switchable, closure)

@@ -56,6 +56,9 @@ def restore_merged(
         head[key] = np.asarray(state[key])[: links - tail]
     head["em_relax_pending"] = np.asarray(False)
     engine = Engine.restore(params, head, origin=origin)
+    active = np.ones(links, dtype=bool)
+    given = np.asarray(state.get("em_link_active", active), dtype=bool).reshape(-1)
+    active[: min(given.size, links)] = given[:links]
     for link in range(links - tail, links):
         engine.map.add_link_raw(
             int(state["em_link_from"][link]),
@@ -64,6 +67,7 @@ def restore_merged(
             float(state["em_link_dt"][link]),
             float(state["em_link_distance"][link]),
             LinkKind(int(state["em_link_kind"][link])),
+            active=bool(active[link]),
         )
     return engine
 

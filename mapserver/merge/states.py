@@ -390,6 +390,21 @@ class _Links:
     arrays: dict[str, np.ndarray]  # em_link_from, _to, _transform, _dt, _distance, _kind, _active
 
 
+def _joined_status(active: np.ndarray, joins: np.ndarray) -> np.ndarray:
+    """Return the kept partial links' status in the merged map: each keeps its own.
+
+    A link the partial map's robust check switched off stays off when it becomes a merge link (an end
+    identified with a stored experience): a false relocalisation's odometry link turned on again won the
+    merged map's check on a tie and turned session 2's first lap by 3.6 rad (offline merge of ``symmetric``
+    seed 4, merged APE 16 m). Only when every link that joins the graphs was off do they all start on (the
+    merged map's robust check decides them afresh).
+    """
+    out = active.copy()
+    if joins.any() and not out[joins].any():
+        out[joins] = True
+    return out
+
+
 def _merge_links(loaded: State, partial: State, match: Match, exp: _Experiences) -> _Links:
     """Operation (iv) on the links: the partial's kept links, merge links last.
 
@@ -405,7 +420,7 @@ def _merge_links(loaded: State, partial: State, match: Match, exp: _Experiences)
         "em_link_dt": [np.asarray(partial["em_link_dt"], dtype=np.float64)[keep_l]],
         "em_link_distance": [np.asarray(partial["em_link_distance"], dtype=np.float64)[keep_l]],
         "em_link_kind": [kind[keep_l]],
-        "em_link_active": [_link_active(partial)[keep_l] | joins[keep_l]],  # a link that becomes a merge link starts on
+        "em_link_active": [_joined_status(_link_active(partial)[keep_l], joins[keep_l])],
     }  # fmt: skip
     new_joins = [joins[keep_l]]
     current = int(partial["em_current"])
@@ -462,12 +477,18 @@ def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, 
 def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.ndarray) -> dict[str, np.ndarray]:
     """Return both maps' reckoning links in merged ids, and the running session's dead reckoning.
 
-    Reckoning links hold odometry in their source's frame, which no rigid transform changes; the
-    partial's links with an end identified with a loaded experience are dropped (the odometry link
-    they stand in for may have become a merge link). Likewise the running session's last created
-    experience, when identified, starts no reckoning link (``em_last_created`` −1): one from the
-    loaded experience would join the sessions in the dead reckoning that the robust check tests links
-    against (:func:`core.robust.contradicts_odometry`). States without them (older, imported) have none.
+    Reckoning links hold odometry in their source's frame, which no rigid transform changes. One whose
+    start is identified with a loaded experience starts there: dropped, as until 2026-11-28, it left the
+    relocalisation's odometry link it stood in for (into a kept experience, switched off in the partial
+    map) with no partner, so the merged map's robust check could not switch it off; it came back on and
+    folded session 2's map again (offline merge of ``symmetric`` seed 7, merged APE 17.5 m against 3.0 m
+    now). One whose end is identified is dropped: the link it stood in for, into that experience, is a
+    merge link now or gone, and the first odometry link into a loaded experience is the loaded map's
+    own (:meth:`core.experience_map.ExperienceMap._standby` would pair them). Likewise the running
+    session's last created experience, when identified, starts no reckoning link (``em_last_created``
+    −1): one from the loaded experience would join the sessions in the dead reckoning that the robust
+    check tests links against (:func:`core.robust.contradicts_odometry`). States without them (older,
+    imported) have none.
     """
 
     def links(state: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -477,8 +498,9 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
 
     l_from, l_to, l_link = links(loaded)
     p_from, p_to, p_link = links(partial)
-    keep = kept[p_from] & kept[p_to]
+    keep = kept[p_to]  # a reckoning link into an identified experience stood in for a link that is no longer odometry
     p_from, p_to = emap[p_from], emap[p_to]
+    keep &= p_from != p_to
     last = int(np.asarray(partial.get("em_last_created", np.asarray(-1))))
     return {
         "em_reckon_from": np.concatenate([l_from, p_from[keep]]),

@@ -297,23 +297,47 @@ def test_merged_maps_keep_the_link_flags_of_both_maps() -> None:
     n_loaded = loaded["em_link_from"].size
     assert state["em_link_active"][:n_loaded].tolist() == loaded["em_link_active"].tolist()
     kinds = state["em_link_kind"][n_loaded:]
-    # the partial's kept links stay off; the links that join the graphs (merge links) start on
+    # the partial's kept links stay off; the links that join the graphs (merge links), all off, start on
     assert state["em_link_active"][n_loaded:].tolist() == (kinds == 2).tolist()
     assert (kinds == 2).any() and (kinds != 2).any()
 
 
-def test_reckoning_links_are_renumbered_and_those_with_an_identified_end_dropped() -> None:
-    """The partial's experiences 0, 1, 2 become 6, 7, 8 and its 3 is identified with the loaded 2."""
+def test_a_link_its_own_map_switched_off_stays_off_as_a_merge_link_and_through_the_restored_engine() -> None:
+    """The partial's links 2 → 3 (odometry) and 3 → 4 join the graphs once its experience 3 is identified with the
+    loaded 2; 2 → 3 was switched off by the partial's robust check (a false relocalisation's odometry link):
+    it stays off, 3 → 4 stays on, and the restored engine holds the same statuses (it re-adds merge links)."""
+    params = Params().replace(template_x_size=TX, template_y_size=TY, pc_dim_xy=21, pc_dim_th=36)
+    loaded, partial = loaded_state(), partial_state(SHIFT, world_x=(-1.0, 0.0, 1.0, 2.0, 3.0))
+    p_from, p_to = partial["em_link_from"], partial["em_link_to"]
+    switched_off = (p_from == 2) & (p_to == 3)
+    assert switched_off.sum() == 1 and ((p_from == 3) & (p_to == 4)).sum() == 1
+    partial["em_link_active"] = ~switched_off
+    match = Match.at_experience(partial, 3, stored_template=2, stored_experience=2)
+    state, record = merge_states(loaded, partial, match)
+    tail = record.merge_links
+    ends = list(zip(state["em_link_from"][tail].tolist(), state["em_link_to"][tail].tolist(), strict=True))
+    statuses = dict(zip(ends, state["em_link_active"][tail].tolist(), strict=True))
+    n_loaded = loaded["em_pose"].shape[0]
+    assert statuses == {(n_loaded + 2, 2): False, (2, n_loaded + 3): True}  # partial 4 is merged 6 + 3
+    engine = restore_merged(params, state, record, origin=2)
+    assert np.array_equal(engine.map.snapshot()["em_link_active"], state["em_link_active"])
+
+
+def test_reckoning_links_are_renumbered_an_identified_end_to_the_stored_experience() -> None:
+    """The partial's experiences 0, 1, 2 become 6, 7, 8 and its 3 is identified with the loaded 2: its reckoning
+    link 3 → 1 becomes 2 → 7 (until 2026-11-28 it was dropped, and the relocalisation's odometry link it stood
+    in for, switched off in the partial map, became a link the robust check could not switch off); 1 → 3, into
+    the identified experience, is dropped (the odometry link into the loaded 2 is the loaded map's own)."""
     loaded, partial = loaded_state(), partial_state(TURN)
     loaded.update(em_reckon_from=np.array([4]), em_reckon_to=np.array([5]), em_reckon_link=np.full((1, 6), 9.0))
-    rows = np.arange(12, dtype=np.float64).reshape(2, 6)
-    partial.update(em_reckon_from=np.array([0, 1]), em_reckon_to=np.array([2, 3]), em_reckon_link=rows,
+    rows = np.arange(18, dtype=np.float64).reshape(3, 6)
+    partial.update(em_reckon_from=np.array([0, 1, 3]), em_reckon_to=np.array([2, 3, 1]), em_reckon_link=rows,
                    em_reckon=np.arange(6, dtype=np.float64), em_last_created=np.asarray(2))  # fmt: skip
     match = Match.at_experience(partial, 3, stored_template=2, stored_experience=2)
     state, record = merge_states(loaded, partial, match)
     assert record.experience_map.tolist() == [6, 7, 8, 2]
-    assert state["em_reckon_from"].tolist() == [4, 6] and state["em_reckon_to"].tolist() == [5, 8]
-    assert state["em_reckon_link"].tolist() == [[9.0] * 6, rows[0].tolist()]  # odometry in the source frame: kept
+    assert state["em_reckon_from"].tolist() == [4, 6, 2] and state["em_reckon_to"].tolist() == [5, 8, 7]
+    assert state["em_reckon_link"].tolist() == [[9.0] * 6, rows[0].tolist(), rows[2].tolist()]  # source frame: kept
     assert state["em_reckon"].tolist() == list(range(6)) and int(state["em_last_created"]) == 8
     plain, _ = merge_states(loaded_state(), partial_state(TURN), match)
     assert plain["em_reckon_from"].size == 0 and int(plain["em_last_created"]) == -1  # states without them
