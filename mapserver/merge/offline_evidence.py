@@ -27,11 +27,13 @@ creation order, and their views are their codes, matched against B's codes and p
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from core import Engine, LinkKind
 from core.se3 import alignment, compose, inverse, wrap_angle
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
@@ -64,6 +66,9 @@ class OfflineEvidence:
     probation: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """What the online probation would have seen after the anchor, along A's chain in its own time order
     (:func:`_probation_window`): (metres walked, longest run of misses, score hit − miss_weight · miss)."""
+    closures: tuple[tuple[int, int], ...] = ()
+    """(A's experience, B's experience) of every hit: where A's view matched B's template, at B's experience
+    nearest the alignment's prediction (LVC maps only: their trials are experiences)."""
 
     @property
     def score_m(self) -> float:
@@ -201,9 +206,13 @@ class _OfflineTest:
         """Walk A's chain both ways from its trial ``anchor`` under ``transform`` (A's frame → B's); the evidence."""
         a_pose, steps = self.a_pose, self.steps
         outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
+        seen_at = np.full(a_pose.shape[0], -1, dtype=np.int64)
         for chain in (np.arange(anchor, a_pose.shape[0]), np.arange(anchor, -1, -1)):
-            _walk(self.places, transform, a_pose, self.views, chain, outcomes)
+            _walk(self.places, transform, a_pose, self.views, chain, outcomes, seen_at)
         hit, miss = outcomes == HIT, outcomes == MISS
+        closures = () if self.unit_of_view is not None else tuple(
+            (int(e), int(seen_at[e])) for e in np.flatnonzero(hit & (seen_at >= 0)).tolist()
+        )
         turn = 0.0
         if hit.any():
             offsets = wrap_angle(a_pose[hit, 3] - a_pose[hit, 3][0])
@@ -214,6 +223,7 @@ class _OfflineTest:
             miss_weight=self.rule.miss_weight, hits=int(hit.sum()), misses=int(miss.sum()),
             agreeing=frozenset(np.flatnonzero(hit).tolist()), miss_run_m=_longest_miss_run(steps, hit, miss),
             probation=_probation_window(steps[anchor + 1 :], outcomes[anchor + 1 :], self.probation_m, self.rule),
+            closures=closures,
         )  # fmt: skip
 
 
@@ -259,11 +269,13 @@ def _walk(
     views: tuple[np.ndarray, np.ndarray, np.ndarray],
     chain: np.ndarray,
     outcomes: np.ndarray,
+    seen_at: np.ndarray,
 ) -> None:
     """Test A's experiences along ``chain`` from the anchor, re-anchoring the alignment at every hit.
 
     As online, where a hypothesis is re-anchored at every agreeing match, the alignment follows the
     drift of A's own map (a bent A is tested locally, not against one rigid alignment of all of it).
+    ``seen_at``: each hit's stored place (the row of B's places whose template it matched).
     """
     templates, means, template_of = views
     for e in chain.tolist():
@@ -274,6 +286,7 @@ def _walk(
         outcomes[e] = outcome
         if outcome == HIT and seen is not None:
             transform = alignment(seen, a_pose[e])
+            seen_at[e] = int(np.argmin(np.linalg.norm(places.poses[:, :3] - seen[:3], axis=1)))
 
 
 def confirmed_offline_match(
@@ -320,3 +333,23 @@ def confirmed_offline_match(
         )
         raise NoConfirmedMatchError(msg)
     return match, best
+
+
+def close_offline(engine: Engine, n_loaded: int, experience_map: np.ndarray, closures: Sequence[Sequence[int]]) -> int:
+    """Add a loop closure for every place where A's views matched B's (:attr:`OfflineEvidence.closures`); settle.
+
+    An offline merge joins A to B where it identified experiences (the confirmation window) and nowhere
+    else, though the evidence walk found A's views matching B's along the whole overlap: online, RatSLAM
+    would have closed a loop at each of them. Each becomes a loop link from B's experience to A's (merged
+    id ``experience_map[e]``) at the identity (the view says the robot stood there facing that way), unless
+    A's experience was identified with a stored one; the robust check decides them like any closure.
+    Returns how many links were added.
+    """
+    added = 0
+    for e, u in closures:
+        merged = int(experience_map[e])
+        if merged < n_loaded or not 0 <= u < n_loaded:
+            continue
+        added += engine.map.add_link_raw(u, merged, np.zeros(4), 0.0, 0.0, LinkKind.LOOP)
+    engine.settle()
+    return added
