@@ -321,8 +321,8 @@ def confirmed_offline_match(
             f"{match.confirmations} agreeing): {best.reason()}"
         )
         raise NoConfirmedMatchError(msg)
-    if best.evidence_m <= 0:  # the paper's rule: the best confirmed run merges
-        return match, best
+    if best.evidence_m <= 0:  # the paper's rule: the best confirmed run merges, and closes no loop offline
+        return match, replace(best, closures=())
     rivals = [ev.score_m for ev, m in weighed[1:] if test.anchor(m) not in best.agreeing]
     lead = best.score_m - max(rivals, default=0.0)
     if lead < 0.5 * best.evidence_m:

@@ -503,7 +503,7 @@ def test_an_offline_merge_closes_loops_where_the_maps_overlap_and_redo_closes_th
     loop link (as RatSLAM would have closed online), decided by the robust check like any closure: merged APE
     3.38 m without them (sessions alone 1.45 and 0.67 m), 0.54 m with them. ``unmerge`` then ``merge --redo``
     makes the same map bit for bit (the closures are in the event). Must still: merged, and one map of both
-    sessions' ground within 1 m."""
+    sessions' ground within 1 m. ``--merge-evidence 0`` (the paper's rule, as multisession-ratslam merges) adds none."""
     from mapserver.store.mapio import load_map
     from tests.mapserver.store.conftest import assert_same_arrays
 
@@ -524,3 +524,8 @@ def test_an_offline_merge_closes_loops_where_the_maps_overlap_and_redo_closes_th
     cli_json("unmerge", "--db", db, "--event", str(event.id))
     assert cli_json("merge", "--db", db, "--redo", str(event.id))["map"] == "session1"
     assert_same_arrays(stored, load_map(open_database(db), name="session1").snapshot)
+    cli_json("unmerge", "--db", db, "--event", str(event.id))  # the paper's rule merges as multisession-ratslam does
+    assert cli_json("merge", "--db", db, "--map", "session2", "--into", "session1", "--merge-evidence", "0")["merged"]
+    with open_database(db) as database, database.read() as conn:
+        paper = list_merge_events(conn=conn)[-1]
+    assert paper.id != event.id and paper.details["closures"] == []
