@@ -38,7 +38,7 @@ from core import Params, params_from_dict
 from mapserver.errors import InputError, MergeError
 from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots
 from mapserver.merge.identity import RowIdentities, next_index_from_table
-from mapserver.merge.offline_evidence import close_offline, confirmed_offline_match
+from mapserver.merge.offline_evidence import confirmed_offline_match
 from mapserver.merge.provenance import match_to_dict, record_summary, transform7
 from mapserver.merge.relevance import ViewLog
 from mapserver.merge.snapshot import params_incompatibility
@@ -494,9 +494,8 @@ def merge_stored_maps(
             raise MergeError(msg)
     stored_a, stored_b = StoredMap(a.name, a.params, a.snapshot), StoredMap(b.name, b.params, b.snapshot)
     match, evidence = confirmed_offline_match(stored_a, stored_b, confirm, evidence_m)
-    engine, record = merge_snapshots(b.stored(), a.stored(), match, settle=False)
     closures = [list(pair) for pair in evidence.closures]
-    close_offline(engine, int(np.shape(b.snapshot["em_pose"])[0]), record.experience_map, closures)
+    engine, record = merge_snapshots(b.stored(), a.stored(), match, closures=closures)
     identities = RowIdentities.merged(b.identities, a.identities, record)
     host = a if a.id < b.id else b
     partial = PartialSide(a.name, a.id, None, a.identities, a.params, a.session_ids, from_store=True)

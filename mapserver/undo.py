@@ -19,7 +19,6 @@ from mapserver.atlas import ID_NEXT_KEY, MergeOutcome, claim_all, stored_identit
 from mapserver.errors import ConflictError, MergeError
 from mapserver.merge import Match, MergeRecord, StoredMap, merge_snapshots, merge_states, restore_merged
 from mapserver.merge.identity import RowIdentities
-from mapserver.merge.offline_evidence import close_offline
 from mapserver.merge.places import merged_template_places
 from mapserver.merge.provenance import match_from_dict
 from mapserver.merge.resume import MergerState, merger_keys
@@ -163,10 +162,9 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
         if event.mode == "offline":
             engine, record = merge_snapshots(
                 StoredMap(target.map_name, t_params, target.snapshot),
-                StoredMap(source.map_name, s_params, source.snapshot), match, shift_lattice=shift, settle=False,
+                StoredMap(source.map_name, s_params, source.snapshot), match, shift_lattice=shift,
+                closures=details.get("closures") or (),
             )  # fmt: skip
-            n_loaded = int(np.shape(target.snapshot["em_pose"])[0])
-            close_offline(engine, n_loaded, record.experience_map, details.get("closures") or [])
             params, extra = t_params, {}
         else:
             engine, record, extra = _redo_online(conn, details, target, source, match, shift, s_params, current)

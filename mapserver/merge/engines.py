@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -134,8 +134,12 @@ def merge_snapshots(
     shift_lattice: bool = True,
     identify_within: float | None = None,
     settle: bool = True,
+    closures: Sequence[Sequence[int]] = (),
 ) -> tuple[Engine, MergeRecord]:
     """Merge stored map ``partial`` into stored map ``loaded`` (offline); return the merged engine and record.
+
+    ``closures``: (partial experience, loaded experience) pairs that close a loop in the merged map
+    (:func:`_close_loops`), before it settles.
 
     The merged map keeps ``loaded``'s parameters; ``sdr-htm`` maps continue in ``loaded``'s cortex, the
     partial's view cells re-expressed in its cells (:func:`mapserver.merge.cortex.translate_offline`). With
@@ -156,6 +160,26 @@ def merge_snapshots(
         partial_state, cortex = translate_offline(loaded.params, loaded.state, partial.state)
     state, record = _merged_state(loaded.state, partial_state, match, shift_lattice, identify_within, cortex)
     merged = restore_merged(loaded.params, state, record)
+    _close_loops(merged, int(np.shape(loaded.state["em_pose"])[0]), record.experience_map, closures)
     if settle:
         merged.settle()
     return merged, record
+
+
+def _close_loops(engine: Engine, n_loaded: int, experience_map: np.ndarray, closures: Sequence[Sequence[int]]) -> int:
+    """Add a loop closure for every place where the partial map's views matched the loaded map's; return how many.
+
+    An offline merge joins the partial map to the loaded one where it identified experiences (the
+    confirmation window) and nowhere else, though the evidence walk found the partial's views matching the
+    loaded map's along the whole overlap (:attr:`mapserver.merge.offline_evidence.OfflineEvidence.closures`):
+    online, RatSLAM would have closed a loop at each of them. Each becomes a loop link from the loaded
+    experience to the partial's (merged id ``experience_map[e]``) at the identity (the view says the robot
+    stood there facing that way), unless the partial's experience was identified with a loaded one; the robust
+    check decides them like any closure when the map settles.
+    """
+    added = 0
+    for e, u in closures:
+        merged = int(experience_map[e])
+        if merged >= n_loaded and 0 <= u < n_loaded:
+            added += engine.map.add_link_raw(u, merged, np.zeros(4), 0.0, 0.0, LinkKind.LOOP)
+    return added

@@ -187,6 +187,10 @@ class StoredPlaces:
         self.placed = np.zeros(cells.count, dtype=bool)  # templates with a stored experience (a place)
         self.placed[self.templates[(self.templates >= 0) & (self.templates < cells.count)]] = True
 
+    def row_at(self, pose: np.ndarray) -> int:
+        """Return the stored place nearest to ``pose`` (its position; −1 when there is none): a hit's place."""
+        return -1 if self._tree is None else int(self._tree.query(pose[:3])[1])
+
     def _near(self, pose: np.ndarray, radius: float) -> np.ndarray:
         """Return the stored experiences within ``radius`` of ``pose`` that face its way (forward views)."""
         if self._tree is None:

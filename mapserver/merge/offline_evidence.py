@@ -27,13 +27,11 @@ creation order, and their views are their codes, matched against B's codes and p
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from core import Engine, LinkKind
 from core.se3 import alignment, compose, inverse, wrap_angle
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
@@ -286,7 +284,7 @@ def _walk(
         outcomes[e] = outcome
         if outcome == HIT and seen is not None:
             transform = alignment(seen, a_pose[e])
-            seen_at[e] = int(np.argmin(np.linalg.norm(places.poses[:, :3] - seen[:3], axis=1)))
+            seen_at[e] = places.row_at(seen)
 
 
 def confirmed_offline_match(
@@ -334,22 +332,3 @@ def confirmed_offline_match(
         raise NoConfirmedMatchError(msg)
     return match, best
 
-
-def close_offline(engine: Engine, n_loaded: int, experience_map: np.ndarray, closures: Sequence[Sequence[int]]) -> int:
-    """Add a loop closure for every place where A's views matched B's (:attr:`OfflineEvidence.closures`); settle.
-
-    An offline merge joins A to B where it identified experiences (the confirmation window) and nowhere
-    else, though the evidence walk found A's views matching B's along the whole overlap: online, RatSLAM
-    would have closed a loop at each of them. Each becomes a loop link from B's experience to A's (merged
-    id ``experience_map[e]``) at the identity (the view says the robot stood there facing that way), unless
-    A's experience was identified with a stored one; the robust check decides them like any closure.
-    Returns how many links were added.
-    """
-    added = 0
-    for e, u in closures:
-        merged = int(experience_map[e])
-        if merged < n_loaded or not 0 <= u < n_loaded:
-            continue
-        added += engine.map.add_link_raw(u, merged, np.zeros(4), 0.0, 0.0, LinkKind.LOOP)
-    engine.settle()
-    return added
