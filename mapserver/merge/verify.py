@@ -10,7 +10,9 @@ winning hypothesis keeps being tested for ``probation_m`` metres on two things:
   :data:`mapserver.merge.hypotheses.PLACE_EXTENT`);
 * **new loop links agree with the merge transform**: a loop closure of the merged engine onto a
   stored experience must land where the alignment puts the robot (within twice the position
-  tolerance).
+  tolerance). Links that land elsewhere speak for another alignment only when they agree on one
+  (:func:`link_consensus`): closures onto the stored map after a wrong merge put the robot at its true
+  places, all under the true alignment, where the front-end's own false closures land anywhere.
 
 The probation lasts ``probation_m`` metres and, after that, as long as the matches that began with the
 merge go on (it ends ``evidence_m`` metres after the newest match, at most ``PROBATION_CAP`` probation
@@ -27,12 +29,12 @@ passes costs no second engine. A contradiction — ``evidence_m`` metres of mism
 them: the look-alike's own matches no longer outweigh what follows it; for a front-end whose misses weigh less than
 LVC's, ``miss_weight`` below 2 (``sdr-htm``), a run needs proportionally more, and Page's CUSUM of the
 mismatches against the matches reaching ``CUSUM_EVIDENCE`` · ``evidence_m`` decides instead, because such a
-front-end misses long runs of true places), the post-merge score (hits −
-miss_weight·misses) falling to ``−reject_m`` metres, two disagreeing loop links that outnumber the
-agreeing ones, or, when the probation ends, a post-merge score below half the decision's ``evidence_m``
-(the probation did not confirm the merge) — rolls the merge back inside the running session: the session
-continues in the shadow, exactly the engine
-it would be had the merge never happened, and the merge is recorded as ``rejected`` with this
+front-end misses long runs of true places), the post-merge score (hits − miss_weight·misses) falling to
+``−reject_m`` metres, two or more disagreeing loop links that agree with one another on another alignment and
+outnumber the agreeing ones (:func:`link_consensus`), or, when the probation ends, a post-merge score below half
+the decision's ``evidence_m`` (the probation did not confirm the merge) — rolls the merge back inside the running
+session: the session continues in the shadow, exactly the engine it would be had the merge never happened, and
+the merge is recorded as ``rejected`` with this
 evidence. Passing the probation drops the shadow and its frames.
 """
 
@@ -45,6 +47,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from core import Action, Engine, StepResult
+from core.se3 import alignment, compose
 from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
@@ -70,7 +73,6 @@ cost a second engine per frame (``cave3d`` session 2 with ``poseidon-sdr``: 1.7 
 long probation of large images (8 probation distances of 640 × 480 RGB frames: ~0.9 GB) in memory's reach."""
 CUSUM_EVIDENCE = 3.0
 """A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
-
 
 
 @dataclass(eq=False)
@@ -101,7 +103,11 @@ class Probation:
     """Frames whose match was held (:data:`mapserver.merge.hypotheses.HELD`): matching, but adding no metres."""
     links_agree: int = 0
     links_disagree: int = 0
+    links_consensus: int = 0
+    """The most disagreeing loop links that agree with one another's alignment (:meth:`_link_consensus`)."""
     worst_link_m: float = 0.0
+    disagreeing: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
+    """Each disagreeing loop link's (stored experience's pose, the session's odometry then)."""
     last_hit_m: float = -1.0
     """Track distance at the newest hit (−1: none yet; the merge's own frame counts as the streak's start)."""
     miss_run_m: float = 0.0
@@ -130,6 +136,18 @@ class Probation:
         if self.pending_bytes > LAZY_SHADOW_BYTES:
             self.catch_up()
         self.frames += 1
+        self._count_views(track)
+        self._check_link(track, result)
+        reason = self._contradiction()
+        if reason:
+            self.reason = reason
+            return REJECTED
+        if self._may_conclude(track.distance):
+            return self._conclude()
+        return None
+
+    def _count_views(self, track: Track) -> None:
+        """Test the newest frame's view where the merged map predicts it; update the runs and the CUSUM."""
         missed_before, hit_before = self.hypothesis.post_miss_m, self.hypothesis.post_hit_m
         outcome = self.hset.test_after_merge(self.hypothesis, track)
         self.hits += outcome == HIT
@@ -140,36 +158,32 @@ class Probation:
         elif outcome == MISS:
             self.miss_run_m += self.hypothesis.post_miss_m - missed_before
         self._cusum(self.hypothesis.post_hit_m - hit_before, self.hypothesis.post_miss_m - missed_before)
-        self._check_link(track, result)
+
+    def _contradiction(self) -> str:
+        """Return why what the probation has seen so far rejects the merge (empty: nothing does yet)."""
         rule = self.hset.rule
-        post = self.hypothesis.post_hit_m - rule.miss_weight * self.hypothesis.post_miss_m
+        hit_m, miss_m = self.hypothesis.post_hit_m, self.hypothesis.post_miss_m
         if self.miss_run_m >= self.miss_run_limit() > 0.0:
-            self.reason = (
+            return (
                 f"{self.miss_run_m:.2f} m of mismatches in a row where the merged map predicts its places "
-                f"(after {self.hypothesis.post_hit_m:.2f} m of matches)"
+                f"(after {hit_m:.2f} m of matches)"
             )
-            return REJECTED
         if self._weak_misses() and self.cusum_m >= CUSUM_EVIDENCE * rule.evidence_m > 0.0:
-            self.reason = (
+            return (
                 f"mismatches outweigh matches where the merged map predicts its places: CUSUM {self.cusum_m:.2f} m "
-                f"(after {self.hypothesis.post_hit_m:.2f} m of matches)"
+                f"(after {hit_m:.2f} m of matches)"
             )
-            return REJECTED
-        if post <= -rule.reject_m:
-            self.reason = (
-                f"views disagree with the merged map: {self.hypothesis.post_miss_m:.2f} m of mismatches against "
-                f"{self.hypothesis.post_hit_m:.2f} m of matches where it predicts its places"
+        if hit_m - rule.miss_weight * miss_m <= -rule.reject_m:
+            return (
+                f"views disagree with the merged map: {miss_m:.2f} m of mismatches against {hit_m:.2f} m of "
+                "matches where it predicts its places"
             )
-            return REJECTED
-        if self.links_disagree >= 2 and self.links_disagree > self.links_agree:
-            self.reason = (
-                f"{self.links_disagree} loop links disagree with the merge transform "
-                f"(worst {self.worst_link_m:.2f} m), {self.links_agree} agree"
+        if self.links_consensus >= 2 and self.links_consensus > self.links_agree:
+            return (
+                f"{self.links_consensus} loop links agree on another alignment than the merge's "
+                f"({self.links_disagree} disagree with it, worst {self.worst_link_m:.2f} m; {self.links_agree} agree)"
             )
-            return REJECTED
-        if self._may_conclude(track.distance):
-            return self._conclude()
-        return None
+        return ""
 
     def catch_up(self) -> Engine:
         """Step the shadow through the frames held (in order) and return it: the engine that never merged.
@@ -337,13 +351,16 @@ class Probation:
         """Count a loop closure onto a stored experience as agreeing or not with the alignment."""
         if result.action != Action.CREATE_EDGE or not 0 <= result.experience < self.loaded_experiences:
             return
-        predicted = self.hypothesis.predict(track.last[1])
-        gap = float(np.linalg.norm(self.hset.places.poses[result.experience, :3] - predicted[:3]))
+        odometry = track.last[1]
+        stored = self.hset.places.poses[result.experience]
+        gap = float(np.linalg.norm(stored[:3] - self.hypothesis.predict(odometry)[:3]))
         if gap <= 2.0 * self.hset.rule.position_tolerance:
             self.links_agree += 1
         else:
             self.links_disagree += 1
             self.worst_link_m = max(self.worst_link_m, gap)
+            self.disagreeing.append((np.asarray(stored, dtype=np.float64), np.asarray(odometry, dtype=np.float64)))
+            self.links_consensus = link_consensus(self.disagreeing, 2.0 * self.hset.rule.position_tolerance)
 
     def evidence(self, track: Track, status: str) -> dict[str, Any]:
         """Return the verification's figures for the merge event (``status``: passed, rejected, incomplete)."""
@@ -355,7 +372,8 @@ class Probation:
             "held_frames": self.held,
             "post_hit_m": round(self.hypothesis.post_hit_m, 3), "post_miss_m": round(self.hypothesis.post_miss_m, 3),
             "reject_m": round(rule.reject_m, 3), "links_agree": self.links_agree,
-            "links_disagree": self.links_disagree, "worst_link_m": round(self.worst_link_m, 3),
+            "links_disagree": self.links_disagree, "links_consensus": self.links_consensus,
+            "worst_link_m": round(self.worst_link_m, 3),
             "miss_run_m": round(self.miss_run_m, 3), "cusum_m": round(self.cusum_m, 3),
             "since_match_m": round(self.since_match_m(track.distance), 3),
         }  # fmt: skip
@@ -365,3 +383,22 @@ def image_bytes(frame: Any) -> int:
     """Return the bytes of a frame's images (camera, and sonar when it has one)."""
     sonar = getattr(frame, "sonar", None)
     return int(np.asarray(frame.image).nbytes) + (0 if sonar is None else int(np.asarray(sonar).nbytes))
+
+
+def link_consensus(links: list[tuple[np.ndarray, np.ndarray]], tolerance: float) -> int:
+    """Return the most loop links that agree on one alignment of the session's odometry onto the stored map.
+
+    Each link (the stored experience's pose ``q``, the session's odometry ``o`` when it closed) implies the
+    alignment ``A = q ⊖ o`` that would have put the robot there (Eqs. 13–14, from one closure); another link
+    ``(q', o')`` agrees with it when ``A ⊕ o'`` lies within ``tolerance`` of ``q'``. The count is the largest
+    support of any one link's alignment (a RANSAC vote over single-link hypotheses, Fischler & Bolles 1981).
+    Links that disagree with the merge because the merge is wrong put the robot at its true places, so they
+    agree on the true alignment; false closures of the front-end land anywhere, and agree on none.
+    """
+    if not links:
+        return 0
+    stored = np.stack([q for q, _ in links])
+    odometry = np.stack([o for _, o in links])
+    moved = compose(alignment(stored, odometry)[:, None, :], odometry[None, :, :])  # [i, j]: A_i ⊕ o_j
+    agree = np.linalg.norm(moved[..., :3] - stored[None, :, :3], axis=-1) <= tolerance
+    return int(agree.sum(axis=1).max())

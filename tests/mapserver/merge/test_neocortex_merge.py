@@ -315,13 +315,13 @@ def test_the_engine_records_where_each_view_cell_was_made_and_restores_it() -> N
 
 
 def _online(
-    directory: Path, scenario: str, params: Any, frames: list[bytes] | None = None, **sim: float
+    directory: Path, scenario: str, params: Any, frames: list[bytes] | None = None, seed: int = 0, **sim: float
 ) -> tuple[list[Any], list[Any], Any]:
-    """Simulate seed 0, map session 1 alone, run session 2 through the online merge driver against it.
+    """Simulate ``seed``, map session 1 alone, run session 2 through the online merge driver against it.
 
     ``frames``: receives the digest of each of session 2's camera images, in order.
     """
-    info = simulate(scenario, directory, seed=0, params=sim)
+    info = simulate(scenario, directory, seed=seed, params=sim)
     s1, s2 = info["sessions"][:2]
     stored = Engine(params, origin=1)
     run_engine(stored, directory / s1["log"])
@@ -392,6 +392,37 @@ def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_tru
     assert read == frames[: events[0].frame + 1]  # up to the merge's frame, none of its probation's
     t = events[0].record.transform
     assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 5.0 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.35
+
+
+def test_a_true_sdr_merge_stands_when_the_loop_links_that_disagree_with_it_agree_on_nothing(tmp_path: Path) -> None:
+    """``cave3d`` with ``poseidon``'s ``sdr-htm`` front-end, seed 6 (README, stop 42): the merge at frame 12 is at the
+    true place (0.12 m), then the front-end closes 3 false loops onto the stored map (the robot 1.9–4.1 m from the
+    experiences linked) beside 2 true ones. Counting every disagreeing link rolled the merge back at frame 67 (it
+    merged again at frame 109); the three put the robot at three different places (the largest group that agrees
+    on one alignment: 1), so now the merge stands. The
+    must-still of the link rule is ``tests/mapserver/merge/test_verify.py`` (two links that agree on another
+    alignment reject a merge)."""
+    params = preset("poseidon").replace(frontend="sdr-htm")
+    events, rollbacks, truth = _online(tmp_path / "cave", "cave3d", params, seed=6)
+    assert rollbacks == [] and len(events) == 1 and events[0].frame <= 20
+    verification = events[0].evidence["verification"]
+    assert verification["status"] == "passed"
+    assert verification["links_disagree"] > verification["links_consensus"]  # some of them agree on nothing
+    assert verification["links_agree"] > verification["links_disagree"] >= 3  # by the probation's end (5 against 30)
+    t = events[0].record.transform
+    assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 1.5 and abs(math.remainder(t[3] - truth[3], math.tau)) < 0.2
+
+
+def test_loop_links_that_agree_on_another_alignment_still_roll_a_false_merge_back(tmp_path: Path) -> None:
+    """The must-still of the link rule above, on a scenario: ``neoslam`` on ``twin`` with a 40 m look-alike holding
+    turns (seed 0). The session merges into the other world (frame 62, 91 m from its place); at frame 79 three
+    loop links onto the stored map disagree with the merge and two of them agree on one other alignment, none
+    agrees: the merge is rolled back on them (counting every disagreeing link did at frame 71, on two)."""
+    events, rollbacks, _ = _online(tmp_path / "twin", "twin", preset("neoslam"), lookalike_m=40.0, lookalike_turns=1.0)
+    assert events == [] and len(rollbacks) == 1
+    verification = rollbacks[0].event.evidence["verification"]
+    assert verification["reason"].startswith("2 loop links agree on another alignment")
+    assert (verification["links_consensus"], verification["links_disagree"], verification["links_agree"]) == (2, 3, 0)
 
 
 @pytest.mark.parametrize("width", [SDR.sv_tm_topk, ROW])

@@ -2,9 +2,21 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
-from mapserver.merge.verify import PASSED, PROBATION_CAP, REJECTED, WEAK_MISS_PROBATION_CAP, Probation
+import numpy as np
+
+from core import Action
+from core.se3 import compose
+from mapserver.merge.verify import (
+    PASSED,
+    PROBATION_CAP,
+    REJECTED,
+    WEAK_MISS_PROBATION_CAP,
+    Probation,
+    link_consensus,
+)
 
 
 def _probation(last_hit_m: float) -> Probation:
@@ -103,3 +115,55 @@ def test_a_probation_does_not_close_on_a_run_of_mismatches_longer_than_the_maps_
     sdr.hset.rule.miss_weight = 0.16  # weak misses: runs of mismatches on true ground are common
     sdr.miss_run_m = 5.0
     assert sdr._may_conclude(124.0)
+
+
+def test_link_consensus_counts_the_links_that_agree_on_one_alignment_by_hand() -> None:
+    turned = np.array([10.0, 0.0, 0.0, math.pi / 2])  # the session's odometry, turned 90° and moved 10 m east
+    odometry = [np.array([0.0, 0.0, 0.0, 0.0]), np.array([5.0, 0.0, 0.0, 0.0]), np.array([0.0, 5.0, 0.0, 0.3])]
+    stored = [np.array([10.0, 0.0, 0.0, math.pi / 2]), np.array([10.0, 5.0, 0.0, math.pi / 2]),
+              np.array([5.0, 0.0, 0.0, math.pi / 2 + 0.3])]  # fmt: skip  # turned ⊕ o, by hand
+    assert np.allclose(compose(turned, np.stack(odometry)), np.stack(stored))
+    links = list(zip(stored, odometry, strict=True))
+    assert link_consensus(links, tolerance=0.5) == 3
+    links.append((np.array([50.0, 50.0, 0.0, 0.0]), np.array([1.0, 1.0, 0.0, 0.0])))  # another alignment
+    assert link_consensus(links, tolerance=0.5) == 3
+    scattered = [(np.array([4.0, 0.0, 0.0, 0.0]), np.zeros(4)), (np.array([0.0, 4.0, 0.0, 0.0]), np.zeros(4)),
+                 (np.array([-4.0, 2.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]))]  # fmt: skip
+    assert link_consensus(scattered, tolerance=2.0) == 1  # each puts the others' robot 5.4-9.2 m off their place
+    assert link_consensus([], tolerance=2.0) == 0
+
+
+def _linked_probation(stored: np.ndarray) -> Probation:
+    """A probation whose merge put the session's odometry onto the stored map unchanged (identity alignment)."""
+    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0, coverage_radius=1.5, reject_m=2.0,
+                           position_tolerance=1.0)  # fmt: skip
+    hset = SimpleNamespace(rule=rule, places=SimpleNamespace(poses=stored))
+    hypothesis = SimpleNamespace(post_hit_m=6.0, post_miss_m=0.0, predict=lambda odometry: np.asarray(odometry))
+    return Probation(key=1, hypothesis=hypothesis, hset=hset, shadow=None,  # type: ignore[arg-type]
+                     start_m=100.0, loaded_experiences=len(stored))  # fmt: skip
+
+
+def _close_loops(probation: Probation, closures: list[tuple[int, tuple[float, float]]]) -> None:
+    """Loop closures onto stored experience ``e`` seen with the session's odometry at (x, y)."""
+    for experience, (x, y) in closures:
+        track = SimpleNamespace(last=(0, np.array([x, y, 0.0, 0.0])))
+        probation._check_link(track, SimpleNamespace(action=Action.CREATE_EDGE, experience=experience))  # type: ignore[arg-type]
+
+
+def test_loop_links_that_disagree_reject_a_merge_only_when_they_agree_on_another_alignment() -> None:
+    """``cave3d`` with ``sdr-htm`` (seed 6): a true merge met 3 false front-end closures 2–4 m off, each its own
+    way, beside 2 that agreed; counting every disagreeing link rolled it back. Must not: scattered disagreeing
+    links reject nothing; must still: two that put the robot 20 m east both reject it, outnumbering one agreeing."""
+    stored = np.array([[0.0, 0.0, 0.0, 0.0], [10.0, 0.0, 0.0, 0.0], [24.0, 0.0, 0.0, 0.0], [10.0, 4.0, 0.0, 0.0],
+                       [2.0, -3.0, 0.0, 0.0], [20.0, 0.0, 0.0, 0.0], [30.0, 0.0, 0.0, 0.0]])  # fmt: skip
+    scattered = _linked_probation(stored)
+    _close_loops(scattered, [(0, (0.0, 0.0)), (1, (10.0, 0.0)), (2, (20.0, 0.0)), (3, (10.0, 0.0)), (4, (5.0, 0.0))])
+    assert (scattered.links_agree, scattered.links_disagree, scattered.links_consensus) == (2, 3, 1)
+    assert scattered._contradiction() == ""
+    elsewhere = _linked_probation(stored)
+    _close_loops(elsewhere, [(0, (0.0, 0.0)), (5, (0.0, 0.0)), (6, (10.0, 0.0))])  # both: the robot 20 m east
+    assert (elsewhere.links_agree, elsewhere.links_disagree, elsewhere.links_consensus) == (1, 2, 2)
+    assert elsewhere._contradiction().startswith("2 loop links agree on another alignment")
+    outvoted = _linked_probation(stored)  # the same two against two agreeing: not more than them
+    _close_loops(outvoted, [(0, (0.0, 0.0)), (1, (10.0, 0.0)), (5, (0.0, 0.0)), (6, (10.0, 0.0))])
+    assert outvoted.links_consensus == 2 and outvoted._contradiction() == ""
