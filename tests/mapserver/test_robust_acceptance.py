@@ -147,3 +147,23 @@ def test_the_map_as_it_stood_replaces_a_costlier_answer_at_any_lower_cost(
     assert worst() <= 1.01
     monkeypatch.setattr(robust_module, "STATUS_QUO_MARGIN", 1.0)
     assert worst() > 2.0
+
+
+def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_merge_links_off(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The merged ``symmetric`` map (seed 0) with 20 wrong links of 5-7.5 m (injection seed 1): the search's answer
+    kept 3 of them on and switched 2 merge links and a loop closure off instead — as many links off, so TLS charged
+    only the residuals, 10.0 below the map as it stood (one outlier's worth is 10.4): APE 3.2× the clean map's. Now
+    the status quo holds one outlier's worth for each merge link the answer switches off (``MERGE_LINK_HOLD``): the
+    clean map. Paired: without the hold (the rule of stops 37-41) the failure is back."""
+    sim = simulate_merged(tmp_path / "symmetric", "symmetric", seed=0)
+    stamps = sim.state["em_stamp"]
+    clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
+    held = inject(sim, 20, 5.0, seed=1)
+    assert not held.engine.map.link_active[held.injected].any()
+    assert map_ape(held.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
+    monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
+    bought = inject(sim, 20, 5.0, seed=1)
+    assert bought.engine.map.link_active[bought.injected].sum() == 3
+    assert map_ape(bought.engine.map.poses, stamps, sim.truth) > 2.5 * clean
