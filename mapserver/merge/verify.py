@@ -102,9 +102,8 @@ class Probation:
     held: int = 0
     """Frames whose match was held (:data:`mapserver.merge.hypotheses.HELD`): matching, but adding no metres."""
     links_agree: int = 0
-    links_disagree: int = 0
     links_consensus: int = 0
-    """The most disagreeing loop links that agree with one another's alignment (:meth:`_link_consensus`)."""
+    """The most disagreeing loop links that agree with one another's alignment (:func:`link_consensus`)."""
     worst_link_m: float = 0.0
     disagreeing: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
     """Each disagreeing loop link's (stored experience's pose, the session's odometry then)."""
@@ -357,10 +356,14 @@ class Probation:
         if gap <= 2.0 * self.hset.rule.position_tolerance:
             self.links_agree += 1
         else:
-            self.links_disagree += 1
             self.worst_link_m = max(self.worst_link_m, gap)
             self.disagreeing.append((np.asarray(stored, dtype=np.float64), np.asarray(odometry, dtype=np.float64)))
             self.links_consensus = link_consensus(self.disagreeing, 2.0 * self.hset.rule.position_tolerance)
+
+    @property
+    def links_disagree(self) -> int:
+        """Return how many loop links onto the stored map landed away from where the merge puts the robot."""
+        return len(self.disagreeing)
 
     def evidence(self, track: Track, status: str) -> dict[str, Any]:
         """Return the verification's figures for the merge event (``status``: passed, rejected, incomplete)."""
