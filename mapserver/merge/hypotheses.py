@@ -61,12 +61,13 @@ PLACE_EXTENT = 1.0
 """Metres of hits one place can give a hypothesis in a row, in position tolerances (front-ends that place views
 loosely: ``sdr-htm``).
 
-A hit re-anchors the alignment on the place matched, so where a stretch's views are all accepted at one place
-the robot's prediction stays on that place however far it drives, and every frame is a hit there. Measured on
-``twin`` with a 40 m look-alike holding turns (seed 0, ``sdr-htm`` at ``poseidon``'s gate): one view place won
-every frame of 33 m of the stretch, so a false merge's probation counted 33.5 m of matches, its prediction then
-lay 33 m behind the robot on ground the stored map never saw (no trials there), and it passed. A place cannot
-witness more than the ground it covers, so hits at one place count for this many position tolerances of
+Before a merge a hit re-anchors the alignment on the place matched (during a probation only the first hit at a
+place in a row does, since stop 43: :meth:`HypothesisSet.reanchor`), so where a stretch's views are all accepted
+at one place the robot's prediction stays on that place however far it drives, and every frame is a hit there.
+Measured on ``twin`` with a 40 m look-alike holding turns (seed 0, ``sdr-htm`` at ``poseidon``'s gate): one view
+place won every frame of 33 m of the stretch, so a false merge's probation counted 33.5 m of matches, its
+prediction then lay 33 m behind the robot on ground the stored map never saw (no trials there), and it passed.
+A place cannot witness more than the ground it covers, so hits at one place count for this many position tolerances of
 travel, and after that hold (:data:`HELD`) until a hit elsewhere. At 1: that merge is rolled back at the
 probation's end (2.89 m of matches, 1.97 m of mismatches; at 2 it would pass by 0.02 m)."""
 
@@ -280,6 +281,8 @@ class Hypothesis:
     """The place (4,) of the newest hit (loosely placed views; None: none yet)."""
     held_m: float = 0.0
     """Metres of hits at ``held_place`` since a hit elsewhere (:data:`PLACE_EXTENT`)."""
+    anchor_place: np.ndarray | None = None
+    """The stored place (4,) the alignment was last re-anchored on by a hit (:meth:`HypothesisSet.reanchor`)."""
 
     def record_turn(self, yaw: float) -> None:
         """Widen the span of headings the hits were seen at."""
@@ -358,7 +361,7 @@ class HypothesisSet:
         agreeing = [h for h in self.hypotheses if h.agrees(observation, self.rule)]
         for hypothesis in agreeing:
             hypothesis.support.append(observation)
-            hypothesis.alignment = observation.alignment
+            hypothesis.alignment, hypothesis.anchor_place = observation.alignment, None
         if agreeing or self._is_banned(observation):
             self._fold(odometry)
             return
@@ -404,7 +407,7 @@ class HypothesisSet:
     ) -> int:
         outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean, matched)
         if outcome == HIT and self.places.loose and self._held(hypothesis, seen, step):
-            hypothesis.alignment = alignment(seen, odometry)
+            self.reanchor(hypothesis, seen, odometry, once=False)
             return HELD
         if outcome == HIT:
             if after_merge:
@@ -412,13 +415,43 @@ class HypothesisSet:
             else:
                 hypothesis.hit_m += step
                 hypothesis.record_turn(float(odometry[3]))
-            hypothesis.alignment = alignment(seen, odometry)
+            self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
         elif outcome == MISS:
             if after_merge:
                 hypothesis.post_miss_m += step
             else:
                 hypothesis.miss_m += step
         return outcome
+
+    @staticmethod
+    def reanchor(hypothesis: Hypothesis, seen: np.ndarray, odometry: np.ndarray, once: bool = True) -> None:
+        """Re-anchor the alignment on a hit's place; with ``once``, only on the first hit at that place in a row.
+
+        A hit says the robot is near ``seen``; the alignment is set so that it predicts the robot there
+        (``A = seen ⊖ O``), which keeps odometry drift from accumulating. A forward view keeps matching one
+        place's template while the robot drives on for metres, though, and re-anchoring on every such hit
+        pinned the prediction to that place while the robot left it. Traced on ``twin-overlap`` turns
+        alike 40 m (seed 2, ``circle``): a true merge's prediction followed the robot within 1 m for 83 m,
+        then hits at the stored map's last places held it there while the robot drove 8 m on, and the run of
+        mismatches that followed rolled the merge back. So during an LVC probation (``once``) a hit at the place
+        the alignment last re-anchored on slides the prediction along that place's heading: its heading and its
+        offset across the place's line are the place's, its progress along the line is dead-reckoned (the robot
+        drives on the way the view looks). Dead-reckoned in full instead, a false merge's prediction left the
+        stored places sideways (``symmetric`` seed 8: rolled back 31 frames later, the true merge then 10 frames
+        later and its map 1.25 → 1.91× the single route). Before a merge every hit re-anchors, as the decision
+        was measured; so does every hit of a front-end that places its views loosely (``sdr-htm``), whose
+        probation holds a place's hits after its extent instead (:data:`PLACE_EXTENT`): dead-reckoned on,
+        ``neoslam``'s false merge of ``twin`` turns alike 20 m (seed 0) passed its probation.
+        """
+        if once and hypothesis.anchor_place is not None and np.array_equal(seen, hypothesis.anchor_place):
+            predicted = hypothesis.predict(odometry)
+            yaw = float(seen[3])
+            ahead = (predicted[0] - seen[0]) * math.cos(yaw) + (predicted[1] - seen[1]) * math.sin(yaw)
+            slid = np.array([seen[0] + ahead * math.cos(yaw), seen[1] + ahead * math.sin(yaw), seen[2], yaw])
+            hypothesis.alignment = alignment(slid, odometry)
+            return
+        hypothesis.alignment = alignment(seen, odometry)
+        hypothesis.anchor_place = np.array(seen, dtype=np.float64)
 
     def _held(self, hypothesis: Hypothesis, seen: np.ndarray, step: float) -> bool:
         """Whether a hit at ``seen`` is past its place's extent (:data:`PLACE_EXTENT`).

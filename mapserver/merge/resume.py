@@ -12,7 +12,9 @@ import numpy as np
 from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import Hypothesis, Track
 
-_HYPOTHESIS_COLUMNS = 18  # key, born, hit_m, miss_m, post_hit_m, post_miss_m, alignment (4), turn (3), held (5)
+_HYPOTHESIS_COLUMNS = 22  # key, born, hit_m, miss_m, post_hit_m, post_miss_m, alignment (4), turn (3), held (5),
+# anchor place (4)
+_HYPOTHESIS_COLUMNS_BEFORE_ANCHOR = 18  # states stored before ``Hypothesis.anchor_place``: none anchored
 _HYPOTHESIS_COLUMNS_BEFORE_HELD = 13  # states stored before ``Hypothesis.held_place``: none held
 _SUPPORT_COLUMNS = 15  # hypothesis row, frame, template, experience, error, relative, partial template, odometry, seen
 
@@ -73,8 +75,9 @@ class MergerState:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Return the state as plain arrays (map keys must be integers).
 
-        Keys: ``odometry``, ``absorbed``, ``hypotheses`` (H, 18): key, born, hit_m, miss_m,
-        post_hit_m, post_miss_m, alignment (4), turn (3), held place (4; NaN: none), held_m;
+        Keys: ``odometry``, ``absorbed``, ``hypotheses`` (H, 22): key, born, hit_m, miss_m,
+        post_hit_m, post_miss_m, alignment (4), turn (3), held place (4; NaN: none), held_m, anchor place
+        (4; NaN: none);
         ``support`` (S, 15 + D): hypothesis row, frame,
         stored template, stored experience, error, relative_rad, partial template, odometry (4),
         seen (4), packet (D); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
@@ -83,7 +86,7 @@ class MergerState:
         for key, (live, bans) in self.hypotheses.items():
             for h in live:
                 rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
-                             *h.alignment, *h.turn, *_held_row(h)])  # fmt: skip
+                             *h.alignment, *h.turn, *_held_row(h), *_place_row(h.anchor_place)])  # fmt: skip
                 support.extend(_observation_row(len(rows) - 1, o) for o in h.support)
             banned.extend([float(int(key)), *b] for b in bans)  # type: ignore[call-overload]
         width = max((r.size for r in support), default=_SUPPORT_COLUMNS)
@@ -109,14 +112,16 @@ class MergerState:
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> MergerState:
         """Rebuild a state from :meth:`to_arrays` output."""
         stored = np.asarray(arrays["hypotheses"], dtype=np.float64)
-        old = stored.ndim == 2 and stored.shape[1] == _HYPOTHESIS_COLUMNS_BEFORE_HELD
-        table = stored.reshape(-1, _HYPOTHESIS_COLUMNS_BEFORE_HELD if old else _HYPOTHESIS_COLUMNS)
+        width = stored.shape[1] if stored.ndim == 2 and stored.size else _HYPOTHESIS_COLUMNS
+        table = stored.reshape(-1, width)
+        old, unanchored = width == _HYPOTHESIS_COLUMNS_BEFORE_HELD, width <= _HYPOTHESIS_COLUMNS_BEFORE_ANCHOR
         support = np.asarray(arrays["support"], dtype=np.float64)
         made = [
             Hypothesis(alignment=r[6:10].copy(), born=int(r[1]), hit_m=float(r[2]), miss_m=float(r[3]),
                        post_hit_m=float(r[4]), post_miss_m=float(r[5]), turn=r[10:13].copy(),
                        held_place=None if old or np.isnan(r[13]) else r[13:17].copy(),
-                       held_m=0.0 if old else float(r[17]))
+                       held_m=0.0 if old else float(r[17]),
+                       anchor_place=None if unanchored or np.isnan(r[18]) else r[18:22].copy())
             for r in table
         ]  # fmt: skip
         for row in support:
@@ -149,12 +154,16 @@ def _copy(h: Hypothesis) -> Hypothesis:
         alignment=h.alignment.copy(), born=h.born, support=list(h.support), hit_m=h.hit_m, miss_m=h.miss_m,
         post_hit_m=h.post_hit_m, post_miss_m=h.post_miss_m, turn=h.turn.copy(),
         held_place=None if h.held_place is None else h.held_place.copy(), held_m=h.held_m,
+        anchor_place=None if h.anchor_place is None else h.anchor_place.copy(),
     )  # fmt: skip
 
 
+def _place_row(place: np.ndarray | None) -> list[float]:
+    return [math.nan] * 4 if place is None else [float(v) for v in place]
+
+
 def _held_row(h: Hypothesis) -> list[float]:
-    place = [math.nan] * 4 if h.held_place is None else [float(v) for v in h.held_place]
-    return [*place, float(h.held_m)]
+    return [*_place_row(h.held_place), float(h.held_m)]
 
 
 MERGER_PREFIX = "mg_"

@@ -7,7 +7,10 @@ winning hypothesis keeps being tested for ``probation_m`` metres on two things:
   robot's place in the stored map; where the stored map has been, the view must match one of
   its templates there (the same hit/miss trials as before the merge, counted apart; a loosely placed
   view's hits at one place count for that place's extent only, then are held: matching, no metres —
-  :data:`mapserver.merge.hypotheses.PLACE_EXTENT`);
+  :data:`mapserver.merge.hypotheses.PLACE_EXTENT`); for LVC the prediction is re-anchored on the first hit at each
+  place and slid along that place's heading while the views keep matching it (:meth:`HypothesisSet.reanchor`: a
+  forward view matches one place's template for metres, and re-anchoring on each such hit held the prediction
+  there while the robot drove on);
 * **new loop links agree with the merge transform**: a loop closure of the merged engine onto a
   stored experience must land where the alignment puts the robot (within twice the position
   tolerance). Links that land elsewhere speak for another alignment only when they agree on one
@@ -32,7 +35,8 @@ mismatches against the matches reaching ``CUSUM_EVIDENCE`` · ``evidence_m`` dec
 front-end misses long runs of true places), the post-merge score (hits − miss_weight·misses) falling to
 ``−reject_m`` metres, two or more disagreeing loop links that agree with one another on another alignment and
 outnumber the agreeing ones (:func:`link_consensus`), or, when the probation ends, a post-merge score below half
-the decision's ``evidence_m`` (the probation did not confirm the merge) — rolls the merge back inside the running
+the decision's ``evidence_m`` or, for LVC, matches over less than ``evidence_m`` (the probation did not confirm
+the merge) — rolls the merge back inside the running
 session: the session continues in the shadow, exactly the engine it would be had the merge never happened, and
 the merge is recorded as ``rejected`` with this
 evidence. Passing the probation drops the shadow and its frames.
@@ -331,16 +335,20 @@ class Probation:
         stored map's ground after it was made — a look-alike left for ground the stored map never saw, or
         a place that matches two times in three — is rolled back (measured: the false merges of the
         look-alike sweep ended their probation at −0.9 to +1.1 m, the true ones of ``chain5``, ``bridge``
-        and the sweep's overlap rows at +2.9 m and more, with ``evidence_m`` 4 m).
+        and the sweep's overlap rows at +2.9 m and more, with ``evidence_m`` 4 m). An LVC probation must also have
+        matched over the evidence distance itself, as the decision did (since stop 43): its prediction slides
+        along a place's heading instead of staying on it (:meth:`HypothesisSet.reanchor`), so a false merge whose
+        prediction leaves the stored places sideways sees unmapped ground, not mismatches (``twin`` turns alike
+        60 m seed 1: 2.91 m of matches, none after, net +2.91 m — it passed the half line).
         """
         hit, miss = self.hypothesis.post_hit_m, self.hypothesis.post_miss_m
         rule = self.hset.rule
         needed = 0.5 * rule.evidence_m
-        if hit - rule.miss_weight * miss < needed:
+        if hit - rule.miss_weight * miss < needed or (not self._weak_misses() and hit < rule.evidence_m):
             self.reason = (
                 f"the probation did not confirm the merge: {hit:.2f} m of matches and {miss:.2f} m of mismatches "
                 f"where the merged map predicts views (net {hit - rule.miss_weight * miss:.2f} m, "
-                f"needed {needed:.2f} m)"
+                f"needed {needed:.2f} m{'' if self._weak_misses() else f' and {rule.evidence_m:.2f} m of matches'})"
             )
             return REJECTED
         self.reason = "probation distance travelled without contradiction"

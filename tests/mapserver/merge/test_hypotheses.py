@@ -105,29 +105,56 @@ def test_a_loosely_placed_view_recognised_near_the_prediction_facing_elsewhere_s
     assert loose.test(here, *_view(0))[0] == HIT
 
 
+def test_hits_at_one_place_re_anchor_once_and_the_robot_is_dead_reckoned_off_it() -> None:
+    """Two places, template 0 at x = 0 and template 1 at x = 3; the robot, predicted 0.25 m short of place 0,
+    drives east 0.45 m a frame seeing template 0's view throughout (a forward view keeps matching a place's
+    template for metres). During a probation the first hit re-anchors the prediction on place 0 (x = 0); the
+    next hits there slide it along place 0's heading (east): it follows the odometry's progress (0.45, 0.9)
+    but not its drift north (y stays 0 at each hit). At 1.35 m both places lie beyond the coverage radius
+    (1 m; no trial), and at 2.25 m place 1 is near: template 0's view there is a miss. Re-anchoring on every
+    hit (the code before, and still before a merge and for the loosely placed ``sdr-htm`` views) held the
+    prediction on place 0 however far the robot drove: hits every frame."""
+    poses = np.array([[0.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0]])
+    places = StoredPlaces(_places().cells, poses, np.arange(2), PARAMS.vt_match_threshold, False, RULE)
+    hset, h = HypothesisSet(places, RULE), Hypothesis(alignment=np.array([-0.25, 0.0, 0.0, 0.0]), born=0)
+    outcomes, predicted = [], []
+    for k, x in enumerate([0.0, 0.45, 0.9, 1.35, 2.25]):
+        odometry = np.array([x, 0.02 * k, 0.0, 0.0])  # the odometry drifts 0.02 m north a frame
+        outcomes.append(hset._test(h, odometry, *_view(0), 0.45 if k else 0.0, after_merge=True))
+        predicted.append(h.predict(odometry)[:2])
+    assert outcomes == [HIT, HIT, HIT, UNMAPPED, MISS]
+    np.testing.assert_allclose([p[0] for p in predicted], [0.0, 0.45, 0.9, 1.35, 2.25], atol=1e-12)
+    np.testing.assert_allclose([p[1] for p in predicted[:3]], 0.0, atol=1e-12)  # slid along place 0's heading
+    np.testing.assert_array_equal(h.anchor_place, poses[0])
+    assert h.post_hit_m == pytest.approx(0.9) and h.post_miss_m == pytest.approx(0.45)
+    h.alignment = np.array([1.0, 0.0, 0.0, 0.0])  # must still: a hit at another place re-anchors there
+    assert hset._test(h, np.array([2.25, 0.0, 0.0, 0.0]), *_view(1), 0.5, after_merge=True) == HIT
+    np.testing.assert_allclose(h.predict(np.array([2.25, 0.0, 0.0, 0.0])), poses[1], atol=1e-12)
+    loose = HypothesisSet(StoredPlaces(places.cells, poses, np.arange(2), PARAMS.vt_match_threshold, False, RULE,
+                                       loose=True), RULE)  # fmt: skip
+    for pinned, after_merge in ((hset, False), (loose, True)):  # before a merge, and sdr-htm: every hit re-anchors
+        before = Hypothesis(alignment=np.array([-0.25, 0.0, 0.0, 0.0]), born=0)
+        for k in range(3):
+            odometry = np.array([0.45 * k, 0.0, 0.0, 0.0])
+            assert pinned._test(before, odometry, *_view(0), 0.45 if k else 0.0, after_merge=after_merge) == HIT
+            np.testing.assert_allclose(before.predict(odometry), poses[0], atol=1e-12)
+
+
 @pytest.mark.parametrize("loose", [True, False])
 def test_hits_at_one_loosely_placed_place_count_for_its_extent_and_then_hold(loose: bool) -> None:
-    """Two places, template 0 at x = 0 and template 1 at x = 3; the robot drives east 1 m a frame seeing template
-    0's view four times, then template 1's. Each hit re-anchors the alignment on place 0, so the prediction
-    never leaves it. Loosely placed views (``sdr-htm``): hits at place 0 count while they span at most
-    ``PLACE_EXTENT`` · 1.5 m (frames 1: 1 m), then hold (frames 2 and 3: 2 and 3 m > 1.5 m) — no metres, the
-    prediction still re-anchored; the hit at place 1 counts again. LVC (strict) counts every hit, as before."""
+    """One place, template 0 at x = 0; the prediction stands on it while the track advances 1 m a frame (a robot
+    turning on the spot, say). Loosely placed views (``sdr-htm``): hits at the place count while they span at most
+    ``PLACE_EXTENT`` · 1.5 m (frames 1: 1 m), then hold (frames 2 and 3: 2 and 3 m > 1.5 m) — no metres. LVC
+    (strict) counts every hit."""
     assert PLACE_EXTENT == 1.0
-    poses = np.array([[0.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0]])
-    places = StoredPlaces(_places().cells, poses, np.arange(2), PARAMS.vt_match_threshold, False, RULE, loose=loose)
+    places = StoredPlaces(_places().cells, np.zeros((1, 4)), np.arange(1), PARAMS.vt_match_threshold, False, RULE,
+                          loose=loose)  # fmt: skip
     hset, h = HypothesisSet(places, RULE), Hypothesis(alignment=np.zeros(4), born=0)
-    outcomes = []
-    for x, (template, step) in enumerate([(0, 0.0), (0, 1.0), (0, 1.0), (0, 1.0)]):
-        odometry = np.array([float(x), 0.0, 0.0, 0.0])
-        outcomes.append(hset._test(h, odometry, *_view(template), step, after_merge=True))
-        np.testing.assert_allclose(h.predict(odometry), [0.0, 0.0, 0.0, 0.0], atol=1e-12)  # re-anchored on place 0
-    odometry = np.array([4.0, 0.0, 0.0, 0.0])
-    h.alignment = np.array([-1.0, 0.0, 0.0, 0.0])  # put the prediction at x = 3 to meet place 1
-    outcomes.append(hset._test(h, odometry, *_view(1), 1.0, after_merge=True))
+    outcomes = [hset._test(h, np.zeros(4), *_view(0), step, after_merge=True) for step in (0.0, 1.0, 1.0, 1.0)]
     if loose:
-        assert outcomes == [HIT, HIT, HELD, HELD, HIT] and h.post_hit_m == 2.0
+        assert outcomes == [HIT, HIT, HELD, HELD] and h.post_hit_m == 1.0
     else:
-        assert outcomes == [HIT] * 5 and h.post_hit_m == 4.0  # must still: every hit counts for LVC
+        assert outcomes == [HIT] * 4 and h.post_hit_m == 3.0  # must still: every hit counts for LVC
     assert h.post_miss_m == 0.0
 
 
@@ -136,7 +163,7 @@ def test_held_hits_keep_no_metres_before_a_merge_either() -> None:
     poses = np.array([[0.0, 0.0, 0.0, 0.0]])
     places = StoredPlaces(_places().cells, poses, np.arange(1), PARAMS.vt_match_threshold, True, RULE, loose=True)
     hset, h = HypothesisSet(places, RULE), Hypothesis(alignment=np.zeros(4), born=0)
-    outcomes = [hset._test(h, np.array([0.5 * k, 0.0, 0.0, 0.1 * k]), *_view(0), 1.0, after_merge=False)
+    outcomes = [hset._test(h, np.array([0.3 * k, 0.0, 0.0, 0.1 * k]), *_view(0), 1.0, after_merge=False)
                 for k in range(4)]  # fmt: skip
     assert outcomes == [HIT, HIT, HELD, HELD]  # held 0 and 1 m count; 2 and 3 m > 1.5 m hold
     assert h.hit_m == 2.0 and h.turn_rad == pytest.approx(0.1)  # the held frames' headings (0.2, 0.3) not taken
@@ -262,15 +289,21 @@ def test_the_resume_arrays_hold_hypotheses_bans_and_track_exactly() -> None:
 
 
 def test_the_resume_arrays_keep_a_held_place_and_read_states_stored_before_it() -> None:
-    """A hypothesis's held place and metres come back from the resume arrays; a state stored before they existed
-    (13 columns a hypothesis) loads with none held, its other figures as stored."""
+    """A hypothesis's held place and metres and its anchor place come back from the resume arrays; a state stored
+    before they existed (13 or 18 columns a hypothesis) loads with none held or anchored, its other figures as
+    stored."""
     h = Hypothesis(alignment=np.array([1.0, 2.0, 0.0, 0.5]), born=4, hit_m=3.0, post_hit_m=1.0,
-                   held_place=np.array([5.0, 6.0, 0.0, 0.25]), held_m=1.25)  # fmt: skip
+                   held_place=np.array([5.0, 6.0, 0.0, 0.25]), held_m=1.25,
+                   anchor_place=np.array([7.0, 8.0, 0.0, -0.5]))  # fmt: skip
     arrays = MergerState(np.zeros(4), (), {1: ((h,), ())}).to_arrays()
-    assert arrays["hypotheses"].shape == (1, 18)
+    assert arrays["hypotheses"].shape == (1, 22)
     (back,) = MergerState.from_arrays(arrays).hypotheses[1][0]
     np.testing.assert_array_equal(back.held_place, [5.0, 6.0, 0.0, 0.25])
+    np.testing.assert_array_equal(back.anchor_place, [7.0, 8.0, 0.0, -0.5])
     assert back.held_m == 1.25 and back.hit_m == 3.0
+    unanchored = {**arrays, "hypotheses": arrays["hypotheses"][:, :18]}  # stored before the anchor place
+    (mid,) = MergerState.from_arrays(unanchored).hypotheses[1][0]
+    assert mid.anchor_place is None and mid.held_m == 1.25
     before = {**arrays, "hypotheses": arrays["hypotheses"][:, :13]}
     (old,) = MergerState.from_arrays(before).hypotheses[1][0]
     assert old.held_place is None and old.held_m == 0.0 and (old.hit_m, old.post_hit_m, old.born) == (3.0, 1.0, 4)

@@ -15,16 +15,14 @@ from hypothesis import strategies as st
 
 from core.config import ConfigError, preset
 from core.engine import Engine
-from mapserver.ingest.simulator.output import simulate
 from mapserver.merge.cortex import NULL_MIN_CELLS, CortexReader, null_overlap
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.hypotheses import Hypothesis, Track
-from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
+from mapserver.merge.online import OnlineMerger
 from mapserver.merge.places import merged_template_codes, merged_template_places, template_places
 from mapserver.merge.resume import MergerState
 from mapserver.merge.snapshot import params_incompatibility
-from mapserver.run import run_engine
-from tests.mapserver.merge.scenario_metrics import true_alignment
+from tests.mapserver.merge.online_driver import online_merge
 from tests.worlds import StripWorld
 
 SDR = preset("irat").replace(frontend="sdr-htm")  # the engine tests' small sdr-htm setup
@@ -317,31 +315,9 @@ def test_the_engine_records_where_each_view_cell_was_made_and_restores_it() -> N
 def _online(
     directory: Path, scenario: str, params: Any, frames: list[bytes] | None = None, seed: int = 0, **sim: float
 ) -> tuple[list[Any], list[Any], Any]:
-    """Simulate ``seed``, map session 1 alone, run session 2 through the online merge driver against it.
-
-    ``frames``: receives the digest of each of session 2's camera images, in order.
-    """
-    info = simulate(scenario, directory, seed=seed, params=sim)
-    s1, s2 = info["sessions"][:2]
-    stored = Engine(params, origin=1)
-    run_engine(stored, directory / s1["log"])
-    stored.settle()
-    merger = OnlineMerger([StoredMap(1, params, stored.snapshot())])
-    current = [Engine(params, origin=2)]
-
-    def hook(frame: Any, result: Any) -> Engine | None:
-        if frames is not None:
-            frames.append(_image_digest(frame.image))
-        event = merger.observe(current[0], result, frame)
-        if isinstance(event, MergeEvent | Rollback):
-            current[0] = event.engine
-            return event.engine
-        return None
-
-    run_engine(current[0], directory / s2["log"], on_step=hook)
-    merger.finish()
-    truth = true_alignment(directory, s1, s2, math.radians(params.exp_initial_em_deg))
-    return merger.events, merger.rollbacks, truth
+    """:func:`online_merge`; ``frames`` receives the digest of each of session 2's camera images, in order."""
+    digest = None if frames is None else (lambda frame: frames.append(_image_digest(frame.image)))
+    return online_merge(directory, scenario, params, digest, seed, **sim)
 
 
 def test_neoslam_raises_its_code_gate_to_its_maps_own_look_alikes(tmp_path: Path) -> None:

@@ -161,11 +161,13 @@ def test_the_engine_without_the_merge_steps_only_when_the_merge_is_rolled_back(
         return catch_up(self)
 
     monkeypatch.setattr(verify.Probation, "catch_up", counting)
-    kept = run_session(WORLD, 24.0, 100.0, [first_half])  # on the stored ground to the log's end: kept
+    kept = run_session(WORLD, 24.0, 31.0, [first_half])  # merged at arc 6, the log ends on the stored ground at 15
     probation = kept.driver.probation
-    assert probation is not None and len(probation.pending) == probation.frames > 100
+    assert probation is not None and len(probation.pending) == probation.frames > 10
     assert kept.driver.finish() is None and kept.events[0].evidence["verification"]["status"] == "incomplete"
-    assert stepped == []  # not one of its frames went through a second engine
+    passed = run_session(WORLD, 24.0, 100.0, [first_half])  # on past the stored half: its probation passes there
+    assert passed.driver.finish() is None and passed.events[0].evidence["verification"]["status"] == "passed"
+    assert stepped == []  # not one of their frames went through a second engine
     world = LoopWorld(perimeter=40.0, alias=(2.0, 25.0, 10.0))  # a 10 m look-alike: matches, then the truth
     stored = map_stretch(world, 0.0, 20.0, 1)
     lazy = run_session(world, 22.0, 25.0, [stored], confirm=1, evidence_m=0.0)
@@ -220,10 +222,11 @@ def test_a_session_bridging_two_maps_joins_them() -> None:
     run = run_session(WORLD, 0.0, 38.0, [a, b], origin=3)
     assert [e.key for e in run.events] == [1, 2]
     assert run.events[1].absorbed == (1,)
-    # leaving A's ground ends its probation on a run of mismatches longer than A's edge explains: it is held
-    # open (Probation.held_open) and passes when the session merges into B, rather than blocking that merge
+    # leaving A's ground: since stop 43 the probation's prediction leaves A's edge with the robot (unmapped ground,
+    # no trials), where re-anchoring on A's last places made a run of mismatches that held it open
+    # (Probation.held_open) until the session merged into B; either way it passes and does not block that merge
     first = run.events[0].evidence["verification"]
-    assert first["status"] == "passed" and "held open on" in first["reason"] and "map 2" in first["reason"]
+    assert first["status"] == "passed"
     engine = run.engine
     origins = np.asarray(engine.map.snapshot()["em_origin"])
     assert set(np.unique(origins).tolist()) == {1, 2, 3}

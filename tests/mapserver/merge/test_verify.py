@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
-from core import Action
+from core import Action, preset
 from core.se3 import compose
+from mapserver.merge.hypotheses import HypothesisSet
 from mapserver.merge.verify import (
     PASSED,
     PROBATION_CAP,
@@ -17,6 +20,7 @@ from mapserver.merge.verify import (
     Probation,
     link_consensus,
 )
+from tests.mapserver.merge.online_driver import online_merge
 
 
 def _probation(last_hit_m: float) -> Probation:
@@ -75,6 +79,22 @@ def test_a_probation_the_log_cut_short_is_judged_on_what_it_saw() -> None:
     matching = _probation(last_hit_m=117.0)  # the newest match 3 m back: kept (a look-alike could not be told)
     matching.hypothesis = SimpleNamespace(post_hit_m=15.0, post_miss_m=0.0)
     assert matching.conclude_at_end(120.0) == PASSED and "newest match 3.00 m before its end" in matching.reason
+
+
+def test_an_lvc_probation_passes_only_on_the_evidence_distance_of_matches() -> None:
+    """Stop 43: ``twin`` turns alike 60 m seed 1's false merge ended its probation on 2.91 m of matches and no
+    mismatch (net +2.91 m, over the half line of 2 m); an LVC probation must also have matched over ``evidence_m``
+    (4 m here). Must still: 4 m of matches pass; a front-end with weak misses (``sdr-htm``) keeps the half line."""
+    scarce = _probation(last_hit_m=103.0)
+    scarce.hypothesis = SimpleNamespace(post_hit_m=2.91, post_miss_m=0.0)
+    assert scarce._conclude() == REJECTED and "net 2.91 m" in scarce.reason
+    enough = _probation(last_hit_m=103.0)
+    enough.hypothesis = SimpleNamespace(post_hit_m=4.0, post_miss_m=0.0)
+    assert enough._conclude() == PASSED
+    sdr = _probation(last_hit_m=103.0)
+    sdr.hset.rule.miss_weight = 0.16
+    sdr.hypothesis = SimpleNamespace(post_hit_m=2.91, post_miss_m=0.0)
+    assert sdr._conclude() == PASSED
 
 
 def test_a_probation_held_open_on_mismatches_when_the_log_ends_is_judged_as_one_that_ran_its_distance() -> None:
@@ -167,3 +187,28 @@ def test_loop_links_that_disagree_reject_a_merge_only_when_they_agree_on_another
     outvoted = _linked_probation(stored)  # the same two against two agreeing: not more than them
     _close_loops(outvoted, [(0, (0.0, 0.0)), (1, (10.0, 0.0)), (5, (0.0, 0.0)), (6, (10.0, 0.0))])
     assert outvoted.links_consensus == 2 and outvoted._contradiction() == ""
+
+
+def test_a_true_merge_stands_when_the_robot_drives_on_past_the_stored_maps_end(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``twin-overlap`` with a 40 m look-alike holding turns, seed 2 (``circle``; README, stop 43): session 2 merges
+    at its true place (frame 70) and drives 83 m on session 1's ground, then past the end of session 1's map, whose
+    last views it keeps matching for metres. Re-anchoring the probation's prediction on every hit held it on those
+    last places while the robot drove 8 m on (a run of 4.07 m of mismatches after 83.5 m of matches: rolled back);
+    dead-reckoned on from the first hit at a place, the prediction leaves the map with the robot and the merge
+    passes. Must still (the other half of the pair): with every hit re-anchoring, the run rule rolls it back."""
+    circle = preset("circle")
+    events, rollbacks, truth = online_merge(tmp_path / "once", "twin-overlap", circle, seed=2, lookalike_m=40.0,
+                                            lookalike_turns=1.0)  # fmt: skip
+    assert rollbacks == [] and len(events) == 1
+    assert events[0].evidence["verification"]["status"] == "passed"
+    t = events[0].record.transform
+    assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 5.0  # the true alignment (3.5 m off at the map origin)
+    pinning = HypothesisSet.reanchor
+    monkeypatch.setattr(HypothesisSet, "reanchor", staticmethod(lambda h, seen, odo, once=True: pinning(h, seen, odo,
+                                                                                                          False)))
+    events, rollbacks, _ = online_merge(tmp_path / "every", "twin-overlap", circle, seed=2, lookalike_m=40.0,
+                                        lookalike_turns=1.0)  # fmt: skip
+    assert events == [] and len(rollbacks) == 1
+    assert "mismatches in a row" in rollbacks[0].event.evidence["verification"]["reason"]
