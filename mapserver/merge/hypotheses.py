@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from core.localview import LocalViewCells
-from core.se3 import alignment, compose, wrap_angle
+from core.se3 import alignment, compose, relative, wrap_angle
 from mapserver.merge.confirm import Observation
 
 MISS_WEIGHT = 2.0
@@ -61,15 +61,15 @@ PLACE_EXTENT = 1.0
 """Metres of hits one place can give a hypothesis in a row, in position tolerances (front-ends that place views
 loosely: ``sdr-htm``).
 
-Before a merge a hit re-anchors the alignment on the place matched (during a probation only the first hit at a
-place in a row does, since stop 43: :meth:`HypothesisSet.reanchor`), so where a stretch's views are all accepted
-at one place the robot's prediction stays on that place however far it drives, and every frame is a hit there.
-Measured on ``twin`` with a 40 m look-alike holding turns (seed 0, ``sdr-htm`` at ``poseidon``'s gate): one view
-place won every frame of 33 m of the stretch, so a false merge's probation counted 33.5 m of matches, its
-prediction then lay 33 m behind the robot on ground the stored map never saw (no trials there), and it passed.
-A place cannot witness more than the ground it covers, so hits at one place count for this many position tolerances of
-travel, and after that hold (:data:`HELD`) until a hit elsewhere. At 1: that merge is rolled back at the
-probation's end (2.89 m of matches, 1.97 m of mismatches; at 2 it would pass by 0.02 m)."""
+A hit re-anchors the alignment on the place matched (during an LVC probation, since stop 43, only the first hit
+at a place in a row; later ones slide it along the place: :meth:`HypothesisSet.reanchor`), so where a stretch's
+views are all accepted at one place the robot's prediction stays on that place however far it drives, and every
+frame is a hit there. Measured on ``twin`` with a 40 m look-alike holding turns (seed 0, ``sdr-htm`` at
+``poseidon``'s gate): one view place won every frame of 33 m of the stretch, so a false merge's probation counted
+33.5 m of matches, its prediction then lay 33 m behind the robot on ground the stored map never saw (no trials
+there), and it passed. A place cannot witness more than the ground it covers, so hits at one place count for this
+many position tolerances of travel, and after that hold (:data:`HELD`) until a hit elsewhere. At 1: that merge is
+rolled back at the probation's end (2.89 m of matches, 1.97 m of mismatches; at 2 it would pass by 0.02 m)."""
 
 
 @dataclass(frozen=True)
@@ -444,11 +444,8 @@ class HypothesisSet:
         ``neoslam``'s false merge of ``twin`` turns alike 20 m (seed 0) passed its probation.
         """
         if once and hypothesis.anchor_place is not None and np.array_equal(seen, hypothesis.anchor_place):
-            predicted = hypothesis.predict(odometry)
-            yaw = float(seen[3])
-            ahead = (predicted[0] - seen[0]) * math.cos(yaw) + (predicted[1] - seen[1]) * math.sin(yaw)
-            slid = np.array([seen[0] + ahead * math.cos(yaw), seen[1] + ahead * math.sin(yaw), seen[2], yaw])
-            hypothesis.alignment = alignment(slid, odometry)
+            ahead = float(relative(seen, hypothesis.predict(odometry))[0])  # progress along the place's heading
+            hypothesis.alignment = alignment(compose(seen, np.array([ahead, 0.0, 0.0, 0.0])), odometry)
             return
         hypothesis.alignment = alignment(seen, odometry)
         hypothesis.anchor_place = np.array(seen, dtype=np.float64)
