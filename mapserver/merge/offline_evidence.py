@@ -19,7 +19,16 @@ meets the rule an online merge's probation applies after it (:class:`mapserver.m
 A's chain after the anchor, in A's own time order, for ``probation_m`` metres and then as long as the matches
 go on, no run of ``evidence_m`` metres of misses without a hit between them — and the same along B's chain
 after its side of the match, walked against A's places under the inverse alignment (a look-alike's exit shows
-on whichever map drove on over mapped ground).
+on whichever map drove on over mapped ground). And past the far end of the agreement (after each chain's last
+hit, the way a probation looks) the two maps must not part in disagreement (:attr:`OfflineEvidence.parting_m`):
+when *both* drove on past the same end over each other's ground and both met failing views in a row there before
+leaving it, their failing metres add up, and ``evidence_m`` of them rejects. One map's misses past an end are what
+drift or the edge of the other map's coverage make (a session driving on past the other map's end; a second lap
+dead-reckoned after its last hit: ``symmetric-overlap`` seeds 7 and 9, 6.6–8.6 m, one-sided); both maps driving
+on and both disagreeing is how a look-alike stretch ends in two different places (``twin`` with 10 m alike and
+turns, seed 6: 2.1 m on A, 3.2 m on B, where every other rule let it merge). The near ends (before the first
+hits) are walked backwards from the anchor, away from the match, and are not counted: there a true merge's walks
+met stray hits among failing views on both maps (``twin-overlap`` with 60 m alike and turns, seed 9: 2.9 + 2.0 m).
 
 ``sdr-htm`` maps (:mod:`mapserver.merge.offline_views`): the trials are A's view cells with a place, in
 creation order, and their views are their codes, matched against B's codes and placed as online.
@@ -41,6 +50,18 @@ from mapserver.merge.offline_views import partial_views, stored_views, uses_code
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance, map_spacing
 from mapserver.merge.record import Match
 from mapserver.merge.verify import PROBATION_CAP
+
+
+@dataclass(frozen=True)
+class ChainEnd:
+    """One end of the agreement along a chain: the failing views past it, and where its outermost hit lies."""
+
+    miss_m: float
+    """Metres of failing views in a row along the chain right past this end (before the first hit, after the last)."""
+    own: tuple[float, float, float]
+    """The outermost hit's position in the chain's own map frame."""
+    seen: tuple[float, float, float]
+    """Where that hit matched: the other map's place, in the other map's frame."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +88,8 @@ class OfflineEvidence:
     closures: tuple[tuple[int, int], ...] = ()
     """(A's experience, B's experience) of every hit: where A's view matched B's template, at B's experience
     nearest the alignment's prediction (LVC maps only: their trials are experiences)."""
+    ends: tuple[ChainEnd, ...] = ()
+    """The chain's two ends of agreement (before its first hit, after its last), or none without a hit."""
 
     @property
     def score_m(self) -> float:
@@ -79,7 +102,26 @@ class OfflineEvidence:
         if self.evidence_m <= 0:
             return True
         held = self.probation_held and (self.reverse is None or self.reverse.probation_held)
+        held = held and self.parting_m < self.evidence_m
         return self.score_m >= self.evidence_m and self.turn_rad >= MIN_TURN_RAD and held
+
+    @property
+    def parting_m(self) -> float:
+        """Return the failing metres both maps met past the far end of their agreement (0 unless both did).
+
+        The far end of a chain's agreement is the end after its last hit, the way a probation looks (after the
+        match, in the chain's own time order). This chain's and the other map's (:attr:`reverse`) count when they
+        are the same end of the stretch: the other map's last hit lies nearer the place this chain's last hit
+        matched than its first hit does (both maps drove the stretch the same way and on past it).
+        """
+        if self.reverse is None or not self.ends or not self.reverse.ends:
+            return 0.0
+        mine, theirs = self.ends[1], self.reverse.ends
+        seen = np.array(mine.seen)
+        same_end = np.linalg.norm(np.array(theirs[1].own) - seen) <= np.linalg.norm(np.array(theirs[0].own) - seen)
+        if not same_end or mine.miss_m <= 0.0 or theirs[1].miss_m <= 0.0:
+            return 0.0
+        return mine.miss_m + theirs[1].miss_m
 
     @property
     def probation_held(self) -> bool:
@@ -97,6 +139,12 @@ class OfflineEvidence:
                     f"where the alignment puts them (a probation rejects at {evidence.evidence_m:.1f} m): the "
                     "views matched a look-alike stretch, not the place"
                 )
+        if self.score_m >= self.evidence_m and self.parting_m >= self.evidence_m:
+            return (
+                f"where its matching views end, both maps drive on over each other's ground and disagree: "
+                f"{self.parting_m:.1f} m of failing views past that end on the two maps together (rejects at "
+                f"{self.evidence_m:.1f} m): the views matched a look-alike stretch, not the place"
+            )
         if self.score_m < self.evidence_m:
             return (
                 f"the rest of the map does not confirm it: {self.hit_m:.1f} m of matching and {self.miss_m:.1f} m "
@@ -115,7 +163,7 @@ class OfflineEvidence:
             "score_m": round(self.score_m, 3), "turn_deg": round(float(np.degrees(self.turn_rad)), 1),
             "evidence_m": round(self.evidence_m, 3), "hits": self.hits, "misses": self.misses,
             "miss_run_m": round(self.miss_run_m, 3), "passed": self.passed,
-            "probation": [round(v, 3) for v in self.probation],
+            "probation": [round(v, 3) for v in self.probation], "parting_m": round(self.parting_m, 3),
             **({} if self.reverse is None else {"reverse": self.reverse.as_dict()}),
         }  # fmt: skip
 
@@ -205,8 +253,9 @@ class _OfflineTest:
         a_pose, steps = self.a_pose, self.steps
         outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
         seen_at = np.full(a_pose.shape[0], -1, dtype=np.int64)
+        seen_pose = np.zeros_like(a_pose)
         for chain in (np.arange(anchor, a_pose.shape[0]), np.arange(anchor, -1, -1)):
-            _walk(self.places, transform, a_pose, self.views, chain, outcomes, seen_at)
+            _walk(self.places, transform, a_pose, self.views, chain, outcomes, (seen_at, seen_pose))
         hit, miss = outcomes == HIT, outcomes == MISS
         closures = () if self.unit_of_view is not None else tuple(
             (int(e), int(seen_at[e])) for e in np.flatnonzero(hit & (seen_at >= 0)).tolist()
@@ -221,7 +270,7 @@ class _OfflineTest:
             miss_weight=self.rule.miss_weight, hits=int(hit.sum()), misses=int(miss.sum()),
             agreeing=frozenset(np.flatnonzero(hit).tolist()), miss_run_m=_longest_miss_run(steps, hit, miss),
             probation=_probation_window(steps[anchor + 1 :], outcomes[anchor + 1 :], self.probation_m, self.rule),
-            closures=closures,
+            closures=closures, ends=_chain_ends(steps, outcomes, a_pose, seen_pose),
         )  # fmt: skip
 
 
@@ -253,6 +302,33 @@ def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> f
     return float(np.bincount(run, weights=np.where(miss, steps, 0.0)).max())
 
 
+def _chain_ends(steps: np.ndarray, outcomes: np.ndarray, pose: np.ndarray, seen: np.ndarray) -> tuple[ChainEnd, ...]:
+    """Return the chain's two ends of agreement (none without a hit).
+
+    Each: the metres of failing views in a row right past the outermost hit (before the first, after the last; up
+    to the first trial that is not a miss: where the chain leaves the other map's ground it has parted from it), the
+    outermost hit's own position (``pose``) and where it matched (``seen``, the other map's frame).
+    """
+    hits = np.flatnonzero(outcomes == HIT)
+    if hits.size == 0:
+        return ()
+    miss = outcomes == MISS
+    first, last = int(hits[0]), int(hits[-1])
+    past = (_run(steps[:first][::-1], miss[:first][::-1]), _run(steps[last + 1 :], miss[last + 1 :]))
+    return tuple(ChainEnd(m, _xyz(pose[e]), _xyz(seen[e])) for m, e in zip(past, (first, last), strict=True))
+
+
+def _xyz(row: np.ndarray) -> tuple[float, float, float]:
+    """Return a pose row's position as plain floats."""
+    return (float(row[0]), float(row[1]), float(row[2]))
+
+
+def _run(steps: np.ndarray, miss: np.ndarray) -> float:
+    """Return the metres of the misses in a row at the start of ``miss`` (0 when it starts otherwise)."""
+    length = int(np.argmin(miss)) if not miss.all() else miss.size
+    return float(steps[:length].sum())
+
+
 def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
     """Return the alignment (4,) taking A's map frame onto B's that ``match`` proposes (Eqs. 13–14)."""
     b_pose = np.asarray(loaded.state["em_pose"], dtype=np.float64).reshape(-1, 4)
@@ -267,14 +343,15 @@ def _walk(
     views: tuple[np.ndarray, np.ndarray, np.ndarray],
     chain: np.ndarray,
     outcomes: np.ndarray,
-    seen_at: np.ndarray,
+    record: tuple[np.ndarray, np.ndarray],
 ) -> None:
     """Test A's experiences along ``chain`` from the anchor, re-anchoring the alignment at every hit.
 
     As online, where a hypothesis is re-anchored at every agreeing match, the alignment follows the
     drift of A's own map (a bent A is tested locally, not against one rigid alignment of all of it).
-    ``seen_at``: each hit's stored place (the row of B's places whose template it matched).
+    ``record``: each hit's stored place (the row of B's places whose template it matched) and its pose (B's frame).
     """
+    seen_at, seen_pose = record
     templates, means, template_of = views
     for e in chain.tolist():
         t = int(template_of[e])
@@ -284,7 +361,7 @@ def _walk(
         outcomes[e] = outcome
         if outcome == HIT and seen is not None:
             transform = alignment(seen, a_pose[e])
-            seen_at[e] = places.row_at(seen)
+            seen_at[e], seen_pose[e] = places.row_at(seen), seen
 
 
 def confirmed_offline_match(

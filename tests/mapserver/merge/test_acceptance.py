@@ -369,6 +369,33 @@ def test_an_offline_merge_into_a_look_alike_holding_turns_fails_the_probation_on
     assert outcomes["twin-overlap"][0] == 0  # must still: the true overlap
 
 
+def test_an_offline_merge_whose_two_maps_part_in_disagreement_past_the_look_alike_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 12 offline (stop 44): ``twin`` with a 10 m look-alike holding turns, seed 6 (LVC, ``circle``), was the
+    one offline false merge left: 22.8 m of matching views spanning 177°, and past the stretch's far end A met only
+    2.1 m of failing views in a row and B 3.2 m before each left the other's ground, under every run rule's 4 m.
+    Both maps drove on over each other's ground and both disagreed, so their failing metres add up (5.2 m) and
+    the merge is refused. Paired: without the rule the same maps merge; the same stretch in one world
+    (``twin-overlap``, seed 6) still merges."""
+    from mapserver.ingest.simulator.output import simulate
+    from mapserver.merge.offline_evidence import OfflineEvidence
+
+    databases = {}
+    for name in ("twin", "twin-overlap"):
+        directory = tmp_path / name
+        info = simulate(name, directory, seed=6, params={"lookalike_m": 10.0, "lookalike_turns": 1.0})
+        databases[name] = _db(tmp_path, name)
+        for s in info["sessions"][:2]:
+            cli_json("process", str(directory / s["log"]), "--db", databases[name], "--no-merge")
+    merge = ("merge", "--map", "session2", "--into", "session1")
+    code, err = cli_code(merge[0], "--db", databases["twin"], *merge[1:])
+    assert code == 2 and "both maps drive on over each other's ground" in err  # must not: the look-alike
+    assert cli_code(merge[0], "--db", databases["twin-overlap"], *merge[1:])[0] == 0  # must still: the true overlap
+    monkeypatch.setattr(OfflineEvidence, "parting_m", property(lambda self: 0.0))
+    assert cli_code(merge[0], "--db", databases["twin"], *merge[1:])[0] == 0  # the rule is what refuses it
+
+
 def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_never_into_another_cave(
     scenario: Any, tmp_path: Path
 ) -> None:

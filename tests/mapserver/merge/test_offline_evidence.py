@@ -6,14 +6,27 @@ import numpy as np
 import pytest
 
 from mapserver.merge.hypotheses import HIT, MISS, UNMAPPED, EvidenceRule
-from mapserver.merge.offline_evidence import OfflineEvidence, _longest_miss_run, _probation_window
+from mapserver.merge.offline_evidence import (
+    ChainEnd,
+    OfflineEvidence,
+    _chain_ends,
+    _longest_miss_run,
+    _probation_window,
+)
 
 H, M, U = HIT, MISS, UNMAPPED
 
 
-def _evidence(probation_run: float, reverse: OfflineEvidence | None = None) -> OfflineEvidence:
+def _evidence(
+    probation_run: float, reverse: OfflineEvidence | None = None, ends: tuple[ChainEnd, ...] = ()
+) -> OfflineEvidence:
     return OfflineEvidence(hit_m=30.0, miss_m=2.0, unmapped_m=0.0, turn_rad=3.0, evidence_m=4.0, miss_weight=2.0,
-                           hits=30, misses=2, probation=(20.0, probation_run, 20.0), reverse=reverse)  # fmt: skip
+                           hits=30, misses=2, probation=(20.0, probation_run, 20.0), reverse=reverse,
+                           ends=ends)  # fmt: skip
+
+
+def _end(miss_m: float, own_x: float, seen_x: float = 0.0) -> ChainEnd:
+    return ChainEnd(miss_m, (own_x, 0.0, 0.0), (seen_x, 0.0, 0.0))
 
 
 def test_a_miss_run_is_the_miss_metres_between_two_hits_unmapped_trials_neither_adding_nor_breaking() -> None:
@@ -42,3 +55,42 @@ def test_an_alignment_stands_only_where_neither_maps_probation_meets_a_run_of_ev
     assert _evidence(1.0, reverse=_evidence(3.9)).passed
     refused = _evidence(1.0, reverse=_evidence(4.5))
     assert not refused.passed and "the other map's chain meets 4.5 m" in refused.reason()
+
+
+def test_a_chains_ends_are_the_failing_metres_in_a_row_right_before_its_first_hit_and_after_its_last() -> None:
+    steps = np.array([0.0, 1.0, 0.5, 1.0, 1.0, 1.0, 2.0, 3.0, 0.7, 1.0])
+    outcomes = np.array([U, M, M, H, M, H, M, M, U, M])
+    pose = np.arange(30, dtype=np.float64).reshape(10, 3)
+    seen = -pose
+    first, last = _chain_ends(steps, outcomes, pose, seen)
+    assert first == ChainEnd(1.5, (9.0, 10.0, 11.0), (-9.0, -10.0, -11.0))  # trials 1-2 right before hit 3
+    # trials 6-7 right after hit 5; trial 9's miss lies past unmapped ground (trial 8): the chain had parted there
+    assert last == ChainEnd(5.0, (15.0, 16.0, 17.0), (-15.0, -16.0, -17.0))
+    assert _chain_ends(steps, np.array([M, H, H, U, M, M, M, M, M, H]), pose, seen)[1].miss_m == 0.0  # ends on a hit
+    assert _chain_ends(steps, np.full(10, M), pose, seen) == ()  # no hit, no end of agreement
+
+
+def test_two_maps_that_both_drive_on_past_the_far_end_of_their_agreement_and_both_disagree_are_not_merged() -> None:
+    """``twin`` 10 m alike with turns, seed 6 offline: past the stretch's far end A met 2.1 m of failing views and
+    B 3.2 m, every other rule passed. Paired: one map's misses past an end alone (a session driving on past the other
+    map's end, a dead-reckoned second lap: ``symmetric-overlap`` seed 7, 8.6 m), two-sided ones under
+    ``evidence_m`` and two-sided ones at the near ends (walked backwards from the anchor) still merge."""
+    # A's agreement runs from B's place at x = 10 to x = 30; B drove it the same way (own ends at 10 and 30)
+    b_same = _evidence(0.0, ends=(_end(0.0, 10.0), _end(3.2, 30.0)))
+    parted = _evidence(2.1, reverse=b_same, ends=(_end(0.9, 0.0, 10.0), _end(2.1, 50.0, 30.0)))
+    assert parted.parting_m == pytest.approx(5.3)  # the far ends: 2.1 + 3.2 (the near end is one-sided anyway)
+    assert not parted.passed and "both maps drive on over each other's ground" in parted.reason()
+    # must still: one-sided misses however long, two-sided ones under evidence_m, and two-sided near ends
+    one_sided = _evidence(0.0, reverse=_evidence(0.0, ends=(_end(0.0, 10.0), _end(0.0, 30.0))),
+                          ends=(_end(0.0, 0.0, 10.0), _end(8.6, 50.0, 30.0)))  # fmt: skip
+    assert one_sided.parting_m == 0.0 and one_sided.passed
+    short = _evidence(2.1, reverse=_evidence(0.0, ends=(_end(0.0, 10.0), _end(1.8, 30.0))),
+                      ends=(_end(0.9, 0.0, 10.0), _end(2.1, 50.0, 30.0)))  # fmt: skip
+    assert short.parting_m == pytest.approx(3.9) and short.passed
+    near = _evidence(0.0, reverse=_evidence(0.0, ends=(_end(2.0, 10.0), _end(0.0, 30.0))),
+                     ends=(_end(2.9, 0.0, 10.0), _end(0.0, 50.0, 30.0)))  # fmt: skip
+    assert near.parting_m == 0.0 and near.passed
+    # B drove the stretch the other way: its last hit lies at A's near end, so the far ends are not the same end
+    b_back = _evidence(0.0, ends=(_end(0.0, 30.0), _end(3.2, 10.0)))
+    assert _evidence(0.0, reverse=b_back, ends=(_end(0.0, 0.0, 10.0), _end(2.1, 50.0, 30.0))).parting_m == 0.0
+    assert _evidence(0.0, ends=(_end(5.0, 0.0, 10.0), _end(5.0, 50.0, 30.0))).parting_m == 0.0  # no reverse walk
