@@ -343,12 +343,12 @@ class Probation:
         """
         hit, miss = self.hypothesis.post_hit_m, self.hypothesis.post_miss_m
         rule = self.hset.rule
-        needed = 0.5 * rule.evidence_m
-        if hit - rule.miss_weight * miss < needed or (not self._weak_misses() and hit < rule.evidence_m):
+        needed, lvc = 0.5 * rule.evidence_m, not self._weak_misses()
+        if hit - rule.miss_weight * miss < needed or (lvc and hit < rule.evidence_m):
             self.reason = (
                 f"the probation did not confirm the merge: {hit:.2f} m of matches and {miss:.2f} m of mismatches "
                 f"where the merged map predicts views (net {hit - rule.miss_weight * miss:.2f} m, "
-                f"needed {needed:.2f} m{'' if self._weak_misses() else f' and {rule.evidence_m:.2f} m of matches'})"
+                f"needed {needed:.2f} m{f' and {rule.evidence_m:.2f} m of matches' if lvc else ''})"
             )
             return REJECTED
         self.reason = "probation distance travelled without contradiction"
