@@ -52,6 +52,19 @@ buy its way in by switching off as many merge links as it adds, for a few tenths
 residual (merged ``symmetric`` map, 20 wrong links of 5 m, injection seed 1: 3 kept on for 2 merge links and a
 loop closure off, C 223.8 against 233.8 as the map stood, c̄² = 10.4; APE 3.2× the clean map's). A prior on
 those switches at their previous values (Sünderhauf & Protzel's switch prior, here one outlier's worth each).
+New links that only fit together hold the same against them (``NEW_LINK_HOLD``, stop 45): the status quo's start
+switches each new link back on alone and keeps it when the cost falls, so a new link the answer keeps on and the
+status quo left off lowers the cost only with others beside it — two or more wrong links that agree with one
+another (neighbouring pairs of a batch of injected links join neighbouring places with the same error) and bend
+the map between them until each fits within c̄. Each such link costs the answer one outlier's worth against the
+map as it stood, the prior of a switch that was off (merged ``twin-overlap`` map seed 3, 5 wrong links of 2 m,
+injection seed 5: two neighbouring ones, 82 → 133 and 81 → 132, kept on at C 61.7 against 69.1 as the map stood,
+c̄² = 16; APE 1.73× the clean map's, now 1.00×). A new link that lowers the cost alone is kept as before, so a
+true closure that fits the map is not held back; true closures of a new lap that bend the map only together are
+delayed until they outweigh one outlier's worth each. Not in the check that settles a new merge: the closures an
+offline merge adds with it (``mapserver.merge.offline_evidence.OfflineEvidence.closures``) are view matches its
+evidence walk found where the alignment puts them, and held there, true ones stayed off with no later check to
+bring them back (offline ``twin-overlap`` 40 m with turns, seeds 3 and 8: merged APE 0.45 → 0.51 m, 0.68 → 0.77 m).
 (With the clique's margin, stops 31-36, the injected-link bench's ``cave3d`` maps of seeds 1 and 4 kept wrong
 links at a C 0.7-15.2 above the status quo's, APE up to 3.6× the clean map's; at stop 31 taking it at any lower C
 bent a merged ``twin-overlap`` map, 1.47 → 6.54 m, which the joint least squares of merged maps, stop
@@ -139,6 +152,9 @@ ODOMETRY_WEIGHT = 0.25
 STATUS_QUO_MARGIN = 0.0
 #: outliers' worth the status quo holds for each merge link on in it that the answer switches off (module docstring)
 MERGE_LINK_HOLD = 1.0
+#: outliers' worth the status quo holds for each link added since the previous check that is on in the answer and
+#: that the status quo's own switch-back-on left off (module docstring)
+NEW_LINK_HOLD = 1.0
 #: Costs this close (relative) are a tie: at 1e-9 a wrong bridge won on rounding noise (offline merge of
 #: ``symmetric`` seed 4: 18.76023303 against 18.76023308); at 1e-7 a test's wrong links stayed on
 #: (``test_the_joint_scoring_switches_wrong_links_off_where_ratslams_does``).
@@ -226,7 +242,8 @@ def switch_off_outliers(
     that error times its lever arm and a true closure of a long cycle can cost more than an outlier.
     ``previous`` (a mask over the first links): the switches the map stood on before this check, with the
     links added since off — the status quo, a start of its own (:func:`_search`). ``standing`` (a mask over
-    the first links): which links are on as the map stands (:func:`chain_headings` walks those first).
+    the first links): which links are on as the map stands (:func:`chain_headings` walks those first); those on in
+    ``standing`` and off in ``previous`` are the links added since, each held by ``NEW_LINK_HOLD`` (:func:`_hold`).
 
     ``pose`` gives the anchors' poses and the experiences' positions to start from; the
     decision depends on the links only. When every switchable link is within ``c̄`` of the
@@ -263,6 +280,8 @@ def switch_off_outliers(
     if previous is not None:
         status_quo = np.ones(k, dtype=bool)
         status_quo[: np.size(previous)] = np.asarray(previous, dtype=bool)
+        if standing is not None:  # the links added since the previous check: on as the map stands, off in previous
+            problem.new[: np.size(previous)] = np.asarray(standing, dtype=bool) & ~np.asarray(previous, dtype=bool)
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance, status_quo)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
 
@@ -327,13 +346,13 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
     is lower by more than ``c̄²`` (one outlier's worth), and the status quo — the switches the map stood on
     at its previous check, the links added since off (``status_quo``) — taken when its cost is lower by
     more than ``STATUS_QUO_MARGIN`` outliers' worth (0: at any lower cost), or at the same cost (:func:`_tie`),
-    or no more than ``MERGE_LINK_HOLD`` outliers' worth higher for each merge link the answer switched off.
-    A batch of new links that outnumbers
-    the closures the map already holds bends the all-links solution, and the descent from there can keep
-    the batch and switch the old closures off although the map as it stood, with the batch off, costs
-    less (``loop`` map seed 3, five wrong links of 2 m, injection seeds 1-3: found 117.9-121.6, status quo
-    82.4; the two wrong links kept sit beside the true lap closure, 2.9 m off where it is 1.8 m off, so
-    the greedy clique prefers them too). Each start has its own budget of solves
+    or by no more than what it holds against the answer (:func:`_hold`: the merge links the answer switched
+    off, and the new links the answer keeps on that the status quo, trying each alone, left off). A batch of new
+    links that outnumbers the closures the map already holds bends the all-links solution, and the descent
+    from there can keep the batch and switch the old closures off although the map as it stood, with the
+    batch off, costs less (``loop`` map seed 3, five wrong links of 2 m, injection seeds 1-3: found
+    117.9-121.6, status quo 82.4; the two wrong links kept sit beside the true lap closure, 2.9 m off where
+    it is 1.8 m off, so the greedy clique prefers them too). Each start has its own budget of solves
     (:meth:`_Problem.fresh_budget`), so a long polish of one cannot keep the next from being tried.
     """
     fixed = ~problem.can & ~problem.gated  # never switched: odometry and the standby reckoning links
@@ -365,10 +384,25 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
     if descended and status_quo is not None:
         problem.fresh_budget()
         kept = _status_quo_start(problem, status_quo)
-        dropped = int(np.count_nonzero(problem.merge & kept.active & ~best.active)) if kept is not None else 0
-        if kept is not None and _holds(kept, best, (MERGE_LINK_HOLD * dropped - STATUS_QUO_MARGIN) * margin):
+        if kept is not None and _holds(kept, best, _hold(problem, kept, best) * margin):
             best = kept
     return best
+
+
+def _hold(problem: _Problem, status_quo: _State, best: _State) -> float:
+    """Return the outliers' worth by which the map as it stood may cost more than ``best`` and still stand.
+
+    ``MERGE_LINK_HOLD`` for each merge link on in the status quo that ``best`` switches off, plus
+    ``NEW_LINK_HOLD`` for each link added since the previous check that ``best`` keeps on and the status quo
+    left off (its switch-back-on tried each alone and none lowered the cost: they fit only together), less
+    ``STATUS_QUO_MARGIN`` (module docstring). Not for the links of a check that holds a new merge link: that
+    check settles the merge, and the closures that came with it were weighed by the merge's own evidence.
+    """
+    dropped = int(np.count_nonzero(problem.merge & status_quo.active & ~best.active))
+    joined = 0
+    if not (problem.new & problem.merge).any():
+        joined = int(np.count_nonzero(problem.new & best.active & ~status_quo.active))
+    return MERGE_LINK_HOLD * dropped + NEW_LINK_HOLD * joined - STATUS_QUO_MARGIN
 
 
 def _status_quo_start(problem: _Problem, status_quo: np.ndarray) -> _State | None:
@@ -451,6 +485,7 @@ class _Problem:
         self.standby: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         self.gated = np.zeros(src.size, dtype=bool)  # off whatever the cost: contradicts_odometry
         self.closures = can  # loop and merge links: those :meth:`switch_off_strained` tries
+        self.new = np.zeros(src.size, dtype=bool)  # links added since the previous check: NEW_LINK_HOLD each
         self.merge = np.zeros(src.size, dtype=bool)  # merge links: the status quo holds each at one outlier's worth
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)

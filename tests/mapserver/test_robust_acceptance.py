@@ -135,8 +135,9 @@ def test_the_map_as_it_stood_replaces_a_costlier_answer_at_any_lower_cost(
     """``cave3d`` map seed 4 with 20 wrong links of 1-1.5 m (injection seeds 0, 5, 6): the search's answer keeps
     some of them at a TLS cost above the status quo's (the map as it stood, the batch off) but within one
     outlier's worth, the margin the status quo had to beat until this stop: APE up to 3.6× the clean map's. Taken
-    at any lower cost, every row is the clean map's. Paired: with the margin back the failure is back. (Found on
-    ``poseidon-lvc``'s map, ``poseidon`` until stop 40.)"""
+    at any lower cost, every row is the clean map's. Paired: with the margin back and without the new-link hold
+    (stop 45: what the answer keeps fits only together, so that hold alone also keeps the map as it stood) the
+    failure is back. (Found on ``poseidon-lvc``'s map, ``poseidon`` until stop 40.)"""
     sim = simulate_single(tmp_path / "cave3d", "cave3d", seed=4, preset_name="poseidon-lvc")
     stamps = sim.state["em_stamp"]
     clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
@@ -146,6 +147,8 @@ def test_the_map_as_it_stood_replaces_a_costlier_answer_at_any_lower_cost(
 
     assert worst() <= 1.01
     monkeypatch.setattr(robust_module, "STATUS_QUO_MARGIN", 1.0)
+    assert worst() <= 1.01  # the wrong links the answer keeps fit only together: the new-link hold holds them too
+    monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
     assert worst() > 2.0
 
 
@@ -156,7 +159,8 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     kept 3 of them on and switched 2 merge links and a loop closure off instead — as many links off, so TLS charged
     only the residuals, 10.0 below the map as it stood (one outlier's worth is 10.4): APE 3.2× the clean map's. Now
     the status quo holds one outlier's worth for each merge link the answer switches off (``MERGE_LINK_HOLD``): the
-    clean map. Paired: without the hold (the rule of stops 37-41) the failure is back."""
+    clean map. Paired: without the hold (the rule of stops 37-41) and without the new-link hold (stop 45: the three
+    wrong links fit only together, so that hold alone also keeps the map as it stood) the failure is back."""
     sim = simulate_merged(tmp_path / "symmetric", "symmetric", seed=0)
     stamps = sim.state["em_stamp"]
     clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
@@ -164,6 +168,32 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     assert not held.engine.map.link_active[held.injected].any()
     assert map_ape(held.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
     monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
+    assert not inject(sim, 20, 5.0, seed=1).engine.map.link_active[held.injected].any()  # the new-link hold, too
+    monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
     bought = inject(sim, 20, 5.0, seed=1)
     assert bought.engine.map.link_active[bought.injected].sum() == 3
     assert map_ape(bought.engine.map.poses, stamps, sim.truth) > 2.5 * clean
+
+
+def test_new_links_that_fit_only_together_earn_their_place_against_the_map_as_it_stood(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The merged ``twin-overlap`` map (seed 3, session 2 merged into session 1) with 5 wrong links of 2-3 m
+    (injection seed 5): two of them join neighbouring places with the same error (82 → 133, 81 → 132). Alone
+    neither lowers the TLS cost of the map as it stood, so the status quo's start leaves both off (C 69.1); together
+    they bend the map until each fits, and the search's answer keeps both on at C 61.7, within one outlier's worth
+    (c̄² = 16): APE 1.73× the clean map's. Now each new link the answer keeps on and the status quo left off holds one
+    outlier's worth for the map as it stood (``NEW_LINK_HOLD``): every wrong link off, the clean map. Paired: without
+    the hold the two are back on and the failure is back."""
+    sim = simulate_merged(tmp_path / "twin-overlap", "twin-overlap", seed=3)
+    stamps = sim.state["em_stamp"]
+    assert sim.state["em_link_kind"].tolist().count(int(LinkKind.MERGE)) >= 1
+    clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
+    held = inject(sim, 5, SIZE_M, seed=5)
+    assert held.injected.size == 5 and not held.engine.map.link_active[held.injected].any()
+    assert held.true_loops_on == held.true_loops
+    assert map_ape(held.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
+    monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
+    joined = inject(sim, 5, SIZE_M, seed=5)
+    assert joined.engine.map.link_active[joined.injected].sum() == 2
+    assert map_ape(joined.engine.map.poses, stamps, sim.truth) > 1.5 * clean
