@@ -51,7 +51,11 @@ the merge passed its probation, and TLS charges any link off at c̄² whatever i
 buy its way in by switching off as many merge links as it adds, for a few tenths of an outlier's worth of
 residual (merged ``symmetric`` map, 20 wrong links of 5 m, injection seed 1: 3 kept on for 2 merge links and a
 loop closure off, C 223.8 against 233.8 as the map stood, c̄² = 10.4; APE 3.2× the clean map's). A prior on
-those switches at their previous values (Sünderhauf & Protzel's switch prior, here one outlier's worth each).
+those switches at their previous values (Sünderhauf & Protzel's switch prior, here one outlier's worth each). Since
+stop 45 it is a term of C itself, ``MERGE_LINK_HOLD``·c̄² for each merge link that was on as the map stood and is
+off, so every start weighs it, not only the comparison between the starts' answers: the status quo's own start traded
+a merge link for a wrong link that, switched back on alone, lowered C with the merge link off for it (merged
+``twin-overlap`` map seed 3, 20 wrong links of 5 m, injection seed 7: 2 → 104 on for 108 → 0; APE 1.72×, now 1.00×).
 New links that only fit together hold the same against them (``NEW_LINK_HOLD``, stop 45): the status quo's start
 switches each new link back on alone and keeps it when the cost falls, so a new link the answer keeps on and the
 status quo left off lowers the cost only with others beside it — two or more wrong links that agree with one
@@ -150,7 +154,8 @@ MERGE_KIND = 2
 ODOMETRY_WEIGHT = 0.25
 #: outliers' worth (c̄² each) by which the status-quo start must beat the answer to replace it (module docstring)
 STATUS_QUO_MARGIN = 0.0
-#: outliers' worth the status quo holds for each merge link on in it that the answer switches off (module docstring)
+#: outliers' worth the TLS cost adds for each merge link that was on as the map stood and is off: their switch prior
+#: (module docstring)
 MERGE_LINK_HOLD = 1.0
 #: outliers' worth the status quo holds for each link added since the previous check that is on in the answer and
 #: that the status quo's own switch-back-on left off (module docstring)
@@ -282,6 +287,7 @@ def switch_off_outliers(
         status_quo[: np.size(previous)] = np.asarray(previous, dtype=bool)
         if standing is not None:  # the links added since the previous check: on as the map stands, off in previous
             problem.new[: np.size(previous)] = np.asarray(standing, dtype=bool) & ~np.asarray(previous, dtype=bool)
+        problem.held = problem.merge & status_quo & ~problem.new  # merge links on as the map stood
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance, status_quo)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
 
@@ -346,8 +352,8 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
     is lower by more than ``c̄²`` (one outlier's worth), and the status quo — the switches the map stood on
     at its previous check, the links added since off (``status_quo``) — taken when its cost is lower by
     more than ``STATUS_QUO_MARGIN`` outliers' worth (0: at any lower cost), or at the same cost (:func:`_tie`),
-    or by no more than what it holds against the answer (:func:`_hold`: the merge links the answer switched
-    off, and the new links the answer keeps on that the status quo, trying each alone, left off). A batch of new
+    or by no more than what it holds against the answer (:func:`_hold`: the new links the answer keeps on that
+    the status quo, trying each alone, left off; the merge links it switched off are in the cost). A batch of new
     links that outnumbers the closures the map already holds bends the all-links solution, and the descent
     from there can keep the batch and switch the old closures off although the map as it stood, with the
     batch off, costs less (``loop`` map seed 3, five wrong links of 2 m, injection seeds 1-3: found
@@ -392,17 +398,15 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
 def _hold(problem: _Problem, status_quo: _State, best: _State) -> float:
     """Return the outliers' worth by which the map as it stood may cost more than ``best`` and still stand.
 
-    ``MERGE_LINK_HOLD`` for each merge link on in the status quo that ``best`` switches off, plus
     ``NEW_LINK_HOLD`` for each link added since the previous check that ``best`` keeps on and the status quo
     left off (its switch-back-on tried each alone and none lowered the cost: they fit only together), less
     ``STATUS_QUO_MARGIN`` (module docstring). Not for the links of a check that holds a new merge link: that
     check settles the merge, and the closures that came with it were weighed by the merge's own evidence.
     """
-    dropped = int(np.count_nonzero(problem.merge & status_quo.active & ~best.active))
     joined = 0
     if not (problem.new & problem.merge).any():
         joined = int(np.count_nonzero(problem.new & best.active & ~status_quo.active))
-    return MERGE_LINK_HOLD * dropped + NEW_LINK_HOLD * joined - STATUS_QUO_MARGIN
+    return NEW_LINK_HOLD * joined - STATUS_QUO_MARGIN
 
 
 def _status_quo_start(problem: _Problem, status_quo: np.ndarray) -> _State | None:
@@ -486,7 +490,8 @@ class _Problem:
         self.gated = np.zeros(src.size, dtype=bool)  # off whatever the cost: contradicts_odometry
         self.closures = can  # loop and merge links: those :meth:`switch_off_strained` tries
         self.new = np.zeros(src.size, dtype=bool)  # links added since the previous check: NEW_LINK_HOLD each
-        self.merge = np.zeros(src.size, dtype=bool)  # merge links: the status quo holds each at one outlier's worth
+        self.merge = np.zeros(src.size, dtype=bool)  # merge links
+        self.held = np.zeros(src.size, dtype=bool)  # merge links on as the map stood: MERGE_LINK_HOLD each when off
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
@@ -537,6 +542,7 @@ class _Problem:
         c2 = self.drift.threshold**2
         fixed = ~self.can & active  # standby links count while they stand in
         cost = float(ODOMETRY_WEIGHT * np.sum(z[fixed] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
+        cost += MERGE_LINK_HOLD * c2 * float(np.count_nonzero(self.held & ~active))  # the merge links' switch prior
         return _State(active, pose, z, cost + 2.0 * c2 * self.overreached(active, z))
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:

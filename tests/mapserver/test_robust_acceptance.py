@@ -114,8 +114,9 @@ def test_each_start_of_the_search_gets_its_own_budget_of_solves(
     rest, so the status quo — the map as it stood with the batch off, TLS 358.9 against the 409.1 found — was never
     tried, three wrong links stayed on and the APE rose 4.4×. Each start now has its own 400 solves: the status
     quo's start finds 350.4, every wrong link is off and the APE is the clean map's. Paired: one budget shared
-    by the three starts, as before, brings the failure back. (Found on ``poseidon-lvc``'s maps, ``poseidon`` until
-    stop 40: the intensity templates' map is where the case lives.)"""
+    by the three starts, as before, brings the failure back once the merge links' switch prior is off too (stop 45:
+    with the prior in the cost, one shared budget also ends with every wrong link off). (Found on ``poseidon-lvc``'s
+    maps, ``poseidon`` until stop 40: the intensity templates' map is where the case lives.)"""
     sim = simulate_merged(tmp_path / "cave3d", "cave3d", seed=0, preset_name="poseidon-lvc")
     stamps = sim.state["em_stamp"]
     assert sim.state["em_link_kind"].tolist().count(int(LinkKind.MERGE)) >= 1
@@ -124,6 +125,8 @@ def test_each_start_of_the_search_gets_its_own_budget_of_solves(
     assert robust.injected.size == 20 and not robust.engine.map.link_active[robust.injected].any()
     assert map_ape(robust.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
     monkeypatch.setattr(robust_module._Problem, "fresh_budget", lambda _self: None)
+    assert not inject(sim, 20, 1.0, seed=2).engine.map.link_active[robust.injected].any()  # the merge links' prior
+    monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
     shared = inject(sim, 20, 1.0, seed=2)
     assert shared.engine.map.link_active[shared.injected].any()
     assert map_ape(shared.engine.map.poses, stamps, sim.truth) > 3.0 * clean
@@ -175,8 +178,16 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     assert map_ape(bought.engine.map.poses, stamps, sim.truth) > 2.5 * clean
 
 
+@pytest.fixture(scope="module")
+def twin_overlap_merged(tmp_path_factory: pytest.TempPathFactory) -> Simulated:
+    """The merged ``twin-overlap`` map of seed 3 (session 2 merged into session 1 online)."""
+    sim = simulate_merged(tmp_path_factory.mktemp("twin-overlap") / "twin-overlap", "twin-overlap", seed=3)
+    assert sim.state["em_link_kind"].tolist().count(int(LinkKind.MERGE)) >= 1
+    return sim
+
+
 def test_new_links_that_fit_only_together_earn_their_place_against_the_map_as_it_stood(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    twin_overlap_merged: Simulated, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The merged ``twin-overlap`` map (seed 3, session 2 merged into session 1) with 5 wrong links of 2-3 m
     (injection seed 5): two of them join neighbouring places with the same error (82 → 133, 81 → 132). Alone
@@ -185,9 +196,8 @@ def test_new_links_that_fit_only_together_earn_their_place_against_the_map_as_it
     (c̄² = 16): APE 1.73× the clean map's. Now each new link the answer keeps on and the status quo left off holds one
     outlier's worth for the map as it stood (``NEW_LINK_HOLD``): every wrong link off, the clean map. Paired: without
     the hold the two are back on and the failure is back."""
-    sim = simulate_merged(tmp_path / "twin-overlap", "twin-overlap", seed=3)
+    sim = twin_overlap_merged
     stamps = sim.state["em_stamp"]
-    assert sim.state["em_link_kind"].tolist().count(int(LinkKind.MERGE)) >= 1
     clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
     held = inject(sim, 5, SIZE_M, seed=5)
     assert held.injected.size == 5 and not held.engine.map.link_active[held.injected].any()
@@ -197,3 +207,31 @@ def test_new_links_that_fit_only_together_earn_their_place_against_the_map_as_it
     joined = inject(sim, 5, SIZE_M, seed=5)
     assert joined.engine.map.link_active[joined.injected].sum() == 2
     assert map_ape(joined.engine.map.poses, stamps, sim.truth) > 1.5 * clean
+
+
+def test_a_merge_link_that_stood_is_not_traded_for_a_wrong_link_by_any_start_of_the_search(
+    twin_overlap_merged: Simulated, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The merged ``twin-overlap`` map (seed 3) with 20 wrong links of 5-7.5 m (injection seed 7): one of them, 2 → 104,
+    joins session 1's start to session 2's approach a few experiences before the merge link 108 → 0. Switched back on
+    alone in the status quo's start, it lowered the cost with the merge link switched off for it (one link off for one
+    on: TLS charges both the same), so the map as it stood was itself the trade, and the merge-link hold of stop 42,
+    weighed only between the starts' answers, never saw it: APE 1.72× the clean map's. Now the hold is a switch prior
+    in the cost itself (one outlier's worth for each merge link that was on and is off), which every start weighs: the
+    merge link stays on, every wrong link is off, the clean map. Paired: without the prior the trade is back."""
+    sim = twin_overlap_merged
+    stamps = sim.state["em_stamp"]
+    clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
+    merge = np.asarray(sim.state["em_link_kind"]) == int(LinkKind.MERGE)
+
+    def settled() -> tuple[bool, float, bool]:
+        injected = inject(sim, 20, 5.0, seed=7)
+        active = injected.engine.map.link_active
+        ape = map_ape(injected.engine.map.poses, stamps, sim.truth)
+        return bool(active[: merge.size][merge].all()), ape, bool(active[injected.injected].any())
+
+    merges_on, ape, wrong_on = settled()
+    assert merges_on and not wrong_on and ape <= 1.01 * clean
+    monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
+    merges_on, ape, wrong_on = settled()
+    assert not merges_on and wrong_on and ape > 1.5 * clean
