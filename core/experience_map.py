@@ -113,6 +113,7 @@ class ExperienceMap:
         self._off = 0  # links switched off
         self._switchable = 0  # loop and merge links
         self._checked = 0  # loop and merge links at the last robust check
+        self._stored = 0  # links that stood when the map was restored or last settled (STORED_LINK_HOLD)
         self._pairs: set[tuple[int, int]] = set()
         self._exps_of_template: list[list[int]] = []
         self._incidence = Incidence()
@@ -522,7 +523,7 @@ class ExperienceMap:
             np.concatenate([transform, standby.link[:, :4]]), np.concatenate([kind, odometry]),
             np.concatenate([distance, standby.link[:, 5]]), self.anchors(), drift, standby=standby.partner,
             also_switchable=standby.switchable | ~self._active.view, standby_closure=standby.closure, joint=self.joint,
-            previous=previous, standing=self._active.view,
+            previous=previous, standing=self._active.view, stored=np.arange(k) < self._stored,
         )  # fmt: skip
         joined = np.flatnonzero(result.active[k:])
         if np.array_equal(result.active[:k], self._active.view) and joined.size == 0:
@@ -658,6 +659,7 @@ class ExperienceMap:
         if self.joint:
             self._refine_jointly()
         self._work.clear()
+        self._stored = self.link_count  # a settled map is a finished one: its links stand as stored
         return run
 
     @property
@@ -719,6 +721,7 @@ class ExperienceMap:
             "em_link_kind": self._kind.copy(),
             "em_link_active": self._active.copy(),
             "em_robust_checked": np.asarray(self._checked, dtype=np.int64),
+            "em_stored_links": np.asarray(self._stored, dtype=np.int64),
             "em_current": np.asarray(self.current, dtype=np.int64),
             "em_previous": np.asarray(self.previous, dtype=np.int64),
             "em_accum": self.accum.copy(),
@@ -760,6 +763,7 @@ class ExperienceMap:
         em._off = int(np.count_nonzero(~active))
         em._switchable = int(np.count_nonzero(np.isin(em._kind.view, SWITCHABLE_KINDS)))
         em._checked = int(state.get("em_robust_checked", np.asarray(em._switchable)))
+        em._stored = int(state.get("em_stored_links", np.asarray(len(em._kind))))
         src, dst = em._from.view, em._to.view
         em._pairs = set(zip(src.tolist(), dst.tolist(), strict=True))
         n = em.count

@@ -56,6 +56,12 @@ stop 45 it is a term of C itself, ``MERGE_LINK_HOLD``·c̄² for each merge link
 off, so every start weighs it, not only the comparison between the starts' answers: the status quo's own start traded
 a merge link for a wrong link that, switched back on alone, lowered C with the merge link off for it (merged
 ``twin-overlap`` map seed 3, 20 wrong links of 5 m, injection seed 7: 2 → 104 on for 108 → 0; APE 1.72×, now 1.00×).
+The loop links a finished session left on carry the same prior (``STORED_LINK_HOLD``; stored: the links the map held
+when it was restored or last settled, :meth:`core.experience_map.ExperienceMap.settle`): a link that contradicts one
+costs it one outlier's worth more than the trade TLS otherwise sees as even (same map, 5 wrong links of 5 m, seed 5:
+90 → 138 on for the closure 139 → 86; APE 1.49×, now 1.00×). A running session's own links carry none, so its later
+closures still correct its earlier ones at once (the same prior on those delayed them: the online sweeps' single
+routes got worse, ``twin-overlap`` turns alike 40 m seed 4 0.825 → 1.249 m).
 New links that only fit together hold the same against them (``NEW_LINK_HOLD``, stop 45): the status quo's start
 switches each new link back on alone and keeps it when the cost falls, so a new link the answer keeps on and the
 status quo left off lowers the cost only with others beside it — two or more wrong links that agree with one
@@ -160,6 +166,9 @@ MERGE_LINK_HOLD = 1.0
 #: outliers' worth the status quo holds for each link added since the previous check that is on in the answer and
 #: that the status quo's own switch-back-on left off (module docstring)
 NEW_LINK_HOLD = 1.0
+#: outliers' worth the TLS cost adds for each loop link of a finished session (stored) that was on as the map stood
+#: and is off: their switch prior (module docstring)
+STORED_LINK_HOLD = 1.0
 #: Costs this close (relative) are a tie: at 1e-9 a wrong bridge won on rounding noise (offline merge of
 #: ``symmetric`` seed 4: 18.76023303 against 18.76023308); at 1e-7 a test's wrong links stayed on
 #: (``test_the_joint_scoring_switches_wrong_links_off_where_ratslams_does``).
@@ -233,6 +242,7 @@ def switch_off_outliers(
     joint: bool = False,
     previous: np.ndarray | None = None,
     standing: np.ndarray | None = None,
+    stored: np.ndarray | None = None,
 ) -> RobustResult:
     """Return which links stay on: binary switches minimising the TLS cost (module docstring).
 
@@ -288,6 +298,10 @@ def switch_off_outliers(
         if standing is not None:  # the links added since the previous check: on as the map stands, off in previous
             problem.new[: np.size(previous)] = np.asarray(standing, dtype=bool) & ~np.asarray(previous, dtype=bool)
         problem.held = problem.merge & status_quo & ~problem.new  # merge links on as the map stood
+        if stored is not None:  # and the loop links a finished session left on
+            was = np.zeros(k, dtype=bool)
+            was[: np.size(stored)] = np.asarray(stored, dtype=bool)
+            problem.stored = problem.closures & ~problem.merge & status_quo & was & ~problem.new & ~problem.gated
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance, status_quo)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
 
@@ -492,6 +506,7 @@ class _Problem:
         self.new = np.zeros(src.size, dtype=bool)  # links added since the previous check: NEW_LINK_HOLD each
         self.merge = np.zeros(src.size, dtype=bool)  # merge links
         self.held = np.zeros(src.size, dtype=bool)  # merge links on as the map stood: MERGE_LINK_HOLD each when off
+        self.stored = np.zeros(src.size, dtype=bool)  # stored loop links on as the map stood: STORED_LINK_HOLD each
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
@@ -543,6 +558,7 @@ class _Problem:
         fixed = ~self.can & active  # standby links count while they stand in
         cost = float(ODOMETRY_WEIGHT * np.sum(z[fixed] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
         cost += MERGE_LINK_HOLD * c2 * float(np.count_nonzero(self.held & ~active))  # the merge links' switch prior
+        cost += STORED_LINK_HOLD * c2 * float(np.count_nonzero(self.stored & ~active))  # the stored loop links'
         return _State(active, pose, z, cost + 2.0 * c2 * self.overreached(active, z))
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:

@@ -103,6 +103,7 @@ def test_a_batch_of_wrong_links_is_measured_against_the_map_as_it_stood(
         return original(problem, best, distance)
 
     monkeypatch.setattr(robust_module, "_search", without_status_quo)
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # stop 45: the stored closures' prior holds them too
     assert min(ratios()) > 2.5
 
 
@@ -152,6 +153,7 @@ def test_the_map_as_it_stood_replaces_a_costlier_answer_at_any_lower_cost(
     monkeypatch.setattr(robust_module, "STATUS_QUO_MARGIN", 1.0)
     assert worst() <= 1.01  # the wrong links the answer keeps fit only together: the new-link hold holds them too
     monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior (stop 45)
     assert worst() > 2.0
 
 
@@ -173,6 +175,7 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
     assert not inject(sim, 20, 5.0, seed=1).engine.map.link_active[held.injected].any()  # the new-link hold, too
     monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior (stop 45)
     bought = inject(sim, 20, 5.0, seed=1)
     assert bought.engine.map.link_active[bought.injected].sum() == 3
     assert map_ape(bought.engine.map.poses, stamps, sim.truth) > 2.5 * clean
@@ -235,3 +238,24 @@ def test_a_merge_link_that_stood_is_not_traded_for_a_wrong_link_by_any_start_of_
     monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
     merges_on, ape, wrong_on = settled()
     assert not merges_on and wrong_on and ape > 1.5 * clean
+
+
+def test_a_stored_loop_closure_is_not_traded_for_a_wrong_link_that_contradicts_it(
+    twin_overlap_merged: Simulated, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The merged ``twin-overlap`` map (seed 3) with 5 wrong links of 5-7.5 m (injection seed 5): one of them, 90 → 138,
+    contradicts the stored loop closure 139 → 86. Switched back on alone, it lowered the cost with the closure switched
+    off for it (one link off for one on), in the answer and in the status quo's own start alike: APE 1.49× the clean
+    map's. A loop link the finished sessions left on now carries the switch prior a merge link does
+    (``STORED_LINK_HOLD``): the closure stays, every wrong link is off, the clean map. Paired: without it the trade is
+    back."""
+    sim = twin_overlap_merged
+    stamps = sim.state["em_stamp"]
+    clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
+    held = inject(sim, 5, 5.0, seed=5)
+    assert held.true_loops_on == held.true_loops and not held.engine.map.link_active[held.injected].any()
+    assert map_ape(held.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)
+    traded = inject(sim, 5, 5.0, seed=5)
+    assert traded.true_loops_on == traded.true_loops - 1 and traded.engine.map.link_active[traded.injected].sum() == 1
+    assert map_ape(traded.engine.map.poses, stamps, sim.truth) > 1.4 * clean
