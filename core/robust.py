@@ -259,6 +259,9 @@ def switch_off_outliers(
     links added since off — the status quo, a start of its own (:func:`_search`). ``standing`` (a mask over
     the first links): which links are on as the map stands (:func:`chain_headings` walks those first); those on in
     ``standing`` and off in ``previous`` are the links added since, each held by ``NEW_LINK_HOLD`` (:func:`_hold`).
+    ``stored`` (a mask over the first links): the links a finished session left (the map's links when it was
+    restored or last settled); those of them that are loop links on as the map stood carry ``STORED_LINK_HOLD``
+    in the cost when off, as the merge links that stood carry ``MERGE_LINK_HOLD``.
 
     ``pose`` gives the anchors' poses and the experiences' positions to start from; the
     decision depends on the links only. When every switchable link is within ``c̄`` of the
