@@ -300,11 +300,7 @@ def switch_off_outliers(
         status_quo[: np.size(previous)] = np.asarray(previous, dtype=bool)
         if standing is not None:  # the links added since the previous check: on as the map stands, off in previous
             problem.new[: np.size(previous)] = np.asarray(standing, dtype=bool) & ~np.asarray(previous, dtype=bool)
-        problem.held = problem.merge & status_quo & ~problem.new  # merge links on as the map stood
-        if stored is not None:  # and the loop links a finished session left on
-            was = np.zeros(k, dtype=bool)
-            was[: np.size(stored)] = np.asarray(stored, dtype=bool)
-            problem.stored = problem.closures & ~problem.merge & status_quo & was & ~problem.new & ~problem.gated
+        problem.prior = _switch_prior(problem, status_quo, stored)
     best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance, status_quo)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
 
@@ -359,6 +355,21 @@ def _dead_reckoning(
     anchors = component_anchors(n, src[tree], dst[tree])
     dead_reckoned = solve(start, src[tree], dst[tree], transform[tree], anchors, passes=1)
     return dead_reckoned, TreePaths(n, src[tree], dst[tree], distance[tree], anchors)
+
+
+def _switch_prior(problem: _Problem, status_quo: np.ndarray, stored: np.ndarray | None) -> np.ndarray:
+    """Return each link's switch prior (K,), in outliers' worth, charged by the cost when the link is off.
+
+    ``MERGE_LINK_HOLD`` for a merge link on as the map stood, ``STORED_LINK_HOLD`` for a loop link on as the map
+    stood that a finished session left (``stored``); nothing for the links added since the previous check.
+    """
+    k = problem.src.size
+    was = np.zeros(k, dtype=bool)
+    if stored is not None:
+        was[: np.size(stored)] = np.asarray(stored, dtype=bool)
+    stood = status_quo & ~problem.new
+    loops = problem.closures & ~problem.merge & was & ~problem.gated
+    return MERGE_LINK_HOLD * (problem.merge & stood) + STORED_LINK_HOLD * (loops & stood)
 
 
 def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: np.ndarray | None = None) -> _State:
@@ -508,8 +519,7 @@ class _Problem:
         self.closures = can  # loop and merge links: those :meth:`switch_off_strained` tries
         self.new = np.zeros(src.size, dtype=bool)  # links added since the previous check: NEW_LINK_HOLD each
         self.merge = np.zeros(src.size, dtype=bool)  # merge links
-        self.held = np.zeros(src.size, dtype=bool)  # merge links on as the map stood: MERGE_LINK_HOLD each when off
-        self.stored = np.zeros(src.size, dtype=bool)  # stored loop links on as the map stood: STORED_LINK_HOLD each
+        self.prior = np.zeros(src.size)  # outliers' worth each link costs when off: its switch prior (_switch_prior)
         self.standby_scale = np.ones(0)  # s / max(s, L) of each standby link: its z over its own length
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
@@ -560,8 +570,7 @@ class _Problem:
         c2 = self.drift.threshold**2
         fixed = ~self.can & active  # standby links count while they stand in
         cost = float(ODOMETRY_WEIGHT * np.sum(z[fixed] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
-        cost += MERGE_LINK_HOLD * c2 * float(np.count_nonzero(self.held & ~active))  # the merge links' switch prior
-        cost += STORED_LINK_HOLD * c2 * float(np.count_nonzero(self.stored & ~active))  # the stored loop links'
+        cost += c2 * float(np.sum(self.prior[~active]))  # the switch priors of the links that stood
         return _State(active, pose, z, cost + 2.0 * c2 * self.overreached(active, z))
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:
