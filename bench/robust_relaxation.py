@@ -9,7 +9,9 @@ experiences a wrong link joins really are: small is the hard case) and seed inje
 links (``core.robust.false_loop_links``) into the settled map and settles it again. Prints per row:
 the APE ratio against the clean map with the robust check (median and max over seeds) and without it
 (the "bent" map), wrong links switched off (mean), true loop closures switched off (max), the health
-residual before/after, and whether the row meets the issue's bound (max APE ratio ≤ 1.25). The last
+residual before/after, whether the row meets the issue's bound (max APE ratio ≤ 1.25), and how far apart in
+the world the wrong links' ends are (median; "within": the share no farther apart than the farthest of the map's
+own loop closures, a wrong link the graph's consistency cannot tell from a true one). The last
 line of stdout is one JSON object with every row. ``--map-seeds`` simulates each scenario's stored map
 with several simulator seeds (each its own table): the maps differ most in how many loop closures they
 hold (``loop``: 12 at seed 0, 1-10 at seeds 1-4), and a map with few holds few witnesses against a wrong link.
@@ -31,12 +33,28 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
 from mapserver.store.health import map_health
-from tests.mapserver.robust_metrics import Simulated, inject, map_ape, simulate_single
+from tests.mapserver.robust_metrics import (
+    Simulated,
+    closure_separation,
+    inject,
+    map_ape,
+    simulate_single,
+    world_separation,
+)
+
+
+def _apart(sim: Simulated, apart: np.ndarray) -> dict[str, float]:
+    """The wrong links' world separation (median, m) and the share no farther apart than the map's own closures."""
+    apart = apart[np.isfinite(apart)]
+    if not apart.size:
+        return {"injected_apart_m_median": 0.0, "injected_within_closures": 0.0}
+    within = float(np.mean(apart <= closure_separation(sim).max(initial=0.0)))
+    return {"injected_apart_m_median": float(np.median(apart)), "injected_within_closures": within}
 
 
 def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int) -> dict[str, Any]:
     stamps = sim.state["em_stamp"]
-    ratio, bent, off, true_off, before, after, took = [], [], [], [], [], [], []
+    ratio, bent, off, true_off, before, after, took, apart = [], [], [], [], [], [], [], []
     for seed in range(seeds):
         start = time.perf_counter()
         robust = inject(sim, count, size, seed)
@@ -46,6 +64,8 @@ def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int) -> d
         bent.append(map_ape(plain.engine.map.poses, stamps, sim.truth) / clean)
         off.append(int(np.count_nonzero(~robust.engine.map.link_active[robust.injected])))
         true_off.append(robust.true_loops - robust.true_loops_on)
+        links = robust.engine.map.links
+        apart.append(world_separation(sim, links[0][robust.injected], links[1][robust.injected]))
         before.append(map_health(sim.params, plain.engine.snapshot())["residual"])
         after.append(map_health(sim.params, robust.engine.snapshot())["residual"])
     return {
@@ -56,6 +76,7 @@ def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int) -> d
         "true_loops": robust.true_loops,
         "health_before": float(np.median(before)), "health_after": float(np.median(after)),
         "check_s_mean": float(np.mean(took)), "ok": bool(np.max(ratio) <= 1.25),
+        **_apart(sim, np.concatenate(apart)),
     }  # fmt: skip
 
 
@@ -78,9 +99,13 @@ def main() -> int:
         name = scenario if map_seed == 0 else f"{scenario}-seed{map_seed}"
         sim = simulate_single(out / name, scenario, seed=map_seed, settings=args.settings)
         clean = map_ape(sim.state["em_pose"], sim.state["em_stamp"], sim.truth)
+        own = closure_separation(sim)
         rows = []
-        print(f"\n{name}: clean APE {clean:.3f} m, health {map_health(sim.params, sim.state)}")
-        print("   k  size_m  APE ratio med/max  bent med  wrong off/last  true off  health before→after  check s  ok")
+        health = map_health(sim.params, sim.state)
+        print(f"\n{name}: clean APE {clean:.3f} m, health {health}, its {own.size} closures join places "
+              f"{own.min() if own.size else 0:.2f}-{own.max(initial=0.0):.2f} m apart in the world")  # fmt: skip
+        print("   k  size_m  APE ratio med/max  bent med  wrong off/last  true off  health before→after  check s  ok"
+              "  apart m  within")
         for count in counts:
             for size in sizes:
                 row = _row(sim, clean, count, size, args.seeds)
@@ -88,8 +113,9 @@ def main() -> int:
                 print(f"{count:>4} {size:>7.1f}  {row['ape_ratio_median']:>8.2f} / {row['ape_ratio_max']:<6.2f}"
                       f" {row['bent_ratio_median']:>8.2f}  {row['switched_off_mean']:>5.1f}/{row['injected']:<3}"
                       f" {row['true_off_max']:>5}/{row['true_loops']:<3} {row['health_before']:>7.2f} →"
-                      f" {row['health_after']:<6.2f} {row['check_s_mean']:>8.2f}  {'yes' if row['ok'] else 'NO'}")
-        report[name] = {"clean_ape": clean, "rows": rows}
+                      f" {row['health_after']:<6.2f} {row['check_s_mean']:>8.2f}  {'yes' if row['ok'] else 'NO ':<3}"
+                      f" {row['injected_apart_m_median']:>7.2f}  {row['injected_within_closures']:>5.0%}")
+        report[name] = {"clean_ape": clean, "closures_apart_m": own.tolist(), "rows": rows}
     print(json.dumps(report))
     return 0
 

@@ -45,7 +45,11 @@ map stood on at its previous check, with the links added since off, then switche
 (``loop`` map seed 3: five wrong links of 2 m beside a lap closure that is itself 1.8 m off; from all
 links on, the descent kept two of them and switched both true closures off at a cost of 117.9-121.6,
 where the map as it stood costs 82.4). It replaces the answer at any lower C: the map as it stood is an
-answer the map already held, and new links have to earn their place against it. A merge link that was on
+answer the map already held, and new links have to earn their place against it. It is tried whenever the answer
+switches off a link the map stood on, not only after a first descent that switched something off (stop 46): the
+strain pass below trades too (merged ``twin-overlap`` map seed 3, one wrong link of 2 m, injection seed 3: with it
+and the stored closure 139 → 86 both on nothing exceeds c̄, C 46.1; the strain pass switched the closure off for it,
+C 37.4; the map as it stood costs 21.1; APE 1.40× the clean map's, now 1.00×). A merge link that was on
 costs the answer one more outlier's worth to switch off (``MERGE_LINK_HOLD``, stop 42): it joined two maps after
 the merge passed its probation, and TLS charges any link off at c̄² whatever it is, so a batch of new links could
 buy its way in by switching off as many merge links as it adds, for a few tenths of an outlier's worth of
@@ -375,10 +379,11 @@ def _switch_prior(problem: _Problem, status_quo: np.ndarray, stored: np.ndarray 
 def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: np.ndarray | None = None) -> _State:
     """Return the cheapest switches found from the first descent ``best`` and the other starts (module docstring).
 
-    When the first descent switched anything off, two more starts are tried, each switched back on link by
-    link: the greedy clique of pairwise-consistent links (:func:`_pairwise_start`), taken only when its cost
-    is lower by more than ``c̄²`` (one outlier's worth), and the status quo — the switches the map stood on
-    at its previous check, the links added since off (``status_quo``) — taken when its cost is lower by
+    Two more starts are tried, each switched back on link by link: when the first descent switched anything
+    off, the greedy clique of pairwise-consistent links (:func:`_pairwise_start`), taken only when its cost
+    is lower by more than ``c̄²`` (one outlier's worth); and when the first descent switched anything off or the
+    answer switches off a link the map stood on (the strain pass may trade one), the status quo — the switches the
+    map stood on at its previous check, the links added since off (``status_quo``) — taken when its cost is lower by
     more than ``STATUS_QUO_MARGIN`` outliers' worth (0: at any lower cost), or at the same cost (:func:`_tie`),
     or by no more than what it holds against the answer (:func:`_hold`: the new links the answer keeps on that
     the status quo, trying each alone, left off; the merge links it switched off are in the cost). A batch of new
@@ -406,8 +411,9 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
                 best = fits
     best = problem.switch_back_on(problem.switch_off_strained(best))
     margin = problem.drift.threshold**2  # one outlier's worth
-    # Wrong links that outnumber the true ones near them: start also from a pairwise-consistent set, and from the
-    # status quo, where the descent found outliers (docstring; ``descended`` implies ``bare`` was solved above).
+    # Wrong links that outnumber the true ones near them: start also from a pairwise-consistent set where the descent
+    # found outliers (docstring; ``descended`` implies ``bare`` was solved above), and from the status quo where it
+    # did or where the answer switches off a link the map stood on.
     if descended:
         problem.fresh_budget()
         clique = _pairwise_start(problem, bare, bare_active, distance)
@@ -415,7 +421,7 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
             clique = problem.switch_back_on(clique)
             if _better(clique, best, margin):
                 best = clique
-    if descended and status_quo is not None:
+    if status_quo is not None and (descended or bool((problem.can & status_quo & ~best.active).any())):
         problem.fresh_budget()
         kept = _status_quo_start(problem, status_quo)
         if kept is not None and _holds(kept, best, _hold(problem, kept, best) * margin):

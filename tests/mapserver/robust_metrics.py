@@ -87,6 +87,24 @@ def inject(sim: Simulated, count: int, separation: float, seed: int, robust: boo
     return Injected(engine, np.arange(first, engine.map.link_count), int(loops.size), on)
 
 
+def world_separation(sim: Simulated, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Return how far apart (m) in the world the experiences ``src`` and ``dst`` of the map ``sim`` were created.
+
+    A true loop closure joins two experiences whose views matched, which RatSLAM does within a metre or two: the
+    separation of a map's own closures is the scale below which a wrong link is as plausible as they are.
+    """
+    ref = interpolate_poses(sim.truth, sim.state["em_stamp"], max_diff_s=0.1)
+    dims = 2 if not np.any(sim.state["em_pose"][:, 2]) else 3
+    return np.linalg.norm(ref[np.asarray(src), :dims] - ref[np.asarray(dst), :dims], axis=1)
+
+
+def closure_separation(sim: Simulated) -> np.ndarray:
+    """Return the world separation (m) of the loop and merge links the map ``sim`` holds (:func:`world_separation`)."""
+    closure = np.isin(np.asarray(sim.state["em_link_kind"]), (int(LinkKind.LOOP), int(LinkKind.MERGE)))
+    apart = world_separation(sim, sim.state["em_link_from"][closure], sim.state["em_link_to"][closure])
+    return apart[np.isfinite(apart)]  # an end outside the ground truth's time span has no place to compare
+
+
 def map_ape(pose: np.ndarray, stamps: np.ndarray, truth: Trajectory) -> float:
     """Return the APE RMSE of experience positions after one rigid alignment (planar maps in xy)."""
     ref = interpolate_poses(truth, stamps, max_diff_s=0.1)

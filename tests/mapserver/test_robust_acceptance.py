@@ -212,6 +212,34 @@ def test_new_links_that_fit_only_together_earn_their_place_against_the_map_as_it
     assert map_ape(joined.engine.map.poses, stamps, sim.truth) > 1.5 * clean
 
 
+def test_a_standing_closure_traded_by_the_strain_pass_is_weighed_against_the_map_as_it_stood(
+    twin_overlap_merged: Simulated, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The merged ``twin-overlap`` map (seed 3) with one wrong link of 2-3 m (injection seed 3), 82 → 138, beside the
+    stored closure 139 → 86. With both on, nothing exceeds c̄ (C 46.1), so the first descent switched nothing off and
+    the status quo's start was never tried; the strain pass then traded the closure for the wrong link (C 37.4, the
+    closure's switch prior included): APE 1.40× the clean map's. The map as it stood, the wrong link off, costs 21.1.
+    Now the status quo's start is also tried when the answer switches off a link the map stood on: the closure stays,
+    the wrong link is off, the clean map. Paired: without that start the trade is back."""
+    sim = twin_overlap_merged
+    stamps = sim.state["em_stamp"]
+    clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
+    original, tried = robust_module._status_quo_start, []
+
+    def spied(problem: object, status_quo: object) -> object:
+        tried.append(True)
+        return original(problem, status_quo)
+
+    monkeypatch.setattr(robust_module, "_status_quo_start", spied)
+    held = inject(sim, 1, SIZE_M, seed=3)
+    assert tried and held.true_loops_on == held.true_loops and not held.engine.map.link_active[held.injected].any()
+    assert map_ape(held.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
+    monkeypatch.setattr(robust_module, "_status_quo_start", lambda _problem, _status_quo: None)
+    traded = inject(sim, 1, SIZE_M, seed=3)
+    assert traded.true_loops_on == traded.true_loops - 1 and traded.engine.map.link_active[traded.injected].all()
+    assert map_ape(traded.engine.map.poses, stamps, sim.truth) > 1.3 * clean
+
+
 def test_a_merge_link_that_stood_is_not_traded_for_a_wrong_link_by_any_start_of_the_search(
     twin_overlap_merged: Simulated, monkeypatch: pytest.MonkeyPatch
 ) -> None:
