@@ -99,8 +99,9 @@ def world_separation(sim: Simulated, src: np.ndarray, dst: np.ndarray) -> np.nda
 
 
 def closure_separation(sim: Simulated) -> np.ndarray:
-    """Return the world separation (m) of the loop and merge links the map ``sim`` holds (:func:`world_separation`)."""
+    """Return the world separation (m) of the loop and merge links switched on in ``sim`` (:func:`world_separation`)."""
     closure = np.isin(np.asarray(sim.state["em_link_kind"]), (int(LinkKind.LOOP), int(LinkKind.MERGE)))
+    closure &= np.asarray(sim.state["em_link_active"], dtype=bool)  # the map's switched-off links are not its closures
     apart = world_separation(sim, sim.state["em_link_from"][closure], sim.state["em_link_to"][closure])
     return apart[np.isfinite(apart)]  # an end outside the ground truth's time span has no place to compare
 
