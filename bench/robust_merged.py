@@ -29,7 +29,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measu
 
 from core import Engine, LinkKind
 from core.robust import false_loop_links
-from tests.mapserver.robust_metrics import Simulated, closure_separation, map_ape, simulate_merged, world_separation
+from tests.mapserver.robust_metrics import (
+    Simulated,
+    closure_range,
+    closure_separation,
+    map_ape,
+    separation_figures,
+    simulate_merged,
+    world_separation,
+)
 
 
 def settled_ape(merged: Simulated, joint: bool, count: int, size: float, seed: int) -> tuple[float, np.ndarray]:
@@ -60,18 +68,14 @@ def main() -> None:
         own = closure_separation(merged)
         for joint in (False, True):
             clean = settled_ape(merged, joint, 0, 0.0, 0)[0]
-            reach = f"{own.min() if own.size else 0:.2f}-{own.max(initial=0):.2f} m"
             print(f"{scenario} seed {seed} ({preset}), merge_relax_joint={int(joint)}: clean APE {clean:.3f} m; "
-                  f"its {own.size} closures join places {reach} apart")  # fmt: skip
+                  f"its {own.size} closures join places {closure_range(own)} apart")  # fmt: skip
             for count in (int(c) for c in args.counts.split(",")):
                 for size in (float(s) for s in args.sizes.split(",")):
                     runs = [settled_ape(merged, joint, count, size, s) for s in range(args.seeds)]
                     ratio = [ape / clean for ape, _ in runs]
-                    apart = np.concatenate([a for _, a in runs])
-                    apart = apart[np.isfinite(apart)]
-                    within = float(np.mean(apart <= own.max(initial=0.0))) if apart.size else 0.0
+                    apart_m, within = separation_figures(np.concatenate([a for _, a in runs]), own)
                     ok = max(ratio) <= 1.25
-                    apart_m = float(np.median(apart)) if apart.size else 0.0
                     print(f"   k {count:2d}  size {size:4.1f} m  APE ratio med {statistics.median(ratio):.2f} "
                           f"max {max(ratio):.2f}  {'ok' if ok else 'FAIL'}  wrong links apart med {apart_m:.2f} m, "
                           f"{within:.0%} within the closures' range")  # fmt: skip

@@ -35,24 +35,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measu
 from mapserver.store.health import map_health
 from tests.mapserver.robust_metrics import (
     Simulated,
+    closure_range,
     closure_separation,
     inject,
     map_ape,
+    separation_figures,
     simulate_single,
     world_separation,
 )
 
 
-def _apart(sim: Simulated, apart: np.ndarray) -> dict[str, float]:
-    """The wrong links' world separation (median, m) and the share no farther apart than the map's own closures."""
-    apart = apart[np.isfinite(apart)]
-    if not apart.size:
-        return {"injected_apart_m_median": 0.0, "injected_within_closures": 0.0}
-    within = float(np.mean(apart <= closure_separation(sim).max(initial=0.0)))
-    return {"injected_apart_m_median": float(np.median(apart)), "injected_within_closures": within}
-
-
-def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int) -> dict[str, Any]:
+def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int, closures: np.ndarray) -> dict[str, Any]:
     stamps = sim.state["em_stamp"]
     ratio, bent, off, true_off, before, after, took, apart = [], [], [], [], [], [], [], []
     for seed in range(seeds):
@@ -68,7 +61,7 @@ def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int) -> d
         apart.append(world_separation(sim, links[0][robust.injected], links[1][robust.injected]))
         before.append(map_health(sim.params, plain.engine.snapshot())["residual"])
         after.append(map_health(sim.params, robust.engine.snapshot())["residual"])
-    return {
+    row = {
         "k": count, "size_m": size, "injected": int(robust.injected.size),
         "ape_ratio_median": float(np.median(ratio)), "ape_ratio_max": float(np.max(ratio)),
         "bent_ratio_median": float(np.median(bent)),
@@ -76,8 +69,9 @@ def _row(sim: Simulated, clean: float, count: int, size: float, seeds: int) -> d
         "true_loops": robust.true_loops,
         "health_before": float(np.median(before)), "health_after": float(np.median(after)),
         "check_s_mean": float(np.mean(took)), "ok": bool(np.max(ratio) <= 1.25),
-        **_apart(sim, np.concatenate(apart)),
     }  # fmt: skip
+    median, within = separation_figures(np.concatenate(apart), closures)
+    return row | {"injected_apart_m_median": median, "injected_within_closures": within}
 
 
 def main() -> int:
@@ -103,12 +97,12 @@ def main() -> int:
         rows = []
         health = map_health(sim.params, sim.state)
         print(f"\n{name}: clean APE {clean:.3f} m, health {health}, its {own.size} closures join places "
-              f"{own.min() if own.size else 0:.2f}-{own.max(initial=0.0):.2f} m apart in the world")  # fmt: skip
+              f"{closure_range(own)} apart in the world")  # fmt: skip
         print("   k  size_m  APE ratio med/max  bent med  wrong off/last  true off  health before→after  check s  ok"
               "  apart m  within")
         for count in counts:
             for size in sizes:
-                row = _row(sim, clean, count, size, args.seeds)
+                row = _row(sim, clean, count, size, args.seeds, own)
                 rows.append(row)
                 print(f"{count:>4} {size:>7.1f}  {row['ape_ratio_median']:>8.2f} / {row['ape_ratio_max']:<6.2f}"
                       f" {row['bent_ratio_median']:>8.2f}  {row['switched_off_mean']:>5.1f}/{row['injected']:<3}"

@@ -94,7 +94,7 @@ def world_separation(sim: Simulated, src: np.ndarray, dst: np.ndarray) -> np.nda
     separation of a map's own closures is the scale below which a wrong link is as plausible as they are.
     """
     ref = interpolate_poses(sim.truth, sim.state["em_stamp"], max_diff_s=0.1)
-    dims = 2 if not np.any(sim.state["em_pose"][:, 2]) else 3
+    dims = _dims(sim.state["em_pose"])
     return np.linalg.norm(ref[np.asarray(src), :dims] - ref[np.asarray(dst), :dims], axis=1)
 
 
@@ -106,9 +106,28 @@ def closure_separation(sim: Simulated) -> np.ndarray:
     return apart[np.isfinite(apart)]  # an end outside the ground truth's time span has no place to compare
 
 
+def closure_range(closures: np.ndarray) -> str:
+    """Return the range of the closures' world separations (:func:`closure_separation`) as text, e.g. "0.18-1.86 m"."""
+    return f"{closures.min() if closures.size else 0.0:.2f}-{closures.max(initial=0.0):.2f} m"
+
+
+def separation_figures(apart: np.ndarray, closures: np.ndarray) -> tuple[float, float]:
+    """Return the wrong links' world separation ``apart`` (m) as its median and the share no farther apart than the
+    farthest of the map's own ``closures`` (:func:`closure_separation`): (0, 0) when none has a place to compare."""
+    apart = apart[np.isfinite(apart)]
+    if not apart.size:
+        return 0.0, 0.0
+    return float(np.median(apart)), float(np.mean(apart <= closures.max(initial=0.0)))
+
+
 def map_ape(pose: np.ndarray, stamps: np.ndarray, truth: Trajectory) -> float:
     """Return the APE RMSE of experience positions after one rigid alignment (planar maps in xy)."""
     ref = interpolate_poses(truth, stamps, max_diff_s=0.1)
     keep = np.isfinite(ref).all(axis=1)
-    dims = 2 if not np.any(pose[:, 2]) else 3
+    dims = _dims(pose)
     return ape_positions(ref[keep, :dims], pose[keep, :dims]).rmse
+
+
+def _dims(pose: np.ndarray) -> int:
+    """Return the dimensions a map's positions are compared in: 2 for a planar map (every z zero), else 3."""
+    return 2 if not np.any(pose[:, 2]) else 3
