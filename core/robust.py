@@ -763,18 +763,25 @@ def health(
 
     ``residual`` (RMS) ≈ 0.5 on the simulator's clean ``loop`` map, 1.2 on ``cave3d``; ``worst``
     above ``drift.threshold`` means some active link contradicts the rest (both 0.0 for a
-    map without links).
+    map without links). ``unmeasured``: active links whose ``z`` is not finite (a stored link transform
+    or pose holding an infinity), left out of both figures so that the figure stays a number JSON can
+    carry (PostgreSQL's JSON refuses ``Infinity``); 0 for any map the engine made.
     """
     src = np.asarray(src, dtype=np.int64)
     active = np.asarray(active, dtype=bool)
     on = np.flatnonzero(active)
     residual = worst = 0.0
+    unmeasured = 0
     if on.size:
         length = link_length(distance, kind)
-        z = normalised_residuals(pose, src[on], np.asarray(dst)[on], np.asarray(transform)[on], length, drift)
-        residual = float(np.sqrt(np.mean(z * z)))
-        worst = float(z.max())
-    return {"residual": residual, "worst": worst, "switched_off": int(src.size - on.size), "links": int(src.size)}
+        with np.errstate(invalid="ignore", over="ignore"):  # ∞ − ∞ in a stored transform: unmeasured, below
+            z = normalised_residuals(pose, src[on], np.asarray(dst)[on], np.asarray(transform)[on], length, drift)
+        finite = z[np.isfinite(z)]
+        unmeasured = int(z.size - finite.size)
+        if finite.size:
+            residual, worst = float(np.sqrt(np.mean(finite * finite))), float(finite.max())
+    return {"residual": residual, "worst": worst, "switched_off": int(src.size - on.size), "links": int(src.size),
+            "unmeasured": unmeasured}  # fmt: skip
 
 
 def false_loop_links(

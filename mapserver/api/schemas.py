@@ -67,6 +67,9 @@ class MapHealthPublic(BaseModel):
     worst: float = Field(default=0.0, description="the largest of those normalised residuals (over 3: inconsistent)")
     switched_off: int = Field(description="links switched off by robust relaxation (stored, not used)")
     links: int
+    unmeasured: int = Field(
+        default=0, description="active links whose residual is not finite (an infinity stored in a link or pose)"
+    )
 
 
 class MapSummaryPublic(BaseModel):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -282,9 +284,26 @@ def test_health_is_the_rms_of_normalised_residuals_of_active_links() -> None:
     distance = np.array([1.0, 1.0, 0.0])
     # link 1: residual 0.2 m over drift 0.1·1 m → z = 2; link 0: 0; link 2 (off): ignored
     h = health(pose, src, dst, transform, kind, distance, np.array([True, True, False]), DRIFT)
-    assert h == {"residual": pytest.approx(math.sqrt(2)), "worst": pytest.approx(2.0), "switched_off": 1, "links": 3}
+    assert h == {"residual": pytest.approx(math.sqrt(2)), "worst": pytest.approx(2.0), "switched_off": 1, "links": 3,
+                 "unmeasured": 0}  # fmt: skip
     z = normalised_residuals(pose, src, dst, transform, 1.0, DRIFT)
     assert z[:2].tolist() == pytest.approx([0.0, 2.0])
+
+
+@pytest.mark.parametrize("bad", [math.inf, -math.inf])
+def test_an_infinite_link_is_counted_unmeasured_and_the_figure_stays_finite(bad: float) -> None:
+    """A stored transform holding an infinity has no residual: counted apart, the others' figure unchanged."""
+    pose = np.array([[0.0, 0, 0, 0], [1.0, 0, 0, 0], [2.0, 0.2, 0, 0]])
+    src, dst = np.array([0, 1, 0]), np.array([1, 2, 2])
+    transform = np.array([[1.0, 0, 0, 0], [1.0, 0, 0, 0], [bad, 0, 0, 0]])
+    kind, distance = np.array([0, 0, 1]), np.array([1.0, 1.0, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning escapes
+        h = health(pose, src, dst, transform, kind, distance, np.ones(3, dtype=bool), DRIFT)
+    # the two finite links as in the test above (z 0 and 2); the infinite one apart
+    assert h == {"residual": pytest.approx(math.sqrt(2)), "worst": pytest.approx(2.0), "switched_off": 0, "links": 3,
+                 "unmeasured": 1}  # fmt: skip
+    assert json.loads(json.dumps(h, allow_nan=False)) == h
 
 
 def test_false_loop_links_are_deterministic_and_far_apart() -> None:

@@ -64,7 +64,7 @@ def test_upload_job_map_path_export(api: Api, strip_log: Path, tmp_path: Path) -
     # the health figure of the map as stored (core.robust.health over the engine's own snapshot)
     own = map_health(resolve_params("irat"), expected.engine.snapshot())
     assert health == {"switched_off": 0, "links": expected.links, "residual": pytest.approx(own["residual"]),
-                      "worst": pytest.approx(own["worst"])}  # fmt: skip
+                      "worst": pytest.approx(own["worst"]), "unmeasured": 0}  # fmt: skip
 
     detail = api.client.get("/v1/maps/lab", headers=api.read).json()
     assert detail["health"] == {**health, "residual": pytest.approx(health["residual"]),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 import uuid
 
 import numpy as np
@@ -17,9 +19,11 @@ from mapserver.store import (
     OwnershipError,
     StaleMapError,
     UnknownMapError,
+    list_maps,
     load_map,
     save_map,
 )
+from mapserver.store.health import map_health
 from tests.mapserver.store.conftest import assert_same_arrays, drive_engine, row_counts, small_params
 
 
@@ -100,6 +104,22 @@ def test_signed_zeros_infinities_and_unknown_keys_survive(db: Database, engine: 
     assert_same_arrays(snap, loaded, skip=("lv_origin", "em_origin"))
     assert np.signbit(loaded["em_pose"][0, [0, 2, 3]]).all() and not np.signbit(loaded["em_pose"][0, 1])
     assert np.signbit(loaded["lv_means"][1])
+
+
+def test_an_infinite_link_transform_is_stored_with_a_health_figure_json_can_carry(db: Database, engine: Engine) -> None:
+    """The store keeps infinities bit for bit; the map's health leaves that link out (``unmeasured``) instead of
+    writing ``Infinity``, which PostgreSQL's JSON refused (the map was not saved there) and SQLite stored."""
+    snap = engine.snapshot()
+    clean = map_health(engine.params, snap)
+    assert clean["links"] >= 2 and clean["unmeasured"] == 0 and clean["residual"] > 0.0
+    snap["em_link_transform"][1, 0] = np.inf
+    save_map(db, name="inf", params=engine.params, snapshot=snap, sessions=[_session()])
+    assert_same_arrays(snap, load_map(db, name="inf").snapshot, skip=("lv_origin", "em_origin"))
+    with db.read() as conn:
+        (stored,) = [m.health for m in list_maps(conn=conn) if m.name == "inf"]
+    assert stored["unmeasured"] == 1 and stored["links"] == clean["links"]
+    assert math.isfinite(stored["residual"]) and math.isfinite(stored["worst"])
+    assert json.loads(json.dumps(stored, allow_nan=False)) == stored
 
 
 def test_nan_in_a_row_table_is_refused_and_nothing_is_written(db: Database, engine: Engine) -> None:
