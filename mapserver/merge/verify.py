@@ -22,7 +22,7 @@ merge go on (it ends ``evidence_m`` metres after the newest match, at most ``PRO
 distances): a look-alike place that holds turns keeps matching until the robot leaves it, and only what
 comes after it can tell. It does not end on a run of mismatches longer than leaving the stored map's edge
 explains (:meth:`Probation.held_open`): it stays open until matches come back, the run rejects the merge,
-the cap, or the session merges into another stored map.
+the session merges into another stored map, or the log ends (past the cap too, since stop 47).
 
 Meanwhile the session's engine *without* the merge (the *shadow*) is kept with the probation's frames,
 and stepped through them only when the merge is rolled back (or when the frames held pass
@@ -240,23 +240,29 @@ class Probation:
         At least ``probation_m`` metres, and then not while the matches that began with the merge go on: a
         look-alike place holding turns matches until the robot leaves it (measured: ``twin`` with
         ``lookalike_turns = 1`` kept 3–9 of 10 false merges whose probation ended inside the look-alike),
-        so the probation ends ``evidence_m`` metres after the newest match (unless it would end on a run of
-        mismatches, :meth:`_ends_on_mismatches`), or at ``PROBATION_CAP`` probation distances when the
-        matches never stop (a robot that stays on the stored map's ground; ``WEAK_MISS_PROBATION_CAP`` for a
-        front-end with weak misses).
+        so the probation ends ``evidence_m`` metres after the newest match, or at ``PROBATION_CAP`` probation
+        distances when the matches never stop (a robot that stays on the stored map's ground;
+        ``WEAK_MISS_PROBATION_CAP`` for a front-end with weak misses) — in either case not while it is held open on
+        a run of mismatches since its matches stopped (:meth:`held_open`).
         """
         travelled = distance - self.start_m
-        if travelled < self.hset.rule.probation_m:
+        if travelled < self.hset.rule.probation_m or self.held_open(distance):
             return False
-        if travelled >= self._cap_m():
-            return True
-        return self._matches_stopped(distance) and not self._ends_on_mismatches()
+        return travelled >= self._cap_m() or self._matches_stopped(distance)
 
     def held_open(self, distance: float) -> bool:
-        """Whether the probation would end now but for a run of mismatches since its matches stopped."""
+        """Whether the probation would end now but for a run of mismatches since its matches stopped.
+
+        Past the cap too (since stop 47): the cap ends a probation whose matches never stop, and one whose matches
+        stopped ``evidence_m`` back and that is meeting mismatches beyond the map's edge (:meth:`_ends_on_mismatches`)
+        is not that. Measured: ``twin`` turns alike 80 m (seed 2, ``circle``), beyond the issue's 5–40 m: a false
+        merge's probation matched the look-alike for 77 m, its matches stopped 14 m before the cap (96 m) and it
+        reached the cap 3.95 m into a run of mismatches (the run rejects at 4 m): it passed there and the false
+        merge stayed.
+        """
         travelled = distance - self.start_m
         return (
-            self.hset.rule.probation_m <= travelled < self._cap_m()
+            self.hset.rule.probation_m <= travelled
             and self._matches_stopped(distance)
             and self._ends_on_mismatches()
         )
@@ -276,7 +282,7 @@ class Probation:
         A robot that leaves the stored map's ground meets mismatches while it is still within the coverage
         radius of the last stored places (they face views it no longer has); a longer run after the matches
         stopped is evidence against the merge that the probation must not close on: it stays open until
-        matches come back, the run reaches the rejection, or the cap. Not for a front-end with weak misses
+        matches come back, the run reaches the rejection, or the log ends. Not for a front-end with weak misses
         (its true places leave runs of 6 m). Measured (``twin`` turns alike 10 m, seed 6): the false merge
         ended its probation on 2.1 m of mismatches and then 2.6 m of unmapped ground; held open, it met 2.0 m
         more and was rolled back.

@@ -45,6 +45,21 @@ def test_a_probation_that_keeps_matching_ends_at_the_cap() -> None:
     assert _probation(last_hit_m=cap - 0.5)._may_conclude(cap)
 
 
+def test_the_cap_does_not_close_a_probation_held_open_on_mismatches() -> None:
+    """Stop 47: ``twin`` turns alike 80 m seed 2's false merge reached the cap 3.95 m into a run of mismatches, its
+    matches stopped 14 m before, and passed there. Held open, the run went on to 4.49 m and rolled it back."""
+    cap = 100.0 + PROBATION_CAP * 12.0
+    held = _probation(last_hit_m=cap - 14.0)
+    held.miss_run_m = 3.95  # > the coverage radius (1.5 m): a run beyond the map's edge
+    assert held.held_open(cap) and not held._may_conclude(cap)
+    assert not held._may_conclude(cap + 30.0)  # open while the run goes on: the run or the log's end decides
+    edge = _probation(last_hit_m=cap - 14.0)  # must still: a run within the map's edge ends it at the cap
+    edge.miss_run_m = 1.0
+    assert not edge.held_open(cap) and edge._may_conclude(cap)
+    back = _probation(last_hit_m=cap + 2.0)  # and once matches come back, the probation ends as it would at the cap
+    assert not back.held_open(cap + 2.0) and back._may_conclude(cap + 2.0)
+
+
 def test_a_run_of_mismatches_weighs_by_the_front_ends_miss_weight() -> None:
     lvc = _probation(last_hit_m=-1.0)
     assert lvc.miss_run_limit() == 4.0  # evidence_m: LVC's misses weigh 2 hits
@@ -130,7 +145,7 @@ def test_a_probation_does_not_close_on_a_run_of_mismatches_longer_than_the_maps_
     contradicted = _probation(last_hit_m=120.0)
     contradicted.miss_run_m = 2.1  # more than that: wait for more evidence
     assert not contradicted._may_conclude(124.0) and not contradicted._may_conclude(150.0)
-    assert contradicted._may_conclude(100.0 + PROBATION_CAP * 12.0)  # the cap still ends it
+    assert not contradicted._may_conclude(100.0 + PROBATION_CAP * 12.0)  # nor the cap (stop 47: test below)
     sdr = _probation(last_hit_m=120.0)
     sdr.hset.rule.miss_weight = 0.16  # weak misses: runs of mismatches on true ground are common
     sdr.miss_run_m = 5.0
