@@ -14,8 +14,8 @@ from core.robust import Drift, health
 def map_health(params: Any, snapshot: Mapping[str, Any]) -> dict[str, float | int]:
     """Return a map state's health ``{"residual", "worst", "switched_off", "links", "unmeasured"}``.
 
-    Computed by :func:`core.robust.health`.
-    ``residual`` is the RMS over the active links of each link's residual divided by the
+    Computed by :func:`core.robust.health`: ``residual`` is the RMS over the active links of each link's
+    residual divided by the
     odometry drift expected over one link length (``exp_robust_drift`` m/m and
     ``exp_robust_yaw_drift`` rad/m times the median odometry link length): 0.5–1.2 on the
     simulator's consistent maps; ``worst`` (the largest) is above ``exp_robust_threshold``
