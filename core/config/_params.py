@@ -90,6 +90,7 @@ class Params:
     merge_confirm: int = 3
     merge_evidence_m: float = -1.0  # net agreeing metres before a merge; −1: the map's scale; 0: K matches only
     merge_probation_m: float = -1.0  # metres a merge keeps verifying itself; −1: auto (map scale); 0: no verification
+    merge_probation_max_m: float = -1.0  # metres a probation whose matches never stop lasts; −1: by front-end
     merge_miss_weight: float = -1.0  # a miss on mapped ground counts this many hits; −1: by front-end (Params docs)
     merge_sv_min_intersection: int = 8  # sdr-htm merge evidence: I_min of a stored map's cortex reading the session
     merge_sv_enable_f1_gate: bool = False  # sdr-htm merge evidence: the F1 gate of that reading
@@ -281,7 +282,7 @@ def _validate(p: Params) -> None:
         fail("merge_lattice_slack", "must be ≥ 0")
     if not 0.0 <= p.merge_sdr_null_quantile <= 1.0:
         fail("merge_sdr_null_quantile", "must be in [0, 1]")
-    for key in ("merge_evidence_m", "merge_probation_m"):
+    for key in ("merge_evidence_m", "merge_probation_m", "merge_probation_max_m"):
         if getattr(p, key) < 0 and getattr(p, key) != -1.0:
             fail(key, "must be ≥ 0 metres, or -1 for the map's scale")
     _validate_frontend(p, fail)

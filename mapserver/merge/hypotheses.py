@@ -86,6 +86,9 @@ class EvidenceRule:
         history_m: how far back a new hypothesis is tested against what the session saw.
         miss_weight: a miss counts this many hits.
         max_hypotheses: live hypotheses kept per stored map (the lowest scores go first).
+        probation_max_m: metres after which a probation whose matches never stop ends (at least
+            ``probation_m``); −1: the front-end's cap (:data:`mapserver.merge.verify.PROBATION_CAP` probation
+            distances, :data:`~mapserver.merge.verify.WEAK_MISS_PROBATION_CAP` for weak misses).
     """
 
     evidence_m: float
@@ -97,6 +100,7 @@ class EvidenceRule:
     history_m: float
     miss_weight: float = MISS_WEIGHT
     max_hypotheses: int = 8
+    probation_max_m: float = -1.0
 
     @classmethod
     def for_map(
@@ -107,11 +111,13 @@ class EvidenceRule:
         evidence_m: float,
         probation_m: float,
         miss_weight: float = MISS_WEIGHT,
+        probation_max_m: float = -1.0,
     ) -> EvidenceRule:
         """Resolve the rule for a stored map whose experiences lie ``spacing`` metres apart (median link).
 
         ``evidence_m``/``probation_m`` of −1 take the map's scale: 4 and 12 experience spacings;
         0 disables the distance rule (K matches merge: the paper with K = 1) or the verification.
+        ``probation_max_m``: as given (``Params.merge_probation_max_m``; −1: the front-end's cap).
         """
         evidence = 4.0 * spacing if evidence_m < 0 else float(evidence_m)
         probation = 12.0 * spacing if probation_m < 0 else float(probation_m)
@@ -125,6 +131,7 @@ class EvidenceRule:
             coverage_radius=max(spacing, 0.5 * position_tolerance),
             history_m=max(3.0 * evidence, probation, 6.0 * spacing),
             miss_weight=miss_weight,
+            probation_max_m=float(probation_max_m),
         )
 
 

@@ -44,7 +44,7 @@ import numpy as np
 from core.se3 import alignment, compose, inverse, wrap_angle
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
-from mapserver.merge.hypotheses import HIT, MIN_TURN_RAD, MISS, EvidenceRule, StoredPlaces
+from mapserver.merge.hypotheses import HIT, MIN_TURN_RAD, MISS, MISS_WEIGHT, EvidenceRule, StoredPlaces
 from mapserver.merge.offline import candidate_matches
 from mapserver.merge.offline_views import partial_views, stored_views, uses_codes
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance, map_spacing
@@ -202,7 +202,9 @@ class _OfflineTest:
         wanted = partial.params.merge_evidence_m if evidence_m is None else evidence_m
         theirs = stored_views(loaded, partial.params, tolerance)  # A's matcher (its gates) over B's views
         miss_weight = getattr(theirs.matcher, "miss_weight", partial.params.miss_weight)
-        self.rule = EvidenceRule.for_map(spacing, tolerance, yaw_tolerance, wanted, 0.0, miss_weight)
+        self.rule = EvidenceRule.for_map(
+            spacing, tolerance, yaw_tolerance, wanted, 0.0, miss_weight, partial.params.merge_probation_max_m
+        )
         self.probation_m = EvidenceRule.for_map(
             spacing, tolerance, yaw_tolerance, wanted, partial.params.merge_probation_m, miss_weight
         ).probation_m
@@ -281,17 +283,32 @@ def _probation_window(
 
     As online (:class:`mapserver.merge.verify.Probation`): the probation lasts ``probation_m`` metres and then as
     long as the matches go on (it ends ``evidence_m`` after the newest hit), at most ``PROBATION_CAP`` probation
-    distances.
+    distances (``rule.probation_max_m`` metres when set, at least ``probation_m``) — but not while it is held
+    open (:meth:`mapserver.merge.verify.Probation.held_open`): its matches stopped and the miss metres since the
+    newest hit (unmapped trials neither add nor break) exceed the coverage radius, more than leaving the map's
+    edge explains. Held open, the window runs on until a hit (then ends as before) or the chain's end, so a run
+    of misses that an online probation would have met to its rejection is in the window whole. Not for a
+    front-end with weak misses (``miss_weight`` below LVC's), as online.
     """
     travelled = np.cumsum(steps)
     hit, miss = outcomes == HIT, outcomes == MISS
     last_hit = np.maximum.accumulate(np.where(hit, travelled, 0.0)) if travelled.size else travelled
     quiet = (travelled >= probation_m) & (travelled - last_hit >= rule.evidence_m)
-    over = quiet | (travelled >= PROBATION_CAP * probation_m)
+    held = quiet & (_miss_metres_since_hit(steps, hit, miss) > rule.coverage_radius)
+    held &= rule.miss_weight >= MISS_WEIGHT
+    cap_m = max(rule.probation_max_m, probation_m) if rule.probation_max_m >= 0.0 else PROBATION_CAP * probation_m
+    over = (quiet | (travelled >= cap_m)) & ~held
     end = int(np.argmax(over)) + 1 if over.any() else travelled.size
     hit, miss, steps = hit[:end], miss[:end], steps[:end]
     score = float(steps[hit].sum() - rule.miss_weight * steps[miss].sum())
     return (float(steps.sum()), _longest_miss_run(steps, hit, miss), score)
+
+
+def _miss_metres_since_hit(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> np.ndarray:
+    """Return, at each trial, the miss metres since the newest hit up to it (the online ``miss_run_m``)."""
+    missed = np.cumsum(np.where(miss, steps, 0.0))
+    at_hit = np.maximum.accumulate(np.where(hit, missed, 0.0)) if missed.size else missed
+    return missed - at_hit
 
 
 def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> float:

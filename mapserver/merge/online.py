@@ -237,7 +237,7 @@ class OnlineMerger:
         probation = params.merge_probation_m if self._probation_m is None else self._probation_m
         return EvidenceRule.for_map(
             map_spacing(stored), tolerance, self._yaw_tolerance, evidence, probation,
-            getattr(cells, "miss_weight", params.miss_weight),
+            getattr(cells, "miss_weight", params.miss_weight), params.merge_probation_max_m,
         )
 
     def _tolerance(self, stored: StoredMap) -> float:

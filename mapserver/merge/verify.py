@@ -268,9 +268,16 @@ class Probation:
         )
 
     def _cap_m(self) -> float:
-        """Return the metres after the merge at which the probation ends whatever its matches do."""
+        """Return the metres after the merge at which the probation ends whatever its matches do (unless held open).
+
+        ``merge_probation_max_m`` when set (at least the probation distance), else the front-end's cap in
+        probation distances.
+        """
+        rule = self.hset.rule
+        if rule.probation_max_m >= 0.0:
+            return max(rule.probation_max_m, rule.probation_m)
         cap = WEAK_MISS_PROBATION_CAP if self._weak_misses() else PROBATION_CAP
-        return cap * self.hset.rule.probation_m
+        return cap * rule.probation_m
 
     def _matches_stopped(self, distance: float) -> bool:
         """Whether ``evidence_m`` metres have passed since the newest match."""

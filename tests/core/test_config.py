@@ -167,6 +167,9 @@ def test_invalid_values_and_aliases() -> None:
     assert params_from_dict({"vt_panoramic": "1"}).vt_panoramic is True
     with pytest.raises(ConfigError, match=r"did you mean 'exp_loops'"):
         Params().replace(exp_loop=3)
+    with pytest.raises(ConfigError, match=r"merge_probation_max_m.*or -1"):
+        params_from_dict({"merge_probation_max_m": -2})
+    assert params_from_dict({"merge_probation_max_m": "200"}).merge_probation_max_m == 200.0
 
 
 def test_missing_and_malformed_files(tmp_path: Path) -> None:

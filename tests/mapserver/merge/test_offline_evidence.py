@@ -38,15 +38,38 @@ def test_a_miss_run_is_the_miss_metres_between_two_hits_unmapped_trials_neither_
 
 
 def test_the_probation_lasts_its_distance_then_ends_evidence_metres_after_the_newest_hit() -> None:
-    rule = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0)
+    rule = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0)  # coverage radius max(1, 3 / 2) = 1.5 m
     steps = np.ones(13)  # trials 1 m apart after the anchor, at 1, 2, …, 13 m
-    outcomes = np.array([H, H, M, M, M, H, M, M, M, M, M, U, U])
-    # hits at 1, 2 and 6 m; past 6 m (probation_m) it ends 4 m (evidence_m) after the newest hit: at 10 m
+    outcomes = np.array([H, H, M, M, M, H, M, U, U, U, U, U, U])
+    # hits at 1, 2 and 6 m; past 6 m (probation_m) it ends 4 m (evidence_m) after the newest hit: at 10 m, the
+    # 1 m of misses since that hit being what leaving the map's edge explains (within the coverage radius)
     metres, run, score = _probation_window(steps, outcomes, 6.0, rule)
-    assert (metres, run) == (10.0, 4.0)  # misses 3–5 m (3 m) and 7–10 m (4 m): the window's longest run
-    assert score == pytest.approx(3.0 - 2.0 * 7.0)
+    assert (metres, run) == (10.0, 3.0)  # misses 3–5 m (3 m) and 7 m (1 m): the window's longest run
+    assert score == pytest.approx(3.0 - 2.0 * 4.0)
     metres, run, _ = _probation_window(np.ones(60), np.full(60, H), 6.0, rule)
     assert (metres, run) == (48.0, 0.0)  # matches that never stop: PROBATION_CAP (8) probation distances
+    longer = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0, probation_max_m=55.0)  # merge_probation_max_m
+    assert _probation_window(np.ones(60), np.full(60, H), 6.0, longer)[0] == 55.0
+    shorter = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0, probation_max_m=2.0)  # never below probation_m
+    assert _probation_window(np.ones(60), np.full(60, H), 6.0, shorter)[0] == 6.0
+
+
+def test_a_probation_whose_matches_stopped_on_a_run_of_misses_is_held_open_until_a_hit_or_the_chains_end() -> None:
+    rule = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0)
+    to_the_end = np.array([H, H, M, M, M, H, M, M, M, M, M, U, U])
+    # at 10 m its matches stopped 4 m back on 4 m of misses (> 1.5 m): held open to the chain's end, the run whole
+    assert _probation_window(np.ones(13), to_the_end, 6.0, rule)[:2] == (13.0, 5.0)
+    back = np.array([H, H, M, M, M, H, M, M, M, U, H] + [U] * 9)
+    # held from 10 m on 3 m of misses; the hit at 11 m brings the matches back: it ends 4 m after it, at 15 m
+    metres, run, score = _probation_window(np.ones(20), back, 6.0, rule)
+    assert (metres, run) == (15.0, 3.0)
+    assert score == pytest.approx(4.0 - 2.0 * 6.0)
+    # past the cap too: matches until 40 m, 2 m of misses, held from 44 m; the cap (48 m) does not close it
+    capped = np.array([H] * 40 + [M] * 2 + [U] * 8 + [M] * 2 + [U] * 2)
+    assert _probation_window(np.ones(54), capped, 6.0, rule)[:2] == (54.0, 4.0)
+    weak = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0, miss_weight=0.16)
+    # a front-end with weak misses is never held open (as online): it ends at 10 m as the run rule alone says
+    assert _probation_window(np.ones(13), to_the_end, 6.0, weak)[:2] == (10.0, 4.0)
 
 
 def test_an_alignment_stands_only_where_neither_maps_probation_meets_a_run_of_evidence_metres() -> None:

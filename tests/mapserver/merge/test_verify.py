@@ -24,7 +24,8 @@ from tests.mapserver.merge.online_driver import online_merge
 
 
 def _probation(last_hit_m: float) -> Probation:
-    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0, coverage_radius=1.5)
+    rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0, coverage_radius=1.5,
+                           probation_max_m=-1.0)  # fmt: skip
     return Probation(key=1, hypothesis=None, hset=SimpleNamespace(rule=rule), shadow=None,  # type: ignore[arg-type]
                      start_m=100.0, loaded_experiences=0, last_hit_m=last_hit_m)  # fmt: skip
 
@@ -43,6 +44,19 @@ def test_a_probation_that_keeps_matching_ends_at_the_cap() -> None:
     cap = 100.0 + PROBATION_CAP * 12.0
     assert not _probation(last_hit_m=cap - 0.5)._may_conclude(cap - 0.1)
     assert _probation(last_hit_m=cap - 0.5)._may_conclude(cap)
+
+
+def test_merge_probation_max_m_sets_the_cap_in_metres_never_below_the_probation_distance() -> None:
+    """A world with look-alikes longer than the cap (``twin`` turns alike 100 m) needs a longer one."""
+    long = _probation(last_hit_m=299.5)
+    long.hset.rule.probation_max_m = 200.0  # 200 m after the merge at 100 m, where the default cap is 96 m
+    assert not long._may_conclude(100.0 + PROBATION_CAP * 12.0) and not long._may_conclude(299.9)
+    assert long._may_conclude(300.0)
+    for sdr_htm in (False, True):  # the metres replace either front-end's cap
+        short = _probation(last_hit_m=111.5)
+        short.hset.rule.miss_weight = 0.16 if sdr_htm else 2.0
+        short.hset.rule.probation_max_m = 5.0  # below the probation distance (12 m): the probation still runs it
+        assert not short._may_conclude(111.9) and short._may_conclude(112.0)
 
 
 def test_the_cap_does_not_close_a_probation_held_open_on_mismatches() -> None:
@@ -171,7 +185,7 @@ def test_link_consensus_counts_the_links_that_agree_on_one_alignment_by_hand() -
 def _linked_probation(stored: np.ndarray) -> Probation:
     """A probation whose merge put the session's odometry onto the stored map unchanged (identity alignment)."""
     rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0, coverage_radius=1.5, reject_m=2.0,
-                           position_tolerance=1.0)  # fmt: skip
+                           position_tolerance=1.0, probation_max_m=-1.0)  # fmt: skip
     hset = SimpleNamespace(rule=rule, places=SimpleNamespace(poses=stored))
     hypothesis = SimpleNamespace(post_hit_m=6.0, post_miss_m=0.0, predict=lambda odometry: np.asarray(odometry))
     return Probation(key=1, hypothesis=hypothesis, hset=hset, shadow=None,  # type: ignore[arg-type]
