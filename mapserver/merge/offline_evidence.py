@@ -49,7 +49,7 @@ from mapserver.merge.offline import candidate_matches
 from mapserver.merge.offline_views import partial_views, stored_views, uses_codes
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance, map_spacing
 from mapserver.merge.record import Match
-from mapserver.merge.verify import PROBATION_CAP
+from mapserver.merge.verify import PROBATION_CAP, cap_metres
 
 
 @dataclass(frozen=True)
@@ -296,8 +296,7 @@ def _probation_window(
     quiet = (travelled >= probation_m) & (travelled - last_hit >= rule.evidence_m)
     held = quiet & (_miss_metres_since_hit(steps, hit, miss) > rule.coverage_radius)
     held &= rule.miss_weight >= MISS_WEIGHT
-    cap_m = max(rule.probation_max_m, probation_m) if rule.probation_max_m >= 0.0 else PROBATION_CAP * probation_m
-    over = (quiet | (travelled >= cap_m)) & ~held
+    over = (quiet | (travelled >= cap_metres(rule, probation_m, PROBATION_CAP))) & ~held
     end = int(np.argmax(over)) + 1 if over.any() else travelled.size
     hit, miss, steps = hit[:end], miss[:end], steps[:end]
     score = float(steps[hit].sum() - rule.miss_weight * steps[miss].sum())

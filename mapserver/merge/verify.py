@@ -273,11 +273,8 @@ class Probation:
         ``merge_probation_max_m`` when set (at least the probation distance), else the front-end's cap in
         probation distances.
         """
-        rule = self.hset.rule
-        if rule.probation_max_m >= 0.0:
-            return max(rule.probation_max_m, rule.probation_m)
         cap = WEAK_MISS_PROBATION_CAP if self._weak_misses() else PROBATION_CAP
-        return cap * rule.probation_m
+        return cap_metres(self.hset.rule, self.hset.rule.probation_m, cap)
 
     def _matches_stopped(self, distance: float) -> bool:
         """Whether ``evidence_m`` metres have passed since the newest match."""
@@ -401,6 +398,17 @@ class Probation:
             "miss_run_m": round(self.miss_run_m, 3), "cusum_m": round(self.cusum_m, 3),
             "since_match_m": round(self.since_match_m(track.distance), 3),
         }  # fmt: skip
+
+
+def cap_metres(rule: Any, probation_m: float, cap: float) -> float:
+    """Return the metres at which a probation of ``probation_m`` ends whatever its matches do (unless held open).
+
+    ``rule.probation_max_m`` (``Params.merge_probation_max_m``) when set, never below ``probation_m``; else
+    ``cap`` probation distances (:data:`PROBATION_CAP`, :data:`WEAK_MISS_PROBATION_CAP`).
+    """
+    if rule.probation_max_m >= 0.0:
+        return max(rule.probation_max_m, probation_m)
+    return cap * probation_m
 
 
 def image_bytes(frame: Any) -> int:
