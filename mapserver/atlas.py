@@ -20,8 +20,8 @@ Store-level snapshot keys written beside the engine's (kept generically by the s
 * ``mg_*``: the online merge driver's state of a session stopped with ``--stop-after`` (resume):
   ``mg_session`` (), ``mg_map_version`` () (the map version it belongs to: a changed map voids the
   hypotheses), ``mg_odometry`` (4,), ``mg_absorbed`` (A,), ``mg_hypotheses``, ``mg_support``, ``mg_banned``,
-  ``mg_banned_ground``, ``mg_track_*`` (:class:`mapserver.merge.resume.MergerState`), ``mg_versions`` (Q, 2)
-  (candidate map id, version the hypotheses were built against).
+  ``mg_track_*`` (:class:`mapserver.merge.resume.MergerState`), ``mg_versions`` (Q, 2) (candidate map id,
+  version the hypotheses were built against).
 """
 
 from __future__ import annotations

@@ -53,17 +53,6 @@ Measured (``bench/lookalike_sweep.py``, 10 seeds): the false merges of ``twin`` 
 (the look-alike structure's straight stretch and the ends of its turns), the true ones of ``twin-overlap``
 on 66–104°; 30° let 3 of 10 ``twin`` runs merge falsely at 10 m and 20 m stretches, 7 of 10 at 40 m."""
 
-RETRY_WINDOW = 2.0
-"""History distances (``EvidenceRule.history_m``) after its rollback during which a rolled-back alignment may merge
-again on other ground than it was refuted on (:meth:`HypothesisSet.ban`); after them it is refused on the whole map.
-
-Measured (``bench/lookalike_sweep.py``, 10 seeds a row, stop 49): the true merges that merged again after a
-rollback (``twin-overlap`` 20 m seed 8; turns alike 40 m seeds 0 and 3, 60 m seed 6) did so 12.9–17.2 m after it,
-driving on over the shared ground (a window of 24.4 m with ``circle``). With no window, alignments re-proposed
-57–133 m after their rollback on the unrefuted rest of a long look-alike (``twin`` turns alike 80 and 100 m,
-``twin-overlap`` 100 m) gathered 41–66 m of matches against 18–31 m of mismatches, won, and two stayed: a false
-merge (``twin`` 100 m seed 0) and a true one that made its map 4.0 → 14.1 m."""
-
 HIT, MISS, UNMAPPED = 1, -1, 0
 HELD = 2
 """A loosely placed view's hit at the place the hypothesis already stands on, past that place's extent
@@ -274,24 +263,6 @@ class StoredPlaces:
 
 
 @dataclass(eq=False)
-class Ban:
-    """An alignment whose merge its verification rolled back, and the stored ground it was refuted on.
-
-    Attributes:
-        alignment: (4,) the rolled-back hypothesis's alignment at the rollback.
-        ground: (G, 3) the stored places its hits were at, before the merge (its supporting matches) and during
-            the probation (:attr:`mapserver.merge.verify.Probation.ground`); None: everywhere (a resume state
-            stored before stop 49, when a ban held on the whole stored map).
-        until_m: the session's track distance up to which the ban holds on ``ground`` only; past it, on the
-            whole stored map (:data:`RETRY_WINDOW`).
-    """
-
-    alignment: np.ndarray
-    ground: np.ndarray | None = None
-    until_m: float = -math.inf
-
-
-@dataclass(eq=False)
 class Hypothesis:
     """One candidate alignment of the session's odometry frame with a stored map, and its evidence.
 
@@ -379,8 +350,7 @@ class HypothesisSet:
         self.places = places
         self.rule = rule
         self.hypotheses: list[Hypothesis] = []
-        self.banned: list[Ban] = []  # alignments rolled back by their verification (:meth:`ban`)
-        self.distance_m = 0.0  # the session's track distance at the frame being tested
+        self.banned: list[np.ndarray] = []  # alignments rolled back by their verification
 
     def update(self, track: Track, observation: Observation | None, matched: int = -1) -> None:
         """Test every hypothesis on the newest frame of ``track``, then add the frame's match.
@@ -390,7 +360,6 @@ class HypothesisSet:
         """
         frame, odometry, _, view, mean = track.last
         step = track.step_of(len(track.frames) - 1)
-        self.distance_m = track.distance
         for hypothesis in self.hypotheses:
             self._test(hypothesis, odometry, view, mean, step, after_merge=False, matched=matched)
         if observation is None or not observation.has_geometry:
@@ -400,7 +369,7 @@ class HypothesisSet:
         for hypothesis in agreeing:
             hypothesis.support.append(observation)
             hypothesis.alignment, hypothesis.anchor_place = observation.alignment, None
-        if agreeing or self._refuted(observation.seen, observation.odometry):
+        if agreeing or self._is_banned(observation):
             self._fold(odometry)
             return
         born = Hypothesis(alignment=observation.alignment, born=frame, support=[observation])
@@ -446,9 +415,6 @@ class HypothesisSet:
         outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean, matched)
         if outcome == HIT and self.places.loose and self._held(hypothesis, seen, step):
             self.reanchor(hypothesis, seen, odometry, once=False)
-            return HELD
-        if outcome == HIT and self.banned and self._refuted(seen, odometry):
-            self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
             return HELD
         if outcome == HIT:
             if after_merge:
@@ -518,10 +484,8 @@ class HypothesisSet:
             if last_tested - travelled < spacing and np.isfinite(last_tested):
                 continue
             weight = (last_tested if np.isfinite(last_tested) else track.last[2]) - travelled
-            outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean)
-            if outcome == HIT and self.banned and self._refuted(seen, odometry):
-                pass  # a rolled-back alignment's hit on the ground it was refuted on: no evidence (:meth:`ban`)
-            elif outcome == HIT:
+            outcome, _ = self.places.test(hypothesis.predict(odometry), view, mean)
+            if outcome == HIT:
                 hypothesis.hit_m += weight
                 hypothesis.record_turn(float(odometry[3]))
             elif outcome == MISS:
@@ -531,44 +495,18 @@ class HypothesisSet:
     def test_after_merge(self, hypothesis: Hypothesis, track: Track) -> int:
         """Test the merged hypothesis on the newest frame (probation); return HIT, MISS, UNMAPPED or HELD."""
         _frame, odometry, _, view, mean = track.last
-        self.distance_m = track.distance
         return self._test(hypothesis, odometry, view, mean, track.step_of(len(track.frames) - 1), after_merge=True)
 
-    def _refuted(self, seen: np.ndarray, odometry: np.ndarray) -> bool:
-        """Whether a match at stored place ``seen`` is where a rolled-back alignment puts the robot, on its ground.
-
-        That is: some :class:`Ban`'s alignment predicts the robot (odometry pose ``odometry``) within the position
-        tolerance of ``seen``, and ``seen`` lies within the position tolerance of the stored places that
-        alignment was refuted on (:meth:`ban`), or the ban's window has passed (anywhere then).
-        """
-        tolerance = self.rule.position_tolerance
-        for ban in self.banned:
-            predicted = compose(ban.alignment, odometry)
-            if np.linalg.norm(predicted[:3] - seen[:3]) > tolerance:
-                continue
-            if ban.ground is None or self.distance_m > ban.until_m:
-                return True
-            if np.min(np.linalg.norm(ban.ground - seen[:3], axis=1)) <= tolerance:
+    def _is_banned(self, observation: Observation) -> bool:
+        for banned in self.banned:
+            predicted = compose(banned, observation.odometry)
+            if np.linalg.norm(predicted[:3] - observation.seen[:3]) <= self.rule.position_tolerance:
                 return True
         return False
 
-    def ban(self, hypothesis: Hypothesis, ground: np.ndarray, distance_m: float) -> None:
-        """Refuse this rolled-back alignment on the ground it was refuted on (``ground``: (G, 3) stored places).
-
-        There a match that the alignment explains proposes nothing, and a hit it explains adds no metres to any
-        hypothesis (:data:`HELD`: the views match, but they are the evidence the verification already refuted).
-        Elsewhere on the stored map the alignment may be proposed again and must earn its merge anew on that
-        new ground, with the same decision and probation as any merge — for :data:`RETRY_WINDOW` history
-        distances after the rollback (``distance_m``: the track distance then); after that, everywhere.
-
-        Until stop 48 the ban held on the whole stored map. Traced on ``twin-overlap`` turns alike 40 m (seed 3,
-        ``circle``): a true merge rolled back after 2.65 m (two matches, then three views that matched nothing
-        stored, the robot weaving 7° off session 1's heading) was proposed again on 92 frames over the 50 m of
-        shared ground that followed, and refused each time. A look-alike's alignment stays refused where it was
-        matched, however often the robot drives it again, and on the whole map once the window has passed.
-        """
-        ground = np.asarray(ground, dtype=np.float64).reshape(-1, 3)
-        self.banned.append(Ban(hypothesis.alignment.copy(), ground, distance_m + RETRY_WINDOW * self.rule.history_m))
+    def ban(self, hypothesis: Hypothesis) -> None:
+        """Never propose this alignment again (its merge was rolled back)."""
+        self.banned.append(hypothesis.alignment.copy())
         self.hypotheses = [h for h in self.hypotheses if h is not hypothesis]
 
     def _prune(self) -> None:

@@ -54,7 +54,7 @@ from core.localview import LocalViewCells
 from core.se3 import compose, relative
 from mapserver.merge.confirm import Observation
 from mapserver.merge.engines import StoredMap, merge_engine
-from mapserver.merge.hypotheses import Ban, EvidenceRule, Hypothesis, HypothesisSet, StoredPlaces, Track, decide
+from mapserver.merge.hypotheses import EvidenceRule, Hypothesis, HypothesisSet, StoredPlaces, Track, decide
 from mapserver.merge.places import template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.resume import MergerState
@@ -568,7 +568,7 @@ class OnlineMerger:
         for candidate in self._candidates:
             candidate.hypotheses.hypotheses.clear()
             self.skipped.pop(candidate.stored.key, None)
-        probation.hset.ban(probation.hypothesis, probation.refuted_ground(), self._track.distance)
+        probation.hset.ban(probation.hypothesis)
         shadow = probation.catch_up()
         self._remember_shadow(probation)
         rollback = Rollback(event, shadow, frame, tuple(probation.created), tuple(probation.seen))
@@ -599,7 +599,7 @@ class OnlineMerger:
             msg = "a merge is on probation: run on until it concludes (or call finish()) before exporting the state"
             raise RuntimeError(msg)
         self._read_unread()
-        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[Ban, ...]]] = {}
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:
                 hset = c.hypotheses

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from mapserver.merge.confirm import Observation
-from mapserver.merge.hypotheses import Ban, Hypothesis, Track
+from mapserver.merge.hypotheses import Hypothesis, Track
 
 _HYPOTHESIS_COLUMNS = 22  # key, born, hit_m, miss_m, post_hit_m, post_miss_m, alignment (4), turn (3), held (5),
 # anchor place (4)
@@ -40,13 +40,13 @@ class MergerState:
     Attributes:
         odometry: (4,) the session's odometry pose so far (x, y, z, yaw).
         absorbed: keys of the maps merged so far.
-        hypotheses: stored-map key → (live hypotheses, banned alignments with their ground).
+        hypotheses: stored-map key → (live hypotheses, banned alignments).
         track: the session's recent frames (None: none yet).
     """
 
     odometry: np.ndarray
     absorbed: tuple[object, ...] = ()
-    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[Ban, ...]]] = field(default_factory=dict)
+    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = field(default_factory=dict)
     track: Track | None = None
     readers: tuple[tuple[object, Mapping[str, np.ndarray]], ...] = ()
     """sdr-htm sessions: every candidate's cortex reader (key, :meth:`CortexReader.state`), in view-row order."""
@@ -67,8 +67,7 @@ class MergerState:
         for candidate in candidates:
             live, banned = self.hypotheses.get(candidate.stored.key, ((), ()))
             candidate.hypotheses.hypotheses = [_copy(h) for h in live]
-            candidate.hypotheses.banned = [Ban(b.alignment.copy(), None if b.ground is None else b.ground.copy(),
-                                               b.until_m) for b in banned]
+            candidate.hypotheses.banned = [b.copy() for b in banned]
         if self.track is not None:
             track.frames.extend(self.track.frames)
             track.distance = self.track.distance
@@ -81,19 +80,15 @@ class MergerState:
         (4; NaN: none);
         ``support`` (S, 15 + D): hypothesis row, frame,
         stored template, stored experience, error, relative_rad, partial template, odometry (4),
-        seen (4), packet (D); ``banned`` (B, 6): key, alignment, until_m (a state
-        stored before stop 49: (B, 5), no until_m); ``banned_ground`` (G, 5): key, the ban's index
-        among its map's, stored place (3) (none for a ban on the whole map); ``track_*``: the recent frames.
+        seen (4), packet (D); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
         """
-        rows, support, banned, ground = [], [], [], []
+        rows, support, banned = [], [], []
         for key, (live, bans) in self.hypotheses.items():
             for h in live:
                 rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
                              *h.alignment, *h.turn, *_held_row(h), *_place_row(h.anchor_place)])  # fmt: skip
                 support.extend(_observation_row(len(rows) - 1, o) for o in h.support)
-            banned.extend([float(int(key)), *b.alignment, b.until_m] for b in bans)  # type: ignore[call-overload]
-            ground.extend([float(int(key)), float(i), *p] for i, b in enumerate(bans)  # type: ignore[call-overload]
-                          for p in (() if b.ground is None else b.ground))
+            banned.extend([float(int(key)), *b] for b in bans)  # type: ignore[call-overload]
         width = max((r.size for r in support), default=_SUPPORT_COLUMNS)
         frames = list(self.track.frames) if self.track is not None else []
         views = np.stack([f[3] for f in frames]) if frames else np.zeros((0, 0, 0), dtype=np.float32)
@@ -102,8 +97,7 @@ class MergerState:
             "absorbed": np.asarray([int(k) for k in self.absorbed], dtype=np.int64),  # type: ignore[call-overload]
             "hypotheses": np.asarray(rows, dtype=np.float64).reshape(-1, _HYPOTHESIS_COLUMNS),
             "support": np.vstack(support) if support else np.zeros((0, width), dtype=np.float64),
-            "banned": np.asarray(banned, dtype=np.float64).reshape(-1, 6),
-            "banned_ground": np.asarray(ground, dtype=np.float64).reshape(-1, 5),
+            "banned": np.asarray(banned, dtype=np.float64).reshape(-1, 5),
             "track_frames": np.asarray([f[0] for f in frames], dtype=np.int64),
             "track_odometry": np.asarray([f[1] for f in frames], dtype=np.float64).reshape(-1, 4),
             "track_distance": np.asarray([f[2] for f in frames], dtype=np.float64),
@@ -132,16 +126,11 @@ class MergerState:
         ]  # fmt: skip
         for row in support:
             made[int(row[0])].support.append(_observation(row))
-        grouped: dict[int, tuple[list[Hypothesis], list[Ban]]] = {}
+        grouped: dict[int, tuple[list[Hypothesis], list[np.ndarray]]] = {}
         for r, h in zip(table, made, strict=True):
             grouped.setdefault(int(r[0]), ([], []))[0].append(h)
-        bans = np.asarray(arrays["banned"], dtype=np.float64)
-        for r in bans.reshape(-1, bans.shape[-1] if bans.ndim == 2 and bans.size else 6):
-            until = float(r[5]) if r.size > 5 else -math.inf
-            grouped.setdefault(int(r[0]), ([], []))[1].append(Ban(r[1:5].copy(), until_m=until))
-        for r in np.asarray(arrays.get("banned_ground", np.zeros((0, 5))), dtype=np.float64).reshape(-1, 5):
-            ban = grouped[int(r[0])][1][int(r[1])]  # a state stored before stop 49 has none: bans on the whole map
-            ban.ground = r[None, 2:].copy() if ban.ground is None else np.vstack([ban.ground, r[None, 2:]])
+        for r in np.asarray(arrays["banned"], dtype=np.float64).reshape(-1, 5):
+            grouped.setdefault(int(r[0]), ([], []))[1].append(r[1:].copy())
         hypotheses = {k: (tuple(v[0]), tuple(v[1])) for k, v in sorted(grouped.items())}
         track = Track(0.0)
         views = np.asarray(arrays["track_views"], dtype=np.float32)

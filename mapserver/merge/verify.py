@@ -39,8 +39,7 @@ the decision's ``evidence_m`` or, for LVC, matches over less than ``evidence_m``
 the merge) — rolls the merge back inside the running
 session: the session continues in the shadow, exactly the engine it would be had the merge never happened, and
 the merge is recorded as ``rejected`` with this
-evidence, and its alignment is refused on the stored ground it was refuted on (:meth:`Probation.refuted_ground`,
-:meth:`HypothesisSet.ban`; it may merge again elsewhere). Passing the probation drops the shadow and its frames.
+evidence. Passing the probation drops the shadow and its frames.
 """
 
 from __future__ import annotations
@@ -110,9 +109,6 @@ class Probation:
     links_consensus: int = 0
     """The most disagreeing loop links that agree with one another's alignment (:func:`link_consensus`)."""
     worst_link_m: float = 0.0
-    ground: list[np.ndarray] = field(default_factory=list, repr=False)
-    """The stored places (3,) the probation's views matched at (a rollback bans the alignment there:
-    :meth:`refuted_ground`)."""
     disagreeing: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
     """Each disagreeing loop link's (stored experience's pose, the session's odometry then)."""
     last_hit_m: float = -1.0
@@ -162,8 +158,6 @@ class Probation:
         self.held += outcome == HELD
         if outcome in (HIT, HELD):  # a held hit adds no metres but the views still match: the matches go on
             self.last_hit_m, self.miss_run_m = track.distance, 0.0
-            if self.hypothesis.anchor_place is not None:  # a hit re-anchors on its place (HypothesisSet.reanchor)
-                self.ground.append(self.hypothesis.anchor_place[:3].copy())
         elif outcome == MISS:
             self.miss_run_m += self.hypothesis.post_miss_m - missed_before
         self._cusum(self.hypothesis.post_hit_m - hit_before, self.hypothesis.post_miss_m - missed_before)
@@ -193,14 +187,6 @@ class Probation:
                 f"({self.links_disagree} disagree with it, worst {self.worst_link_m:.2f} m; {self.links_agree} agree)"
             )
         return ""
-
-    def refuted_ground(self) -> np.ndarray:
-        """Return (G, 3) the stored places the merge's views matched at: its supporting matches and the probation's.
-
-        A rollback bans the alignment on this ground (:meth:`HypothesisSet.ban`).
-        """
-        support = [np.asarray(o.seen[:3], dtype=np.float64) for o in self.hypothesis.support]
-        return np.asarray(support + self.ground, dtype=np.float64).reshape(-1, 3)
 
     def catch_up(self) -> Engine:
         """Step the shadow through the frames held (in order) and return it: the engine that never merged.

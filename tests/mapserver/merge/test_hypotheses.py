@@ -18,7 +18,6 @@ from mapserver.merge.hypotheses import (
     MISS,
     PLACE_EXTENT,
     UNMAPPED,
-    Ban,
     EvidenceRule,
     Hypothesis,
     HypothesisSet,
@@ -274,61 +273,10 @@ def test_the_winner_beats_no_merge_and_every_rival(scores: list[tuple[float, flo
         assert decision[1].score() == best
 
 
-def test_a_rolled_back_alignment_is_refused_on_the_ground_it_was_refuted_on_and_earns_a_merge_elsewhere() -> None:
-    """The identity alignment was rolled back after matching stored places x = 0 and 1 (its ground). Driving the
-    map again under it, east 1 m a frame over places 0–5: on places 0–2 (within the 1.5 m tolerance of the
-    ground) its matches propose nothing; place 3 (2 m from the ground) proposes it again. Tested back over the
-    track, the frames at places 0–2 give no metres (hits the ban explains, on its ground): 1 m from place 3's
-    own frame, then 1 m each at places 4 and 5, so 3 m. Must not: banned on the whole map (a state stored before
-    stop 49, ``ground`` None), nothing is ever proposed. Must still: a ban of another alignment (predicting the
-    robot 10 m off) leaves these hits counted (5 m: frame 0 moved 0 m). And once the ban's window has passed
-    (``until_m`` 2 m of track, :data:`RETRY_WINDOW`), place 3 (at 3 m) proposes nothing either."""
-    ground = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    hset, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
-    hset.banned.append(Ban(np.zeros(4), ground, until_m=math.inf))
-    _drive(hset, track, 0, np.zeros(4), [0, 1, 2])
-    assert hset.hypotheses == []
-    _drive(hset, track, 3, np.zeros(4), [3, 4, 5])
-    (h,) = hset.hypotheses
-    assert h.born == 3 and [o.frame for o in h.support] == [3, 4, 5]
-    assert (h.hit_m, h.miss_m) == (3.0, 0.0)
-    everywhere, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
-    everywhere.banned.append(Ban(np.zeros(4)))
-    _drive(everywhere, track, 0, np.zeros(4), [0, 1, 2, 3, 4, 5])
-    assert everywhere.hypotheses == []
-    expired, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
-    expired.banned.append(Ban(np.zeros(4), ground, until_m=2.0))
-    _drive(expired, track, 0, np.zeros(4), [0, 1, 2, 3, 4, 5])
-    assert expired.hypotheses == []
-    elsewhere, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
-    elsewhere.banned.append(Ban(np.array([10.0, 0.0, 0.0, 0.0]), ground, until_m=math.inf))
-    _drive(elsewhere, track, 0, np.zeros(4), [0, 1, 2, 3, 4, 5])
-    (kept,) = elsewhere.hypotheses
-    assert (kept.born, kept.hit_m) == (0, 5.0)
-
-
-def test_a_hit_a_ban_explains_on_its_ground_holds_a_hypothesis_without_metres() -> None:
-    """A live hypothesis (the banned identity alignment, re-proposed on new ground) tested at place 1 (the ground):
-    held (the views match, no metres, no turn taken), re-anchored on the place; at place 4, 3 m from the ground,
-    a hit of 1 m. During a probation the same (post-merge metres)."""
-    hset = HypothesisSet(_places(), RULE)
-    hset.banned.append(Ban(np.zeros(4), np.array([[1.0, 0.0, 0.0]]), until_m=math.inf))
-    h = Hypothesis(alignment=np.array([0.2, 0.0, 0.0, 0.0]), born=0)
-    assert hset._test(h, np.array([1.0, 0.0, 0.0, 0.3]), *_view(1), 1.0, after_merge=False) == HELD
-    assert (h.hit_m, h.turn_rad) == (0.0, 0.0) and np.isnan(h.turn[0])
-    np.testing.assert_allclose(h.predict(np.array([1.0, 0.0, 0.0, 0.3])), [1.0, 0.0, 0.0, 0.0], atol=1e-12)
-    assert hset._test(h, np.array([4.0, 0.0, 0.0, 0.0]), *_view(4), 1.0, after_merge=False) == HIT
-    assert h.hit_m == 1.0
-    assert hset._test(h, np.array([1.0, 0.0, 0.0, 0.0]), *_view(1), 1.0, after_merge=True) == HELD
-    assert hset._test(h, np.array([5.0, 0.0, 0.0, 0.0]), *_view(5), 1.0, after_merge=True) == HIT
-    assert (h.post_hit_m, h.post_miss_m) == (1.0, 0.0)
-
-
 def test_the_resume_arrays_hold_hypotheses_bans_and_track_exactly() -> None:
     hset, track = HypothesisSet(_places(), RULE), Track(RULE.history_m)
     _drive(hset, track, 0, np.zeros(4), [0, 1, -1, 3])
-    hset.banned += [Ban(np.array([9.0, 1.0, 0.0, 0.5]), np.array([[1.0, 2.0, 0.0], [3.0, 4.0, 0.0]]), 30.0),
-                    Ban(np.zeros(4))]
+    hset.banned.append(np.array([9.0, 1.0, 0.0, 0.5]))
     state = MergerState(np.array([3.0, 0.0, 0.0, 0.0]), (4,), {1: (tuple(hset.hypotheses), tuple(hset.banned))}, track)
     arrays = state.to_arrays()
     again = MergerState.from_arrays(arrays).to_arrays()
@@ -336,13 +284,6 @@ def test_the_resume_arrays_hold_hypotheses_bans_and_track_exactly() -> None:
     for key in arrays:
         np.testing.assert_array_equal(arrays[key], again[key])
     (h,) = MergerState.from_arrays(arrays).hypotheses[1][0]
-    bans = MergerState.from_arrays(arrays).hypotheses[1][1]
-    np.testing.assert_array_equal(bans[0].ground, [[1.0, 2.0, 0.0], [3.0, 4.0, 0.0]])
-    assert bans[1].ground is None and (bans[0].until_m, bans[1].until_m) == (30.0, -math.inf)
-    stored_before = {**{k: v for k, v in arrays.items() if k != "banned_ground"}, "banned": arrays["banned"][:, :5]}
-    old = MergerState.from_arrays(stored_before).hypotheses[1][1]
-    assert [b.ground for b in old] == [None, None]  # stored before stop 49: banned on the whole map, as then
-    np.testing.assert_array_equal(old[0].alignment, [9.0, 1.0, 0.0, 0.5])
     assert (h.hit_m, h.miss_m, [o.frame for o in h.support]) == (hset.hypotheses[0].hit_m,
                                                                   hset.hypotheses[0].miss_m, [0, 1, 3])  # fmt: skip
 

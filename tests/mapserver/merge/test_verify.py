@@ -241,19 +241,3 @@ def test_a_true_merge_stands_when_the_robot_drives_on_past_the_stored_maps_end(
                                         lookalike_turns=1.0)  # fmt: skip
     assert events == [] and len(rollbacks) == 1
     assert "mismatches in a row" in rollbacks[0].event.evidence["verification"]["reason"]
-
-
-def test_a_true_merge_rolled_back_merges_again_on_shared_ground_beyond_where_it_was_refuted(tmp_path: Path) -> None:
-    """``twin-overlap`` with a 40 m look-alike holding turns, seed 3 (``circle``; README, stops 47 and 49): session 2
-    merges at its true place (frame 127), and the probation rolls it back after 2.65 m (two matches, then three
-    views that match nothing stored). Banned where it was refuted only, the alignment is proposed again on the
-    shared ground that follows and merges there (frame 158), at its true place, and stands. The code before banned
-    it on the whole stored map: refused on every frame after, the session stayed apart (the other half of the pair,
-    by hand: ``test_hypotheses.py::test_a_rolled_back_alignment_is_refused_on_the_ground_it_was_refuted_on_...``)."""
-    events, rollbacks, truth = online_merge(tmp_path, "twin-overlap", preset("circle"), seed=3, lookalike_m=40.0,
-                                            lookalike_turns=1.0)  # fmt: skip
-    assert [r.event.frame for r in rollbacks] == [127]
-    assert [e.frame for e in events] == [158]
-    assert events[0].evidence["verification"]["status"] in ("passed", "incomplete")
-    t = events[0].record.transform
-    assert math.hypot(t[0] - truth[0], t[1] - truth[1]) < 5.0  # the true alignment (4.1 m off at the map origin)
