@@ -206,6 +206,7 @@ def merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, 
     details = {
         "frame": int(ev.frame), "stamp": float(ev.stamp), "session": session_id, "frames_at": m.frames_at,
         "reckoning_pose": m.reckoning_pose, "odometry": [float(v) for v in ev.odometry],
+        **({} if ev.session_pose is None else {"session_pose": [float(v) for v in ev.session_pose]}),
         "match": match_to_dict(ev.match), "record": record_summary(ev.record),
         "target": {"name": m.target.name, "map_id": m.target.id},
         "source": {"name": m.partial_name, "map_id": m.partial_map_id},

@@ -84,6 +84,9 @@ class MergeEvent:
         partial: the session's engine snapshot right before the merge (the partial map; an
             undo restores it).
         odometry: (4,) the driver's odometry pose of the session at the frame (x, y, z, yaw).
+        session_pose: (4,) the robot's pose in the session's own map frame right before the merge (its
+            experience map's ``robot_pose``): the merge puts the robot at ``T ⊕ session_pose``. It differs from
+            the dead reckoning once the session's map has closed a loop.
         evidence: the decision's figures (the winner's hits and misses, the best rival's score,
             the rule) and, once known, ``verification`` (:meth:`Probation.evidence`).
     """
@@ -98,6 +101,7 @@ class MergeEvent:
     partial: Mapping[str, np.ndarray] | None = field(default=None, repr=False)
     odometry: np.ndarray | None = field(default=None, repr=False)
     evidence: dict[str, Any] = field(default_factory=dict, repr=False)
+    session_pose: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -508,7 +512,7 @@ class OnlineMerger:
         event = MergeEvent(
             key=candidate.stored.key, engine=merged, record=record, frame=result.frame,
             stamp=float(engine.last_stamp), absorbed=tuple(self.absorbed), match=match, partial=partial,
-            odometry=self._odometry.copy(), evidence=evidence,
+            odometry=self._odometry.copy(), evidence=evidence, session_pose=engine.map.robot_pose(),
         )  # fmt: skip
         logger.info(
             "merged into map %r at frame %d (%.2f m of evidence, rival %.2f m, %d templates, %d experiences)",

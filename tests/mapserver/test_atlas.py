@@ -105,6 +105,7 @@ def test_unmerge_restores_the_maps_exactly_and_redo_reproduces_the_merge(
     assert sorted(event.sessions.values()) == ["source", "target"] and len(event.archive_ids) == 2
     assert len(event.matches["templates"]) == entry["matched_templates"] >= 2
     assert event.details["frame"] == entry["frame"] and len(event.lattice_offset) == 3
+    assert len(event.details["session_pose"]) == 4  # the robot in session 2's map frame when it merged
     shown = _api_merge_events(db_url, tmp_path, "session1")  # the provenance GET /v1/maps/{name} shows
     assert [(e["id"], e["mode"], e["status"], e["confirmations"]) for e in shown] == [
         (entry["event"], "online", "applied", entry["confirmations"])]  # fmt: skip

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from core import Engine, Params, preset
-from core.se3 import compose, wrap_angle
+from core.se3 import compose, inverse, wrap_angle
 from mapserver.merge import OnlineMerger, StoredMap, verify
+from mapserver.merge.online import MergeEvent
 from mapserver.merge.hypotheses import MIN_TURN_RAD
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, run_session, true_alignment
 from tests.mapserver.merge.world import LoopWorld
@@ -58,6 +60,35 @@ def test_second_session_merges_once_and_maps_on_in_the_stored_map(first_half: St
     assert _nn_rmse(merged_world, single_world) <= 0.05 * extent
     origins = np.asarray(run.engine.map.snapshot()["em_origin"])
     assert set(np.unique(origins).tolist()) == {1, 9}
+
+
+def test_a_merge_records_the_robots_pose_in_the_session_map_which_its_transform_carries_to_the_true_place(
+    first_half: StoredMap,
+) -> None:
+    """``session_pose`` is where the session's own map had the robot when it merged: the transform takes it to
+    where the merged engine has the robot, and that is where the robot truly was in the stored map's frame (the
+    look-alike bench judges a merge's place by it; stop 50)."""
+    engine, driver = Engine(PARAMS, origin=9), OnlineMerger([first_half])
+    merged_at: list[tuple[float, np.ndarray, np.ndarray]] = []
+    arcs = WORLD.arc(24.0, 40.0)
+    for arc, (image, motion, stamp) in zip(arcs, WORLD.drive(24.0, 40.0, t0=1000.0), strict=True):
+        result = engine.step(image, motion, round(stamp * 1e9) * 1e-9)
+        before = engine.map.robot_pose()
+        event = driver.observe(engine, result, SimpleNamespace(image=image, motion=motion,
+                                                               stamp_ns=round(stamp * 1e9)))
+        if isinstance(event, MergeEvent):
+            merged_at.append((float(arc), before, event.engine.map.robot_pose()))
+            engine = event.engine
+    assert len(merged_at) == 1 and len(driver.events) == 1
+    arc, before, after = merged_at[0]
+    event = driver.events[0]
+    np.testing.assert_array_equal(event.session_pose, before)
+    carried = compose(np.asarray(event.record.transform), event.session_pose)
+    np.testing.assert_allclose(carried[:3], after[:3], atol=1e-9)
+    assert abs(float(wrap_angle(carried[3] - after[3]))) < 1e-9
+    truly = compose(inverse(WORLD.pose(0.0)), WORLD.pose(arc))  # the robot in session 1's map frame
+    assert float(np.linalg.norm(carried[:2] - truly[:2])) < 0.3
+    assert abs(float(wrap_angle(carried[3] - truly[3]))) < 0.05
 
 
 def test_without_the_lattice_shift_mapped_ground_gets_new_experiences(first_half: StoredMap) -> None:
