@@ -11,8 +11,8 @@ import pytest
 from core import Engine, Params, preset
 from core.se3 import compose, inverse, wrap_angle
 from mapserver.merge import OnlineMerger, StoredMap, verify
-from mapserver.merge.online import MergeEvent
 from mapserver.merge.hypotheses import MIN_TURN_RAD
+from mapserver.merge.online import MergeEvent
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, run_session, true_alignment
 from tests.mapserver.merge.world import LoopWorld
 
