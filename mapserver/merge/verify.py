@@ -18,11 +18,12 @@ winning hypothesis keeps being tested for ``probation_m`` metres on two things:
   places, all under the true alignment, where the front-end's own false closures land anywhere.
 
 The probation lasts ``probation_m`` metres and, after that, as long as the matches that began with the
-merge go on (it ends ``evidence_m`` metres after the newest match, at most ``PROBATION_CAP`` probation
-distances): a look-alike place that holds turns keeps matching until the robot leaves it, and only what
-comes after it can tell. It does not end on a run of mismatches longer than leaving the stored map's edge
-explains (:meth:`Probation.held_open`): it stays open until matches come back, the run rejects the merge,
-the session merges into another stored map, or the log ends (past the cap too, since stop 47).
+merge go on (it ends ``evidence_m`` metres after the newest match, at most ``OPEN_PROBATION_CAP`` probation
+distances, ``PROBATION_CAP`` once it has closed a loop on the stored map): a look-alike place that holds
+turns keeps matching until the robot leaves it, and only what comes after it can tell. It does not end on a
+run of mismatches longer than leaving the stored map's edge explains (:meth:`Probation.held_open`): it stays
+open until matches come back, the run rejects the merge, the session merges into another stored map, or the log
+ends (past the cap too, since stop 47).
 
 Meanwhile the session's engine *without* the merge (the *shadow*) is kept with the probation's frames,
 and stepped through them only when the merge is rolled back (or when the frames held pass
@@ -56,13 +57,26 @@ from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, Hypothesis,
 
 PASSED, REJECTED = "passed", "rejected"
 PROBATION_CAP = 8.0
-"""A probation whose matches never stop ends after this many probation distances.
+"""A probation whose matches never stop ends after this many probation distances once it has closed a loop on the
+stored map (:meth:`Probation.revisited`); :data:`OPEN_PROBATION_CAP` until then.
 
 Measured (``bench/lookalike_sweep.py --param lookalike_turns=1``, 10 seeds): at 4 the probation of 3 of 10
 false merges at a 40 m look-alike holding turns ended inside the look-alike (48 m of matches with the
 ``circle`` preset's 12 m probation) and the merges stayed; at 8 none did, and 2 of 10 at 60 m: the cap is the
 longest look-alike the probation can see the end of. The cost is the probation's frames held for up to 8
 probation distances (``LAZY_SHADOW_BYTES``), and the shadow stepped through them if the merge is rolled back."""
+OPEN_PROBATION_CAP = 16.0
+"""The cap of a probation that has not closed a loop on the stored map (stop 50).
+
+Inside a look-alike the merged map's predictions match as they would at the true place: the probations of ``twin``
+turns alike 100 m's false merges matched 86–98 % of their metres, the true merges' of ``twin-overlap`` turns alike
+100 m 86–98 % too. At 8 probation distances (96 m with ``circle``) 7 of 10 of those false merges passed still
+matching; at 16, 2 of 10 (neither at the cap: one passed 184 m after its merge, where the two places part without a
+failing view, one 77 m after it on scattered mismatches), and every run of the issue's rows is identical (no
+probation there reaches 8). But a session that re-drives a stored map from the merge to the log's end then ends its
+probation ``incomplete`` (kept, ``unverified``) where it passed at 8: ``cave3d``'s true merges, whose robot loops
+through the stored cave. A look-alike cannot hold a loop that the robot drives around and comes back to, matching at
+both passes, where the merge predicts it; a probation that has done so ends at :data:`PROBATION_CAP`."""
 WEAK_MISS_PROBATION_CAP = 4.0
 """The cap for a front-end whose misses weigh less than LVC's (``sdr-htm``). Its matches are too sparse to
 mark where a run of them stops (gaps of 6 m on true ground), so its probations run to the cap and the cap is
@@ -74,7 +88,7 @@ LAZY_SHADOW_BYTES = 256 << 20
 
 Holding the frames costs their images (a 306-frame ``cave3d`` probation: 2.4 MB); stepping the shadow alongside
 cost a second engine per frame (``cave3d`` session 2 with ``poseidon-sdr``: 1.7 s of 6.5 s). The bound keeps a
-long probation of large images (8 probation distances of 640 × 480 RGB frames: ~0.9 GB) in memory's reach."""
+long probation of large images (16 probation distances of 640 × 480 RGB frames: ~1.8 GB) in memory's reach."""
 CUSUM_EVIDENCE = 3.0
 """A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
 
@@ -111,6 +125,11 @@ class Probation:
     worst_link_m: float = 0.0
     disagreeing: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
     """Each disagreeing loop link's (stored experience's pose, the session's odometry then)."""
+    hit_places: list[tuple[float, float, float, float]] = field(default_factory=list, repr=False)
+    """The stored place (x, y, z) of each hit and the track distance then (:meth:`_note_revisit`)."""
+    revisited: bool = False
+    """Whether a hit came back to a place hit at least a probation distance of driving before: a loop closed on the
+    stored map where the merge predicts it (the cap is then :data:`PROBATION_CAP`, else :data:`OPEN_PROBATION_CAP`)."""
     last_hit_m: float = -1.0
     """Track distance at the newest hit (−1: none yet; the merge's own frame counts as the streak's start)."""
     miss_run_m: float = 0.0
@@ -156,11 +175,29 @@ class Probation:
         self.hits += outcome == HIT
         self.misses += outcome == MISS
         self.held += outcome == HELD
+        if outcome == HIT:
+            self._note_revisit(track.distance)
         if outcome in (HIT, HELD):  # a held hit adds no metres but the views still match: the matches go on
             self.last_hit_m, self.miss_run_m = track.distance, 0.0
         elif outcome == MISS:
             self.miss_run_m += self.hypothesis.post_miss_m - missed_before
         self._cusum(self.hypothesis.post_hit_m - hit_before, self.hypothesis.post_miss_m - missed_before)
+
+    def _note_revisit(self, distance: float) -> None:
+        """Record the newest hit's stored place, and whether it closes a loop on the stored map.
+
+        A loop: the place lies within the position tolerance of a place hit at least ``probation_m`` metres of
+        driving before (the robot drove away and came back, and the views matched at both passes).
+        """
+        place = self.hypothesis.anchor_place
+        if place is None:
+            return
+        if not self.revisited and self.hit_places:
+            earlier = np.asarray(self.hit_places, dtype=np.float64)
+            earlier = earlier[earlier[:, 3] <= distance - self.hset.rule.probation_m]
+            gaps = np.linalg.norm(earlier[:, :3] - place[:3], axis=1)
+            self.revisited = bool(gaps.size and gaps.min() <= self.hset.rule.position_tolerance)
+        self.hit_places.append((float(place[0]), float(place[1]), float(place[2]), float(distance)))
 
     def _contradiction(self) -> str:
         """Return why what the probation has seen so far rejects the merge (empty: nothing does yet)."""
@@ -240,8 +277,9 @@ class Probation:
         At least ``probation_m`` metres, and then not while the matches that began with the merge go on: a
         look-alike place holding turns matches until the robot leaves it (measured: ``twin`` with
         ``lookalike_turns = 1`` kept 3–9 of 10 false merges whose probation ended inside the look-alike),
-        so the probation ends ``evidence_m`` metres after the newest match, or at ``PROBATION_CAP`` probation
-        distances when the matches never stop (a robot that stays on the stored map's ground;
+        so the probation ends ``evidence_m`` metres after the newest match, or at ``OPEN_PROBATION_CAP`` probation
+        distances when the matches never stop (a robot that stays on the stored map's ground; ``PROBATION_CAP``
+        once the probation has closed a loop on the stored map, :attr:`revisited`;
         ``WEAK_MISS_PROBATION_CAP`` for a front-end with weak misses) — in either case not while it is held open on
         a run of mismatches since its matches stopped (:meth:`held_open`).
         """
@@ -273,7 +311,10 @@ class Probation:
         ``merge_probation_max_m`` when set (at least the probation distance), else the front-end's cap in
         probation distances.
         """
-        cap = WEAK_MISS_PROBATION_CAP if self._weak_misses() else PROBATION_CAP
+        if self._weak_misses():
+            cap = WEAK_MISS_PROBATION_CAP
+        else:
+            cap = PROBATION_CAP if self.revisited else OPEN_PROBATION_CAP
         return cap_metres(self.hset.rule, self.hset.rule.probation_m, cap)
 
     def _matches_stopped(self, distance: float) -> bool:
@@ -396,7 +437,7 @@ class Probation:
             "links_disagree": self.links_disagree, "links_consensus": self.links_consensus,
             "worst_link_m": round(self.worst_link_m, 3),
             "miss_run_m": round(self.miss_run_m, 3), "cusum_m": round(self.cusum_m, 3),
-            "since_match_m": round(self.since_match_m(track.distance), 3),
+            "since_match_m": round(self.since_match_m(track.distance), 3), "revisited": self.revisited,
         }  # fmt: skip
 
 

@@ -13,6 +13,7 @@ from core import Action, preset
 from core.se3 import compose
 from mapserver.merge.hypotheses import HypothesisSet
 from mapserver.merge.verify import (
+    OPEN_PROBATION_CAP,
     PASSED,
     PROBATION_CAP,
     REJECTED,
@@ -41,15 +42,46 @@ def test_not_while_the_matches_go_on() -> None:
 
 
 def test_a_probation_that_keeps_matching_ends_at_the_cap() -> None:
-    cap = 100.0 + PROBATION_CAP * 12.0
+    """16 probation distances (``OPEN_PROBATION_CAP``), 8 once the probation has closed a loop on the stored map."""
+    cap = 100.0 + OPEN_PROBATION_CAP * 12.0
     assert not _probation(last_hit_m=cap - 0.5)._may_conclude(cap - 0.1)
     assert _probation(last_hit_m=cap - 0.5)._may_conclude(cap)
+    looped = 100.0 + PROBATION_CAP * 12.0
+    assert looped < cap and not _probation(last_hit_m=looped - 0.5)._may_conclude(looped)
+    closed = _probation(last_hit_m=looped - 0.5)
+    closed.revisited = True
+    assert not closed._may_conclude(looped - 0.1) and closed._may_conclude(looped)
+
+
+def _at(probation: Probation, x: float, distance: float) -> None:
+    probation.hypothesis.anchor_place = np.array([x, 0.0, 0.0, 0.0])  # the hit's stored place
+    probation._note_revisit(distance)
+
+
+def test_a_loop_is_closed_when_a_hit_comes_back_to_a_place_hit_a_probation_distance_of_driving_before() -> None:
+    """By hand (probation 12 m, position tolerance 2 m): driving along stored places never closes a loop (however
+    long), a hit at a place hit 11 m of driving before does not (the robot lingered), one 12 m later does."""
+    along = _probation(last_hit_m=-1.0)
+    along.hset.rule.position_tolerance = 2.0
+    along.hypothesis = SimpleNamespace(anchor_place=None)
+    for d in range(0, 200):
+        _at(along, x=float(d), distance=100.0 + d)
+    assert not along.revisited  # 200 m of hits, each 1 m further on: a look-alike street
+    back = _probation(last_hit_m=-1.0)
+    back.hset.rule.position_tolerance = 2.0
+    back.hypothesis = SimpleNamespace(anchor_place=None)
+    _at(back, x=0.0, distance=100.0)
+    _at(back, x=1.5, distance=111.0)  # within 2 m, but only 11 m of driving later
+    assert not back.revisited
+    _at(back, x=1.9, distance=112.0)  # 12 m after the first hit, 1.9 m from its place: the loop is closed
+    assert back.revisited
+    assert len(back.hit_places) == 3
 
 
 def test_merge_probation_max_m_sets_the_cap_in_metres_never_below_the_probation_distance() -> None:
     """A world with look-alikes longer than the cap (``twin`` turns alike 100 m) needs a longer one."""
     long = _probation(last_hit_m=299.5)
-    long.hset.rule.probation_max_m = 200.0  # 200 m after the merge at 100 m, where the default cap is 96 m
+    long.hset.rule.probation_max_m = 200.0  # 200 m after the merge at 100 m, where the default cap is 192 m (16 × 12 m)
     assert not long._may_conclude(100.0 + PROBATION_CAP * 12.0) and not long._may_conclude(299.9)
     assert long._may_conclude(300.0)
     for sdr_htm in (False, True):  # the metres replace either front-end's cap
@@ -62,7 +94,7 @@ def test_merge_probation_max_m_sets_the_cap_in_metres_never_below_the_probation_
 def test_the_cap_does_not_close_a_probation_held_open_on_mismatches() -> None:
     """Stop 47: ``twin`` turns alike 80 m seed 2's false merge reached the cap 3.95 m into a run of mismatches, its
     matches stopped 14 m before, and passed there. Held open, the run went on to 4.49 m and rolled it back."""
-    cap = 100.0 + PROBATION_CAP * 12.0
+    cap = 100.0 + OPEN_PROBATION_CAP * 12.0
     held = _probation(last_hit_m=cap - 14.0)
     held.miss_run_m = 3.95  # > the coverage radius (1.5 m): a run beyond the map's edge
     assert held.held_open(cap) and not held._may_conclude(cap)
