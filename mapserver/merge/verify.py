@@ -187,17 +187,18 @@ class Probation:
         """Record the newest hit's stored place, and whether it closes a loop on the stored map.
 
         A loop: the place lies within the position tolerance of a place hit at least ``probation_m`` metres of
-        driving before (the robot drove away and came back, and the views matched at both passes).
+        driving before, and a hit in between lay farther than that from it (the robot drove away and came back, and
+        the views matched at both passes; a forward view that matches one place while the robot drives on for
+        metres has not left it).
         """
         place = self.hypothesis.anchor_place
-        if place is None:
+        if place is None or self.revisited:
             return
-        if not self.revisited and self.hit_places:
-            earlier = np.asarray(self.hit_places, dtype=np.float64)
-            earlier = earlier[earlier[:, 3] <= distance - self.hset.rule.probation_m]
-            gaps = np.linalg.norm(earlier[:, :3] - place[:3], axis=1)
-            self.revisited = bool(gaps.size and gaps.min() <= self.hset.rule.position_tolerance)
         self.hit_places.append((float(place[0]), float(place[1]), float(place[2]), float(distance)))
+        hits = np.asarray(self.hit_places, dtype=np.float64)
+        near = np.linalg.norm(hits[:, :3] - place[:3], axis=1) <= self.hset.rule.position_tolerance
+        before = np.flatnonzero(near & (hits[:, 3] <= distance - self.hset.rule.probation_m))
+        self.revisited = bool(before.size and not near[before[-1] :].all())
 
     def _contradiction(self) -> str:
         """Return why what the probation has seen so far rejects the merge (empty: nothing does yet)."""

@@ -60,7 +60,8 @@ def _at(probation: Probation, x: float, distance: float) -> None:
 
 def test_a_loop_is_closed_when_a_hit_comes_back_to_a_place_hit_a_probation_distance_of_driving_before() -> None:
     """By hand (probation 12 m, position tolerance 2 m): driving along stored places never closes a loop (however
-    long), a hit at a place hit 11 m of driving before does not (the robot lingered), one 12 m later does."""
+    long), nor does matching one place for 29 m; coming back to a place hit 11 m of driving before does not, 12 m
+    later does."""
     along = _probation(last_hit_m=-1.0)
     along.hset.rule.position_tolerance = 2.0
     along.hypothesis = SimpleNamespace(anchor_place=None)
@@ -71,11 +72,20 @@ def test_a_loop_is_closed_when_a_hit_comes_back_to_a_place_hit_a_probation_dista
     back.hset.rule.position_tolerance = 2.0
     back.hypothesis = SimpleNamespace(anchor_place=None)
     _at(back, x=0.0, distance=100.0)
-    _at(back, x=1.5, distance=111.0)  # within 2 m, but only 11 m of driving later
+    _at(back, x=6.0, distance=105.0)  # away from it
+    _at(back, x=1.5, distance=111.0)  # back within 2 m, but only 11 m of driving later
     assert not back.revisited
     _at(back, x=1.9, distance=112.0)  # 12 m after the first hit, 1.9 m from its place: the loop is closed
     assert back.revisited
-    assert len(back.hit_places) == 3
+    lingering = _probation(last_hit_m=-1.0)  # a forward view matching one place while the robot drives on
+    lingering.hset.rule.position_tolerance = 2.0
+    lingering.hypothesis = SimpleNamespace(anchor_place=None)
+    for d in range(0, 30):
+        _at(lingering, x=0.0, distance=100.0 + d)
+    assert not lingering.revisited  # 29 m of hits at one place: it never left it
+    _at(lingering, x=5.0, distance=130.0)
+    _at(lingering, x=1.0, distance=131.0)  # away (5 m) and back: the loop is closed
+    assert lingering.revisited
 
 
 def test_merge_probation_max_m_sets_the_cap_in_metres_never_below_the_probation_distance() -> None:
