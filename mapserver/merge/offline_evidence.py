@@ -49,7 +49,7 @@ from mapserver.merge.offline import candidate_matches
 from mapserver.merge.offline_views import partial_views, stored_views, uses_codes
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance, map_spacing
 from mapserver.merge.record import Match
-from mapserver.merge.verify import PROBATION_CAP, cap_metres
+from mapserver.merge.verify import OPEN_PROBATION_CAP, PROBATION_CAP, cap_metres
 
 
 @dataclass(frozen=True)
@@ -271,24 +271,27 @@ class _OfflineTest:
             unmapped_m=float(steps[~hit & ~miss].sum()), turn_rad=turn, evidence_m=self.rule.evidence_m,
             miss_weight=self.rule.miss_weight, hits=int(hit.sum()), misses=int(miss.sum()),
             agreeing=frozenset(np.flatnonzero(hit).tolist()), miss_run_m=_longest_miss_run(steps, hit, miss),
-            probation=_probation_window(steps[anchor + 1 :], outcomes[anchor + 1 :], self.probation_m, self.rule),
+            probation=_probation_window(
+                steps[anchor + 1 :], outcomes[anchor + 1 :], seen_pose[anchor + 1 :], self.probation_m, self.rule
+            ),
             closures=closures, ends=_chain_ends(steps, outcomes, a_pose, seen_pose),
         )  # fmt: skip
 
 
 def _probation_window(
-    steps: np.ndarray, outcomes: np.ndarray, probation_m: float, rule: EvidenceRule
+    steps: np.ndarray, outcomes: np.ndarray, seen: np.ndarray, probation_m: float, rule: EvidenceRule
 ) -> tuple[float, float, float]:
     """Return (metres, longest miss run, score) of A's trials after the anchor that a probation would see.
 
     As online (:class:`mapserver.merge.verify.Probation`): the probation lasts ``probation_m`` metres and then as
-    long as the matches go on (it ends ``evidence_m`` after the newest hit), at most ``PROBATION_CAP`` probation
-    distances (``rule.probation_max_m`` metres when set, at least ``probation_m``) — but not while it is held
-    open (:meth:`mapserver.merge.verify.Probation.held_open`): its matches stopped and the miss metres since the
-    newest hit (unmapped trials neither add nor break) exceed the coverage radius, more than leaving the map's
-    edge explains. Held open, the window runs on until a hit (then ends as before) or the chain's end, so a run
-    of misses that an online probation would have met to its rejection is in the window whole. Not for a
-    front-end with weak misses (``miss_weight`` below LVC's), as online.
+    long as the matches go on (it ends ``evidence_m`` after the newest hit), at most ``OPEN_PROBATION_CAP``
+    probation distances, ``PROBATION_CAP`` from the hit that closes a loop on B (:func:`_loop_closed_at`; ``seen``:
+    each hit's place in B) and for a front-end with weak misses (``rule.probation_max_m`` metres when set, at
+    least ``probation_m``) — but not while it is held open (:meth:`mapserver.merge.verify.Probation.held_open`):
+    its matches stopped and the miss metres since the newest hit (unmapped trials neither add nor break) exceed
+    the coverage radius, more than leaving the map's edge explains. Held open, the window runs on until a hit
+    (then ends as before) or the chain's end, so a run of misses that an online probation would have met to its
+    rejection is in the window whole. Not for a front-end with weak misses (``miss_weight`` below LVC's), as online.
     """
     travelled = np.cumsum(steps)
     hit, miss = outcomes == HIT, outcomes == MISS
@@ -296,11 +299,40 @@ def _probation_window(
     quiet = (travelled >= probation_m) & (travelled - last_hit >= rule.evidence_m)
     held = quiet & (_miss_metres_since_hit(steps, hit, miss) > rule.coverage_radius)
     held &= rule.miss_weight >= MISS_WEIGHT
-    over = (quiet | (travelled >= cap_metres(rule, probation_m, PROBATION_CAP))) & ~held
+    looped = travelled >= _loop_closed_at(travelled, hit, seen, probation_m, rule.position_tolerance)
+    looped |= rule.miss_weight < MISS_WEIGHT
+    cap = np.where(
+        looped, cap_metres(rule, probation_m, PROBATION_CAP), cap_metres(rule, probation_m, OPEN_PROBATION_CAP)
+    )
+    over = (quiet | (travelled >= cap)) & ~held
     end = int(np.argmax(over)) + 1 if over.any() else travelled.size
     hit, miss, steps = hit[:end], miss[:end], steps[:end]
     score = float(steps[hit].sum() - rule.miss_weight * steps[miss].sum())
     return (float(steps.sum()), _longest_miss_run(steps, hit, miss), score)
+
+
+def _loop_closed_at(
+    travelled: np.ndarray, hit: np.ndarray, seen: np.ndarray, probation_m: float, tolerance: float
+) -> float:
+    """Return the metres travelled at the first hit that closes a loop on B (infinity: none does).
+
+    As online (:meth:`mapserver.merge.verify.Probation._note_revisit`): a hit closes a loop when its place in B
+    (``seen``) lies within ``tolerance`` of the place of a hit at least ``probation_m`` metres of driving before,
+    and a hit in between lay farther than that from it (the chain left the place and came back to it, matching
+    at both passes). All hit pairs at once: ``near[i, j]`` for hits i, j; the newest early neighbour of each j.
+    """
+    rows = np.flatnonzero(hit)
+    if rows.size < 3:
+        return float("inf")
+    places, metres = seen[rows, :3], travelled[rows]
+    near = np.linalg.norm(places[:, None, :] - places[None, :, :], axis=-1) <= tolerance
+    early = near & (metres[:, None] <= metres[None, :] - probation_m)  # [i, j]: hit i is j's early neighbour
+    newest = np.where(early.any(axis=0), rows.size - 1 - np.argmax(early[::-1], axis=0), -1)
+    far = np.cumsum(~near, axis=0)  # [k, j]: hits 0..k farther than the tolerance from j
+    columns = np.arange(rows.size)
+    before = np.where(newest > 0, far[np.maximum(newest - 1, 0), columns], 0)
+    closes = (newest >= 0) & (far[columns, columns] - before > 0)
+    return float(metres[np.argmax(closes)]) if closes.any() else float("inf")
 
 
 def _miss_metres_since_hit(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> np.ndarray:

@@ -397,6 +397,34 @@ def test_an_offline_merge_whose_two_maps_part_in_disagreement_past_the_look_alik
     assert cli_code(merge[0], "--db", databases["twin"], *merge[1:])[0] == 0  # the rule is what refuses it
 
 
+def test_an_offline_window_that_closes_no_loop_runs_past_a_100_m_look_alike_to_where_it_ends(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 12 offline (stop 51): ``twin`` with a 100 m look-alike holding turns, seed 2 (LVC, ``circle``), past the
+    issue's range. Its best alignment still matched at the old cap (8 probation distances, 96.5 m after the match on
+    A's chain and 96.8 m on B's): the window ended inside the look-alike and the maps of two places became one
+    (transform 155 m off). A window whose hits close no loop on the other map now runs to 16 probation distances,
+    as an online probation does (stop 50): it reaches the look-alike's end and meets 18.6 m of failing views in a
+    row. Paired: with the old cap the same maps merge; the same stretch in one world (``twin-overlap``, seed 2, whose
+    window now passes 133 m after the match) still merges."""
+    from mapserver.ingest.simulator.output import simulate
+    from mapserver.merge import offline_evidence
+
+    databases = {}
+    for name in ("twin", "twin-overlap"):
+        directory = tmp_path / name
+        info = simulate(name, directory, seed=2, params={"lookalike_m": 100.0, "lookalike_turns": 1.0})
+        databases[name] = _db(tmp_path, name)
+        for s in info["sessions"][:2]:
+            cli_json("process", str(directory / s["log"]), "--db", databases[name], "--no-merge")
+    merge = ("merge", "--map", "session2", "--into", "session1")
+    code, err = cli_code(merge[0], "--db", databases["twin"], *merge[1:])
+    assert code == 2 and "failing views in a row" in err  # must not: the look-alike
+    assert cli_code(merge[0], "--db", databases["twin-overlap"], *merge[1:])[0] == 0  # must still: the true overlap
+    monkeypatch.setattr(offline_evidence, "OPEN_PROBATION_CAP", offline_evidence.PROBATION_CAP)
+    assert cli_code(merge[0], "--db", databases["twin"], *merge[1:])[0] == 0  # the longer window is what refuses it
+
+
 def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_never_into_another_cave(
     scenario: Any, tmp_path: Path
 ) -> None:

@@ -11,10 +11,16 @@ from mapserver.merge.offline_evidence import (
     OfflineEvidence,
     _chain_ends,
     _longest_miss_run,
+    _loop_closed_at,
     _probation_window,
 )
 
 H, M, U = HIT, MISS, UNMAPPED
+
+
+def _street(n: int) -> np.ndarray:
+    """Places in B of n trials 1 m apart along a straight street (x = 1, 2, …, n m): no loop."""
+    return np.column_stack([np.arange(1.0, n + 1.0), np.zeros((n, 3))])
 
 
 def _evidence(
@@ -43,33 +49,64 @@ def test_the_probation_lasts_its_distance_then_ends_evidence_metres_after_the_ne
     outcomes = np.array([H, H, M, M, M, H, M, U, U, U, U, U, U])
     # hits at 1, 2 and 6 m; past 6 m (probation_m) it ends 4 m (evidence_m) after the newest hit: at 10 m, the
     # 1 m of misses since that hit being what leaving the map's edge explains (within the coverage radius)
-    metres, run, score = _probation_window(steps, outcomes, 6.0, rule)
+    metres, run, score = _probation_window(steps, outcomes, _street(13), 6.0, rule)
     assert (metres, run) == (10.0, 3.0)  # misses 3–5 m (3 m) and 7 m (1 m): the window's longest run
     assert score == pytest.approx(3.0 - 2.0 * 4.0)
-    metres, run, _ = _probation_window(np.ones(60), np.full(60, H), 6.0, rule)
-    assert (metres, run) == (48.0, 0.0)  # matches that never stop: PROBATION_CAP (8) probation distances
+    metres, run, _ = _probation_window(np.ones(120), np.full(120, H), _street(120), 6.0, rule)
+    assert (metres, run) == (96.0, 0.0)  # matches that never stop, no loop: OPEN_PROBATION_CAP (16) distances
     longer = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0, probation_max_m=55.0)  # merge_probation_max_m
-    assert _probation_window(np.ones(60), np.full(60, H), 6.0, longer)[0] == 55.0
+    assert _probation_window(np.ones(120), np.full(120, H), _street(120), 6.0, longer)[0] == 55.0
     shorter = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0, probation_max_m=2.0)  # never below probation_m
-    assert _probation_window(np.ones(60), np.full(60, H), 6.0, shorter)[0] == 6.0
+    assert _probation_window(np.ones(120), np.full(120, H), _street(120), 6.0, shorter)[0] == 6.0
+
+
+def _there_and_back(n: int) -> np.ndarray:
+    """Places in B of n trials 1 m apart: out along x from 0 to 10 m (trials at 1–11 m), then back, and so on."""
+    x = 10.0 - np.abs((np.arange(n) % 20) - 10.0)
+    return np.column_stack([x, np.zeros((n, 3))])
+
+
+def test_a_chain_closes_a_loop_on_the_other_map_when_its_hits_leave_a_place_and_come_back() -> None:
+    travelled, hits = np.arange(1.0, 41.0), np.ones(40, dtype=bool)
+    # by hand, tolerance 3 m, probation 6 m: back at 15 m the hit is at x = 6; the newest hit within 3 m of it at
+    # least 6 m of driving before is the one at 9 m (x = 8), and the hit at 11 m (x = 10) lies 4 m away; at 14 m
+    # (x = 7) the newest is at 8 m (x = 7) and every hit in between (x = 7 … 10) lies within 3 m: not yet
+    assert _loop_closed_at(travelled, hits, _there_and_back(40), 6.0, 3.0) == 15.0
+    assert _loop_closed_at(travelled, hits, _street(40), 6.0, 3.0) == np.inf  # never back: no loop
+    lingering = np.zeros((40, 4))  # 40 m of hits at one place: the chain never left it
+    assert _loop_closed_at(travelled, hits, lingering, 6.0, 3.0) == np.inf
+    only_out = hits.copy()
+    only_out[11:] = False  # the hits stop at the far end: nothing comes back
+    assert _loop_closed_at(travelled, only_out, _there_and_back(40), 6.0, 3.0) == np.inf
+
+
+def test_a_window_that_closed_a_loop_on_the_other_map_keeps_the_shorter_cap() -> None:
+    rule = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0)
+    everywhere = np.full(120, H)
+    assert _probation_window(np.ones(120), everywhere, _there_and_back(120), 6.0, rule)[0] == 48.0  # PROBATION_CAP
+    assert _probation_window(np.ones(120), everywhere, _street(120), 6.0, rule)[0] == 96.0
+    # out 60 m and back: at 65 m (x = 56) the newest hit within 3 m at least 6 m before is at 59 m (x = 59), and
+    # the turn at 60 m (x = 60) lies 4 m away: the loop closes at 65 m, past 48 m, and the window ends there
+    late = np.vstack([_street(60), _street(60)[::-1]])
+    assert _probation_window(np.ones(120), everywhere, late, 6.0, rule)[0] == 65.0
 
 
 def test_a_probation_whose_matches_stopped_on_a_run_of_misses_is_held_open_until_a_hit_or_the_chains_end() -> None:
     rule = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0)
     to_the_end = np.array([H, H, M, M, M, H, M, M, M, M, M, U, U])
     # at 10 m its matches stopped 4 m back on 4 m of misses (> 1.5 m): held open to the chain's end, the run whole
-    assert _probation_window(np.ones(13), to_the_end, 6.0, rule)[:2] == (13.0, 5.0)
+    assert _probation_window(np.ones(13), to_the_end, _street(13), 6.0, rule)[:2] == (13.0, 5.0)
     back = np.array([H, H, M, M, M, H, M, M, M, U, H] + [U] * 9)
     # held from 10 m on 3 m of misses; the hit at 11 m brings the matches back: it ends 4 m after it, at 15 m
-    metres, run, score = _probation_window(np.ones(20), back, 6.0, rule)
+    metres, run, score = _probation_window(np.ones(20), back, _street(20), 6.0, rule)
     assert (metres, run) == (15.0, 3.0)
     assert score == pytest.approx(4.0 - 2.0 * 6.0)
     # past the cap too: matches until 40 m, 2 m of misses, held from 44 m; the cap (48 m) does not close it
     capped = np.array([H] * 40 + [M] * 2 + [U] * 8 + [M] * 2 + [U] * 2)
-    assert _probation_window(np.ones(54), capped, 6.0, rule)[:2] == (54.0, 4.0)
+    assert _probation_window(np.ones(54), capped, _street(54), 6.0, rule)[:2] == (54.0, 4.0)
     weak = EvidenceRule.for_map(1.0, 3.0, 0.5, 4.0, 6.0, miss_weight=0.16)
     # a front-end with weak misses is never held open (as online): it ends at 10 m as the run rule alone says
-    assert _probation_window(np.ones(13), to_the_end, 6.0, weak)[:2] == (10.0, 4.0)
+    assert _probation_window(np.ones(13), to_the_end, _street(13), 6.0, weak)[:2] == (10.0, 4.0)
 
 
 def test_an_alignment_stands_only_where_neither_maps_probation_meets_a_run_of_evidence_metres() -> None:
