@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mapserver.merge.hypotheses import HIT, MISS, UNMAPPED, EvidenceRule
 from mapserver.merge.offline_evidence import (
@@ -14,6 +18,7 @@ from mapserver.merge.offline_evidence import (
     _loop_closed_at,
     _probation_window,
 )
+from mapserver.merge.verify import Probation
 
 H, M, U = HIT, MISS, UNMAPPED
 
@@ -154,3 +159,35 @@ def test_two_maps_that_both_drive_on_past_the_far_end_of_their_agreement_and_bot
     b_back = _evidence(0.0, ends=(_end(0.0, 30.0), _end(3.2, 10.0)))
     assert _evidence(0.0, reverse=b_back, ends=(_end(0.0, 0.0, 10.0), _end(2.1, 50.0, 30.0))).parting_m == 0.0
     assert _evidence(0.0, ends=(_end(5.0, 0.0, 10.0), _end(5.0, 50.0, 30.0))).parting_m == 0.0  # no reverse walk
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(0, 6), st.integers(0, 2), st.booleans(), st.floats(0.0, 3.0)), max_size=40),
+    st.floats(0.5, 12.0),
+)
+def test_the_offline_loop_test_closes_where_the_online_probation_first_says_revisited(
+    trials: list[tuple[int, int, bool, float]], probation_m: float
+) -> None:
+    """Differential: :func:`_loop_closed_at` (all hits at once) against the online rule replayed hit by hit
+    (:meth:`mapserver.merge.verify.Probation._note_revisit` on a stand-in probation), on random chains of hits and
+    misses, steps, and places on a 3 m grid (two places are the same, neighbours at exactly the 3 m tolerance, or
+    farther: every case of near and far); the first hit the online rule calls a loop is where the offline window's
+    cap changes."""
+    tolerance = 3.0
+    steps = np.array([t[3] for t in trials])
+    travelled = np.cumsum(steps)
+    hit = np.array([t[2] for t in trials], dtype=bool)
+    seen = np.array([[3.0 * t[0], 3.0 * t[1], 0.0, 0.0] for t in trials]).reshape(-1, 4)
+    online = SimpleNamespace(
+        hypothesis=SimpleNamespace(anchor_place=None), revisited=False, hit_places=[],
+        hset=SimpleNamespace(rule=SimpleNamespace(position_tolerance=tolerance, probation_m=probation_m)),
+    )  # fmt: skip
+    first = np.inf
+    for row in np.flatnonzero(hit).tolist():
+        online.hypothesis.anchor_place = seen[row]
+        Probation._note_revisit(online, float(travelled[row]))  # type: ignore[arg-type]
+        if online.revisited:
+            first = float(travelled[row])
+            break
+    assert _loop_closed_at(travelled, hit, seen, probation_m, tolerance) == first
