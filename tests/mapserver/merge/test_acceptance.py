@@ -349,25 +349,36 @@ def test_poseidon_sdr_closes_the_caves_loops_that_the_whole_image_at_the_thesis_
 
 
 
+def _twin_worlds_stored_apart(tmp_path: Path, seed: int, lookalike_m: float) -> dict[str, str]:
+    """Simulate ``twin`` and ``twin-overlap`` (a look-alike holding turns) and store each one's sessions 1 and 2 as
+    two maps (``process --no-merge``, LVC, ``circle``); return each scenario's database."""
+    from mapserver.ingest.simulator.output import simulate
+
+    databases = {}
+    for name in ("twin", "twin-overlap"):
+        directory = tmp_path / name
+        info = simulate(name, directory, seed=seed, params={"lookalike_m": lookalike_m, "lookalike_turns": 1.0})
+        databases[name] = _db(tmp_path, name)
+        for s in info["sessions"][:2]:
+            cli_json("process", str(directory / s["log"]), "--db", databases[name], "--no-merge")
+    return databases
+
+
+def _merge_offline(db: str) -> tuple[int, str]:
+    """``mapserver merge`` session 2's map into session 1's: (exit code, stderr)."""
+    return cli_code("merge", "--db", db, "--map", "session2", "--into", "session1")
+
+
 def test_an_offline_merge_into_a_look_alike_holding_turns_fails_the_probation_online_merges_run(tmp_path: Path) -> None:
     """Issue 12 offline (stop 39): ``twin`` with a 20 m look-alike holding turns, seed 4 (LVC, ``circle``). A's
     whole map weighed against B passed the offline test (28.3 m of matching views, 6.5 m failing: score 15.2 m
     for 4 m needed) and the maps of two places became one (2 of 10 seeds; 1 of 10 at 10 and at 40 m; ``sdr-htm``
     1 and 3). After the match both chains meet a run of 4.1–4.4 m of failing views, as a probation would online,
     so the merge is refused. Must still: the same stretch in one world (``twin-overlap``, seed 4) merges."""
-    from mapserver.ingest.simulator.output import simulate
-
-    outcomes = {}
-    for name in ("twin", "twin-overlap"):
-        directory = tmp_path / name
-        info = simulate(name, directory, seed=4, params={"lookalike_m": 20.0, "lookalike_turns": 1.0})
-        db = _db(tmp_path, name)
-        for s in info["sessions"][:2]:
-            cli_json("process", str(directory / s["log"]), "--db", db, "--no-merge")
-        outcomes[name] = cli_code("merge", "--db", db, "--map", "session2", "--into", "session1")
-    code, err = outcomes["twin"]
+    databases = _twin_worlds_stored_apart(tmp_path, seed=4, lookalike_m=20.0)
+    code, err = _merge_offline(databases["twin"])
     assert code == 2 and "failing views in a row" in err  # must not: the look-alike
-    assert outcomes["twin-overlap"][0] == 0  # must still: the true overlap
+    assert _merge_offline(databases["twin-overlap"])[0] == 0  # must still: the true overlap
 
 
 def test_an_offline_merge_whose_two_maps_part_in_disagreement_past_the_look_alike_is_refused(
@@ -379,22 +390,14 @@ def test_an_offline_merge_whose_two_maps_part_in_disagreement_past_the_look_alik
     Both maps drove on over each other's ground and both disagreed, so their failing metres add up (5.2 m) and
     the merge is refused. Paired: without the rule the same maps merge; the same stretch in one world
     (``twin-overlap``, seed 6) still merges."""
-    from mapserver.ingest.simulator.output import simulate
     from mapserver.merge.offline_evidence import OfflineEvidence
 
-    databases = {}
-    for name in ("twin", "twin-overlap"):
-        directory = tmp_path / name
-        info = simulate(name, directory, seed=6, params={"lookalike_m": 10.0, "lookalike_turns": 1.0})
-        databases[name] = _db(tmp_path, name)
-        for s in info["sessions"][:2]:
-            cli_json("process", str(directory / s["log"]), "--db", databases[name], "--no-merge")
-    merge = ("merge", "--map", "session2", "--into", "session1")
-    code, err = cli_code(merge[0], "--db", databases["twin"], *merge[1:])
+    databases = _twin_worlds_stored_apart(tmp_path, seed=6, lookalike_m=10.0)
+    code, err = _merge_offline(databases["twin"])
     assert code == 2 and "both maps drive on over each other's ground" in err  # must not: the look-alike
-    assert cli_code(merge[0], "--db", databases["twin-overlap"], *merge[1:])[0] == 0  # must still: the true overlap
+    assert _merge_offline(databases["twin-overlap"])[0] == 0  # must still: the true overlap
     monkeypatch.setattr(OfflineEvidence, "parting_m", property(lambda self: 0.0))
-    assert cli_code(merge[0], "--db", databases["twin"], *merge[1:])[0] == 0  # the rule is what refuses it
+    assert _merge_offline(databases["twin"])[0] == 0  # the rule is what refuses it
 
 
 def test_an_offline_window_that_closes_no_loop_runs_past_a_100_m_look_alike_to_where_it_ends(
@@ -407,22 +410,14 @@ def test_an_offline_window_that_closes_no_loop_runs_past_a_100_m_look_alike_to_w
     as an online probation does (stop 50): it reaches the look-alike's end and meets 18.6 m of failing views in a
     row. Paired: with the old cap the same maps merge; the same stretch in one world (``twin-overlap``, seed 2, whose
     window now passes 133 m after the match) still merges."""
-    from mapserver.ingest.simulator.output import simulate
     from mapserver.merge import offline_evidence
 
-    databases = {}
-    for name in ("twin", "twin-overlap"):
-        directory = tmp_path / name
-        info = simulate(name, directory, seed=2, params={"lookalike_m": 100.0, "lookalike_turns": 1.0})
-        databases[name] = _db(tmp_path, name)
-        for s in info["sessions"][:2]:
-            cli_json("process", str(directory / s["log"]), "--db", databases[name], "--no-merge")
-    merge = ("merge", "--map", "session2", "--into", "session1")
-    code, err = cli_code(merge[0], "--db", databases["twin"], *merge[1:])
+    databases = _twin_worlds_stored_apart(tmp_path, seed=2, lookalike_m=100.0)
+    code, err = _merge_offline(databases["twin"])
     assert code == 2 and "failing views in a row" in err  # must not: the look-alike
-    assert cli_code(merge[0], "--db", databases["twin-overlap"], *merge[1:])[0] == 0  # must still: the true overlap
+    assert _merge_offline(databases["twin-overlap"])[0] == 0  # must still: the true overlap
     monkeypatch.setattr(offline_evidence, "OPEN_PROBATION_CAP", offline_evidence.PROBATION_CAP)
-    assert cli_code(merge[0], "--db", databases["twin"], *merge[1:])[0] == 0  # the longer window is what refuses it
+    assert _merge_offline(databases["twin"])[0] == 0  # the longer window is what refuses it
 
 
 def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_never_into_another_cave(
