@@ -285,13 +285,14 @@ def _probation_window(
 
     As online (:class:`mapserver.merge.verify.Probation`): the probation lasts ``probation_m`` metres and then as
     long as the matches go on (it ends ``evidence_m`` after the newest hit), at most ``OPEN_PROBATION_CAP``
-    probation distances, ``PROBATION_CAP`` from the hit that closes a loop on B (:func:`_loop_closed_at`; ``seen``:
-    each hit's place in B) and for a front-end with weak misses (``rule.probation_max_m`` metres when set, at
-    least ``probation_m``) — but not while it is held open (:meth:`mapserver.merge.verify.Probation.held_open`):
-    its matches stopped and the miss metres since the newest hit (unmapped trials neither add nor break) exceed
-    the coverage radius, more than leaving the map's edge explains. Held open, the window runs on until a hit
-    (then ends as before) or the chain's end, so a run of misses that an online probation would have met to its
-    rejection is in the window whole. Not for a front-end with weak misses (``miss_weight`` below LVC's), as online.
+    probation distances until the hit that closes a loop on B (:func:`_loop_closed_at`; ``seen``: each hit's place
+    in B), ``PROBATION_CAP`` from then on and always for a front-end with weak misses (``rule.probation_max_m``
+    metres when set, at least ``probation_m``) — but not while it is held open
+    (:meth:`mapserver.merge.verify.Probation.held_open`): its matches stopped and the miss metres since the newest
+    hit (unmapped trials neither add nor break) exceed the coverage radius, more than leaving the map's edge
+    explains. Held open, the window runs on until a hit (then ends as before) or the chain's end, so a run of misses
+    that an online probation would have met to its rejection is in the window whole. Not for a front-end with weak
+    misses (``miss_weight`` below LVC's), as online.
     """
     travelled = np.cumsum(steps)
     hit, miss = outcomes == HIT, outcomes == MISS
@@ -299,11 +300,11 @@ def _probation_window(
     quiet = (travelled >= probation_m) & (travelled - last_hit >= rule.evidence_m)
     held = quiet & (_miss_metres_since_hit(steps, hit, miss) > rule.coverage_radius)
     held &= rule.miss_weight >= MISS_WEIGHT
-    looped = travelled >= _loop_closed_at(travelled, hit, seen, probation_m, rule.position_tolerance)
-    looped |= rule.miss_weight < MISS_WEIGHT
-    cap = np.where(
-        looped, cap_metres(rule, probation_m, PROBATION_CAP), cap_metres(rule, probation_m, OPEN_PROBATION_CAP)
-    )
+    cap = np.full(travelled.shape, cap_metres(rule, probation_m, PROBATION_CAP))
+    if rule.miss_weight >= MISS_WEIGHT:  # until a loop closes on B, the open cap (weak misses: always the cap)
+        open_cap = cap_metres(rule, probation_m, OPEN_PROBATION_CAP)
+        within = hit & (travelled < open_cap)  # past the open cap both caps have passed: later hits decide nothing
+        cap[travelled < _loop_closed_at(travelled, within, seen, probation_m, rule.position_tolerance)] = open_cap
     over = (quiet | (travelled >= cap)) & ~held
     end = int(np.argmax(over)) + 1 if over.any() else travelled.size
     hit, miss, steps = hit[:end], miss[:end], steps[:end]
@@ -319,7 +320,8 @@ def _loop_closed_at(
     As online (:meth:`mapserver.merge.verify.Probation._note_revisit`): a hit closes a loop when its place in B
     (``seen``) lies within ``tolerance`` of the place of a hit at least ``probation_m`` metres of driving before,
     and a hit in between lay farther than that from it (the chain left the place and came back to it, matching
-    at both passes). All hit pairs at once: ``near[i, j]`` for hits i, j; the newest early neighbour of each j.
+    at both passes). All hit pairs at once: ``near[i, j]`` for hits i, j; the newest early neighbour of each j
+    (memory grows with the square of the hits: the caller passes those within the window's reach only).
     """
     rows = np.flatnonzero(hit)
     if rows.size < 3:
