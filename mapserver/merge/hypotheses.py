@@ -290,6 +290,8 @@ class Hypothesis:
     """Metres of hits at ``held_place`` since a hit elsewhere (:data:`PLACE_EXTENT`)."""
     anchor_place: np.ndarray | None = None
     """The stored place (4,) the alignment was last re-anchored on by a hit (:meth:`HypothesisSet.reanchor`)."""
+    hits: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    """(odometry, stored place) of every hit before the merge, history included: where a view put the robot."""
 
     def record_turn(self, yaw: float) -> None:
         """Widen the span of headings the hits were seen at."""
@@ -422,6 +424,7 @@ class HypothesisSet:
             else:
                 hypothesis.hit_m += step
                 hypothesis.record_turn(float(odometry[3]))
+                hypothesis.hits.append((odometry.copy(), np.array(seen, dtype=np.float64)))
             self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
         elif outcome == MISS:
             if after_merge:
@@ -484,10 +487,11 @@ class HypothesisSet:
             if last_tested - travelled < spacing and np.isfinite(last_tested):
                 continue
             weight = (last_tested if np.isfinite(last_tested) else track.last[2]) - travelled
-            outcome, _ = self.places.test(hypothesis.predict(odometry), view, mean)
+            outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean)
             if outcome == HIT:
                 hypothesis.hit_m += weight
                 hypothesis.record_turn(float(odometry[3]))
+                hypothesis.hits.append((odometry.copy(), np.array(seen, dtype=np.float64)))
             elif outcome == MISS:
                 hypothesis.miss_m += weight
             last_tested = travelled

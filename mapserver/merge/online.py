@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from core import Engine, StepResult
 from core.localview import LocalViewCells
@@ -62,6 +63,11 @@ from mapserver.merge.snapshot import experiences_by_template, params_incompatibi
 from mapserver.merge.verify import LAZY_SHADOW_BYTES, PASSED, REJECTED, Probation, image_bytes
 
 logger = logging.getLogger(__name__)
+
+TIE_HITS = True
+"""Whether a merge ties the session's own copy of the stored ground to it by a merge link per hit of the winner
+(:meth:`OnlineMerger._ties`, :attr:`Match.ties`); off, the anchor (and the identified experiences) alone join
+the graphs, as before 2026-11-29 (tests switch it off to show what the ties hold)."""
 
 DEFAULT_YAW_TOLERANCE = 0.5
 """Radians between a match's heading and the heading a hypothesis predicts."""
@@ -475,6 +481,28 @@ class OnlineMerger:
         """Return the robot's pose at an earlier frame in the session map's frame (via odometry since)."""
         return compose(engine.map.robot_pose(), relative(self._odometry, odometry_then))
 
+    def _ties(
+        self, engine: Engine, winner: Hypothesis, candidate: _Candidate
+    ) -> tuple[tuple[int, int, tuple[float, ...]], ...]:
+        """Return the winner's hits as ties (:attr:`Match.ties`): a loop closure per view that put the robot in place.
+
+        For each hit before the merge (history included), the session's experience nearest to where the robot
+        was (its pose at that frame in the session map, :meth:`_robot_pose`) and the stored experience of the
+        hit's place, at that experience's pose relative to it: the robot at the place the view put it.
+        """
+        places, anchors = candidate.hypotheses.places, candidate.anchors
+        poses = engine.map.poses
+        if not winner.hits or poses.shape[0] == 0 or places.poses.shape[0] == 0:
+            return ()
+        odometry = np.array([o for o, _ in winner.hits])
+        seen = np.array([p for _, p in winner.hits])
+        robots = compose(engine.map.robot_pose(), relative(self._odometry, odometry))  # as _robot_pose, all at once
+        own = cKDTree(poses[:, :3]).query(robots[:, :3])[1]
+        place = cKDTree(places.poses[:, :3]).query(seen[:, :3])[1]  # the hit's place (StoredPlaces.row_at)
+        tie = compose(relative(poses[own], robots), relative(seen, places.poses[place]))
+        ties = [(int(a), int(b), tuple(float(v) for v in t)) for a, b, t in zip(own, anchors[place], tie, strict=True)]
+        return tuple(ties)
+
     def _merge(
         self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult, frame: Any
     ) -> MergeEvent:
@@ -491,6 +519,7 @@ class OnlineMerger:
             partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),  # type: ignore[arg-type]
             partial_packet=tuple(float(v) for v in anchor.packet), relative_rad=anchor.relative_rad,
             confirmations=len(winner.support), pairs=winner.pairs(),
+            ties=self._ties(engine, winner, candidate) if TIE_HITS and not self._readers else (),
         )  # fmt: skip
         partial = engine.snapshot()
         reader = candidate.cells if self._readers else None

@@ -33,6 +33,7 @@ def match_to_dict(match: Match) -> dict[str, Any]:
     data["partial_pose"] = [float(v) for v in match.partial_pose]
     data["partial_packet"] = [float(v) for v in match.partial_packet]
     data["pairs"] = [[int(a), int(b)] for a, b in match.pairs]
+    data["ties"] = [[int(a), int(b), [float(v) for v in t]] for a, b, t in match.ties]
     return data
 
 
@@ -47,6 +48,7 @@ def match_from_dict(data: Mapping[str, Any]) -> Match:
         relative_rad=float(data["relative_rad"]),
         confirmations=int(data["confirmations"]),
         pairs=tuple((int(a), int(b)) for a, b in data["pairs"]),
+        ties=tuple((int(a), int(b), tuple(float(v) for v in t)) for a, b, t in data.get("ties", ())),  # type: ignore[misc]
     )
 
 

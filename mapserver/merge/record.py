@@ -34,6 +34,14 @@ class Match:
             identified too: the partial's copies of loaded views are not duplicated, and partial
             experiences of identified templates are identified with the nearest loaded experience of
             that template (not inserted, links redirected: Eqs. 15–17).
+        ties: (partial experience, stored experience, (dx, dy, dz, dyaw)) for the views that put the robot at
+            a stored place while the merge's hypothesis gathered its evidence (its hits, history included):
+            the stored experience's pose relative to the partial one when the view was seen there (a RatSLAM
+            loop closure: the robot stood at the stored place, turned by the view's heading offset). Each whose
+            partial experience the identification leaves apart (its drift puts it farther than the
+            identification radius) becomes a merge link: they hold the partial map's own copy of the stored
+            ground along its length, not at the anchor only (online LVC merges; offline merges have their
+            closures instead, sdr-htm merges none).
     """
 
     stored_template: int
@@ -44,6 +52,7 @@ class Match:
     relative_rad: float = 0.0
     confirmations: int = 1
     pairs: tuple[tuple[int, int], ...] = ()
+    ties: tuple[tuple[int, int, tuple[float, float, float, float]], ...] = ()
 
     @classmethod
     def at_experience(

@@ -80,14 +80,16 @@ class MergerState:
         (4; NaN: none);
         ``support`` (S, 15 + D): hypothesis row, frame,
         stored template, stored experience, error, relative_rad, partial template, odometry (4),
-        seen (4), packet (D); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
+        seen (4), packet (D); ``hits`` (N, 9): hypothesis row, odometry (4), place (4) (``Hypothesis.hits``;
+        a state stored before them has none); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
         """
-        rows, support, banned = [], [], []
+        rows, support, banned, hits = [], [], [], []
         for key, (live, bans) in self.hypotheses.items():
             for h in live:
                 rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
                              *h.alignment, *h.turn, *_held_row(h), *_place_row(h.anchor_place)])  # fmt: skip
                 support.extend(_observation_row(len(rows) - 1, o) for o in h.support)
+                hits.extend([float(len(rows) - 1), *odometry, *place] for odometry, place in h.hits)
             banned.extend([float(int(key)), *b] for b in bans)  # type: ignore[call-overload]
         width = max((r.size for r in support), default=_SUPPORT_COLUMNS)
         frames = list(self.track.frames) if self.track is not None else []
@@ -98,6 +100,7 @@ class MergerState:
             "hypotheses": np.asarray(rows, dtype=np.float64).reshape(-1, _HYPOTHESIS_COLUMNS),
             "support": np.vstack(support) if support else np.zeros((0, width), dtype=np.float64),
             "banned": np.asarray(banned, dtype=np.float64).reshape(-1, 5),
+            "hits": np.asarray(hits, dtype=np.float64).reshape(-1, 9),
             "track_frames": np.asarray([f[0] for f in frames], dtype=np.int64),
             "track_odometry": np.asarray([f[1] for f in frames], dtype=np.float64).reshape(-1, 4),
             "track_distance": np.asarray([f[2] for f in frames], dtype=np.float64),
@@ -126,6 +129,8 @@ class MergerState:
         ]  # fmt: skip
         for row in support:
             made[int(row[0])].support.append(_observation(row))
+        for row in np.asarray(arrays.get("hits", np.zeros((0, 9))), dtype=np.float64).reshape(-1, 9):
+            made[int(row[0])].hits.append((row[1:5].copy(), row[5:9].copy()))
         grouped: dict[int, tuple[list[Hypothesis], list[np.ndarray]]] = {}
         for r, h in zip(table, made, strict=True):
             grouped.setdefault(int(r[0]), ([], []))[0].append(h)
@@ -154,7 +159,7 @@ def _copy(h: Hypothesis) -> Hypothesis:
         alignment=h.alignment.copy(), born=h.born, support=list(h.support), hit_m=h.hit_m, miss_m=h.miss_m,
         post_hit_m=h.post_hit_m, post_miss_m=h.post_miss_m, turn=h.turn.copy(),
         held_place=None if h.held_place is None else h.held_place.copy(), held_m=h.held_m,
-        anchor_place=None if h.anchor_place is None else h.anchor_place.copy(),
+        anchor_place=None if h.anchor_place is None else h.anchor_place.copy(), hits=list(h.hits),
     )  # fmt: skip
 
 

@@ -439,6 +439,10 @@ def _merge_links(loaded: State, partial: State, match: Match, exp: _Experiences)
         new["em_link_distance"].append(np.array([float(np.linalg.norm(link[:3]))]))
         new_joins.append(np.array([True]))
         new["em_link_active"].append(np.array([True]))
+    ties = _tie_links(match, exp)
+    for key, values in ties.items():
+        new[key].append(values)
+    new_joins.append(np.ones(ties["em_link_from"].size, dtype=bool))
     n_ll = int(np.shape(loaded["em_link_from"])[0])
     arrays = {
         "em_link_from": np.concatenate([np.asarray(loaded["em_link_from"], dtype=np.int64), *new["em_link_from"]]),
@@ -456,6 +460,33 @@ def _merge_links(loaded: State, partial: State, match: Match, exp: _Experiences)
         "em_link_active": np.concatenate([_link_active(loaded), *new["em_link_active"]]),
     }
     return _Links(n_ll, n_ll + np.flatnonzero(np.concatenate(new_joins)), arrays)
+
+
+def _tie_links(match: Match, exp: _Experiences) -> dict[str, np.ndarray]:
+    """Return the match's ties (:attr:`Match.ties`) as merge links, in merged ids, one per experience pair.
+
+    A tie whose partial experience the identification made a loaded one is left out (the two are one node),
+    as are repeats of a pair (the first, in support order, is kept).
+    """
+    seen: set[tuple[int, int]] = set()
+    rows: list[tuple[int, int, tuple[float, float, float, float]]] = []
+    for e_p, e_l, transform in match.ties:
+        _check_id(e_p, exp.emap.size, "tied partial experience")
+        _check_id(e_l, exp.n_loaded, "tied stored experience")
+        if not exp.kept[e_p] or (e_p, e_l) in seen:
+            continue
+        seen.add((e_p, e_l))
+        rows.append((int(exp.emap[e_p]), e_l, transform))
+    transform = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+    return {
+        "em_link_from": np.array([r[0] for r in rows], dtype=np.int64),
+        "em_link_to": np.array([r[1] for r in rows], dtype=np.int64),
+        "em_link_transform": transform,
+        "em_link_dt": np.zeros(len(rows)),
+        "em_link_distance": np.linalg.norm(transform[:, :3], axis=1),
+        "em_link_kind": np.full(len(rows), int(LinkKind.MERGE), dtype=np.int8),
+        "em_link_active": np.ones(len(rows), dtype=bool),
+    }
 
 
 def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, int, np.ndarray]:

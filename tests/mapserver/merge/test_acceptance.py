@@ -26,6 +26,7 @@ import pytest
 
 from core import preset
 from core import robust as robust_module
+from mapserver.merge import online as online_module
 from mapserver.store import open_database
 from mapserver.store.merge_events import list_merge_events
 from tests.mapserver.merge.scenario_metrics import (
@@ -499,7 +500,24 @@ def test_a_true_merge_bent_by_its_closures_headings_is_kept_by_the_joint_least_s
     assert _merged_ape(directory, info, _db(tmp_path, "joint")) < 1.5
     assert _merged_ape(directory, info, _db(tmp_path, "ratslam"), "--set", "merge_relax_joint=0") < 2.0
     monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
+    monkeypatch.setattr(online_module, "TIE_HITS", False)  # since stop 52 the ties alone hold it too (1.58 m)
     assert _merged_ape(directory, info, _db(tmp_path, "bare"), "--set", "merge_relax_joint=0") > 10.0
+
+
+def test_a_late_merge_ties_the_sessions_own_copy_of_the_stored_ground_to_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``twin-overlap`` turns alike 60 m, seed 4 (README, stop 52): session 2 drives 110 m of session 1's ground
+    before its merge at frame 270 wins over the look-alike's rival. The merge identified only the experiences its
+    anchor's view pairs put within half a link of each other: that copy of the stored ground hung from the
+    anchor, and the merged map came out at 6.92 m APE (the single route 1.61 m; session 1 alone 3.26 m). A merge
+    link per hit of the winning hypothesis (``Match.ties``) holds the copy along its length: 2.30 m."""
+    directory = tmp_path / "twin-overlap"
+    info = cli_json("simulate", "twin-overlap", "--out", str(directory), "--seed", "4",
+                    "--param", "lookalike_m=60,lookalike_turns=1")  # fmt: skip
+    assert _merged_ape(directory, info, _db(tmp_path, "tied")) < 3.0
+    monkeypatch.setattr(online_module, "TIE_HITS", False)
+    assert _merged_ape(directory, info, _db(tmp_path, "anchored")) > 5.0
 
 
 def test_a_merged_sessions_own_first_pass_closes_within_the_merges_lever_arm(tmp_path: Path) -> None:

@@ -288,6 +288,25 @@ def test_the_resume_arrays_hold_hypotheses_bans_and_track_exactly() -> None:
                                                                   hset.hypotheses[0].miss_m, [0, 1, 3])  # fmt: skip
 
 
+def test_the_resume_arrays_keep_a_hypothesis_hits_and_read_states_stored_before_them() -> None:
+    """The hits a merge ties (``Hypothesis.hits``: odometry and place) come back from the resume arrays, each to
+    its hypothesis, in order; a state stored before them loads with none."""
+    first = Hypothesis(alignment=np.zeros(4), born=1,
+                       hits=[(np.array([1.0, 2.0, 0.0, 0.1]), np.array([5.0, 6.0, 0.0, 0.2])),
+                             (np.array([1.5, 2.0, 0.0, 0.1]), np.array([5.5, 6.0, 0.0, 0.2]))])  # fmt: skip
+    second = Hypothesis(alignment=np.ones(4), born=2, hits=[(np.array([3.0, 0.0, 0.0, 0.0]), np.zeros(4))])
+    arrays = MergerState(np.zeros(4), (), {1: ((first, second), ())}).to_arrays()
+    assert arrays["hits"].shape == (3, 9)
+    back = MergerState.from_arrays(arrays).hypotheses[1][0]
+    for made, original in zip(back, (first, second), strict=True):
+        assert len(made.hits) == len(original.hits)
+        for (o, p), (o2, p2) in zip(made.hits, original.hits, strict=True):
+            np.testing.assert_array_equal(o, o2)
+            np.testing.assert_array_equal(p, p2)
+    del arrays["hits"]
+    assert all(not h.hits for h in MergerState.from_arrays(arrays).hypotheses[1][0])
+
+
 def test_the_resume_arrays_keep_a_held_place_and_read_states_stored_before_it() -> None:
     """A hypothesis's held place and metres and its anchor place come back from the resume arrays; a state stored
     before they existed (13 or 18 columns a hypothesis) loads with none held or anchored, its other figures as

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -15,6 +16,7 @@ from core.se3 import compose, inverse, relative
 from mapserver.errors import MergeError
 from mapserver.merge import LatticeTransform, Match, MergeRecord, merge_states, restore_merged
 from mapserver.merge.lattice import wrap_coords
+from mapserver.merge.provenance import match_from_dict, match_to_dict
 from mapserver.merge.snapshot import OPTIONAL_SNAPSHOT_KEYS, SNAPSHOT_KEYS
 from tests.mapserver.merge.snapshots import TX, TY, make_state
 
@@ -384,3 +386,53 @@ def test_a_last_created_experience_identified_by_the_merge_starts_no_reckoning_l
     state, record = merge_states(loaded, partial, match)
     assert record.experience_map.tolist()[3] == 2
     assert int(state["em_last_created"]) == -1
+
+
+def test_ties_join_a_drifted_copy_of_the_stored_ground_by_merge_links() -> None:
+    """Each tie (``Match.ties``) whose partial experience is left apart becomes a merge link with its transform.
+
+    Partial experiences at world x = −1, 0, 1 (not identified: no pair names their templates) and 2 (the anchor's,
+    identified with the loaded experience there). The anchor's tie is left out (one node), as is the repeat of a
+    pair (the first is kept).
+    """
+    loaded, partial = loaded_state(), partial_state(SHIFT)
+    ties = ((1, 0, (-1.5, 0.0, 0.0, 0.0)), (1, 0, (0.0, 0.0, 0.0, 0.0)), (3, 2, (0.0, 0.0, 0.0, 0.0)),
+            (2, 4, (2.0, 0.3, 0.0, 0.05)))  # fmt: skip
+    match = dataclasses.replace(Match.at_experience(partial, 3, stored_template=2, stored_experience=2), ties=ties)
+    state, record = merge_states(loaded, partial, match)
+    assert record.experience_map.tolist() == [6, 7, 8, 2]
+    added = slice(5, None)  # the loaded map's 5 odometry links come first
+    pairs = list(zip(state["em_link_from"][added].tolist(), state["em_link_to"][added].tolist(), strict=True))
+    assert pairs == [(6, 7), (7, 8), (8, 2), (7, 0), (8, 4)]
+    assert state["em_link_kind"][added].tolist() == [int(LinkKind.ODOMETRY)] * 2 + [int(LinkKind.MERGE)] * 3
+    assert state["em_link_transform"][8] == pytest.approx([-1.5, 0.0, 0.0, 0.0])
+    assert state["em_link_transform"][9] == pytest.approx([2.0, 0.3, 0.0, 0.05])
+    assert state["em_link_distance"][9] == pytest.approx(math.hypot(2.0, 0.3))
+    assert state["em_link_active"][added].all()
+    assert record.merge_links.tolist() == [7, 8, 9]
+    without, _ = merge_states(loaded, partial, dataclasses.replace(match, ties=()))
+    assert without["em_link_from"].size == 8  # the same merge but for the two ties
+    for key in ("em_pose", "em_pc", "em_template"):  # ties add links only
+        np.testing.assert_array_equal(state[key], without[key])
+
+
+def test_a_tie_to_an_experience_the_maps_do_not_have_is_refused() -> None:
+    """A tie naming a partial or stored experience out of range is a malformed match, not a silent skip."""
+    loaded, partial = loaded_state(), partial_state(SHIFT)
+    match = Match.at_experience(partial, 3, stored_template=2, stored_experience=2)
+    with pytest.raises(MergeError, match="tied stored experience"):
+        merge_states(loaded, partial, dataclasses.replace(match, ties=((1, 6, (0.0, 0.0, 0.0, 0.0)),)))
+    with pytest.raises(MergeError, match="tied partial experience"):
+        merge_states(loaded, partial, dataclasses.replace(match, ties=((4, 0, (0.0, 0.0, 0.0, 0.0)),)))
+
+
+def test_a_match_and_its_ties_round_trip_through_the_event_json() -> None:
+    """A redo rebuilds the merge from the stored match: its ties too; an event stored before ties has none."""
+    match = dataclasses.replace(
+        Match.at_experience(partial_state(SHIFT), 3, stored_template=2, stored_experience=2, pairs=((1, 0),)),
+        ties=((1, 0, (0.1, -0.2, 0.0, 0.05)),),
+    )
+    data = json.loads(json.dumps(match_to_dict(match)))
+    assert match_from_dict(data) == match
+    del data["ties"]
+    assert match_from_dict(data) == dataclasses.replace(match, ties=())
