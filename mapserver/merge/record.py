@@ -39,9 +39,9 @@ class Match:
             the stored experience's pose relative to the partial one when the view was seen there (a RatSLAM
             loop closure: the robot stood at the stored place, turned by the view's heading offset). Each whose
             partial experience the identification leaves apart (its drift puts it farther than the
-            identification radius) becomes a merge link: they hold the partial map's own copy of the stored
-            ground along its length, not at the anchor only (online LVC merges; offline merges have their
-            closures instead, sdr-htm merges none).
+            identification radius) becomes a merge link, at the height difference T gives the two (dz is not
+            used): they hold the partial map's own copy of the stored ground along its length, not at the
+            anchor only (online LVC merges; offline merges have their closures instead, sdr-htm merges none).
     """
 
     stored_template: int

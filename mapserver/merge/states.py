@@ -466,7 +466,10 @@ def _tie_links(match: Match, exp: _Experiences) -> dict[str, np.ndarray]:
     """Return the match's ties (:attr:`Match.ties`) as merge links, in merged ids, one per experience pair.
 
     A tie whose partial experience the identification made a loaded one is left out (the two are one node),
-    as are repeats of a pair (the first, in support order, is kept).
+    as are repeats of a pair (the first, in support order, is kept). Its height difference is the one T gives
+    the two experiences: a view places the robot along the stored track only to within the experiences'
+    spacing, and on a slope that is a depth error the vehicle's own depth odometry does not make (a 4-DoF loop
+    that goes up and down: merged depths 0.041 m RMSE with the tie's height, 0.018 m for the session alone).
     """
     seen: set[tuple[int, int]] = set()
     rows: list[tuple[int, int, tuple[float, float, float, float]]] = []
@@ -478,6 +481,9 @@ def _tie_links(match: Match, exp: _Experiences) -> dict[str, np.ndarray]:
         seen.add((e_p, e_l))
         rows.append((int(exp.emap[e_p]), e_l, transform))
     transform = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+    ends = np.array([r[:2] for r in rows], dtype=np.int64).reshape(-1, 2)
+    poses = exp.arrays["em_pose"]
+    transform[:, 2] = poses[ends[:, 1], 2] - poses[ends[:, 0], 2]  # the depth T gives them (see Match.ties)
     return {
         "em_link_from": np.array([r[0] for r in rows], dtype=np.int64),
         "em_link_to": np.array([r[1] for r in rows], dtype=np.int64),
