@@ -26,25 +26,21 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
-from mapserver.formats import write_tum
-from mapserver.ingest.simulator.output import plan_scenario, render_frames, simulate_session
+from mapserver.ingest.simulator.output import plan_scenario, render_frames, simulate_session, write_ground_truth
+from mapserver.ingest.simulator.scenarios import Plan
 from mapserver.ingest.writer import write_log
 from tests.mapserver.merge.scenario_metrics import cli_json
 
 
-def _ape_of_draw(directory: Path, scenario: str, seed: int, index: int) -> float:
-    """Drive the ``single`` route of ``scenario`` with the noise of session index ``index``; its APE RMSE alone."""
-    plan = plan_scenario(scenario, seed)
-    single = plan.single
-    if single is None:
-        msg = f"scenario {scenario!r} has no single route"
+def _ape_of_draw(directory: Path, plan: Plan, seed: int, index: int) -> float:
+    """Drive the plan's ``single`` route with the noise of session index ``index``; its APE RMSE alone."""
+    if plan.single is None:
+        msg = "the scenario has no single route"
         raise SystemExit(msg)
-    drive = simulate_session(plan, single, index, seed)
+    drive = simulate_session(plan, plan.single, index, seed)
     log, gt = directory / f"single-{index}.bag", directory / f"single-{index}.tum"
     write_log(log, "bag", render_frames(plan, drive, seed, index), drive.odometry, drive.ground_truth)
-    write_tum(gt, np.array([g.stamp_ns for g in drive.ground_truth], dtype=np.int64) * 1e-9,
-              np.array([[g.x, g.y, g.z] for g in drive.ground_truth]),
-              np.array([[g.qx, g.qy, g.qz, g.qw] for g in drive.ground_truth]))  # fmt: skip
+    write_ground_truth(gt, drive)
     db = f"sqlite:///{directory / f'single-{index}.sqlite'}"
     result = cli_json("process", str(log), "--db", db, "--no-merge", "--preset", plan.preset)
     doc = directory / f"single-{index}.json"
@@ -52,9 +48,8 @@ def _ape_of_draw(directory: Path, scenario: str, seed: int, index: int) -> float
     return float(cli_json("evaluate", str(doc), "--ground-truth", str(gt))["ape_rmse"])
 
 
-def _reference_index(scenario: str, seed: int) -> int:
+def _reference_index(plan: Plan) -> int:
     """The session index ``mapserver simulate`` gives the single route (its noise draw)."""
-    plan = plan_scenario(scenario, seed)
     for index, session in enumerate(plan.sessions):
         if session is plan.single:
             return index
@@ -75,8 +70,9 @@ def main() -> None:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         directory = out / f"{args.scenario}-seed{seed}"
         directory.mkdir(parents=True, exist_ok=True)
-        reference = _ape_of_draw(directory, args.scenario, seed, _reference_index(args.scenario, seed))
-        draws = [_ape_of_draw(directory, args.scenario, seed, 100 + k) for k in range(args.draws)]
+        plan = plan_scenario(args.scenario, seed)
+        reference = _ape_of_draw(directory, plan, seed, _reference_index(plan))
+        draws = [_ape_of_draw(directory, plan, seed, 100 + k) for k in range(args.draws)]
         ratios = [d / reference for d in draws]
         runs.append({"seed": seed, "reference": reference, "draws": draws, "ratios": ratios})
         print(f"seed {seed:<3} reference {reference:.3f}  draws " + " ".join(f"{d:.3f}" for d in draws)

@@ -199,6 +199,13 @@ class StoredPlaces:
         """Return the stored place nearest to ``pose`` (its position; −1 when there is none): a hit's place."""
         return -1 if self._tree is None else int(self._tree.query(pose[:3])[1])
 
+    def rows_at(self, poses: np.ndarray) -> np.ndarray:
+        """Return :meth:`row_at` for each of ``poses`` (N, 4) at once (−1 each when the map has no place)."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+        if self._tree is None:
+            return np.full(poses.shape[0], -1, dtype=np.int64)
+        return np.asarray(self._tree.query(poses[:, :3])[1], dtype=np.int64).reshape(-1)
+
     def _near(self, pose: np.ndarray, radius: float) -> np.ndarray:
         """Return the stored experiences within ``radius`` of ``pose`` that face its way (forward views)."""
         if self._tree is None:
@@ -292,6 +299,12 @@ class Hypothesis:
     """The stored place (4,) the alignment was last re-anchored on by a hit (:meth:`HypothesisSet.reanchor`)."""
     hits: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     """(odometry, stored place) of every hit before the merge, history included: where a view put the robot."""
+
+    def record_hit(self, odometry: np.ndarray, seen: np.ndarray, metres: float) -> None:
+        """Count a hit before the merge: its metres, the heading it was seen at, and where it put the robot."""
+        self.hit_m += metres
+        self.record_turn(float(odometry[3]))
+        self.hits.append((odometry.copy(), np.array(seen, dtype=np.float64)))
 
     def record_turn(self, yaw: float) -> None:
         """Widen the span of headings the hits were seen at."""
@@ -422,9 +435,7 @@ class HypothesisSet:
             if after_merge:
                 hypothesis.post_hit_m += step
             else:
-                hypothesis.hit_m += step
-                hypothesis.record_turn(float(odometry[3]))
-                hypothesis.hits.append((odometry.copy(), np.array(seen, dtype=np.float64)))
+                hypothesis.record_hit(odometry, seen, step)
             self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
         elif outcome == MISS:
             if after_merge:
@@ -489,9 +500,7 @@ class HypothesisSet:
             weight = (last_tested if np.isfinite(last_tested) else track.last[2]) - travelled
             outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean)
             if outcome == HIT:
-                hypothesis.hit_m += weight
-                hypothesis.record_turn(float(odometry[3]))
-                hypothesis.hits.append((odometry.copy(), np.array(seen, dtype=np.float64)))
+                hypothesis.record_hit(odometry, seen, weight)
             elif outcome == MISS:
                 hypothesis.miss_m += weight
             last_tested = travelled

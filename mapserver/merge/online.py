@@ -478,7 +478,7 @@ class OnlineMerger:
         )  # fmt: skip
 
     def _robot_pose(self, engine: Engine, odometry_then: np.ndarray) -> np.ndarray:
-        """Return the robot's pose at an earlier frame in the session map's frame (via odometry since)."""
+        """Return the robot's pose at an earlier frame (or frames, (N, 4)) in the session map's frame."""
         return compose(engine.map.robot_pose(), relative(self._odometry, odometry_then))
 
     def _ties(
@@ -496,9 +496,9 @@ class OnlineMerger:
             return ()
         odometry = np.array([o for o, _ in winner.hits])
         seen = np.array([p for _, p in winner.hits])
-        robots = compose(engine.map.robot_pose(), relative(self._odometry, odometry))  # as _robot_pose, all at once
+        robots = self._robot_pose(engine, odometry)
         own = cKDTree(poses[:, :3]).query(robots[:, :3])[1]
-        place = cKDTree(places.poses[:, :3]).query(seen[:, :3])[1]  # the hit's place (StoredPlaces.row_at)
+        place = places.rows_at(seen)
         tie = compose(relative(poses[own], robots), relative(seen, places.poses[place]))
         ties = [(int(a), int(b), tuple(float(v) for v in t)) for a, b, t in zip(own, anchors[place], tie, strict=True)]
         return tuple(ties)

@@ -104,7 +104,8 @@ def render_sonar_frames(plan: Plan, drive: Drive, seed: int, index: int) -> Iter
         yield int(stamp), expose_sonar(echo, sonar, rng)
 
 
-def _write_ground_truth(path: Path, drive: Drive) -> None:
+def write_ground_truth(path: Path, drive: Drive) -> None:
+    """Write a drive's ground truth as a TUM file (stamp, position, orientation quaternion)."""
     gt = drive.ground_truth
     write_tum(
         path,
@@ -259,7 +260,7 @@ def _write_session(
     write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick), drive.odometry,
               drive.ground_truth, sonar=render_sonar_frames(plan, drive, seed, index),
               sonar_topic=plan.sonar_topic)  # fmt: skip
-    _write_ground_truth(temp / gt_name, drive)
+    write_ground_truth(temp / gt_name, drive)
     return {
         "name": session.name,
         "log": log_name,
