@@ -269,6 +269,13 @@ class StoredPlaces:
         return HIT, compose(self.poses[closest], np.array([0.0, 0.0, 0.0, turn]))
 
 
+MAX_HITS = 4096
+"""Hits one hypothesis keeps (:attr:`Hypothesis.hits`, each a merge tie if it wins). Past it every other one is
+dropped, first and newest kept: the span stays, the density halves. A hypothesis that keeps matching for kilometres
+without winning would otherwise grow its list, the resume arrays and its merge's ties for as long as it lives; at
+the simulator's 0.5 m per frame the bound is 2 km of hits, and no merge measured has had more than a few hundred."""
+
+
 @dataclass(eq=False)
 class Hypothesis:
     """One candidate alignment of the session's odometry frame with a stored map, and its evidence.
@@ -301,10 +308,15 @@ class Hypothesis:
     """(odometry, stored place) of every hit before the merge, history included: where a view put the robot."""
 
     def record_hit(self, odometry: np.ndarray, seen: np.ndarray, metres: float) -> None:
-        """Count a hit before the merge: its metres, the heading it was seen at, and where it put the robot."""
+        """Count a hit before the merge: its metres, the heading it was seen at, and where it put the robot.
+
+        At most :data:`MAX_HITS` hits are kept.
+        """
         self.hit_m += metres
         self.record_turn(float(odometry[3]))
         self.hits.append((odometry.copy(), np.array(seen, dtype=np.float64)))
+        if len(self.hits) > MAX_HITS:
+            self.hits = self.hits[::2]
 
     def record_turn(self, yaw: float) -> None:
         """Widen the span of headings the hits were seen at."""

@@ -15,6 +15,7 @@ from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import (
     HELD,
     HIT,
+    MAX_HITS,
     MISS,
     PLACE_EXTENT,
     UNMAPPED,
@@ -305,6 +306,22 @@ def test_the_resume_arrays_keep_a_hypothesis_hits_and_read_states_stored_before_
             np.testing.assert_array_equal(p, p2)
     del arrays["hits"]
     assert all(not h.hits for h in MergerState.from_arrays(arrays).hypotheses[1][0])
+
+
+def test_a_hypothesis_keeps_at_most_max_hits_the_first_and_newest_among_them_and_counts_every_metre() -> None:
+    """Past :data:`MAX_HITS` every other hit is dropped, the first and the newest kept; the hit metres still count
+    each hit, and below the bound every hit is kept (so the bound alone cannot pass)."""
+    h = Hypothesis(alignment=np.zeros(4), born=0)
+    for i in range(MAX_HITS):
+        h.record_hit(np.array([float(i), 0.0, 0.0, 0.0]), np.array([float(i), 1.0, 0.0, 0.0]), 0.5)
+    assert len(h.hits) == MAX_HITS
+    assert [float(o[0]) for o, _ in h.hits[:3]] == [0.0, 1.0, 2.0]
+    h.record_hit(np.array([float(MAX_HITS), 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 0.0]), 0.5)
+    kept = [float(o[0]) for o, _ in h.hits]
+    assert len(kept) == MAX_HITS // 2 + 1
+    assert kept[0] == 0.0 and kept[-1] == float(MAX_HITS)
+    assert kept == [float(i) for i in range(0, MAX_HITS + 1, 2)]
+    assert h.hit_m == pytest.approx(0.5 * (MAX_HITS + 1))
 
 
 def test_the_resume_arrays_keep_a_held_place_and_read_states_stored_before_it() -> None:
