@@ -27,6 +27,7 @@ import pytest
 from core import preset
 from core import robust as robust_module
 from mapserver.merge import online as online_module
+from mapserver.merge import verify as verify_module
 from mapserver.store import open_database
 from mapserver.store.merge_events import list_merge_events
 from tests.mapserver.merge.scenario_metrics import (
@@ -518,6 +519,25 @@ def test_a_late_merge_ties_the_sessions_own_copy_of_the_stored_ground_to_it(
     assert _merged_ape(directory, info, _db(tmp_path, "tied")) < 3.0
     monkeypatch.setattr(online_module, "TIE_HITS", False)
     assert _merged_ape(directory, info, _db(tmp_path, "anchored")) > 5.0
+
+
+def test_a_probation_follows_the_engines_closures_to_the_end_of_a_look_alike_longer_than_its_cap(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``twin`` turns alike 100 m, seed 1 (beyond the issue's 5–40 m; README, stop 53): the false merge at frame 68
+    passed its probation 184 m later, its prediction having left session 1's places 24 m into the look-alike
+    while the engine kept closing onto them (39 closures 3.7–16.9 m from it). Re-placed by each agreeing closure
+    (:meth:`Probation._follow_link`), the prediction stays on them to the look-alike's end, where the views part,
+    and the merge is rolled back; without it, the merge stays."""
+    directory = tmp_path / "twin"
+    info = cli_json("simulate", "twin", "--out", str(directory), "--seed", "1",
+                    "--param", "lookalike_m=100,lookalike_turns=1")  # fmt: skip
+    followed = _process_all(directory, info, _db(tmp_path, "followed"))[1]["merges"]
+    assert [m["status"] for m in followed] == ["rejected"]
+    assert "mismatches in a row" in followed[0]["evidence"]["verification"]["reason"]
+    monkeypatch.setattr(verify_module, "FOLLOW_LINKS", False)
+    unfollowed = _process_all(directory, info, _db(tmp_path, "unfollowed"))[1]["merges"]
+    assert [m["status"] for m in unfollowed] == ["applied"]
 
 
 def test_a_merged_sessions_own_first_pass_closes_within_the_merges_lever_arm(tmp_path: Path) -> None:

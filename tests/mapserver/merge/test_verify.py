@@ -11,7 +11,7 @@ import pytest
 
 from core import Action, preset
 from core.se3 import compose
-from mapserver.merge.hypotheses import HypothesisSet
+from mapserver.merge.hypotheses import Hypothesis, HypothesisSet
 from mapserver.merge.verify import (
     OPEN_PROBATION_CAP,
     PASSED,
@@ -237,7 +237,7 @@ def _linked_probation(stored: np.ndarray) -> Probation:
 def _close_loops(probation: Probation, closures: list[tuple[int, tuple[float, float]]]) -> None:
     """Loop closures onto stored experience ``e`` seen with the session's odometry at (x, y)."""
     for experience, (x, y) in closures:
-        track = SimpleNamespace(last=(0, np.array([x, y, 0.0, 0.0])))
+        track = SimpleNamespace(last=(0, np.array([x, y, 0.0, 0.0])), distance=110.0)
         probation._check_link(track, SimpleNamespace(action=Action.CREATE_EDGE, experience=experience))  # type: ignore[arg-type]
 
 
@@ -258,6 +258,28 @@ def test_loop_links_that_disagree_reject_a_merge_only_when_they_agree_on_another
     outvoted = _linked_probation(stored)  # the same two against two agreeing: not more than them
     _close_loops(outvoted, [(0, (0.0, 0.0)), (1, (10.0, 0.0)), (5, (0.0, 0.0)), (6, (10.0, 0.0))])
     assert outvoted.links_consensus == 2 and outvoted._contradiction() == ""
+
+
+def test_an_agreeing_loop_link_places_the_prediction_on_its_experience_and_counts_as_a_match() -> None:
+    """:meth:`Probation._follow_link`: a closure onto a stored experience within twice the position tolerance of the
+    prediction moves the alignment so that it predicts the robot on that experience, at the prediction's own
+    heading, and restarts the matches' clock; one farther off (a disagreeing link) moves nothing."""
+    stored = np.array([[1.2, 0.5, 0.0, 2.0], [9.0, 0.0, 0.0, 0.0]])
+    probation = _linked_probation(stored)
+    probation.hypothesis = Hypothesis(alignment=np.array([0.0, 0.0, 0.0, 0.1]), born=0)
+    odometry = np.array([1.0, 0.0, 0.0, 0.3])
+    before = probation.hypothesis.predict(odometry)  # (cos 0.1, sin 0.1, 0, 0.4): 0.53 m from experience 0
+    probation._check_link(SimpleNamespace(last=(0, odometry), distance=107.0),  # type: ignore[arg-type]
+                          SimpleNamespace(action=Action.CREATE_EDGE, experience=0))  # type: ignore[arg-type]
+    assert probation.links_agree == 1 and probation.last_hit_m == 107.0
+    assert probation.since_match_m(109.5) == pytest.approx(2.5)
+    np.testing.assert_allclose(probation.hypothesis.predict(odometry), [1.2, 0.5, 0.0, before[3]], atol=1e-12)
+    assert before[3] == pytest.approx(0.4)
+    moved = probation.hypothesis.alignment.copy()
+    probation._check_link(SimpleNamespace(last=(0, odometry), distance=108.0),  # type: ignore[arg-type]
+                          SimpleNamespace(action=Action.CREATE_EDGE, experience=1))  # type: ignore[arg-type]
+    assert probation.links_disagree == 1 and probation.last_hit_m == 107.0
+    np.testing.assert_array_equal(probation.hypothesis.alignment, moved)
 
 
 def test_a_true_merge_stands_when_the_robot_drives_on_past_the_stored_maps_end(
