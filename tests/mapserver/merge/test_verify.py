@@ -224,11 +224,11 @@ def test_link_consensus_counts_the_links_that_agree_on_one_alignment_by_hand() -
     assert link_consensus([], tolerance=2.0) == 0
 
 
-def _linked_probation(stored: np.ndarray) -> Probation:
+def _linked_probation(stored: np.ndarray, loose: bool = False) -> Probation:
     """A probation whose merge put the session's odometry onto the stored map unchanged (identity alignment)."""
     rule = SimpleNamespace(probation_m=12.0, evidence_m=4.0, miss_weight=2.0, coverage_radius=1.5, reject_m=2.0,
                            position_tolerance=1.0, probation_max_m=-1.0)  # fmt: skip
-    hset = SimpleNamespace(rule=rule, places=SimpleNamespace(poses=stored))
+    hset = SimpleNamespace(rule=rule, places=SimpleNamespace(poses=stored, loose=loose))
     hypothesis = SimpleNamespace(post_hit_m=6.0, post_miss_m=0.0, predict=lambda odometry: np.asarray(odometry))
     return Probation(key=1, hypothesis=hypothesis, hset=hset, shadow=None,  # type: ignore[arg-type]
                      start_m=100.0, loaded_experiences=len(stored))  # fmt: skip
@@ -263,7 +263,8 @@ def test_loop_links_that_disagree_reject_a_merge_only_when_they_agree_on_another
 def test_an_agreeing_loop_link_places_the_prediction_on_its_experience_and_counts_as_a_match() -> None:
     """:meth:`Probation._follow_link`: a closure onto a stored experience within twice the position tolerance of the
     prediction moves the alignment so that it predicts the robot on that experience, at the prediction's own
-    heading, and restarts the matches' clock; one farther off (a disagreeing link) moves nothing."""
+    heading, and restarts the matches' clock; one farther off (a disagreeing link) moves nothing, nor does an
+    agreeing one of a front-end that places its views loosely."""
     stored = np.array([[1.2, 0.5, 0.0, 2.0], [9.0, 0.0, 0.0, 0.0]])
     probation = _linked_probation(stored)
     probation.hypothesis = Hypothesis(alignment=np.array([0.0, 0.0, 0.0, 0.1]), born=0)
@@ -280,6 +281,12 @@ def test_an_agreeing_loop_link_places_the_prediction_on_its_experience_and_count
                           SimpleNamespace(action=Action.CREATE_EDGE, experience=1))  # type: ignore[arg-type]
     assert probation.links_disagree == 1 and probation.last_hit_m == 107.0
     np.testing.assert_array_equal(probation.hypothesis.alignment, moved)
+    loose = _linked_probation(stored, loose=True)  # sdr-htm: its own closures are not followed
+    loose.hypothesis = Hypothesis(alignment=np.array([0.0, 0.0, 0.0, 0.1]), born=0)
+    loose._check_link(SimpleNamespace(last=(0, odometry), distance=107.0),  # type: ignore[arg-type]
+                      SimpleNamespace(action=Action.CREATE_EDGE, experience=0))  # type: ignore[arg-type]
+    assert loose.links_agree == 1 and loose.last_hit_m == -1.0
+    np.testing.assert_array_equal(loose.hypothesis.alignment, [0.0, 0.0, 0.0, 0.1])
 
 
 def test_a_true_merge_stands_when_the_robot_drives_on_past_the_stored_maps_end(
