@@ -417,41 +417,41 @@ class Probation:
             return
         odometry = track.last[1]
         stored = self.hset.places.poses[result.experience]
-        gap = float(np.linalg.norm(stored[:3] - self.hypothesis.predict(odometry)[:3]))
+        predicted = self.hypothesis.predict(odometry)
+        gap = float(np.linalg.norm(stored[:3] - predicted[:3]))
         if gap <= 2.0 * self.hset.rule.position_tolerance:
             self.links_agree += 1
             if FOLLOW_LINKS and not self.hset.places.loose:
-                self._follow_link(stored, odometry, track.distance)
+                self._follow_link(stored, predicted, odometry, track.distance)
         else:
             self.worst_link_m = max(self.worst_link_m, gap)
             self.disagreeing.append((np.asarray(stored, dtype=np.float64), np.asarray(odometry, dtype=np.float64)))
             self.links_consensus = link_consensus(self.disagreeing, 2.0 * self.hset.rule.position_tolerance)
 
-    def _follow_link(self, stored: np.ndarray, odometry: np.ndarray, distance: float) -> None:
+    def _follow_link(self, stored: np.ndarray, predicted: np.ndarray, odometry: np.ndarray, distance: float) -> None:
         """Put the prediction where an agreeing loop link put the robot, and count the link as a match.
 
         The engine closed a loop onto the stored experience at ``stored`` within twice the position tolerance of
-        where the alignment predicts the robot: the robot is on the stored map where the merge says. The alignment
-        is moved so that it predicts the robot on that experience (position only: the heading stays the
-        prediction's, because the robot need not face the way the experience was made), and the matches' clock
-        restarts (:meth:`since_match_m`).
+        where the alignment predicts the robot (``predicted``, at ``odometry``): the robot is on the stored map where
+        the merge says. The alignment is moved so that it predicts the robot on that experience (position only: the
+        heading stays the prediction's, because the robot need not face the way the experience was made), and the
+        matches' clock restarts (:meth:`since_match_m`).
 
         Without it the prediction, re-anchored by view hits only, could leave the stored track inside a look-alike
         while the engine kept closing onto it; the view trials then fell on no stored place (no misses), and the
         probation ended with its matches, or passed, before the look-alike did. Traced on ``twin`` turns alike
         100 m (``circle``), seeds 1 and 6: a hit on a panoramic view's offset turned the prediction 7° and it
         drifted off session 1's places while 39 of the engine's closures landed on them, 3.7 → 16.9 m from the
-        prediction (seed 1, passed 184 m after the merge); at a 5 m hole in session 1's places the matches stopped
-        and the probation passed 77 m after the merge, 18 m before the look-alike's end (seed 6). Following the
-        links, both predictions stay on session 1's places to the look-alike's end, where the views part: both
-        merges are rolled back (4.5 and 4.3 m of mismatches in a row).
+        prediction (seed 1, passed 184 m after the merge); where session 1's places thin out (the nearest 1.0 →
+        3.2 m away over 5 frames) the matches stopped and the probation passed 77 m after the merge, 18 m before the
+        look-alike's end (seed 6). Following the links, both predictions stay on session 1's places to the
+        look-alike's end, where the views part: both merges are rolled back (4.5 and 4.3 m of mismatches in a row).
 
         Not for a front-end that places its views loosely (``sdr-htm``): its engine's own false closures land near
         a false merge's prediction, and each one followed brings the next within reach. Measured with ``neoslam``
         (``twin`` turns alike 20 m, seed 7): the false merge, rolled back at frame 102 on a run of mismatches, was
         instead kept open by followed links for 105 m to the log's end and kept (``incomplete``).
         """
-        predicted = self.hypothesis.predict(odometry)
         self.hypothesis.alignment = alignment(np.array([*stored[:3], predicted[3]]), odometry)
         self.last_hit_m = distance
 
