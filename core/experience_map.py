@@ -666,14 +666,20 @@ class ExperienceMap:
     def joint(self) -> bool:
         """Return whether the settled map and the robust check use the joint least squares (not RatSLAM's fixed point).
 
-        ``exp_relax_joint`` for every map; ``merge_relax_joint`` for a map that holds a merge link. A merged
-        map's closures carry the merge's heading error, which RatSLAM's fixed point (headings relaxed apart from
-        the position residuals) turns into a misclosure in position; a true merge or closure then looks like an
-        outlier to the robust check (README, stop 28: ``twin-overlap`` 40 m seed 7). A single session's map is
-        relaxed as OpenRatSLAM relaxes it.
+        ``exp_relax_joint`` for every map; ``merge_relax_joint`` for a merged map: one that holds a merge link
+        or experiences of more than one session (``em_origin``; a merge that identified every experience of the
+        partial map leaves no merge link). A merged map's closures carry the merge's heading error, which
+        RatSLAM's fixed point (headings relaxed apart from the position residuals) turns into a misclosure in
+        position; a true merge or closure then looks like an outlier to the robust check (README, stop 28:
+        ``twin-overlap`` 40 m seed 7). A single session's map is relaxed as OpenRatSLAM relaxes it.
         """
         p = self.params
-        return p.exp_relax_joint or (p.merge_relax_joint and bool(np.any(self._kind.view == int(LinkKind.MERGE))))
+        if p.exp_relax_joint:
+            return True
+        if not p.merge_relax_joint:
+            return False
+        origin = self._origin.view
+        return bool(np.any(self._kind.view == int(LinkKind.MERGE))) or bool(np.any(origin != origin[:1]))
 
     def _drift(self) -> Drift:
         """Return the expected odometry drift that normalises link residuals (``exp_robust_*``)."""

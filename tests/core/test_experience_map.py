@@ -181,3 +181,21 @@ def test_a_map_holding_a_merge_link_is_settled_on_the_joint_least_squares(
     assert not em.joint or changes.get("exp_relax_joint", False)  # no merge link yet
     assert em.add_link_raw(2, 0, np.array([-2.0, 0.0, 0.0, 0.0]), 1.0, 2.0, kind)
     assert em.joint is joint
+
+
+@pytest.mark.parametrize(
+    ("origins", "changes", "joint"),
+    [
+        ((0, 0, 0), {}, False),  # one session: RatSLAM's fixed point
+        ((1, 1, 0), {}, True),  # a merge identified the partial map's experiences: merged, though no merge link
+        ((1, 1, 0), {"merge_relax_joint": False}, False),
+    ],
+)
+def test_a_map_holding_experiences_of_two_sessions_is_settled_on_the_joint_least_squares(
+    origins: tuple[int, ...], changes: dict[str, bool], joint: bool
+) -> None:
+    em = _em(**changes)
+    for k, origin in enumerate(origins):
+        em.create_experience(k, np.array([float(k), 0.0, 0.0]), float(k), origin)
+    assert em.add_link_raw(2, 0, np.array([-2.0, 0.0, 0.0, 0.0]), 1.0, 2.0, LinkKind.LOOP)
+    assert em.joint is joint
