@@ -1,7 +1,7 @@
 """Wrong loop links injected into *merged* maps: the robust check with and without ``merge_relax_joint``.
 
 Usage: python bench/robust_merged.py [--out DIR] [--seeds 5] [--sizes 0.5,1,2,5] [--counts 1,5,20]
-[--maps cave3d:0:poseidon,symmetric:0:circle,twin-overlap:3:circle] [--no-ties]
+[--maps cave3d:0:poseidon,symmetric:0:circle,twin-overlap:3:circle] [--no-ties] [--no-view-heading]
 
 ``bench/robust_relaxation.py`` injects into single-session maps, which ``merge_relax_joint`` leaves alone. Here
 each ``SCENARIO:SEED:PRESET`` is simulated and both sessions are processed into one database with the contract's
@@ -61,12 +61,15 @@ def main() -> None:
     parser.add_argument("--maps", default="cave3d:0:poseidon,symmetric:0:circle,twin-overlap:3:circle")
     parser.add_argument("--no-ties", action="store_true",
                         help="merge without the ties of the winning hypothesis's hits (the maps before 2026-11-29)")
+    parser.add_argument("--no-view-heading", action="store_true",
+                        help="merge_view_heading=0: closures and ties between the sessions as before stop 55")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="robust-merged-"))
     rows = []
     for spec in args.maps.split(","):
         scenario, seed, preset = spec.split(":")
-        merged = simulate_merged(out / f"{scenario}-{seed}", scenario, int(seed), preset, tie_hits=not args.no_ties)
+        merged = simulate_merged(out / f"{scenario}-{seed}", scenario, int(seed), preset, tie_hits=not args.no_ties,
+                                 view_heading=not args.no_view_heading)  # fmt: skip
         own = closure_separation(merged)
         for joint in (False, True):
             clean = settled_ape(merged, joint, 0, 0.0, 0)[0]

@@ -151,6 +151,9 @@ class Engine:
             # (OpenRatSLAM passes its panoramic offset to both unchanged)
             shift_heading = self.params.vt_shift_heading and not self.params.openratslam_compat
             link_rad = -relative_rad if shift_heading else relative_rad
+            if self._closure_faces_the_view(target):
+                relative_rad = self.local_view.view_heading(template)
+                link_rad = -relative_rad
             loop_closure = self.map.create_link(self.map.current, target, link_rad, LinkKind.LOOP)
             self.map.set_experience(target, relative_rad)
             self.loop_closures += int(loop_closure)
@@ -168,6 +171,28 @@ class Engine:
         return StepResult(
             self.frames - 1, template, created, relative_rad, action, self.map.current, loop_closure, motion
         )
+
+    def _closure_faces_the_view(self, target: int) -> bool:
+        """Return whether a closure onto ``target`` takes the view's heading (``merge_view_heading``).
+
+        A forward view's closure carries the robot's odometry facing whatever way the view is turned (OpenRatSLAM
+        gives it no offset). A single session's map keeps that, as OpenRatSLAM makes it (``vt_shift_heading`` on
+        every closure and view made the single routes of ``symmetric`` worse: README, stop 54). A merged map is
+        settled on the joint least squares over positions and headings (``ExperienceMap.joint``), where a closure's
+        heading error bends both sessions' chains; and a closure joining two sessions' experiences (``em_origin``)
+        carries the robot's weave between their drives (README, stop 55: ``symmetric-overlap`` seed 5, two such
+        links 24° apart). Those
+        closures take the view's column shift against the matched template (:meth:`LocalViewCells.view_heading`),
+        as ``vt_shift_heading`` gives every closure. Not for ``vt_shift_heading`` (every closure has it already),
+        panoramic views (their match gives the offset), other front-ends, or ``openratslam_compat``.
+        """
+        p = self.params
+        if not p.merge_view_heading or p.vt_shift_heading or p.vt_panoramic or p.openratslam_compat:
+            return False
+        if p.frontend != "lvc" or self.map.current < 0:
+            return False
+        origins = self.map.origins
+        return bool(origins[self.map.current] != origins[target]) or self.map.joint
 
     def _get_action(self, template: int) -> tuple[Action, int]:
         """Choose the topological action (OpenRatSLAM ``PosecellNetwork::get_action``).

@@ -663,6 +663,11 @@ class ExperienceMap:
         return run
 
     @property
+    def origins(self) -> np.ndarray:
+        """Return each experience's origin tag (the session that created it; a view, not a copy)."""
+        return self._origin.view
+
+    @property
     def joint(self) -> bool:
         """Return whether the settled map and the robust check use the joint least squares (not RatSLAM's fixed point).
 

@@ -284,6 +284,24 @@ class LocalViewCells:
             relative = -float(self._view_shift(fixed_view, int(candidates[row]), width, start)) * self._column_rad
         return int(candidates[row]), error, relative
 
+    def view_heading(self, template: int, view: np.ndarray | None = None) -> float:
+        """Return a view's heading relative to ``template`` in radians, from its column shift.
+
+        The robot's heading minus the template's, as ``vt_shift_heading`` gives it with every match
+        (:meth:`_view_shift`, ``camera_fov_deg`` over the template width per column). ``view``: a template-sized
+        view (default: the last one processed). 0 for a panoramic view (its match already gives the offset),
+        before the column angle is known, or with no view. ``merge_view_heading`` asks it only where two sessions
+        meet: a closure joining their experiences, a merge's ties.
+        """
+        p = self.params
+        view = self.last_view if view is None else view
+        if view is None or p.vt_panoramic or self._column_rad <= 0 or not 0 <= template < self.count:
+            return 0.0
+        tx = int(view.shape[1])
+        start = min(p.vt_shift_match, (tx - 1) // 2)
+        fixed_view = quantise(np.asarray(view, dtype=np.float32), self._bits)
+        return -float(self._view_shift(fixed_view, template, tx - 2 * start, start)) * self._column_rad
+
     def _view_shift(self, fixed_view: np.ndarray, template: int, width: int, start: int) -> float:
         """Return the view's column shift against ``template`` to a fraction of a column (``vt_shift_heading``).
 

@@ -1,4 +1,4 @@
-"""A tiny deterministic test world shared by the engine and store tests: a 'corridor' with exact revisits."""
+"""Tiny deterministic test worlds shared by the engine and store tests: a 'corridor' with exact revisits, a panorama."""
 
 from __future__ import annotations
 
@@ -45,3 +45,12 @@ class StripWorld:
         for i in range(int(laps * self.perimeter / (speed * dt))):
             motion = Motion(0.0, 0.0, 0.0, 0.0, 0.0) if i == 0 else Motion(speed * dt, 0.0, 0.0, turn, dt)
             yield self.view(i * speed * dt), motion, i * dt
+
+
+def smooth_panorama() -> np.ndarray:
+    """A 64 × 256 random image box-filtered over 16 columns: smooth, so a match's error is a bowl around its shift."""
+    rng = np.random.default_rng(4)
+    image = np.clip(rng.normal(128.0, 40.0, (64, 256 + 16)), 0, 255)
+    image = np.cumsum(np.cumsum(image, axis=1), axis=0)
+    image = (image[:, 16:] - image[:, :-16])[:, :256]
+    return (255.0 * (image - image.min()) / np.ptp(image)).astype(np.uint8)

@@ -97,6 +97,7 @@ class Params:
     merge_sdr_min_overlap: float = 0.68  # sdr-htm merge evidence: a frame's SDR shares this share of a view cell's code
     merge_sdr_null_quantile: float = 0.0  # sdr-htm: raise it to this quantile of the map's look-alikes (0: off)
     merge_lattice_slack: float = 0.2  # cells of closure gate per cell between a merged experience and its merge anchor
+    merge_view_heading: bool = True  # closures and ties joining two sessions, closures of a merged map: view's heading
     merge_relax_joint: bool = True  # a merged map (a merge link, or two sessions' experiences): joint least squares
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False

@@ -239,6 +239,13 @@ class StoredPlaces:
     def test(
         self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
     ) -> tuple[int, np.ndarray | None]:
+        """Return :meth:`test_faced`'s outcome and place (the place a hit re-anchors a hypothesis on)."""
+        outcome, seen, _ = self.test_faced(pose, view, mean, matched)
+        return outcome, seen
+
+    def test_faced(
+        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
+    ) -> tuple[int, np.ndarray | None, np.ndarray | None]:
         """Return (HIT/MISS/UNMAPPED, where the matched stored place says the robot is (4,) on a hit).
 
         Mapped: a stored experience within ``coverage_radius`` facing the same way. Hit: the view
@@ -252,21 +259,39 @@ class StoredPlaces:
         view's heading (``vt_shift_heading``) is left out: hypotheses re-anchor on every hit, and per-hit
         forward headings turned the alignment 3–27° from hit to hit until a true merge's prediction left
         the stored places (``twin-overlap`` 40 m seed 6, rolled back after 81.6 m of matches). The merge's
-        own anchor keeps it (:mod:`mapserver.merge.online`).
+        own anchor keeps it (:mod:`mapserver.merge.online`). The third value, where a hit says the robot faced,
+        turns the place by a forward view's heading (``merge_view_heading``, :meth:`_view_turn`): a merge's ties
+        keep it (:meth:`mapserver.merge.online.OnlineMerger._ties`), not the hypotheses.
         """
         if self._near(pose, self.rule.coverage_radius).size == 0:
-            return UNMAPPED, None
+            return UNMAPPED, None, None
         near = self._near(pose, self.rule.position_tolerance)
         u, _error, relative = self.cells.match_among(view, mean, self.templates[near], limit=self.threshold)
         if u < 0:
             best = self.best_match(view, mean) if matched is None else matched
             if best >= 0 and (not self.placed[best] or self._placed_near(best, pose)):
-                return UNMAPPED, None
-            return MISS, None
+                return UNMAPPED, None, None
+            return MISS, None, None
         mine = near[self.templates[near] == u]
         closest = mine[int(np.argmin(np.linalg.norm(self.poses[mine, :3] - pose[:3], axis=1)))]
         turn = relative if self.panoramic else 0.0  # a forward view's heading (vt_shift_heading) jitters per hit
-        return HIT, compose(self.poses[closest], np.array([0.0, 0.0, 0.0, turn]))
+        seen = compose(self.poses[closest], np.array([0.0, 0.0, 0.0, turn]))
+        return HIT, seen, compose(seen, np.array([0.0, 0.0, 0.0, self._view_turn(u, view, relative)]))
+
+    def _view_turn(self, template: int, view: np.ndarray, relative: float) -> float:
+        """Return a forward view's heading against the stored ``template`` it hit (``merge_view_heading``; else 0).
+
+        ``vt_shift_heading``'s offset when the matcher gives one, else the view's column shift
+        (``LocalViewCells.view_heading``); 0 for panoramic views (the place already faces their offset) and for
+        matchers without columns (``sdr-htm`` readers).
+        """
+        params = getattr(self.cells, "params", None)
+        if self.panoramic or params is None or not params.merge_view_heading or params.openratslam_compat:
+            return 0.0
+        if params.vt_shift_heading:
+            return relative
+        heading = getattr(self.cells, "view_heading", None)
+        return 0.0 if heading is None else float(heading(template, view))
 
 
 MAX_HITS = 4096
@@ -305,7 +330,8 @@ class Hypothesis:
     anchor_place: np.ndarray | None = None
     """The stored place (4,) the alignment was last re-anchored on by a hit (:meth:`HypothesisSet.reanchor`)."""
     hits: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
-    """(odometry, stored place) of every hit before the merge, history included: where a view put the robot."""
+    """(odometry, stored place) of every hit before the merge, history included: where a view put the robot, facing
+    the way the view says (:meth:`StoredPlaces.test_faced`)."""
 
     def record_hit(self, odometry: np.ndarray, seen: np.ndarray, metres: float) -> None:
         """Count a hit before the merge: its metres, the heading it was seen at, and where it put the robot.
@@ -439,7 +465,7 @@ class HypothesisSet:
         after_merge: bool,
         matched: int | None = None,
     ) -> int:
-        outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean, matched)
+        outcome, seen, faced = self.places.test_faced(hypothesis.predict(odometry), view, mean, matched)
         if outcome == HIT and self.places.loose and self._held(hypothesis, seen, step):
             self.reanchor(hypothesis, seen, odometry, once=False)
             return HELD
@@ -447,7 +473,7 @@ class HypothesisSet:
             if after_merge:
                 hypothesis.post_hit_m += step
             else:
-                hypothesis.record_hit(odometry, seen, step)
+                hypothesis.record_hit(odometry, faced, step)
             self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
         elif outcome == MISS:
             if after_merge:
@@ -510,9 +536,9 @@ class HypothesisSet:
             if last_tested - travelled < spacing and np.isfinite(last_tested):
                 continue
             weight = (last_tested if np.isfinite(last_tested) else track.last[2]) - travelled
-            outcome, seen = self.places.test(hypothesis.predict(odometry), view, mean)
+            outcome, _, faced = self.places.test_faced(hypothesis.predict(odometry), view, mean)
             if outcome == HIT:
-                hypothesis.record_hit(odometry, seen, weight)
+                hypothesis.record_hit(odometry, faced, weight)
             elif outcome == MISS:
                 hypothesis.miss_m += weight
             last_tested = travelled

@@ -12,7 +12,7 @@ from core import Engine
 from core.config import Params
 from core.engine import Action
 from core.motion import Motion
-from tests.worlds import StripWorld
+from tests.worlds import StripWorld, smooth_panorama
 
 
 def _params(**changes: object) -> Params:
@@ -213,3 +213,40 @@ def test_poseidon_state_restores_bit_for_bit() -> None:
     resumed = Engine.restore(params, first.snapshot())
     _run(resumed, frames[70:])
     _assert_same_state(whole.snapshot(), resumed.snapshot())
+
+
+@pytest.mark.parametrize(
+    ("second_origin", "changes", "joins"),
+    [
+        (1, {}, True),  # a closure from session 1's experience onto session 0's: the view's heading
+        (0, {}, False),  # both experiences of one session: OpenRatSLAM's closure, no offset
+        (0, {"exp_relax_joint": True}, True),  # a map settled on the joint least squares (as a merged map is)
+        (1, {"merge_view_heading": False}, False),  # the key off: OpenRatSLAM's closure
+        (1, {"openratslam_compat": True}, False),
+    ],
+)
+def test_a_closure_that_joins_two_sessions_or_closes_a_merged_map_takes_the_views_heading(
+    second_origin: int, changes: dict[str, object], joins: bool
+) -> None:
+    """``merge_view_heading``: view A makes experience 0 (origin 0); views B and C (A upside down, A inverted), a
+    step on each, experiences 1 and 2 (origin ``second_origin``); A again, turned left by 5 of 256 pixels of a 360°
+    camera, closes 2 → 0. With no turn in the odometry the link's heading change is the view's: −5·2π/256
+    (experience 0 faces that far right of the robot), and the robot's facing restarts 5·2π/256 left of experience
+    0's. So it is in a map settled on the joint least squares. Within one session's map (or with the key off) a
+    forward view's closure has no offset: 0 and experience 0's facing."""
+    params = _params(template_x_size=128, template_y_size=32, vt_shift_match=10, vt_step_match=2,
+                     vt_match_threshold=0.02, camera_fov_deg=360.0, **changes)  # fmt: skip
+    engine = Engine(params, origin=0)
+    a = smooth_panorama()
+    step = Motion(0.1, 0.0, 0.0, 0.0, 0.1)
+    engine.step(a, step, 0.0)
+    engine.origin = second_origin
+    engine.step(np.flipud(a), step, 0.1)
+    engine.step(255 - a, step, 0.2)
+    result = engine.step(np.roll(a, 5, axis=1), step, 0.3)
+    assert result.action == Action.CREATE_EDGE and engine.map.current == 0
+    source, target, transform = (view[-1] for view in engine.map.links[:3])
+    assert (source, target) == (2, 0)
+    turn = 5 * 2 * math.pi / 256 if joins else 0.0
+    assert transform[3] == pytest.approx(-turn, abs=0.1 * 2 * math.pi / 128)
+    assert engine.map.accum[3] == pytest.approx(engine.map.poses[0, 3] + turn, abs=0.1 * 2 * math.pi / 128)

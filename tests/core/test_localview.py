@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from core.config import Params
 from core.localview import LocalViewCells, patch_normalise
+from tests.worlds import smooth_panorama
 
 # grey levels of a 4 × 6 test image; the RGB version is (g − 9, g, g + 9), whose channel mean is g
 GREY = np.array(
@@ -156,15 +157,6 @@ def test_panoramic_relative_rad_at_a_known_circular_offset(offset: int, expected
     assert rad == pytest.approx(expected_rad, abs=1e-12)
 
 
-def _smooth_panorama() -> np.ndarray:
-    """A 64 × 256 random image box-filtered over 16 columns: smooth, so a match's error is a bowl around its shift."""
-    rng = np.random.default_rng(4)
-    image = np.clip(rng.normal(128.0, 40.0, (64, 256 + 16)), 0, 255)
-    image = np.cumsum(np.cumsum(image, axis=1), axis=0)
-    image = (image[:, 16:] - image[:, :-16])[:, :256]
-    return (255.0 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
-
-
 @pytest.mark.parametrize("pixels", [-8, -7, -3, 0, 1, 2, 5, 8])
 def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_column(pixels: int) -> None:
     """``vt_shift_heading``: a 360° camera (256 pixels, 128 template columns) turned left by ``pixels`` pixel
@@ -173,7 +165,7 @@ def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_colum
     steps 2 columns from a shift of 5, so only the parabola through the best whole column and its
     neighbours finds it (within ±4 columns; at the search's edge, 5, it stops there). Off (OpenRatSLAM), a
     forward view has no heading offset."""
-    image = _smooth_panorama()
+    image = smooth_panorama()
     params = {"template_x_size": 128, "template_y_size": 32, "vt_shift_match": 5, "vt_step_match": 2,
               "vt_match_threshold": 0.2, "camera_fov_deg": 360.0}  # fmt: skip
     for heading, expected in ((True, pixels * 2 * math.pi / 256), (False, 0.0)):
@@ -184,6 +176,30 @@ def test_a_forward_views_column_shift_gives_its_heading_to_a_fraction_of_a_colum
         assert rad == pytest.approx(expected, abs=0.1 * 2 * math.pi / 128)
 
 
+@pytest.mark.parametrize("pixels", [-7, -2, 0, 3, 8])
+def test_the_last_views_heading_against_a_template_is_its_column_shift_even_with_vt_shift_heading_off(
+    pixels: int,
+) -> None:
+    """``view_heading`` (``merge_view_heading``): the match itself gives a forward view no offset (OpenRatSLAM),
+    but asked for the last view's heading against template 0 it gives the same column shift ``vt_shift_heading``
+    gives, pixels · 2π/256 (360°, 256 pixels); a panoramic view's offset comes from its match, so 0 there, and
+    0 for a template that does not exist."""
+    image = smooth_panorama()
+    params = {"template_x_size": 128, "template_y_size": 32, "vt_shift_match": 10, "vt_step_match": 2,
+              "vt_match_threshold": 0.2, "camera_fov_deg": 360.0}  # fmt: skip
+    cells = _cells(**params)
+    assert cells.view_heading(0) == 0.0  # no view yet
+    cells.process(image)
+    best, rad, created = cells.process(np.roll(image, pixels, axis=1))
+    assert (best, rad, created) == (0, 0.0, False)
+    assert cells.view_heading(0) == pytest.approx(pixels * 2 * math.pi / 256, abs=0.1 * 2 * math.pi / 128)
+    assert cells.view_heading(1) == 0.0
+    panoramic = _cells(**params, vt_panoramic=True)
+    panoramic.process(image)
+    panoramic.process(np.roll(image, pixels, axis=1))
+    assert panoramic.view_heading(0) == 0.0
+
+
 def test_a_stored_maps_matcher_knows_its_columns_heading_without_an_image() -> None:
     """A matcher rebuilt from stored templates (a stored map's places, an offline merge) has made no template:
     with the full width kept a column spans ``camera_fov_deg``/``template_x_size`` (360°/128), and a view turned
@@ -191,7 +207,7 @@ def test_a_stored_maps_matcher_knows_its_columns_heading_without_an_image() -> N
     part of the width needs the image (100 of 200 pixels: half as much per column), so before one it is 0."""
     params = {"template_x_size": 128, "template_y_size": 32, "vt_shift_match": 5, "vt_step_match": 2,
               "vt_match_threshold": 0.2, "camera_fov_deg": 360.0, "vt_shift_heading": True}  # fmt: skip
-    image = _smooth_panorama()
+    image = smooth_panorama()
     seen = _cells(**params)
     seen.process(image)
     stored = LocalViewCells.restore(seen.params, seen.snapshot())

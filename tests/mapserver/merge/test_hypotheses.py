@@ -84,6 +84,35 @@ def test_a_forward_views_heading_does_not_turn_the_place_a_hit_re_anchors_on() -
     np.testing.assert_allclose(seen, [2.0, 0.0, 0.0, 0.0])
 
 
+@pytest.mark.parametrize(
+    ("changes", "faces"),
+    [
+        ({}, True),  # merge_view_heading (default): the view's column shift
+        ({"vt_shift_heading": True}, True),  # the matcher's own offset
+        ({"merge_view_heading": False}, False),
+        ({"openratslam_compat": True}, False),
+    ],
+)
+def test_a_hits_facing_turns_its_place_by_the_forward_views_heading(changes: dict[str, bool], faces: bool) -> None:
+    """``test_faced``: template 2 turned by one column (``camera_fov_deg``/32 = 1.5625°) is a hit at experience 2;
+    the place a hypothesis re-anchors on keeps the experience's heading, while where the hit says the robot faced
+    (a merge's tie) turns by the view's heading, the column, left of the template for a roll of +1 (the
+    shift is −1 column). With the key off, or OpenRatSLAM's behaviour, it is the place."""
+    cells = LocalViewCells(PARAMS.replace(**changes))
+    cells.add_templates(TEMPLATES, TEMPLATES.reshape(6, -1).mean(axis=1, dtype=np.float64))
+    poses = np.array([[float(i), 0.0, 0.0, 0.0] for i in range(6)])
+    places = StoredPlaces(cells, poses, np.arange(6), PARAMS.vt_match_threshold, False, RULE)
+    view = np.roll(TEMPLATES[2], 1, axis=1)
+    outcome, seen, faced = places.test_faced(np.array([2.2, 0.1, 0.0, 0.1]), view, float(view.mean(dtype=np.float64)))
+    assert outcome == HIT
+    np.testing.assert_allclose(seen, [2.0, 0.0, 0.0, 0.0])
+    column = math.radians(PARAMS.camera_fov_deg) / PARAMS.template_x_size
+    assert cells.column_rad == pytest.approx(column)
+    np.testing.assert_allclose(faced[:3], [2.0, 0.0, 0.0])
+    assert faced[3] == pytest.approx(column if faces else 0.0, abs=0.25 * column)
+    assert places.test_faced(np.array([2.2, 0.1, 0.0, 0.1]), *_view(-1))[0] == MISS
+
+
 def test_a_view_whose_best_match_has_no_place_says_nothing() -> None:
     places = _places()
     places.placed[5] = False  # template 5 kept by the stored session's gates without an experience
