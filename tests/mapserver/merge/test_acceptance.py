@@ -512,10 +512,10 @@ def test_a_merge_that_identified_every_partial_experience_is_settled_as_a_merged
     """``symmetric-overlap`` seed 15 (README, stop 54): session 2 merges at frame 8, and the merge identifies its
     partial map's experiences with stored ones, so the merged map holds no merge link. Taken for a single session's
     map, it was settled at RatSLAM's fixed point: 0.99 m APE against 0.43 m for the single route and 0.52 m at the
-    joint least squares of the same active links. Two sessions' experiences make it a merged map: 0.52 m. With
-    ``merge_relax_joint=0`` (RatSLAM's fixed point for every map) and ``merge_view_heading=0`` (the closures and
-    ties between the sessions facing the robot's odometry, not the views' headings: 0.59 m with them, stop 55)
-    the failure is back."""
+    joint least squares of the same active links. Two sessions' experiences make it a merged map: 0.52 m (0.45 m
+    with stop 55's view headings). With ``merge_relax_joint=0`` (RatSLAM's fixed point for every map) and
+    ``merge_view_heading=0`` (the closures and ties between the sessions facing the robot's odometry, not the
+    views' headings: 0.59 m with them, stop 55) the failure is back."""
     directory = tmp_path / "symmetric-overlap"
     info = cli_json("simulate", "symmetric-overlap", "--out", str(directory), "--seed", "15")
     assert _merged_ape(directory, info, _db(tmp_path, "joint")) < 0.6
