@@ -236,16 +236,21 @@ class StoredPlaces:
         """Return the stored template the view matches best within the threshold (−1: none)."""
         return self.cells.match(view, mean, limit=self.threshold)[0]
 
-    def test(
-        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
-    ) -> tuple[int, np.ndarray | None]:
-        """Return :meth:`test_faced`'s outcome and place (the place a hit re-anchors a hypothesis on)."""
-        outcome, seen, _ = self.test_faced(pose, view, mean, matched)
-        return outcome, seen
-
     def test_faced(
         self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
     ) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+        """Return :meth:`test`'s outcome and place, and on a hit where it says the robot faced (:meth:`_view_turn`).
+
+        The facing costs a column search, so only a hit that is recorded asks for it.
+        """
+        outcome, seen, template, relative = self._trial(pose, view, mean, matched)
+        if seen is None:
+            return outcome, None, None
+        return outcome, seen, compose(seen, np.array([0.0, 0.0, 0.0, self._view_turn(template, view, relative)]))
+
+    def test(
+        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
+    ) -> tuple[int, np.ndarray | None]:
         """Return (HIT/MISS/UNMAPPED, where the matched stored place says the robot is (4,) on a hit).
 
         Mapped: a stored experience within ``coverage_radius`` facing the same way. Hit: the view
@@ -259,24 +264,29 @@ class StoredPlaces:
         view's heading (``vt_shift_heading``) is left out: hypotheses re-anchor on every hit, and per-hit
         forward headings turned the alignment 3–27° from hit to hit until a true merge's prediction left
         the stored places (``twin-overlap`` 40 m seed 6, rolled back after 81.6 m of matches). The merge's
-        own anchor keeps it (:mod:`mapserver.merge.online`). The third value, where a hit says the robot faced,
-        turns the place by a forward view's heading (``merge_view_heading``, :meth:`_view_turn`): a merge's ties
-        keep it (:meth:`mapserver.merge.online.OnlineMerger._ties`), not the hypotheses.
+        own anchor keeps it (:mod:`mapserver.merge.online`); a merge's ties take the view's heading
+        (:meth:`test_faced`).
         """
+        outcome, seen, _, _ = self._trial(pose, view, mean, matched)
+        return outcome, seen
+
+    def _trial(
+        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None
+    ) -> tuple[int, np.ndarray | None, int, float]:
+        """Return :meth:`test`'s outcome and place, the stored template hit (−1) and the match's offset."""
         if self._near(pose, self.rule.coverage_radius).size == 0:
-            return UNMAPPED, None, None
+            return UNMAPPED, None, -1, 0.0
         near = self._near(pose, self.rule.position_tolerance)
         u, _error, relative = self.cells.match_among(view, mean, self.templates[near], limit=self.threshold)
         if u < 0:
             best = self.best_match(view, mean) if matched is None else matched
             if best >= 0 and (not self.placed[best] or self._placed_near(best, pose)):
-                return UNMAPPED, None, None
-            return MISS, None, None
+                return UNMAPPED, None, -1, 0.0
+            return MISS, None, -1, 0.0
         mine = near[self.templates[near] == u]
         closest = mine[int(np.argmin(np.linalg.norm(self.poses[mine, :3] - pose[:3], axis=1)))]
         turn = relative if self.panoramic else 0.0  # a forward view's heading (vt_shift_heading) jitters per hit
-        seen = compose(self.poses[closest], np.array([0.0, 0.0, 0.0, turn]))
-        return HIT, seen, compose(seen, np.array([0.0, 0.0, 0.0, self._view_turn(u, view, relative)]))
+        return HIT, compose(self.poses[closest], np.array([0.0, 0.0, 0.0, turn])), u, relative
 
     def _view_turn(self, template: int, view: np.ndarray, relative: float) -> float:
         """Return a forward view's heading against the stored ``template`` it hit (``merge_view_heading``; else 0).
@@ -465,7 +475,11 @@ class HypothesisSet:
         after_merge: bool,
         matched: int | None = None,
     ) -> int:
-        outcome, seen, faced = self.places.test_faced(hypothesis.predict(odometry), view, mean, matched)
+        predicted = hypothesis.predict(odometry)
+        if after_merge:  # a probation's hit records no place
+            outcome, seen, faced = *self.places.test(predicted, view, mean, matched), None
+        else:
+            outcome, seen, faced = self.places.test_faced(predicted, view, mean, matched)
         if outcome == HIT and self.places.loose and self._held(hypothesis, seen, step):
             self.reanchor(hypothesis, seen, odometry, once=False)
             return HELD
@@ -473,7 +487,7 @@ class HypothesisSet:
             if after_merge:
                 hypothesis.post_hit_m += step
             else:
-                hypothesis.record_hit(odometry, faced, step)
+                hypothesis.record_hit(odometry, faced, step)  # type: ignore[arg-type]  # a hit has a place
             self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
         elif outcome == MISS:
             if after_merge:
