@@ -1,7 +1,7 @@
 """False and true merges of the merge decision on the look-alike scenarios (issue 12), swept over strength.
 
 Usage: python bench/lookalike_sweep.py [--out DIR] [--seeds 3] [--rows twin:5,twin:10,...] [--param K=V,...]
-[--set K=V,...] [--alone]
+[--set K=V,...] [--alone] [--floor]
 
 Each row is ``SCENARIO`` or ``SCENARIO:STRENGTH`` (``lookalike_m`` for twin, ``symmetric_deg`` for
 symmetric). Per seed it runs the contract's commands: ``mapserver simulate SCENARIO --out D --seed N
@@ -18,7 +18,10 @@ session 2's experiences within 10 s of it from their true positions in session 1
 stored map's own drift; until 2026-11-26 this judged applied merges, and called a merge onto the right place of
 a map drifted 9 m there false). With ``--alone`` each merged run also processes both sessions alone and prints
 them against their parts of the merged map (each part aligned on its own): whether a merge made either
-session's ground worse, apart from the single route's own odometry noise.
+session's ground worse, apart from the single route's own odometry noise. With ``--floor`` each run also prints the
+closure floor of the final map and of its reference (:mod:`tests.mapserver.merge.closure_floor`: each re-solved with
+every loop and merge link replaced by the truth), so an APE ratio can be told apart from the ratio of the two
+odometry draws.
 Prints one line per row and, last, one JSON object with every figure.
 """
 
@@ -37,6 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
 from core import preset
+from tests.mapserver.merge.closure_floor import closure_floor_of
 from tests.mapserver.merge.scenario_metrics import cli_json, true_alignment
 
 STRENGTH = {"twin": "lookalike_m", "twin-overlap": "lookalike_m", "symmetric": "symmetric_deg",
@@ -166,7 +170,7 @@ def _sessions_alone(directory: Path, sessions: list[dict], set_args: list[str]) 
 
 def run_once(
     out: Path, scenario: str, strength: float | None, seed: int, tol_m: float, tol_deg: float, extra: str = "",
-    settings: str = "", alone: bool = False,
+    settings: str = "", alone: bool = False, floor: bool = False,
 ) -> dict:
     """Simulate one seed of a row, process its two sessions into one database, classify the merges.
 
@@ -174,7 +178,8 @@ def run_once(
     verification. Also: metres session 2 drove on session 1's ground before its first surviving merge,
     the APE of session 2's final map and the APE of session 2 processed alone (twin) or of the ``single``
     route (the others). ``settings`` (``--set``) go to every ``mapserver process``. ``alone``: also each
-    session processed alone and its part of the final map (:func:`_sessions_alone`; merged runs only).
+    session processed alone and its part of the final map (:func:`_sessions_alone`; merged runs only). ``floor``:
+    also the closure floor of the final map and of the reference (:mod:`tests.mapserver.merge.closure_floor`).
     """
     directory = out / f"{scenario}-{strength if strength is not None else 'default'}-seed{seed}"
     argv = ["simulate", scenario, "--out", str(directory), "--seed", str(seed)]
@@ -216,9 +221,22 @@ def run_once(
     reference = doc["single"] if scenario != "twin" and doc.get("single") else s2
     ape_alone = _ape_alone(directory, reference, set_args, "alone")
     run = {"seed": seed, "merges": merges, "shared_m_before_merge": shared, "ape": ape, "ape_reference": ape_alone}
+    if floor:
+        run["floor"] = closure_floor_of(directory / "final.json", directory / "final.gt.tum")
+        run["floor_reference"] = closure_floor_of(directory / "alone.json", directory / "alone.gt.tum")
     if alone and applied:
         run["sessions"] = _sessions_alone(directory, in_map, set_args)
     return run
+
+
+def _print_floor(runs: list[dict]) -> None:
+    """Print per seed the APE ratio beside the closure floors' ratio (what the two odometry draws alone give)."""
+    for r in runs:
+        f, g = r["floor"], r["floor_reference"]
+        ratio = r["ape"] / r["ape_reference"]
+        print(f"  seed {r['seed']:<3} APE {r['ape']:.3f} / {r['ape_reference']:.3f} = {ratio:.2f}"
+              f"   floor {f['floor']:.3f} / {g['floor']:.3f} = {f['floor'] / g['floor']:.2f}"
+              f"   APE over floor {r['ape'] / f['floor']:.2f} / {r['ape_reference'] / g['floor']:.2f}", flush=True)
 
 
 def main() -> None:
@@ -235,13 +253,17 @@ def main() -> None:
                         help="engine parameters for every process run, e.g. vt_shift_heading=1,exp_relax_joint=1")
     parser.add_argument("--alone", action="store_true",
                         help="also process each session alone and print it against its part of the merged map")
+    parser.add_argument("--floor", action="store_true",
+                        help="also the closure floor of each final map and its reference: the APE with every loop and "
+                             "merge link replaced by the truth (what the odometry draw leaves)")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="lookalike-"))
     figures: dict[str, Any] = {}
     for row in args.rows.split(","):
         scenario, _, value = row.partition(":")
         strength = float(value) if value else None
-        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param, args.settings, args.alone)
+        runs = [run_once(out, scenario, strength, seed, args.tol_m, args.tol_deg, args.param, args.settings, args.alone,
+                         args.floor)
                 for seed in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
         surviving = sum(any(m["false"] and m["status"] == "applied" for m in r["merges"]) for r in runs)
         rolled = sum(any(m["false"] and m["status"] == "rejected" for m in r["merges"]) for r in runs)
@@ -255,6 +277,8 @@ def main() -> None:
         print(f"{row:<20} seeds {len(runs)}  surviving false {surviving}  rolled back {rolled}  true {true}  "
               f"shared m before merge (median/max) {med}  APE ratio median {np.median(ratios):.2f} "
               f"max {max(ratios):.2f}", flush=True)  # fmt: skip
+        if args.floor:
+            _print_floor(runs)
         for r in runs:
             if "sessions" in r:
                 parts = "  ".join(f"{k}: alone {v['alone']:.2f}, in the map {v['part']:.2f}"

@@ -32,7 +32,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order
+from scipy.sparse.csgraph import breadth_first_order, dijkstra
 
 from core.relaxation import sums_to_root
 from core.se3 import compose, inverse, relative, wrap_angle
@@ -308,3 +308,41 @@ def greedy_clique(consistent: np.ndarray) -> np.ndarray:
         if consistent[link, kept].all():
             kept[link] = True
     return kept
+
+
+def map_consistency(
+    pose: np.ndarray,
+    links: tuple[np.ndarray, np.ndarray, np.ndarray],
+    graph: tuple[np.ndarray, np.ndarray, np.ndarray],
+    scale: tuple[float, float],
+) -> np.ndarray:
+    """Return ``z_map`` (K,) per link: its miss in the map as it stood over what the path between its ends allows.
+
+    The translation part of :func:`single_consistency` with the map as it stood in place of the dead reckoning:
+    ``pose`` is that map's fixed point (the links on in it solved), ``graph`` (src, dst, metres) its links, and for a
+    link ``i → j`` holding ``T``, ``z_map = ‖(X_i ⊕ T)_xyz − X_j‖ / (drift·(L + s) + UNARY_REACH·s)``, with ``L`` the
+    shortest path from ``i`` to ``j`` over those links and ``s`` one link length (``scale`` = (s, drift)). For the
+    links whose ends the odometry does not join, which :func:`single_consistency` cannot test: a map whose merge and
+    loop links have been checked holds its sessions together to within the drift of the path between any two of its
+    places, where dead reckoning along one merge link carries that link's error times a lever arm. Heading is not
+    weighed: across merge links it has its own test (:func:`heading_consistency`). Flagged above
+    ``UNARY_THRESHOLD``, so paths too long to flag anything are not searched: 0 where no such path joins the ends.
+    """
+    src, dst, transform = links
+    if src.size == 0:
+        return np.zeros(0)
+    s, drift = scale
+    miss = np.linalg.norm(compose(pose[src], transform)[:, :3] - pose[dst, :3], axis=1)
+    reach = (float(miss.max()) / UNARY_THRESHOLD - UNARY_REACH * s) / drift - s
+    if reach <= 0.0:
+        return np.zeros(src.size)
+    g_src, g_dst, metres = graph
+    a, b, w = np.r_[g_src, g_dst], np.r_[g_dst, g_src], np.r_[np.abs(metres), np.abs(metres)] + 1e-12
+    order = np.lexsort((w, b, a))  # the shortest of parallel links first
+    a, b, w = a[order], b[order], w[order]
+    first = np.r_[True, (a[1:] != a[:-1]) | (b[1:] != b[:-1])]
+    n = pose.shape[0]
+    matrix = sp.csr_matrix((w[first], (a[first], b[first])), shape=(n, n))
+    starts, row = np.unique(src, return_inverse=True)
+    path = dijkstra(matrix, indices=starts, limit=reach)[row, dst]
+    return miss / (drift * (path + s) + UNARY_REACH * s)

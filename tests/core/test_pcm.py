@@ -19,6 +19,7 @@ from core.pcm import (
     greedy_clique,
     heading_bias,
     heading_consistency,
+    map_consistency,
     pair_consistency,
     single_consistency,
 )
@@ -249,3 +250,28 @@ def test_heading_consistency_returns_a_links_extra_turn_whatever_frame_the_map_i
     moved = compose(np.array([3.0, -7.0, 1.0, frame_yaw]), pose)
     again, _ = heading_consistency(moved, (src, dst, transform), paths)
     assert np.allclose(wrap_angle(again - got), 0.0, atol=1e-9)
+
+
+def _two_chains() -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Experiences 0-4 along x at y = 0 and 5-9 along x at y = 2 (1 m apart in each), joined by 4 → 9 (2 m) and a
+    parallel 10 m link 9 → 4; experience 10 stands alone at the origin. Returns the poses and (src, dst, metres)."""
+    pose = np.zeros((11, 4))
+    pose[:5, 0] = pose[5:10, 0] = np.arange(5.0)
+    pose[5:10, 1] = 2.0
+    src = np.array([0, 1, 2, 3, 5, 6, 7, 8, 4, 9])
+    dst = np.array([1, 2, 3, 4, 6, 7, 8, 9, 9, 4])
+    metres = np.array([1.0] * 8 + [2.0, 10.0])
+    return pose, (src, dst, metres)
+
+
+def test_map_consistency_by_hand_on_two_chains_joined_at_one_end() -> None:
+    pose, graph = _two_chains()
+    # 0 → 5 true (2 m to the left); 0 → 5 saying "same place" (2 m off); 0 → 5 saying "20 m behind" (20 m off);
+    # 0 → 10: no path
+    src, dst = np.array([0, 0, 0, 0]), np.array([5, 5, 5, 10])
+    transform = np.array([[0.0, 2, 0, 0], [0.0, 0, 0, 0], [-20.0, 2, 0, 0], [0.0, 0, 0, 0]])
+    z = map_consistency(pose, (src, dst, transform), graph, (1.0, 0.1))
+    # the shortest path 0 → 5 is 4 + 2 + 4 = 10 m (the parallel 10 m link is not taken): allowed 0.1·(10 + 1) + 3·1
+    assert z.tolist() == pytest.approx([0.0, 2.0 / 4.1, 20.0 / 4.1, 0.0])
+    # a miss that could not exceed UNARY_THRESHOLD (1.5) over any path: no search, 0
+    assert map_consistency(pose, (src[1:2], dst[1:2], transform[1:2]), graph, (1.0, 0.1)).tolist() == [0.0]

@@ -20,6 +20,7 @@ from core.robust import (
     _Problem,
     chain_headings,
     component_anchors,
+    contradicts_the_map,
     false_loop_links,
     health,
     keep_connected,
@@ -928,3 +929,44 @@ def test_an_odometry_link_a_check_switched_off_stays_switchable_without_its_reck
     em.settle()
     assert em.link_active[-2] == (not false) and not em.link_active[-1]
     assert _pose_gap(em.poses, clean) < 1e-3
+
+
+def _two_parallel_sessions() -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+    """Session A: 0-9 along x (1 m odometry links); session B: 10-19 along x at y = 1; one merge link 9 → 19.
+    Returns the poses, (src, dst, transform, distance) and which links may be switched (the merge link)."""
+    pose = np.zeros((20, 4))
+    pose[:10, 0] = pose[10:, 0] = np.arange(10.0)
+    pose[10:, 1] = 1.0
+    src = np.r_[np.arange(9), np.arange(10, 19), 9]
+    dst = np.r_[np.arange(1, 10), np.arange(11, 20), 19]
+    transform = np.zeros((19, 4))
+    transform[:18, 0] = 1.0
+    transform[18] = [0.0, 1.0, 0.0, 0.0]
+    distance = np.linalg.norm(transform[:, :3], axis=1)
+    can = np.zeros(19, dtype=bool)
+    can[18] = True
+    return pose, (src, dst, transform, distance), can
+
+
+def test_the_stored_map_refutes_a_link_between_sessions_that_the_path_between_its_ends_cannot_explain() -> None:
+    """A link between the sessions claiming 8 m where the stored map holds 0 m (12 lies beside 2): over the 15 m path
+    2 → 9 → 19 → 12 the map allows 0.1·(15 + 1) + 3·1 = 4.6 m (drift·(L + s) + UNARY_REACH·s), 8/4.6 = 1.74 >
+    UNARY_THRESHOLD: refuted. Must still pass: the true link 5 → 15; the same wrong link 6 m off (1.30); the wrong link
+    when the stored map held it (nothing to test against); a wrong link within one session (the odometry joins
+    its ends: :func:`contradicts_odometry`'s test); the wrong link when session B is the running one (its links are
+    not the stored map's: no path through the stored map joins the ends)."""
+    pose, (src, dst, transform, distance), can = _two_parallel_sessions()
+    extra_src, extra_dst = np.array([2, 5, 2, 0]), np.array([12, 15, 12, 8])
+    extra = np.array([[8.0, 1.0, 0, 0], [0.0, 1.0, 0, 0], [6.0, 1.0, 0, 0], [0.0, 0.0, 0, 0]])
+    graph = (np.r_[src, extra_src], np.r_[dst, extra_dst], np.r_[transform, extra],
+             np.r_[distance, np.linalg.norm(extra[:, :3], axis=1)])  # fmt: skip
+    can = np.r_[can, np.ones(4, dtype=bool)]
+    stood = np.r_[np.ones(19, dtype=bool), np.zeros(4, dtype=bool)]
+    drift = Drift(0.1, 0.1, 4.0)
+    refuted = contradicts_the_map(pose, graph, can, can & ~stood, stood, 1.0, drift)
+    assert refuted.tolist() == [False] * 19 + [True, False, False, False]
+    running = stood.copy()
+    running[9:18] = False  # session B's odometry links are the running session's, not the stored map's
+    assert not contradicts_the_map(pose, graph, can, can & ~stood, running, 1.0, drift).any()
+    stood[19] = True  # the wrong link as part of the stored map
+    assert not contradicts_the_map(pose, graph, can, can & ~stood, stood, 1.0, drift).any()

@@ -24,6 +24,12 @@ pytestmark = pytest.mark.slow
 SIZE_M = 2.0  # the wrong links join experiences 2–3 m apart
 
 
+def _without_the_map_test(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Switch off the test of new links between sessions against the map as it stood (stop 56,
+    :func:`core.robust.contradicts_the_map`): the negative controls of the cases it also catches."""
+    monkeypatch.setattr(robust_module, "contradicts_the_map", lambda start, graph, *_: np.zeros(graph[0].size, bool))
+
+
 @pytest.fixture(scope="module", params=["loop", "cave3d"])
 def simulated(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Simulated:
     out: Path = tmp_path_factory.mktemp(request.param)
@@ -165,7 +171,8 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     only the residuals, 10.0 below the map as it stood (one outlier's worth is 10.4): APE 3.2× the clean map's. Now
     the status quo holds one outlier's worth for each merge link the answer switches off (``MERGE_LINK_HOLD``): the
     clean map. Paired: without the hold (the rule of stops 37-41) and without the new-link hold (stop 45: the three
-    wrong links fit only together, so that hold alone also keeps the map as it stood) the failure is back."""
+    wrong links fit only together, so that hold alone also keeps the map as it stood) and without the test of new links
+    between the sessions against the map as it stood (stop 56, which refutes the three too) the failure is back."""
     sim = simulate_merged(tmp_path / "symmetric", "symmetric", seed=0)
     stamps = sim.state["em_stamp"]
     clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
@@ -176,6 +183,8 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     assert not inject(sim, 20, 5.0, seed=1).engine.map.link_active[held.injected].any()  # the new-link hold, too
     monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
     monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior (stop 45)
+    assert not inject(sim, 20, 5.0, seed=1).engine.map.link_active[held.injected].any()  # and the map's test
+    _without_the_map_test(monkeypatch)
     bought = inject(sim, 20, 5.0, seed=1)
     assert bought.engine.map.link_active[bought.injected].sum() == 3
     assert map_ape(bought.engine.map.poses, stamps, sim.truth) > 2.5 * clean
@@ -287,3 +296,30 @@ def test_a_stored_loop_closure_is_not_traded_for_a_wrong_link_that_contradicts_i
     traded = inject(sim, 5, 5.0, seed=5)
     assert traded.true_loops_on == traded.true_loops - 1 and traded.engine.map.link_active[traded.injected].sum() == 1
     assert map_ape(traded.engine.map.poses, stamps, sim.truth) > 1.4 * clean
+
+
+def test_a_wrong_link_between_sessions_that_bends_a_long_path_cheaply_is_refuted_by_the_map_as_it_stood(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The merged ``twin-overlap`` map of seed 3 as the product makes it (the merge's ties, closures facing the views)
+    with 20 wrong links of 5-7.5 m (injection seed 6). 79 → 127 joins session 1 to session 2 over a path long enough
+    that bending it costs less than an outlier: switched back on alone in the status quo's start, it fits at z 0.5 and
+    lowers the TLS cost by 2.8 (c̄² = 16); then 77 → 115 comes on with a relocalisation's odometry link traded for it:
+    APE 1.83× the clean map's (``bench/robust_merged.py --seeds 10``). Dead reckoning cannot test either (no odometry
+    joins their ends) and their turns are a merge's. Now each new link between sessions is weighed against the map as
+    it stood over the shortest path between its ends (:func:`core.robust.contradicts_the_map`): 77 → 115 claims one
+    place where that map holds 5.8 m, z_map 1.55 > 1.5, refuted; 79 → 127 (4.6 m, within what its path allows) stays
+    on without the trade, and the map is as good as the clean one (0.97×). Paired: without that test the failure is
+    back."""
+    sim = simulate_merged(tmp_path / "twin-overlap", "twin-overlap", seed=3, tie_hits=True, view_heading=True)
+    stamps = sim.state["em_stamp"]
+    clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
+    held = inject(sim, 20, 5.0, seed=6)
+    assert held.engine.map.link_active[held.injected].sum() == 1 and held.true_loops_on == held.true_loops
+    assert map_ape(held.engine.map.poses, stamps, sim.truth) <= 1.01 * clean
+    _without_the_map_test(monkeypatch)
+    bent = inject(sim, 20, 5.0, seed=6)
+    # both wrong links on, and the reckoning link that joined the map for the odometry link traded (appended last)
+    assert bent.engine.map.link_active[bent.injected].sum() == 3
+    assert bent.engine.map.link_count == held.engine.map.link_count + 1
+    assert map_ape(bent.engine.map.poses, stamps, sim.truth) > 1.5 * clean
