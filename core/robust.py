@@ -128,7 +128,7 @@ world: alone 12.05 m APE, 2.62 m now, 2.92 m for the log's odometry):
   session left, on at the previous check, solved) over the shortest path between its ends through that map: the
   translation part of the unary test with that path in place of the odometry's (:func:`contradicts_the_map`,
   :func:`core.pcm.map_consistency`). Measured at the robust checks of the online sweeps (``symmetric`` seeds 0-9,
-  ``symmetric-overlap`` 0-4, ``twin-overlap`` 20 m with turns alike 0-9), links between sessions: true ones (ends
+  ``twin-overlap`` with turns alike 20 m seeds 0-9 and 40 m 0-1), links between sessions: true ones (ends
   < 3 m apart in the world) 0-0.36 where the map they were weighed against held the sessions truly; false ones 2.6
   and over where a path joined their ends. But a running session's own map can be wrong, and the truth then
   contradicts it (3.3 and 4.1 against a false merge on probation; a true lap closure refuted against a
