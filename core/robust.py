@@ -408,10 +408,13 @@ def contradicts_the_map(
     fixed = np.flatnonzero(~can)
     labels = connected_components(sp.csr_matrix((np.ones(fixed.size), (src[fixed], dst[fixed])), shape=(n, n)),
                                   directed=False)[1]  # fmt: skip
-    links = np.flatnonzero(tested & (labels[src] != labels[dst]))
+    on = np.flatnonzero(held)
+    stored_part = connected_components(sp.csr_matrix((np.ones(on.size), (src[on], dst[on])), shape=(n, n)),
+                                       directed=False)[1]  # fmt: skip
+    # only ends the stored map joins have a path to weigh against: the others (the running session's) cost no solve
+    links = np.flatnonzero(tested & (labels[src] != labels[dst]) & (stored_part[src] == stored_part[dst]))
     if links.size == 0:
         return out
-    on = np.flatnonzero(held)
     pose = solve(start, src[on], dst[on], transform[on], component_anchors(n, src[on], dst[on]), passes=1)
     z = map_consistency(pose, (src[links], dst[links], transform[links]), (src[on], dst[on], distance[on]),
                         (length, drift.drift))  # fmt: skip

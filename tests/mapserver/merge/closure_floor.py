@@ -13,6 +13,7 @@ exact fixed point, so ``resolved`` is the map as the engine settles it without i
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,4 @@ def closure_floor(doc: dict[str, Any], truth: Trajectory) -> dict[str, float]:
 
 def closure_floor_of(export: Path, truth: Path) -> dict[str, float]:
     """:func:`closure_floor` of an exported map file against a TUM ground-truth file."""
-    import json
-
     return closure_floor(json.loads(export.read_text(encoding="utf-8")), read_tum(truth))
