@@ -3,7 +3,6 @@ bench/robust_relaxation.py): simulate, process, inject wrong loop links (the tes
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from mapserver.merge import online as online_module
 from mapserver.params import with_settings
 from mapserver.pipeline import process_log
 from mapserver.store import list_maps, load_map, open_database
+from tests.simulations import simulate_once
 
 
 @dataclass(frozen=True)
@@ -47,8 +47,7 @@ def simulate_single(
     ``settings``: engine parameters on top of the preset (``process --set``'s syntax, e.g. ``exp_relax_joint=1``);
     ``preset_name``: another preset.
     """
-    assert main(["simulate", scenario, "--out", str(out), "--seed", str(seed)]) == 0
-    info = json.loads((out / "scenario.json").read_text(encoding="utf-8"))
+    info = simulate_once(scenario, out, seed=seed, only=("single",))
     params = with_settings(preset(preset_name or info["preset"]), settings)
     result = process_log(out / info["single"]["log"], params)
     return Simulated(params, result.engine.snapshot(), read_tum(out / info["single"]["ground_truth"]))
@@ -73,8 +72,7 @@ def simulate_merged(
     ``view_heading``: ``merge_view_heading`` (on in the product since stop 55); off by default for the same reason
     (the merged ``twin-overlap`` seed 3 map's closures move, and three of its cases no longer arise).
     """
-    assert main(["simulate", scenario, "--out", str(out), "--seed", str(seed)]) == 0
-    info = json.loads((out / "scenario.json").read_text(encoding="utf-8"))
+    info = simulate_once(scenario, out, seed=seed, only=("session1", "session2"))
     db = f"sqlite:///{out / 'db.sqlite'}"
     product = online_module.TIE_HITS
     online_module.TIE_HITS = tie_hits

@@ -13,16 +13,16 @@ from mapserver import pipeline
 from mapserver.cli.demo import DEMO_PARAMS, DEMO_SCENARIO, DEMO_SEED
 from mapserver.evaluation import evaluate_map
 from mapserver.formats import read_map_json, read_tum
-from mapserver.ingest.simulator import simulate
 from mapserver.params import resolve_params
 from mapserver.report import ReportInputs, timeline
 from tests.mapserver.merge.scenario_metrics import cli_code, cli_json
+from tests.simulations import simulate_once
 
 pytestmark = pytest.mark.slow
 
 
 def test_report_of_a_session_matches_evaluate_and_embeds_its_figures(tmp_path: Path) -> None:
-    scenario = simulate(DEMO_SCENARIO, tmp_path / "sim", seed=DEMO_SEED, params=DEMO_PARAMS)
+    scenario = simulate_once(DEMO_SCENARIO, tmp_path / "sim", seed=DEMO_SEED, params=DEMO_PARAMS)
     first = scenario["sessions"][0]
     log, gt_file = tmp_path / "sim" / first["log"], tmp_path / "sim" / first["ground_truth"]
     db = f"sqlite:///{tmp_path / 'r.db'}"
@@ -73,7 +73,7 @@ def test_the_stored_timeline_has_every_frame_by_template_identity_and_resumes_ex
     from mapserver.report import gather
     from mapserver.store import open_database
 
-    scenario = simulate(DEMO_SCENARIO, tmp_path / "sim", seed=DEMO_SEED, params=DEMO_PARAMS)
+    scenario = simulate_once(DEMO_SCENARIO, tmp_path / "sim", seed=DEMO_SEED, params=DEMO_PARAMS)
     params = resolve_params(scenario["preset"])
     logs = [tmp_path / "sim" / s["log"] for s in scenario["sessions"]]
     db = f"sqlite:///{tmp_path / 't.db'}"

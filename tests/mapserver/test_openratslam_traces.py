@@ -16,7 +16,7 @@ import pytest
 
 from core import Engine, preset
 from mapserver.ingest.reader import open_log
-from mapserver.ingest.simulator import simulate
+from tests.simulations import simulate_once
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "openratslam"
 # as recorded (README there): the scenario's preset with exp_loops=10; cave3d on a 3-DoF lattice, gates off
@@ -37,7 +37,7 @@ def _reference(scenario: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _run(scenario: str, folder: Path, compat: bool) -> tuple[np.ndarray, Engine]:
-    simulate(scenario, folder, only=["single"])
+    simulate_once(scenario, folder, only=["single"])
     engine = Engine(PARAMS[scenario].replace(openratslam_compat=compat))
     rows = []
     with open_log(folder / "single.bag") as log:

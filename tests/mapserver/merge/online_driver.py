@@ -10,11 +10,11 @@ from typing import Any
 import numpy as np
 
 from core.engine import Engine
-from mapserver.ingest.simulator.output import simulate
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
 from mapserver.run import run_engine
 from tests.mapserver.merge.scenario_metrics import true_alignment
+from tests.simulations import simulate_once
 
 
 def online_merge(
@@ -30,7 +30,7 @@ def online_merge(
     Returns the merge events, the rollbacks and the true alignment of session 2's map frame onto session 1's.
     ``on_frame``: called with each of session 2's frames, in order.
     """
-    info = simulate(scenario, directory, seed=seed, params=sim)
+    info = simulate_once(scenario, directory, seed=seed, params=sim, only=("session1", "session2"))
     s1, s2 = info["sessions"][:2]
     stored = Engine(params, origin=1)
     run_engine(stored, directory / s1["log"])

@@ -38,8 +38,11 @@ from tests.mapserver.merge.scenario_metrics import (
     measure_ellipse,
     true_alignment,
 )
+from tests.simulations import simulate_once
 
 pytestmark = pytest.mark.slow
+
+SESSIONS = ("session1", "session2")  # the logs a test of two sessions needs (not the single route's)
 
 
 @pytest.fixture(scope="session")
@@ -51,10 +54,7 @@ def scenario(tmp_path_factory: pytest.TempPathFactory) -> Any:
         key = (name, json.dumps(params, sort_keys=True))
         if key not in cache:
             directory = tmp_path_factory.mktemp(name)
-            argv = ["simulate", name, "--out", str(directory), "--seed", "0"]
-            if params:
-                argv += ["--param", ",".join(f"{k}={v}" for k, v in params.items())]
-            cache[key] = (directory, cli_json(*argv))
+            cache[key] = (directory, simulate_once(name, directory, seed=0, params=params))
         return cache[key]
 
     return get
@@ -290,7 +290,6 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     motion gate holds it): until stop 40 the robot was then taken to be at its current heading when the anchor
     view was seen, and T was 35° off (0.61 rad, outside the bound below)."""
     from core import Engine
-    from mapserver.ingest.simulator.output import simulate
     from mapserver.pipeline import process_into_store
     from mapserver.store.mapio import load_map
     from tests.mapserver.store.conftest import assert_same_arrays
@@ -325,7 +324,7 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     code, err = cli_code("merge", "--db", db, "--redo", event)
     assert code != 0 and "cannot be redone" in err
     other = tmp_path / "other"
-    simulate("cave3d", other, seed=1, only=["session1"])  # only the log this needs
+    simulate_once("cave3d", other, seed=1, only=["session1"])  # only the log this needs
     alien = _db(tmp_path, "alien")
     cli_json("process", str(other / "session1.bag"), "--db", alien, "--preset", "poseidon")
     result = cli_json("process", str(directory / "session2.bag"), "--db", alien, "--preset", "poseidon")
@@ -355,12 +354,11 @@ def test_poseidon_sdr_closes_the_caves_loops_that_the_whole_image_at_the_thesis_
 def _twin_worlds_stored_apart(tmp_path: Path, seed: int, lookalike_m: float) -> dict[str, str]:
     """Simulate ``twin`` and ``twin-overlap`` (a look-alike holding turns) and store each one's sessions 1 and 2 as
     two maps (``process --no-merge``, LVC, ``circle``); return each scenario's database."""
-    from mapserver.ingest.simulator.output import simulate
-
     databases = {}
     for name in ("twin", "twin-overlap"):
         directory = tmp_path / name
-        info = simulate(name, directory, seed=seed, params={"lookalike_m": lookalike_m, "lookalike_turns": 1.0})
+        info = simulate_once(name, directory, seed=seed, params={"lookalike_m": lookalike_m, "lookalike_turns": 1.0},
+                             only=SESSIONS)
         databases[name] = _db(tmp_path, name)
         for s in info["sessions"][:2]:
             cli_json("process", str(directory / s["log"]), "--db", databases[name], "--no-merge")
@@ -432,7 +430,6 @@ def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_nev
     prototype of the one cortex; ``unmerge`` restores both maps bit for bit and ``merge --redo`` makes the same
     merged map again. Must not: session 2 against session 1 of another cave (seed 1) is refused (exit 2)."""
     from core import Engine
-    from mapserver.ingest.simulator.output import simulate
     from mapserver.store.mapio import load_map
     from tests.mapserver.store.conftest import assert_same_arrays
 
@@ -467,7 +464,7 @@ def test_sdr_htm_maps_merge_offline_by_their_codes_undo_and_redo_exactly_and_nev
     assert cli_json("merge", "--db", db, "--redo", str(event.id))["map"] == "session1"
     assert_same_arrays(stored, load_map(open_database(db), name="session1").snapshot)
     other = tmp_path / "other"
-    simulate("cave3d", other, seed=1, only=["session1"])  # only the log this needs
+    simulate_once("cave3d", other, seed=1, only=["session1"])  # only the log this needs
     alien = _db(tmp_path, "alien")
     cli_json("process", str(other / "session1.bag"), "--db", alien, *sdr, "--map", "other")
     cli_json("process", str(directory / "session2.bag"), "--db", alien, *sdr, "--map", "session2")
@@ -499,7 +496,7 @@ def test_a_true_merge_bent_by_its_closures_headings_is_kept_by_the_joint_least_s
     without the joint least squares, and the closures and ties between the sessions facing the views' headings,
     ``merge_view_heading``: 7.29 m with them, stop 55) the failure is back."""
     directory = tmp_path / "twin-overlap"
-    info = cli_json("simulate", "twin-overlap", "--out", str(directory), "--seed", "7", "--param", "lookalike_m=40")
+    info = simulate_once("twin-overlap", directory, seed=7, params={"lookalike_m": 40.0}, only=SESSIONS)
     assert _merged_ape(directory, info, _db(tmp_path, "joint")) < 1.5
     assert _merged_ape(directory, info, _db(tmp_path, "ratslam"), "--set", "merge_relax_joint=0") < 2.0
     monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
@@ -517,7 +514,7 @@ def test_a_merge_that_identified_every_partial_experience_is_settled_as_a_merged
     ``merge_view_heading=0`` (the closures and ties between the sessions facing the robot's odometry, not the
     views' headings: 0.59 m with them, stop 55) the failure is back."""
     directory = tmp_path / "symmetric-overlap"
-    info = cli_json("simulate", "symmetric-overlap", "--out", str(directory), "--seed", "15")
+    info = simulate_once("symmetric-overlap", directory, seed=15, only=SESSIONS)
     assert _merged_ape(directory, info, _db(tmp_path, "joint")) < 0.6
     ratslam = _db(tmp_path, "ratslam")
     assert _merged_ape(directory, info, ratslam, "--set", "merge_relax_joint=0,merge_view_heading=0") > 0.9
@@ -532,8 +529,8 @@ def test_a_late_merge_ties_the_sessions_own_copy_of_the_stored_ground_to_it(
     anchor, and the merged map came out at 6.92 m APE (the single route 1.61 m; session 1 alone 3.26 m). A merge
     link per hit of the winning hypothesis (``Match.ties``) holds the copy along its length: 2.30 m."""
     directory = tmp_path / "twin-overlap"
-    info = cli_json("simulate", "twin-overlap", "--out", str(directory), "--seed", "4",
-                    "--param", "lookalike_m=60,lookalike_turns=1")  # fmt: skip
+    info = simulate_once("twin-overlap", directory, seed=4, params={"lookalike_m": 60.0, "lookalike_turns": 1.0},
+                         only=SESSIONS)
     assert _merged_ape(directory, info, _db(tmp_path, "tied")) < 3.0
     monkeypatch.setattr(online_module, "TIE_HITS", False)
     assert _merged_ape(directory, info, _db(tmp_path, "anchored")) > 5.0
@@ -548,8 +545,8 @@ def test_a_probation_follows_the_engines_closures_to_the_end_of_a_look_alike_lon
     (:meth:`Probation._follow_link`), the prediction stays on them to the look-alike's end, where the views part,
     and the merge is rolled back; without it, the merge stays."""
     directory = tmp_path / "twin"
-    info = cli_json("simulate", "twin", "--out", str(directory), "--seed", "1",
-                    "--param", "lookalike_m=100,lookalike_turns=1")  # fmt: skip
+    info = simulate_once("twin", directory, seed=1, params={"lookalike_m": 100.0, "lookalike_turns": 1.0},
+                         only=SESSIONS)
     followed = _process_all(directory, info, _db(tmp_path, "followed"))[1]["merges"]
     assert [m["status"] for m in followed] == ["rejected"]
     assert "mismatches in a row" in followed[0]["evidence"]["verification"]["reason"]
@@ -568,7 +565,7 @@ def test_a_merged_sessions_own_first_pass_closes_within_the_merges_lever_arm(tmp
     and ties between the sessions facing the way the views' column shifts say (``merge_view_heading``, stop 55), as
     then; with them the map without the slack is 0.50 m as well."""
     directory = tmp_path / "symmetric"
-    info = cli_json("simulate", "symmetric", "--out", str(directory), "--seed", "1")
+    info = simulate_once("symmetric", directory, seed=1, only=SESSIONS)
     both = ("rejected", "applied")
     rigid = _db(tmp_path, "rigid")
     without = _merged_ape(directory, info, rigid, "--set", "merge_lattice_slack=0,merge_view_heading=0", statuses=both)
@@ -589,7 +586,7 @@ def test_an_offline_merge_does_not_refold_what_each_map_unfolded_alone(tmp_path:
     alone 1.22 and 3.17 / 1.60 and 3.93 m; before 15.97 / 17.48 m).
     Must still: the merge is made, at the true place."""
     directory = tmp_path / "symmetric"
-    info = cli_json("simulate", "symmetric", "--out", str(directory), "--seed", str(seed))
+    info = simulate_once("symmetric", directory, seed=seed, only=SESSIONS)
     db = _db(tmp_path)
     apes = []
     for s in info["sessions"][:2]:
@@ -624,7 +621,7 @@ def test_an_offline_merge_closes_loops_where_the_maps_overlap_and_redo_closes_th
     from tests.mapserver.store.conftest import assert_same_arrays
 
     directory = tmp_path / "twin-overlap"
-    info = cli_json("simulate", "twin-overlap", "--out", str(directory), "--seed", "1", "--param", "lookalike_m=20")
+    info = simulate_once("twin-overlap", directory, seed=1, params={"lookalike_m": 20.0}, only=SESSIONS)
     db = _db(tmp_path)
     for s in info["sessions"][:2]:
         cli_json("process", str(directory / s["log"]), "--db", db, "--no-merge", "--map", s["name"])

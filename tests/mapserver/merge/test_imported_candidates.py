@@ -20,6 +20,7 @@ import pytest
 from core import preset
 from mapserver.pipeline import process_log
 from tests.mapserver.merge.scenario_metrics import cli_json, true_alignment
+from tests.simulations import simulate_once
 
 pytestmark = pytest.mark.slow
 
@@ -68,7 +69,7 @@ def write_msr_save(directory: Path, state: dict[str, np.ndarray]) -> Path:
 def _imported_atlas(tmp_path: Path, name: str) -> tuple[Path, dict[str, Any], str]:
     """Simulate ``name`` (seed 0), map session 1 alone, write it as a save, import it as map ``tool``."""
     directory = tmp_path / name
-    info = cli_json("simulate", name, "--out", str(directory), "--seed", "0")
+    info = simulate_once(name, directory, seed=0, only=("session1", "session2"))
     params = preset(info["preset"])
     mapped = process_log(directory / info["sessions"][0]["log"], params)
     save = write_msr_save(tmp_path / f"{name}-save", mapped.engine.snapshot())
