@@ -92,6 +92,12 @@ def _merged_state(
     return state, record
 
 
+def stored_links(state: Mapping[str, np.ndarray]) -> int:
+    """Return how many of a snapshot's first links a finished session left (``em_stored_links``; all when absent)."""
+    links = int(np.shape(state["em_link_from"])[0])
+    return min(int(state.get("em_stored_links", links)), links)
+
+
 def merge_engine(
     stored: StoredMap,
     engine: Engine,
@@ -107,7 +113,10 @@ def merge_engine(
     The merged engine keeps the running engine's parameters and origin tag; its loop-closure
     count carries over. Relaxation starts at the merge links (:func:`restore_merged`) and
     proceeds with the engine's per-frame relaxation; the partial's own pending relaxation
-    work, if any, is not carried (its ids changed). ``partial``: the engine's snapshot when
+    work, if any, is not carried (its ids changed). Only the stored map's links count as a finished session's
+    (``em_stored_links``, :func:`core.robust.switch_off_outliers`'s ``stored``): the running session's own links, kept
+    by the merge, are still its own, unverified, until the session ends and its map settles (before 2026-11-30
+    they counted as stored from the merge on). ``partial``: the engine's snapshot when
     the caller has taken it already (it is not taken again); for ``sdr-htm`` maps, with its view
     cells as the stored map's prototypes, and ``cortex`` the ``nc_*`` arrays the merged engine
     continues in (:mod:`mapserver.merge.cortex`).
@@ -121,6 +130,7 @@ def merge_engine(
         raise MergeError(msg)
     partial = engine.snapshot() if partial is None else partial
     state, record = _merged_state(stored.state, partial, match, shift_lattice, identify_within, cortex)
+    state["em_stored_links"] = np.asarray(stored_links(stored.state), dtype=np.int64)
     merged = restore_merged(engine.params, state, record, origin=engine.origin)
     merged.loop_closures = engine.loop_closures
     return merged, record

@@ -329,3 +329,32 @@ def test_4dof_session_merges_with_depth() -> None:
     assert merged_rmse <= max(1.5 * single_rmse, 0.02)
     frames, created = run.new_on_mapped_ground([(0.0, 3.0)])
     assert created <= 0.1 * frames
+
+
+def test_after_an_online_merge_only_the_stored_maps_links_count_as_a_finished_sessions() -> None:
+    """``em_stored_links`` (the links :func:`core.robust.switch_off_outliers` weighs new links against and gives the
+    stored prior): an online merge keeps the running session's own links, but they stay the running session's —
+    not a finished map's — until the session ends and its map settles. Before 2026-11-30 a merge's restore counted
+    them as stored. Must still: the stored map's links stay stored, and at the session's end every link is."""
+    stored_engine = Engine(PARAMS, origin=1)
+    for image, motion, stamp in WORLD.drive(0.0, 20.0):
+        stored_engine.step(image, motion, stamp)
+    stored_engine.settle()  # a finished session's map, as the store holds it
+    stored = StoredMap(1, PARAMS, stored_engine.snapshot())
+    stored_count = int(np.shape(stored.state["em_link_from"])[0])
+    assert int(stored.state["em_stored_links"]) == stored_count > 0
+    engine, driver = Engine(PARAMS, origin=9), OnlineMerger([stored])
+    own_links = merged_stored = -1
+    for image, motion, stamp in WORLD.drive(24.0, 40.0, t0=1000.0):
+        result = engine.step(image, motion, round(stamp * 1e9) * 1e-9)
+        links_before = engine.map.link_count
+        event = driver.observe(engine, result, SimpleNamespace(image=image, motion=motion,
+                                                               stamp_ns=round(stamp * 1e9)))  # fmt: skip
+        if isinstance(event, MergeEvent):
+            own_links, engine = links_before, event.engine
+            merged_stored = int(engine.snapshot()["em_stored_links"])
+    assert len(driver.events) == 1 and own_links > 0  # the session had links of its own when it merged
+    assert engine.map.link_count > stored_count + 1
+    assert merged_stored == stored_count  # the stored map's links, not the running session's
+    engine.settle()
+    assert int(engine.snapshot()["em_stored_links"]) == engine.map.link_count  # a finished session's map
