@@ -172,32 +172,6 @@ class Engine:
             self.frames - 1, template, created, relative_rad, action, self.map.current, loop_closure, motion
         )
 
-    @property
-    def views_face_their_closures(self) -> bool:
-        """Return whether closures where sessions meet take the view's heading (:meth:`_closure_faces_the_view`).
-
-        ``merge_view_heading`` on a forward LVC view: not with ``vt_shift_heading`` (every closure has it already),
-        panoramic views (their match gives the offset), other front-ends, or ``openratslam_compat``.
-        """
-        p = self.params
-        if not p.merge_view_heading or p.vt_shift_heading or p.vt_panoramic or p.openratslam_compat:
-            return False
-        return p.frontend == "lvc"
-
-    def view_heading_between(self, place: int, seen: int) -> float:
-        """Return experience ``seen``'s view heading against experience ``place``'s template, in radians.
-
-        The column shift of ``seen``'s template against ``place``'s (:meth:`LocalViewCells.view_heading`): the
-        heading of the robot that stood at ``seen`` minus that of the one at ``place``, as a closure from ``place``
-        onto ``seen`` faces (0 where :attr:`views_face_their_closures` is off). For closures made without the
-        running view: an offline merge's closures between two stored maps.
-        """
-        if not self.views_face_their_closures:
-            return 0.0
-        templates = self.map.templates
-        view = self.local_view.templates[int(templates[seen])]
-        return self.local_view.view_heading(int(templates[place]), view)
-
     def _closure_faces_the_view(self, target: int) -> bool:
         """Return whether a closure onto ``target`` takes the view's heading (``merge_view_heading``).
 
@@ -212,7 +186,10 @@ class Engine:
         as ``vt_shift_heading`` gives every closure. Not for ``vt_shift_heading`` (every closure has it already),
         panoramic views (their match gives the offset), other front-ends, or ``openratslam_compat``.
         """
-        if not self.views_face_their_closures or self.map.current < 0:
+        p = self.params
+        if not p.merge_view_heading or p.vt_shift_heading or p.vt_panoramic or p.openratslam_compat:
+            return False
+        if p.frontend != "lvc" or self.map.current < 0:
             return False
         origins = self.map.origins
         return bool(origins[self.map.current] != origins[target]) or self.map.joint

@@ -183,17 +183,13 @@ def _close_loops(engine: Engine, n_loaded: int, experience_map: np.ndarray, clos
     confirmation window) and nowhere else, though the evidence walk found the partial's views matching the
     loaded map's along the whole overlap (:attr:`mapserver.merge.offline_evidence.OfflineEvidence.closures`):
     online, RatSLAM would have closed a loop at each of them. Each becomes a loop link from the loaded
-    experience to the partial's (merged id ``experience_map[e]``) at no translation (the view says the robot
-    stood there), unless the partial's experience was identified with a loaded one; the robust check decides
-    them like any closure when the map settles. Each faces the way the two places' views say
-    (:meth:`core.Engine.view_heading_between`: the partial's template's column shift against the loaded one's), as
-    an online closure between two sessions does (``merge_view_heading``; before 2026-11-30 they faced the loaded
-    experience's way, 0).
+    experience to the partial's (merged id ``experience_map[e]``) at the identity (the view says the robot
+    stood there facing that way), unless the partial's experience was identified with a loaded one; the robust
+    check decides them like any closure when the map settles.
     """
     added = 0
     for e, u in closures:
         merged = int(experience_map[e])
         if merged >= n_loaded and 0 <= u < n_loaded:
-            facing = np.array([0.0, 0.0, 0.0, engine.view_heading_between(u, merged)])
-            added += engine.map.add_link_raw(u, merged, facing, 0.0, 0.0, LinkKind.LOOP)
+            added += engine.map.add_link_raw(u, merged, np.zeros(4), 0.0, 0.0, LinkKind.LOOP)
     return added

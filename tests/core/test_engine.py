@@ -250,27 +250,3 @@ def test_a_closure_that_joins_two_sessions_or_closes_a_merged_map_takes_the_view
     turn = 5 * 2 * math.pi / 256 if joins else 0.0
     assert transform[3] == pytest.approx(-turn, abs=0.1 * 2 * math.pi / 128)
     assert engine.map.accum[3] == pytest.approx(engine.map.poses[0, 3] + turn, abs=0.1 * 2 * math.pi / 128)
-
-
-@pytest.mark.parametrize(("changes", "faces"), [({}, True), ({"merge_view_heading": False}, False),
-                                                ({"openratslam_compat": True}, False)])  # fmt: skip
-def test_the_view_heading_between_two_experiences_is_the_column_shift_of_their_templates(
-    changes: dict[str, object], faces: bool
-) -> None:
-    """``Engine.view_heading_between`` (an offline merge's closures, ``mapserver.merge.engines``): view A makes
-    experience 0; A turned left by 5 of 256 pixels of a 360° camera, under a match threshold too tight to match A,
-    makes template 1 and experience 1. The robot at 1 faces 5·2π/256 left of the one at 0: +5·2π/256 from 0 onto 1,
-    the opposite from 1 onto 0, the same as the online closure's view heading (the test above); 0 with the key off
-    or ``openratslam_compat``."""
-    params = _params(template_x_size=128, template_y_size=32, vt_shift_match=10, vt_step_match=2,
-                     vt_match_threshold=1e-4, camera_fov_deg=360.0, **changes)  # fmt: skip
-    engine = Engine(params, origin=0)
-    a = smooth_panorama()
-    step = Motion(0.1, 0.0, 0.0, 0.0, 0.1)
-    engine.step(a, step, 0.0)
-    engine.step(np.roll(a, 5, axis=1), step, 0.1)
-    assert engine.experience_count == 2 and engine.map.templates.tolist() == [0, 1]
-    turn = 5 * 2 * math.pi / 256 if faces else 0.0
-    assert engine.view_heading_between(0, 1) == pytest.approx(turn, abs=0.1 * 2 * math.pi / 128)
-    assert engine.view_heading_between(1, 0) == pytest.approx(-turn, abs=0.1 * 2 * math.pi / 128)
-    assert engine.view_heading_between(0, 0) == pytest.approx(0.0, abs=1e-3)
