@@ -306,9 +306,8 @@ def switch_off_outliers(
     refuted = np.zeros(k, dtype=bool)
     if previous is not None and stored is not None:
         held = np.zeros(k, dtype=bool)  # the stored map as it stood: links a finished session left, on then
-        held[: np.size(previous)] = np.asarray(previous, dtype=bool)
-        held[: np.size(stored)] &= np.asarray(stored, dtype=bool)
-        held[np.size(stored) :] = False
+        m = min(np.size(previous), np.size(stored))
+        held[:m] = np.asarray(previous, dtype=bool)[:m] & np.asarray(stored, dtype=bool)[:m]
         refuted = contradicts_the_map(start, (src, dst, transform, np.asarray(distance, dtype=np.float64)), can,
                                       can & ~gated & ~held, held, length, drift)  # fmt: skip
         gated |= refuted

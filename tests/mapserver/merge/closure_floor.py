@@ -14,7 +14,6 @@ exact fixed point, so ``resolved`` is the map as the engine settles it without i
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ import numpy as np
 
 from core.relaxation import solve
 from core.robust import component_anchors
+from core.se3 import relative
 from mapserver.evaluation import ape_positions, interpolate_poses
 from mapserver.formats import Trajectory, read_tum, yaw_from_quaternion
 
@@ -38,14 +38,6 @@ def true_poses(doc: dict[str, Any], truth: Trajectory) -> np.ndarray:
     nearest = np.abs(truth.stamps_s[None, :] - stamps[:, None]).argmin(axis=1)
     yaw = np.array([yaw_from_quaternion(*truth.quat_xyzw[i]) for i in nearest.tolist()])
     return np.column_stack([xyz, yaw])
-
-
-def relative_poses(pose: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Return (L, 4) the pose of ``dst`` in the frame of ``src`` (x, y in src's heading frame; dz; dyaw wrapped)."""
-    c, s = np.cos(pose[src, 3]), np.sin(pose[src, 3])
-    d = pose[dst, :3] - pose[src, :3]
-    turn = np.remainder(pose[dst, 3] - pose[src, 3] + math.pi, 2 * math.pi) - math.pi
-    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2], turn])
 
 
 def solve_links(start: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -72,7 +64,7 @@ def closure_floor(doc: dict[str, Any], truth: Trajectory) -> dict[str, float]:
     truth_pose = true_poses(doc, truth)
     exact = transform.copy()
     closure = np.array([link["kind"] in CLOSURE_KINDS for link in links], dtype=bool)
-    exact[closure] = relative_poses(truth_pose, src[closure], dst[closure])
+    exact[closure] = relative(truth_pose[src[closure]], truth_pose[dst[closure]])
 
     def ape(pose: np.ndarray) -> float:
         return float(ape_positions(truth_pose[:, :3], pose[:, :3]).rmse)

@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from core.se3 import relative
 from mapserver.evaluation import ape_positions
 from mapserver.formats import Trajectory
-from tests.mapserver.merge.closure_floor import closure_floor, relative_poses
+from tests.mapserver.merge.closure_floor import closure_floor
 
 N = 16
 
@@ -33,7 +34,7 @@ def _doc(stored: np.ndarray, odometry: np.ndarray, closure: np.ndarray) -> dict:
 
 def _true_links(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     src = np.arange(N - 1)
-    return relative_poses(pose, src, src + 1), relative_poses(pose, np.array([N - 1]), np.array([0]))[0]
+    return relative(pose[src], pose[src + 1]), relative(pose[N - 1], pose[0])
 
 
 def test_a_wrong_closure_shows_in_the_resolved_map_and_not_in_the_floor() -> None:
