@@ -351,7 +351,7 @@ def contradicts_odometry(
     merge or loop links) is tested along the merge links ``bridge`` too, but by its heading only
     (:func:`core.pcm.heading_consistency`): along a merge link the cycle's translation carries the
     merge's own error times a lever arm, which flagged true closures of ``twin-overlap`` (z up to 2.4,
-    README, "folds"), while a merge turns the map by a few degrees at most, and a look-alike place
+    docs/journal.md, "folds"), while a merge turns the map by a few degrees at most, and a look-alike place
     seen the other way round turns it by about π. Flagged there: ``|E_ψ| > BRIDGED_TURN +
     BRIDGED_TURN_DRIFT·L``.
     """

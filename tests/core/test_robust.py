@@ -383,7 +383,7 @@ def test_false_links_that_agree_with_one_another_are_switched_off_though_none_st
     (the opposite side of one lap, 16 m away), fold the lap until none of them exceeds c̄, so the greedy
     elimination alone keeps them all; the descent started from the odometry alone switches every one off.
     With a yaw drift of 0.03 rad/m: at the default 0.1 rad/m folding the half lap costs less than c̄² (a
-    known limit, see the README)."""
+    known limit, docs/journal.md, "folds")."""
     truth, src, dst, transform, kind, distance = _circle_graph(laps=1)
     near = np.arange(2, 2 + count)
     graph = (truth, np.concatenate([src, near]), np.concatenate([dst, near + STEPS // 2]),
@@ -594,7 +594,7 @@ def test_links_that_contradict_their_sessions_odometry_are_switched_off_though_t
 def test_links_the_odometry_does_not_join_are_gated_by_their_turn_only() -> None:
     """Across sessions joined by a merge link the cycle carries the merge's own error (a metre at the map
     origin, more along a lever arm), which flagged true closures of ``twin-overlap``: there only the heading
-    is tested (README, "folds across sessions"). The four false closures turn their cycle by π: flagged."""
+    is tested (docs/journal.md, "folds across sessions"). The four false closures turn their cycle by π: flagged."""
     truth, src, dst, transform, kind, distance = _two_sessions(True)
     length = link_length(distance, kind)
     merge = kind == 2

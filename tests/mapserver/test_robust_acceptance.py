@@ -61,7 +61,7 @@ def test_wrong_loop_links_do_not_bend_the_map(simulated: Simulated, count: int) 
 
 
 def test_a_mirror_fold_over_a_long_cycle_is_told_by_the_odometrys_heading_bias(tmp_path: Path) -> None:
-    """``symmetric`` seed 7's single route (README, stop 29): three mirror closures over 135 m turn 118-130°
+    """``symmetric`` seed 7's single route (docs/journal.md, stop 29): three mirror closures over 135 m turn 118-130°
     (π plus the odometry's heading bias of −0.0105 rad/m × 135 m), within the one-link test's drift allowance
     (163°), so they held a fold: APE 4.27 m, and the true closure 82 → 68 was switched off. Taking out the bias
     its two true long cycles show, they are left 160° turned and flagged: APE 1.31 m. The paired must-still: the

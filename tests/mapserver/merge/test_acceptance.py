@@ -487,7 +487,7 @@ def _merged_ape(
 def test_a_true_merge_bent_by_its_closures_headings_is_kept_by_the_joint_least_squares(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``twin-overlap`` 40 m, seed 7 (README, stop 28): every link of the merged map lies within 0.55 m of the
+    """``twin-overlap`` 40 m, seed 7 (docs/journal.md, stop 28): every link of the merged map lies within 0.55 m of the
     truth, but RatSLAM's fixed point turns the closures' heading errors (9–17°) into a position misclosure, the
     robust check switches the true merge link 165 → 1 off, and session 2's approach hangs from one end: APE
     11.19 m (``--set merge_relax_joint=0``). A merged map is checked and settled at the joint least squares by
@@ -506,10 +506,10 @@ def test_a_true_merge_bent_by_its_closures_headings_is_kept_by_the_joint_least_s
 
 
 def test_a_merge_that_identified_every_partial_experience_is_settled_as_a_merged_map(tmp_path: Path) -> None:
-    """``symmetric-overlap`` seed 15 (README, stop 54): session 2 merges at frame 8, and the merge identifies its
-    partial map's experiences with stored ones, so the merged map holds no merge link. Taken for a single session's
-    map, it was settled at RatSLAM's fixed point: 0.99 m APE against 0.43 m for the single route and 0.52 m at the
-    joint least squares of the same active links. Two sessions' experiences make it a merged map: 0.52 m (0.45 m
+    """``symmetric-overlap`` seed 15 (docs/journal.md, stop 54): session 2 merges at frame 8, and the merge identifies
+    its partial map's experiences with stored ones, so the merged map holds no merge link. Taken for a single
+    session's map, it was settled at RatSLAM's fixed point: 0.99 m APE against 0.43 m for the single route and 0.52 m
+    at the joint least squares of the same active links. Two sessions' experiences make it a merged map: 0.52 m (0.45 m
     with stop 55's view headings). With ``merge_relax_joint=0`` (RatSLAM's fixed point for every map) and
     ``merge_view_heading=0`` (the closures and ties between the sessions facing the robot's odometry, not the
     views' headings: 0.59 m with them, stop 55) the failure is back."""
@@ -523,8 +523,8 @@ def test_a_merge_that_identified_every_partial_experience_is_settled_as_a_merged
 def test_a_late_merge_ties_the_sessions_own_copy_of_the_stored_ground_to_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``twin-overlap`` turns alike 60 m, seed 4 (README, stop 52): session 2 drives 110 m of session 1's ground
-    before its merge at frame 270 wins over the look-alike's rival. The merge identified only the experiences its
+    """``twin-overlap`` turns alike 60 m, seed 4 (docs/journal.md, stop 52): session 2 drives 110 m of session 1's
+    ground before its merge at frame 270 wins over the look-alike's rival. The merge identified only the experiences its
     anchor's view pairs put within half a link of each other: that copy of the stored ground hung from the
     anchor, and the merged map came out at 6.92 m APE (the single route 1.61 m; session 1 alone 3.26 m). A merge
     link per hit of the winning hypothesis (``Match.ties``) holds the copy along its length: 2.30 m."""
@@ -539,8 +539,8 @@ def test_a_late_merge_ties_the_sessions_own_copy_of_the_stored_ground_to_it(
 def test_a_probation_follows_the_engines_closures_to_the_end_of_a_look_alike_longer_than_its_cap(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``twin`` turns alike 100 m, seed 1 (beyond the issue's 5–40 m; README, stop 53): the false merge at frame 68
-    passed its probation 184 m later, its prediction having left session 1's places 24 m into the look-alike
+    """``twin`` turns alike 100 m, seed 1 (beyond the issue's 5–40 m; docs/journal.md, stop 53): the false merge at
+    frame 68 passed its probation 184 m later, its prediction having left session 1's places 24 m into the look-alike
     while the engine kept closing onto them (39 closures 3.7–16.9 m from it). Re-placed by each agreeing closure
     (:meth:`Probation._follow_link`), the prediction stays on them to the look-alike's end, where the views part,
     and the merge is rolled back; without it, the merge stays."""
@@ -556,7 +556,7 @@ def test_a_probation_follows_the_engines_closures_to_the_end_of_a_look_alike_lon
 
 
 def test_a_merged_sessions_own_first_pass_closes_within_the_merges_lever_arm(tmp_path: Path) -> None:
-    """``symmetric`` seed 1 (README, stop 36): session 2 merges at frame 79 with the view's heading 8° off; its
+    """``symmetric`` seed 1 (docs/journal.md, stop 36): session 2 merges at frame 79 with the view's heading 8° off; its
     first pass, 50–80 m of path before the anchor, lands 4–5 lattice cells from where the packet meets it again
     (OpenRatSLAM's closure gate there: 4), so the second pass cannot close onto it and relocalises at the mirror
     place. Widening the gate by ``merge_lattice_slack`` (0.2) times each experience's lattice distance from the
