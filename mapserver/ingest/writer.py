@@ -15,6 +15,7 @@ an existing target is replaced.
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import os
 import shutil
@@ -142,11 +143,13 @@ class _Messages:
             pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
         )
 
-    def image(self, stamp_ns: int, pixels: npt.NDArray[Any], encoding: ImageEncoding) -> Any:
+    def image(
+        self, stamp_ns: int, pixels: npt.NDArray[Any], encoding: ImageEncoding, jpeg_quality: int = JPEG_QUALITY
+    ) -> Any:
         header = self.header(stamp_ns, CAMERA_FRAME)
         if encoding in ("jpeg", "png"):
             return self.types["sensor_msgs/msg/CompressedImage"](
-                header=header, format=encoding, data=encode_compressed(pixels, encoding)
+                header=header, format=encoding, data=encode_compressed(pixels, encoding, jpeg_quality)
             )
         data, channels_bytes = raw_image_bytes(pixels, encoding)
         height, width = pixels.shape[:2]
@@ -206,12 +209,14 @@ def raw_image_bytes(pixels: npt.NDArray[Any], encoding: str) -> tuple[npt.NDArra
     raise ValueError(msg)
 
 
-def encode_compressed(pixels: npt.NDArray[Any], fmt: Literal["jpeg", "png"]) -> npt.NDArray[np.uint8]:
-    """Encode uint8 grey or RGB pixels as JPEG (quality 95) or PNG bytes."""
+def encode_compressed(
+    pixels: npt.NDArray[Any], fmt: Literal["jpeg", "png"], jpeg_quality: int = JPEG_QUALITY
+) -> npt.NDArray[np.uint8]:
+    """Encode uint8 grey or RGB pixels as JPEG (``jpeg_quality``, 1–100) or PNG bytes."""
     image = np.asarray(pixels, dtype=np.uint8)
     if image.ndim == 3:
         image = cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2BGR)
-    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if fmt == "jpeg" else []
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else []
     ok, buffer = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", image, params)
     if not ok:
         msg = f"OpenCV could not encode a {image.shape} image as {fmt}"
@@ -269,6 +274,7 @@ def write_log(
     directory: bool = False,
     sonar: Iterable[tuple[int, npt.NDArray[Any]]] = (),
     sonar_topic: str = "/robot/sonar/image",
+    jpeg_quality: int = JPEG_QUALITY,
 ) -> Path:
     """Write a mission log.
 
@@ -291,6 +297,7 @@ def write_log(
             ``path`` instead of a standalone file.
         sonar: ``(stamp_ns, pixels)`` of a second image stream (mono8 ``sensor_msgs/Image``), in stamp order.
         sonar_topic: its topic name (not written when ``sonar`` is empty).
+        jpeg_quality: JPEG quality (1–100) of ``jpeg`` camera frames.
 
     Returns:
         The path written.
@@ -302,6 +309,10 @@ def write_log(
     options = _checked_options(
         odom_topic, gt_topic, image_topic, sonar_topic, image_encoding, gt_type, pose_only_odometry
     )
+    if not 1 <= int(jpeg_quality) <= 100:
+        msg = f"jpeg_quality must be 1..100, got {jpeg_quality!r}"
+        raise ValueError(msg)
+    options = dataclasses.replace(options, jpeg_quality=int(jpeg_quality))
     target = _prepared_target(Path(path), fmt, directory)
     stream = _merged(images, odometry, ground_truth, sonar)
     _write_then_replace(target, fmt, directory, stream, options)
@@ -325,6 +336,7 @@ class _Options:
     image_encoding: ImageEncoding
     gt_type: GroundTruthType
     pose_only: bool
+    jpeg_quality: int = JPEG_QUALITY
 
 
 def _checked_options(
@@ -392,7 +404,9 @@ def _build(messages: _Messages, stamp: int, kind: int, item: Any, options: _Opti
         return messages.odom_sample(item, options.pose_only)
     if kind == 1:
         return messages.ground_truth(item, options.gt_type)
-    return messages.image(stamp, item, options.image_encoding if kind == 2 else "mono8")
+    if kind == 2:
+        return messages.image(stamp, item, options.image_encoding, options.jpeg_quality)
+    return messages.image(stamp, item, "mono8")
 
 
 def _write_ros1(temp: Path, stream: Iterator[tuple[int, int, Any]], options: _Options) -> None:

@@ -86,11 +86,15 @@ def render_frames(
 ) -> Iterator[tuple[int, npt.NDArray[np.uint8]]]:
     """Yield ``(stamp_ns, image)`` for every frame of a drive, rendered on demand."""
     rng = np.random.default_rng([seed, 2000 + index])
+    start_ns = drive.odometry[0].stamp_ns if drive.odometry else 0
+    world, exposure = plan.world, 1.0
     for stamp, pose, gain in zip(drive.frame_stamps_ns.tolist(), drive.frame_poses, drive.frame_gain, strict=True):
-        radiance = render(plan.world, plan.camera, float(pose[0]), float(pose[1]), float(pose[2]), float(pose[3]))
+        if plan.lighting is not None:
+            world, exposure = plan.lighting.at(plan.world, (int(stamp) - start_ns) * 1e-9)
+        radiance = render(world, plan.camera, float(pose[0]), float(pose[1]), float(pose[2]), float(pose[3]))
         if progress is not None:
             progress()
-        yield int(stamp), expose(radiance, float(gain), plan.noise.pixel_noise, rng)
+        yield int(stamp), expose(radiance, float(gain) * exposure, plan.noise.pixel_noise, rng)
 
 
 def render_sonar_frames(plan: Plan, drive: Drive, seed: int, index: int) -> Iterator[tuple[int, npt.NDArray[np.uint8]]]:
@@ -259,7 +263,8 @@ def _write_session(
     gt_name = f"{session.name}.tum"
     write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick), drive.odometry,
               drive.ground_truth, sonar=render_sonar_frames(plan, drive, seed, index),
-              sonar_topic=plan.sonar_topic)  # fmt: skip
+              sonar_topic=plan.sonar_topic, image_encoding=plan.image_encoding,
+              jpeg_quality=plan.jpeg_quality)  # fmt: skip
     write_ground_truth(temp / gt_name, drive)
     return {
         "name": session.name,
@@ -299,6 +304,8 @@ def _scenario_document(
         "camera": {
             "width": plan.camera.width, "height": plan.camera.height, "hfov_deg": plan.camera.hfov_deg,
             "max_range_m": plan.camera.max_range, "rate_hz": plan.rates.camera_hz,
+            "encoding": plan.image_encoding,
+            **({"jpeg_quality": plan.jpeg_quality} if plan.image_encoding == "jpeg" else {}),
         },
         "odometry_hz": plan.rates.odom_hz,
         **({} if plan.sonar is None else {"sonar": {

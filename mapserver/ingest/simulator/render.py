@@ -80,6 +80,27 @@ class Camera:
         object.__setattr__(self, "slopes", (self.height / 2.0 - i - 0.5) / focal)
 
 
+@dataclass(frozen=True)
+class Lighting:
+    """How the light changes during a session, so that a place seen again a lap later looks different.
+
+    Attributes:
+        turn_rad_per_s: the sun's horizontal direction turns this fast (faces turned to it brighten, others
+            darken: :meth:`~.world.World.lit`).
+        gain_per_s: the exposure changes by this fraction of its starting value per second (dusk: < 0),
+            never below a quarter of it.
+
+    """
+
+    turn_rad_per_s: float = 0.0
+    gain_per_s: float = 0.0
+
+    def at(self, world: World, t: float) -> tuple[World, float]:
+        """Return the world as lit ``t`` seconds into the session, and the exposure factor then."""
+        lit = world.lit(self.turn_rad_per_s * t) if self.turn_rad_per_s else world
+        return lit, max(0.25, 1.0 + self.gain_per_s * t)
+
+
 def _attenuation(camera: Camera, r: FloatArray) -> FloatArray:
     fade = np.clip((camera.max_range - r) / max(camera.fade, 1e-9), 0.0, 1.0)
     return np.exp(-r / camera.fog_length) * fade

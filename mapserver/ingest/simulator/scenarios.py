@@ -36,9 +36,10 @@ import numpy.typing as npt
 from mapserver.errors import InputError
 from mapserver.ingest.simulator import routes
 from mapserver.ingest.simulator.drive import DriveSpec, Noise, Rates
-from mapserver.ingest.simulator.render import Camera, Sonar
+from mapserver.ingest.simulator.render import Camera, Lighting, Sonar
 from mapserver.ingest.simulator.routes import Route
 from mapserver.ingest.simulator.world import World, WorldBuilder
+from mapserver.ingest.writer import ImageEncoding
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -112,6 +113,11 @@ class Plan:
         single: the single-session log, or None.
         params: the effective scenario parameters.
         info: extra JSON for scenario.json.
+        sonar: the forward-looking sonar, or None.
+        sonar_topic: its topic.
+        image_encoding: how camera frames are written (``mono8``, or ``jpeg`` compressed frames).
+        jpeg_quality: JPEG quality of ``jpeg`` frames.
+        lighting: how the light changes during a session, or None for a steady light.
 
     """
 
@@ -127,6 +133,9 @@ class Plan:
     info: dict[str, Any] = field(default_factory=dict)
     sonar: Sonar | None = None
     sonar_topic: str = "/robot/sonar/image"
+    image_encoding: ImageEncoding = "mono8"
+    jpeg_quality: int = 95
+    lighting: Lighting | None = None
 
 
 @dataclass(frozen=True)
@@ -471,6 +480,7 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
 # The look-alike scenarios build on this module's helpers; the package imports this module first, so
 # lookalike finds them defined when it imports them.
 from mapserver.ingest.simulator import lookalike as _lookalike  # noqa: E402
+from mapserver.ingest.simulator import street as _street  # noqa: E402
 
 SCENARIOS: Mapping[str, ScenarioDef] = {
     d.name: d
@@ -494,5 +504,6 @@ SCENARIOS: Mapping[str, ScenarioDef] = {
         ScenarioDef("aliased", "two distinct places that look alike for a short stretch",
                     {"laps": 1.1, "alias_length_m": 0.25}, build_aliased),
         *_lookalike.DEFINITIONS,
+        *_street.DEFINITIONS,
     )
 }

@@ -56,6 +56,28 @@ def fractal_noise(rng: np.random.Generator, rows: int, cols: int, cell: float, o
     return total / norm
 
 
+FLOOR_M = 3.0
+"""Storey height of the ``windows`` style."""
+
+
+def _windows(rng: np.random.Generator, wall: FloatArray, texels_per_m: float) -> FloatArray:
+    """Return one façade bay: ``wall`` with a dark, slightly textured window on every storey.
+
+    The window spans a random 35–65 % of the bay's width, centred, from 0.9 m to 0.9 + 1.2–1.7 m above each
+    floor; the ground floor's opening reaches down to 0.1 m (a shop front or a door).
+    """
+    rows, cols = wall.shape
+    width = float(rng.uniform(0.35, 0.65))
+    sill, tall = 0.9, float(rng.uniform(1.2, 1.7))
+    glass = float(rng.uniform(0.05, 0.3))
+    v = np.arange(rows)[:, None] / texels_per_m
+    u = np.arange(cols)[None, :] / max(cols - 1, 1)
+    in_storey = np.mod(v, FLOOR_M)
+    bottom = np.where(v < FLOOR_M, 0.1, sill)
+    window = (np.abs(u - 0.5) < width / 2) & (in_storey >= bottom) & (in_storey <= sill + tall)
+    return np.where(window, glass + 0.15 * wall, 0.4 + 0.5 * wall)
+
+
 def make_texture(
     seed: int, length_m: float, height_m: float, texels_per_m: float, feature_m: float, style: str | None = None
 ) -> FloatArray:
@@ -67,8 +89,9 @@ def make_texture(
         height_m: surface height (v extent).
         texels_per_m: resolution.
         feature_m: typical feature size of the pattern (m).
-        style: ``noise`` (fractal value noise), ``bands`` (horizontal strata), ``bricks`` or ``stripes``
-            (vertical bars); None picks one from the seed.
+        style: ``noise`` (fractal value noise), ``bands`` (horizontal strata), ``bricks``, ``stripes``
+            (vertical bars) or ``windows`` (one bay of a building's façade: a window per floor); None picks
+            one of :data:`STYLES` from the seed.
 
     Returns:
         (rows, cols) float64 albedo in [0.02, 0.98].
@@ -97,6 +120,8 @@ def make_texture(
         bricks = shade[course, col_index]
         mortar = ((r % brick_h) == 0) | (((c + (course % 2) * (brick_w // 2)) % brick_w) == 0)
         pattern = np.where(mortar, 0.1, 0.3 * pattern + 0.7 * bricks)
+    elif style == "windows":
+        pattern = _windows(rng, pattern, texels_per_m)
     elif style == "stripes":
         bars = value_noise(rng, 1, cols, cell * float(rng.uniform(0.3, 0.8)))
         bars = (bars > 0.5).astype(np.float64) * 0.8 + 0.1 * bars

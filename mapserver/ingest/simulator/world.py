@@ -13,6 +13,7 @@ everything into flat numpy arrays for the renderer.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Sequence
@@ -22,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from mapserver.ingest.simulator.routes import Route
 from mapserver.ingest.simulator.textures import make_texture
 
 FloatArray = npt.NDArray[np.float64]
@@ -82,10 +84,28 @@ class World:
         """Return the number of surfaces."""
         return int(self.p0.shape[0])
 
+    def lit(self, turn_rad: float) -> World:
+        """Return the world lit from a light turned by ``turn_rad`` from :data:`LIGHT_DIRECTION` (the sun moved)."""
+        base = math.atan2(LIGHT_DIRECTION[1], LIGHT_DIRECTION[0]) + turn_rad
+        shade = surface_shade(self.p0, self.p1, (math.cos(base), math.sin(base)))
+        return dataclasses.replace(self, shade=shade)
+
     def near(self, x: float, y: float, radius: float) -> IntArray:
         """Return the indices of surfaces with a point within ``radius`` of (x, y) (bounding-circle test)."""
         d = np.hypot(self.midpoint[:, 0] - x, self.midpoint[:, 1] - y)
         return np.flatnonzero(d <= radius + self.half_length)
+
+
+def surface_shade(p0: FloatArray, p1: FloatArray, light: tuple[float, float]) -> FloatArray:
+    """Return the brightness factor of each surface ``p0 → p1`` lit from the horizontal direction ``light``.
+
+    ``AMBIENT + (1 − AMBIENT)·|n·l|``: a face turned to the light is brightest, one edge-on to it shows the
+    ambient share only.
+    """
+    edge = p1 - p0
+    length = np.maximum(np.linalg.norm(edge, axis=1), 1e-12)
+    normal = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / length[:, None]
+    return AMBIENT + (1.0 - AMBIENT) * np.abs(normal @ np.asarray(light, dtype=np.float64))
 
 
 @dataclass
@@ -133,7 +153,8 @@ class WorldBuilder:
         self.textures: list[npt.NDArray[np.float32]] = []
 
     # ---------------------------------------------------------------------------------------------- surfaces
-    def _texture(self, length: float, height: float, style: str | None) -> int:
+    def add_texture(self, length: float, height: float, style: str | None = None) -> int:
+        """Make a texture for a surface of ``length`` × ``height`` metres; return its index (for :meth:`add_wall`)."""
         seed = self.seed * 1_000_003 + len(self.textures)
         texture = make_texture(seed, length, height, self.texels_per_m, self.feature_m, style)
         self.textures.append(texture.astype(np.float32))
@@ -147,11 +168,17 @@ class WorldBuilder:
         top: float,
         base: float | None = None,
         style: str | None = None,
+        texture: int | None = None,
     ) -> int:
-        """Add one textured vertical wall above the segment ``p0 → p1``; return its surface index."""
+        """Add one textured vertical wall above the segment ``p0 → p1``; return its surface index.
+
+        ``texture`` reuses a texture made by :meth:`add_texture` (a repeated façade module); by default the
+        wall gets a texture of its own.
+        """
         lo = self.floor_z if base is None else float(base)
         length = math.hypot(p1[0] - p0[0], p1[1] - p0[1])
-        texture = self._texture(length, top - lo, style)
+        if texture is None:
+            texture = self.add_texture(length, top - lo, style)
         self.surfaces.append(_Surface((float(p0[0]), float(p0[1])), (float(p1[0]), float(p1[1])), lo, top, texture))
         return len(self.surfaces) - 1
 
@@ -400,17 +427,60 @@ class WorldBuilder:
                 pos = end + float(rng.uniform(*gap))
         return added
 
+    def facades(
+        self,
+        rng: np.random.Generator,
+        route: Route,
+        keep_clear: npt.ArrayLike,
+        *,
+        offset: float,
+        palette: Sequence[int],
+        module_m: float,
+        modules: tuple[int, int],
+        gap: tuple[float, float],
+        height: tuple[float, float],
+    ) -> list[int]:
+        """Line a closed route on both sides with buildings whose façades repeat one module (a street).
+
+        A building is ``modules`` (a range) façade modules side by side, each a wall ``module_m`` metres long
+        (a chord of the offset route) showing the same texture, one of ``palette`` (indices from
+        :meth:`add_texture`), drawn per building; so a façade repeats along a building, and buildings of one
+        texture repeat along the street. Buildings are ``gap`` metres apart (side streets, through which the
+        scene behind shows) and of random height. A module with a point closer than ``offset − 0.3`` m to
+        ``keep_clear`` (any route of the world: the inside of a tight corner, a crossing street) is left out.
+
+        Returns:
+            The indices of the walls added.
+
+        """
+        tree = cKDTree(np.asarray(keep_clear, dtype=np.float64).reshape(-1, 2))
+        added: list[int] = []
+        for side in (1.0, -1.0):
+            pos = float(rng.uniform(0.0, gap[1]))
+            while pos < route.length - module_m:
+                count = int(rng.integers(modules[0], modules[1] + 1))
+                texture = int(palette[int(rng.integers(len(palette)))])
+                top = self.floor_z + float(rng.uniform(*height))
+                starts = pos + module_m * np.arange(count)
+                starts = starts[starts + module_m <= route.length]
+                ends = starts + module_m
+                a = route.position(starts) + side * offset * route.normal(starts)
+                b = route.position(ends) + side * offset * route.normal(ends)
+                near_a, _ = tree.query(a)
+                near_b, _ = tree.query(b)
+                for k in np.flatnonzero((near_a >= offset - 0.3) & (near_b >= offset - 0.3)):
+                    p, q = (a[k], b[k]) if side < 0 else (b[k], a[k])  # the texture reads left to right from the street
+                    added.append(self.add_wall(p, q, top=top, texture=texture))
+                pos = float(ends[-1]) + float(rng.uniform(*gap)) if ends.size else route.length
+        return added
+
     # ---------------------------------------------------------------------------------------------- packing
     def build(self) -> World:
         """Pack the surfaces and textures into a :class:`World`."""
         n = len(self.surfaces)
         p0 = np.array([s.p0 for s in self.surfaces], dtype=np.float64).reshape(n, 2)
         p1 = np.array([s.p1 for s in self.surfaces], dtype=np.float64).reshape(n, 2)
-        edge = p1 - p0
-        length = np.maximum(np.linalg.norm(edge, axis=1), 1e-12)
-        normal = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / length[:, None]
-        light = np.asarray(LIGHT_DIRECTION)
-        shade = AMBIENT + (1.0 - AMBIENT) * np.abs(normal @ light)
+        shade = surface_shade(p0, p1, LIGHT_DIRECTION)
         sizes = [t.size for t in self.textures]
         starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64) if sizes else np.zeros(0, np.int64)
         tex = np.array([s.texture for s in self.surfaces], dtype=np.int64)

@@ -30,6 +30,7 @@ EXPECTED = {
     "twin-overlap": ("circle", ["session1", "session2"], True),
     "symmetric": ("circle", ["session1", "session2"], True),
     "symmetric-overlap": ("circle", ["session1", "session2"], True),
+    "street": ("forward", ["single"], True),
 }
 
 
