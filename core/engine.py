@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from core.config import Departure
 from core.experience_map import ExperienceMap, LinkKind
 from core.gate import EventGate
 from core.localview import LocalViewCells
@@ -162,7 +163,7 @@ class Engine:
             self.lv_place_offset.append(self.map.accum[:4].copy())
             current = self.map.current
             self.lv_place_yaw.append(float(self.map.poses[current, 3]) if current >= 0 else 0.0)
-        if not self.params.openratslam_compat:
+        if not self.params.follows_openratslam(Departure.RELAXATION):
             self.map.relax_step()
         elif action != Action.NONE:  # OpenRatSLAM relaxes after every published action
             self.map.iterate_openratslam()

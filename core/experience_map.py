@@ -50,6 +50,7 @@ from scipy.sparse.csgraph import connected_components
 
 from core import compat
 from core._buffers import GrowBuffer
+from core.config import Departure
 from core.lattice import wrap_angle, wrap_scalar
 from core.relaxation import (
     Incidence,
@@ -221,12 +222,14 @@ class ExperienceMap:
         facing is advanced, so a frame's composed motion is applied exactly.
         """
         a = self.accum
-        if self.params.openratslam_compat:  # OpenRatSLAM: turn first, then v·dt along the new facing
-            a[3] = compat.clip_rad_180(a[3] + motion.dyaw)
-            a[0] += motion.dx * math.cos(a[3])
-            a[1] += motion.dx * math.sin(a[3])
-            a[4] += motion.dt
-            a[5] += abs(motion.dx)
+        if self.params.follows_openratslam(Departure.ODOMETRY):  # turn first, then v·dt along the new facing
+            robust = not self.params.follows_openratslam(Departure.RELAXATION)  # the robust check reads the reckoning
+            for acc in (a, self.reckon) if robust else (a,):
+                acc[3] = compat.clip_rad_180(acc[3] + motion.dyaw)
+                acc[0] += motion.dx * math.cos(acc[3])
+                acc[1] += motion.dx * math.sin(acc[3])
+                acc[4] += motion.dt
+                acc[5] += abs(motion.dx)
             return
         step = math.sqrt(motion.dx * motion.dx + motion.dy * motion.dy + motion.dz * motion.dz)
         for acc in (a, self.reckon):  # the map-frame accumulator, and the dead reckoning in the last new frame
@@ -285,7 +288,7 @@ class ExperienceMap:
         reckoning link is the robot's own odometry between the two experiences it created, which
         the robust check puts in that link's place when it switches the link off (:meth:`check_links`).
         """
-        if self.params.openratslam_compat:  # no robust check there: nothing to keep
+        if self.params.follows_openratslam(Departure.RELAXATION):  # no robust check there: nothing to keep
             return
         if self.current >= 0 and self.last_created >= 0 and self.current != self.last_created:
             self._reckon_from.append(self.last_created)
@@ -380,7 +383,7 @@ class ExperienceMap:
         self.current = experience
         elapsed = self.accum[4]
         self.accum[:] = 0.0
-        if self.params.openratslam_compat:  # OpenRatSLAM never resets accum_delta_time_s
+        if self.params.follows_openratslam(Departure.LINK_DT):  # OpenRatSLAM never resets accum_delta_time_s
             self.accum[4] = elapsed
         self.accum[3] = wrap_scalar(float(self._pose.view[experience, 3]) + relative_rad)
 
@@ -413,7 +416,7 @@ class ExperienceMap:
         """
         p = self.params
         self.last_relax_updates = 0
-        if p.exp_loops <= 0 or p.openratslam_compat:
+        if p.exp_loops <= 0 or p.follows_openratslam(Departure.RELAXATION):
             return 0
         if p.exp_robust and self._switchable >= max(self._checked + 1, 2 * self._checked):
             self.check_links()
@@ -649,7 +652,7 @@ class ExperienceMap:
         headings (:func:`core.relaxation.refine_jointly`).
         """
         self._work.clear()
-        if self.link_count == 0 or self.params.exp_loops <= 0 or self.params.openratslam_compat:
+        if self.link_count == 0 or self.params.exp_loops <= 0 or self.params.follows_openratslam(Departure.RELAXATION):
             return 0
         if not (self.params.exp_robust and self.check_links()):
             self._solve_active()
@@ -696,6 +699,8 @@ class ExperienceMap:
         """Move the settled map to the joint least squares over its active links (``exp_relax_joint``)."""
         active = np.flatnonzero(self._active.view)
         weight = length_weights(self._distance.view[active], link_length(self._distance.view, self._kind.view))
+        view_links = np.isin(self._kind.view[active], (int(LinkKind.LOOP), int(LinkKind.MERGE)))
+        weight[view_links] *= self.params.exp_loop_weight
         self._pose.view[:] = refine_jointly(
             self._pose.view, self._from.view[active], self._to.view[active], self._transform.view[active],
             self.anchors(), heading_weight=self._drift().heading_weight, iterations=5, weight=weight,

@@ -45,6 +45,7 @@ from scipy.ndimage import uniform_filter
 from core._buffers import GrowBuffer
 from core._match_kernel import best_pair, fixed_point_bits, quantise
 from core._match_kernel import load_compiled as load_compiled  # re-exported: callers load the kernel early
+from core.config import Departure
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -205,7 +206,7 @@ class LocalViewCells:
             if mean > 0:
                 values = np.clip(values * (p.vt_normalisation / mean), 0.0, 1.0)
         if p.vt_patch_normalise > 0:
-            flat = 1.0 if p.openratslam_compat else 0.5
+            flat = 1.0 if p.follows_openratslam(Departure.PATCH) else 0.5
             values = patch_normalise(values, p.vt_patch_normalise, p.vt_min_patch_normalisation_std, flat)
         template = values.astype(np.float32)
         return template, float(template.mean(dtype=np.float64))

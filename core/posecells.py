@@ -46,6 +46,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from core._buffers import GrowBuffer
+from core.config import Departure
 from core.lattice import circulant_kernel, wrapped_distance
 
 if TYPE_CHECKING:
@@ -207,8 +208,8 @@ class PoseCellNetwork:
             # Only heading layers holding activity move anything (a packet spans a few of them): the
             # others stay zero, and each layer's product is computed exactly as in a full batch.
             layers = np.flatnonzero(a.reshape(th_dim, -1).any(axis=1))
-            before = a[layers].copy() if p.openratslam_compat else None
-            one_cell = p.openratslam_compat
+            one_cell = p.follows_openratslam(Departure.TRANSLATION)
+            before = a[layers].copy() if one_cell else None
             shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x, one_cell)  # (L, X, X)
             shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y, one_cell)  # (L, Y, Y)
             moving = a[layers]
@@ -256,7 +257,7 @@ class PoseCellNetwork:
         short for it, so no cell counts twice) is summed per axis and each axis
         decoded as the circular mean ``atan2(Σ s·sin, Σ s·cos)·n/(2π)`` in [0, n).
         """
-        if self.params.openratslam_compat:
+        if self.params.follows_openratslam(Departure.DECODE):
             return self._decode_openratslam()
         cells = self.activity
         flat = int(np.argmax(cells.T))  # reversed axes: (θ, [z,] y, x) scan order
@@ -367,7 +368,7 @@ class PoseCellNetwork:
         if created:
             self.add_link(template, self.best.copy())
         elif template < template_count - p.vt_min_inject_age or (
-            p.openratslam_compat and template_count < p.vt_min_inject_age  # OpenRatSLAM's unsigned wrap-around
+            template_count < p.vt_min_inject_age and p.follows_openratslam(Departure.INJECTION)  # unsigned wrap-around
         ):
             decay = self._links_decay.view
             coords_all = self._links_coords.view

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core.config import Departure
 from core.localview import crop, greyscale
 
 if TYPE_CHECKING:
@@ -81,7 +82,7 @@ class VisualOdometry:
         )
         vtrans = vrot = 0.0
         if self.prev_vtrans.shape == vtrans_profile.shape and self.prev_vrot.shape == vrot_profile.shape:
-            rate = 1.0 / dt if dt > 0 and not p.openratslam_compat else p.camera_hz
+            rate = p.camera_hz if dt <= 0 or p.follows_openratslam(Departure.VO_INTERVAL) else 1.0 / dt
             shift, _ = best_shift(vrot_profile, self.prev_vrot)
             vrot = shift * math.radians(p.camera_fov_deg) / grey.shape[1] * rate
             _, diff = best_shift(vtrans_profile, self.prev_vtrans)

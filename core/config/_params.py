@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import enum
+import functools
 import typing
 from dataclasses import dataclass
 from typing import Any
@@ -11,6 +13,45 @@ from typing import Any
 
 class ConfigError(ValueError):
     """A parameter, preset or configuration file is invalid (one-line message)."""
+
+
+class Departure(enum.StrEnum):
+    """A part of the engine whose code departs from OpenRatSLAM's (``openratslam_parts``: those run as OpenRatSLAM's).
+
+    Each module docstring says what its departure does and why: ``odometry``, ``link_dt`` and ``relaxation``
+    in :mod:`core.experience_map` (``relaxation``: anchored, bounded per frame, settled to the fixed point at the
+    end of a log, with the robust check and links that keep the measured odometry; OpenRatSLAM's: ``exp_loops``
+    sweeps after every action), ``translation``, ``injection`` and ``decode`` in :mod:`core.posecells`,
+    ``patch`` in :mod:`core.localview`, ``vo_interval`` in :mod:`core.visual_odometry`.
+    """
+
+    ODOMETRY = "odometry"
+    LINK_DT = "link_dt"
+    RELAXATION = "relaxation"
+    TRANSLATION = "translation"
+    INJECTION = "injection"
+    DECODE = "decode"
+    PATCH = "patch"
+    VO_INTERVAL = "vo_interval"
+
+
+def parse_departures(text: str) -> frozenset[Departure]:
+    """Return the departures named in a comma-separated list (``all`` names every one, ``none`` or "" none).
+
+    Raises:
+        ConfigError: a name that is not a :class:`Departure` (the valid ones are listed).
+    """
+    names = [name.strip().lower() for name in text.split(",") if name.strip()]
+    if names == ["all"]:
+        return frozenset(Departure)
+    if names in ([], ["none"]):
+        return frozenset()
+    unknown = [name for name in names if name not in Departure.__members__.values()]
+    if unknown:
+        valid = ", ".join(d.value for d in Departure)
+        msg = f"parameter 'openratslam_parts': unknown part {unknown[0]!r} (valid: all, none, {valid})"
+        raise ConfigError(msg)
+    return frozenset(Departure(name) for name in names)
 
 
 @dataclass(frozen=True)
@@ -61,6 +102,7 @@ class Params:
     # robust relaxation (core.robust): switch off loop/merge links inconsistent with the graph
     exp_robust: bool = True
     exp_relax_joint: bool = False  # settle and the robust check on the joint least squares (not OpenRatSLAM)
+    exp_loop_weight: float = 1.0  # the joint least squares weighs a loop or merge link by this (odometry link: 1)
     exp_robust_drift: float = 0.1  # expected odometry drift, metres per metre travelled
     exp_robust_yaw_drift: float = 0.1  # radians per metre travelled
     exp_robust_threshold: float = 4.0  # outlier when the normalised residual exceeds this
@@ -101,6 +143,7 @@ class Params:
     merge_relax_joint: bool = True  # a merged map (a merge link, or two sessions' experiences): joint least squares
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False
+    openratslam_parts: str = ""  # the departures run as OpenRatSLAM's code (comma list of Departure names, or all)
     # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"
     frontend: str = "lvc"
     frontend_backbone: str = "none"  # none (weight-free: LVC template through LSBH) | shufflenetv2 | alexnet
@@ -143,6 +186,14 @@ class Params:
 
     def __post_init__(self) -> None:
         _validate(self)
+
+    @functools.cached_property
+    def _openratslam_parts(self) -> frozenset[Departure]:
+        return frozenset(Departure) if self.openratslam_compat else parse_departures(self.openratslam_parts)
+
+    def follows_openratslam(self, part: Departure) -> bool:
+        """Return whether ``part`` runs as OpenRatSLAM's code (``openratslam_compat``, or in ``openratslam_parts``)."""
+        return part in self._openratslam_parts
 
     @property
     def miss_weight(self) -> float:
@@ -231,7 +282,7 @@ def coerce(key: str, value: Any) -> Any:
         if kind is float:
             return float(value.strip() if isinstance(value, str) else value)
         if kind is str:
-            return str(value).strip()
+            return "" if value is None else str(value).strip()  # a YAML key with no value: the empty string
     except (TypeError, ValueError) as err:
         msg = f"parameter {key!r}: {value!r} is not a valid {kind.__name__}"
         raise ConfigError(msg) from err
@@ -262,7 +313,7 @@ def _validate(p: Params) -> None:
                 "vt_active_decay", "pc_cells_to_avg", "min_event_trans_xy", "min_event_dz", "sync_stale_sec"):
         if getattr(p, key) < 0:
             fail(key, "must be ≥ 0")
-    for key in ("exp_robust_drift", "exp_robust_yaw_drift", "exp_robust_threshold"):
+    for key in ("exp_robust_drift", "exp_robust_yaw_drift", "exp_robust_threshold", "exp_loop_weight"):
         if not getattr(p, key) > 0:
             fail(key, "must be > 0")
     if not 0 < p.exp_correction <= 1:
@@ -287,6 +338,7 @@ def _validate(p: Params) -> None:
         if getattr(p, key) < 0 and getattr(p, key) != -1.0:
             fail(key, "must be ≥ 0 metres, or -1 for the map's scale")
     _validate_frontend(p, fail)
+    parse_departures(p.openratslam_parts)
     for axis in ("x", "y"):
         lo, hi = getattr(p, f"image_crop_{axis}_min"), getattr(p, f"image_crop_{axis}_max")
         if lo < 0 or (hi != -1 and hi <= lo):

@@ -54,6 +54,13 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             pc_vt_restore=0.05, pc_dim_xy=80, pc_vt_inject_energy=0.06, pc_dim_th=35, exp_delta_pc_threshold=4.0,
             pc_cell_x_size=1.0, exp_loops=250, exp_initial_em_deg=140.0,
         ),
+        # A forward camera on a metre-scale ground robot (ours): the keys a user's OpenRatSLAM INI for such a
+        # camera sets, as the generalisation bench (bench/generalisation.py) runs them.
+        "forward": _DEFAULT.replace(
+            template_x_size=60, template_y_size=20, vt_match_threshold=0.02, vt_shift_match=5, vt_step_match=1,
+            vt_normalisation=0.4, pc_cell_x_size=0.25, exp_delta_pc_threshold=2.0, exp_loops=20,
+            exp_initial_em_deg=0.0, camera_fov_deg=75.0,
+        ),
         # PoseidonSLAM thesis Table 4.1: lattice [15,15,15,8] at 0.1 m, VPR Guard 26/3/20, motion gate
         # 0.12/0.05 m, clamps 20.0/0.05, sync_stale_sec 0.75, with intensity templates in place of its CNN
         # ("poseidon" until stop 40; "poseidon" is now the neocortical front-end below). The template keys

@@ -15,7 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from core import compat
-from core.config import Params
+from core.config import Departure, Params
 from core.engine import Action, Engine
 from core.experience_map import ExperienceMap
 from core.motion import Motion
@@ -205,3 +205,56 @@ def test_default_and_compat_wrap_the_edge_elsewhere() -> None:
     away = _one_cell(True, 4, 2)  # away from the corner compat wraps as well
     assert away.activity[0, 2, 0] == pytest.approx(0.5)
     assert away.activity.sum() == pytest.approx(1.0)
+
+
+def _map_with(parts: str) -> ExperienceMap:
+    em = ExperienceMap(Params(openratslam_parts=parts, exp_initial_em_deg=0.0), 3)
+    em.on_odo(Motion(1.0, 0.0, 0.0, 0.0, 2.0))
+    em.create_experience(0, np.zeros(3), 2.0, 0)
+    em.on_odo(Motion(1.0, 0.5, 0.3, math.pi / 2, 3.0))
+    em.create_experience(1, np.zeros(3), 5.0, 0)
+    return em
+
+
+def test_openratslam_parts_switch_one_departure_each() -> None:
+    # the same two experiences as _two_experiences: odometry alone turns first (compat's pose) but keeps the
+    # default Δt; link_dt alone counts Δt from the start (compat's) but composes the motion exactly (default's)
+    odometry, link_dt = _map_with("odometry"), _map_with("link_dt")
+    np.testing.assert_allclose(odometry.poses[1], [1.0, 1.0, 0.0, math.pi / 2], atol=1e-12)
+    assert odometry.links[3][0] == pytest.approx(3.0)
+    np.testing.assert_allclose(link_dt.poses[1], [2.0, 0.5, 0.3, math.pi / 2], atol=1e-12)
+    assert link_dt.links[3][0] == pytest.approx(5.0)
+    # injection alone: a young map injects as OpenRatSLAM's unsigned wrap lets it
+    net = PoseCellNetwork(Params(openratslam_parts="injection", pc_dim_xy=11, pc_dim_th=12))
+    for template in range(3):
+        net.on_view_template(template, 0.0, template + 1, created=True)
+    before = net.activity[5, 5, 6]
+    net.on_view_template(0, 0.0, 3, created=False)
+    assert net.activity[5, 5, 6] == pytest.approx(before + 0.15 / 30.0 * (30.0 - math.exp(1.2)))
+
+
+def test_every_part_named_is_compat_and_none_is_the_default() -> None:
+    def run(params: Params) -> dict[str, np.ndarray]:
+        engine = Engine(params)
+        rng = np.random.default_rng(3)
+        views = [rng.integers(0, 255, (8, 8), dtype=np.uint8) for _ in range(4)]
+        for frame in range(12):
+            engine.step(views[frame % 4], Motion(0.3, 0.05, 0.0, 0.4, 1.0), float(frame))
+        engine.settle()
+        return engine.snapshot()
+
+    base = Params(template_x_size=4, template_y_size=2, vt_shift_match=1, vt_step_match=1, exp_loops=3)
+    everything, compat_run = run(base.replace(openratslam_parts="all")), run(base.replace(openratslam_compat=True))
+    nothing, default = run(base.replace(openratslam_parts="none")), run(base)
+    for key in compat_run:
+        np.testing.assert_array_equal(everything[key], compat_run[key], err_msg=key)
+        np.testing.assert_array_equal(nothing[key], default[key], err_msg=key)
+    assert not np.array_equal(compat_run["em_pose"], default["em_pose"])
+
+
+def test_an_unknown_part_is_a_config_error_naming_the_valid_ones() -> None:
+    from core.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"unknown part 'relax' \(valid: all, none, odometry, link_dt, relaxation"):
+        Params(openratslam_parts="relaxation,relax")
+    assert Params(openratslam_parts=" Relaxation , decode ").follows_openratslam(Departure.DECODE)
