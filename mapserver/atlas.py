@@ -455,15 +455,34 @@ class MergeOutcome:
     map_name: str
     record: MergeRecord
     sessions: list[str] = field(default_factory=list)
+    settled: bool = True
+
+
+IMPORTED_SOURCES = frozenset({"multisession-ratslam"})
+"""Session sources whose poses another tool computed (``Session.source`` of an import)."""
+
+
+def holds_imported_poses(conn: Connection, m: AtlasMap) -> bool:
+    """Return whether a session of ``m`` was imported from another tool's save (its poses are that tool's)."""
+    return any(s.source in IMPORTED_SOURCES for s in get_sessions(conn=conn, session_ids=list(m.session_ids)))
 
 
 def merge_stored_maps(
-    db: Database, *, source: str, into: str, confirm: int | None = None, evidence_m: float | None = None
+    db: Database,
+    *,
+    source: str,
+    into: str,
+    confirm: int | None = None,
+    evidence_m: float | None = None,
+    settle: bool | None = None,
 ) -> MergeOutcome:
     """Merge stored map ``source`` (A) into stored map ``into`` (B) offline, with its event and archives.
 
     ``evidence_m``: metres of net agreement the alignment needs along A (None: A's ``merge_evidence_m``;
-    0: the confirmed match alone, the paper's rule); see :func:`confirmed_offline_match`.
+    0: the confirmed match alone, the paper's rule); see :func:`confirmed_offline_match`. ``settle``: move the
+    merged graph to the fixed point of relaxation (with the robust check), as a finished session's map is; None
+    settles unless a map holds poses imported from another tool's save (:func:`holds_imported_poses`), which
+    then keep the poses they were saved with: the merge places A by its transform and adds its links.
 
     Raises:
         NotFoundError: a map does not exist.
@@ -485,6 +504,9 @@ def merge_stored_maps(
     with db.read() as conn:
         a = read_atlas_map(conn, get_map(conn=conn, name=source).id)
         b = read_atlas_map(conn, get_map(conn=conn, name=into).id)
+    if settle is None:
+        with db.read() as conn:
+            settle = not (holds_imported_poses(conn, a) or holds_imported_poses(conn, b))
     for m in (a, b):
         if m.partial_sessions:
             msg = (
@@ -495,13 +517,13 @@ def merge_stored_maps(
     stored_a, stored_b = StoredMap(a.name, a.params, a.snapshot), StoredMap(b.name, b.params, b.snapshot)
     match, evidence = confirmed_offline_match(stored_a, stored_b, confirm, evidence_m)
     closures = [list(pair) for pair in evidence.closures]
-    engine, record = merge_snapshots(b.stored(), a.stored(), match, closures=closures)
+    engine, record = merge_snapshots(b.stored(), a.stored(), match, closures=closures, settle=settle)
     identities = RowIdentities.merged(b.identities, a.identities, record)
     host = a if a.id < b.id else b
     partial = PartialSide(a.name, a.id, None, a.identities, a.params, a.session_ids, from_store=True)
     merge = MergeToWrite(
         mode="offline", target=b, partial=partial, match=match, record=record, host_id=host.id, host_name=host.name,
-        details={"match": match_to_dict(match), "record": record_summary(record), "settle": True,
+        details={"match": match_to_dict(match), "record": record_summary(record), "settle": settle,
                  "source": {"name": a.name, "map_id": a.id}, "target": {"name": b.name, "map_id": b.id},
                  "session_frames": {}, "evidence": {"offline": evidence.as_dict()}, "closures": closures},
     )  # fmt: skip
@@ -514,7 +536,7 @@ def merge_stored_maps(
             conn, merges=[merge], claimed={a.id: a.version, b.id: b.version}, host_id=host.id, params=b.params,
             snapshot=engine.snapshot(), identities=identities, tags={}, session_ids=sessions,
         )  # fmt: skip
-    return MergeOutcome(written.event_ids[0], written.host_name, record)
+    return MergeOutcome(written.event_ids[0], written.host_name, record, settled=settle)
 
 
 __all__ = [

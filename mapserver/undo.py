@@ -159,11 +159,12 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
         t_params, s_params = params_from_dict(target.params), params_from_dict(source.params)
         t_ids = stored_identities(conn, target, target.snapshot, target.session_ids)
         s_ids = stored_identities(conn, source, source.snapshot, source.session_ids)
+        settle = bool(details.get("settle", True))
         if event.mode == "offline":
             engine, record = merge_snapshots(
                 StoredMap(target.map_name, t_params, target.snapshot),
                 StoredMap(source.map_name, s_params, source.snapshot), match, shift_lattice=shift,
-                closures=details.get("closures") or (),
+                closures=details.get("closures") or (), settle=settle,
             )  # fmt: skip
             params, extra = t_params, {}
         else:
@@ -187,7 +188,7 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
         details["host"] = {**details["host"], "map_id": result.map_id}
         update_merge_details(conn=conn, event_id=event_id, details=details)
         names = [s.name for s in get_sessions(conn=conn, session_ids=sessions)]
-    return MergeOutcome(event_id, host_name, record, names)
+    return MergeOutcome(event_id, host_name, record, names, settled=settle)
 
 
 def _restored_maps_and_archives(

@@ -37,6 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", help="the parameters the map was built with (preset name)")
     group.add_argument("--config", help="the parameters the map was built with (config file)")
+    parser.add_argument(
+        "--settle", action="store_true",
+        help="multisession-ratslam: move the map to the fixed point of relaxation over its links, robust check "
+             "included (default: keep the poses the tool saved)",
+    )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the JSON result as the last line of stdout")
     parser.set_defaults(func=run)
 
@@ -44,8 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     """Import the directory as a new map, or the g2o file's poses into a stored map."""
     if args.fmt == G2O:
-        if args.preset or args.config:
-            msg = "--format g2o takes no --preset or --config (the stored map keeps its parameters)"
+        if args.preset or args.config or args.settle:
+            msg = "--format g2o takes no --preset, --config or --settle (the stored map keeps its parameters)"
             raise InputError(msg)
         with open_database(args.db) as db:
             poses = import_g2o_poses(db, path=args.directory, map_name=args.map_name)
@@ -57,7 +62,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         params = resolve_params(args.preset, args.config, None)
         with open_database(args.db) as db:
-            result = import_multisession_ratslam(db, directory=args.directory, map_name=args.map_name, params=params)
+            result = import_multisession_ratslam(
+                db, directory=args.directory, map_name=args.map_name, params=params, settle=args.settle
+            )
         info(
             f"imported {args.directory} as map {result.map!r}: {result.templates} templates, "
             f"{result.experiences} experiences, {result.links} links"

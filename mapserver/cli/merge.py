@@ -30,6 +30,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="metres of net agreeing views along A that the alignment needs (default: A's merge_evidence_m; "
              "-1: 4 spacings of B; 0: the confirmed match alone, the paper's rule)",
     )  # fmt: skip
+    parser.add_argument(
+        "--settle", action=argparse.BooleanOptionalAction, default=None,
+        help="move the merged map to the fixed point of relaxation, robust check included (default: yes, unless a "
+             "map holds poses imported from another tool's save, which then keep their saved poses)",
+    )  # fmt: skip
     parser.add_argument("--redo", type=int, metavar="EVENT", help="re-apply an undone merge event instead")
     parser.add_argument("--json", action="store_true", help="print the JSON result as the last line of stdout")
     parser.set_defaults(func=run)
@@ -38,8 +43,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     """Merge (or redo), then report the event and the map."""
     if args.redo is not None:
-        if args.source or args.into or args.confirm is not None or args.merge_evidence is not None:
-            msg = "--redo EVENT takes no --map, --into, --confirm or --merge-evidence (the event says what to merge)"
+        if args.source or args.into or args.confirm is not None or args.merge_evidence is not None or (
+            args.settle is not None
+        ):
+            msg = ("--redo EVENT takes no --map, --into, --confirm, --merge-evidence or --settle (the event says what "
+                   "to merge)")
             raise InputError(msg)
         with open_database(args.db) as db:
             outcome = undo.redo_merge(db, event_id=args.redo)
@@ -50,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(msg)
         with open_database(args.db) as db:
             outcome = atlas.merge_stored_maps(
-                db, source=args.source, into=args.into, confirm=args.confirm, evidence_m=args.merge_evidence
+                db, source=args.source, into=args.into, confirm=args.confirm, evidence_m=args.merge_evidence,
+                settle=args.settle,
             )
         r = outcome.record
         info(
@@ -58,5 +67,5 @@ def run(args: argparse.Namespace) -> int:
             f"({r.confirmations} confirming templates, {r.templates} templates, {r.experiences} experiences)"
         )
     if args.json:
-        emit_json({"merged": True, "event": outcome.event_id, "map": outcome.map_name})
+        emit_json({"merged": True, "event": outcome.event_id, "map": outcome.map_name, "settled": outcome.settled})
     return 0

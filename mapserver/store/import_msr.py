@@ -484,8 +484,13 @@ class ImportResult:
         }
 
 
-def import_multisession_ratslam(db: Database, *, directory: str | Path, map_name: str, params: Params) -> ImportResult:
+def import_multisession_ratslam(
+    db: Database, *, directory: str | Path, map_name: str, params: Params, settle: bool = False
+) -> ImportResult:
     """Store a multisession-ratslam save directory as a new map with one session, in one transaction.
+
+    The map keeps the poses the tool saved, unless ``settle`` moves it to the fixed point of relaxation over
+    its links first (with the robust check, as a finished session's map is).
 
     Raises:
         InputError: the directory is malformed (see :func:`read_multisession_ratslam`) or was imported
@@ -494,6 +499,10 @@ def import_multisession_ratslam(db: Database, *, directory: str | Path, map_name
     imported = read_multisession_ratslam(directory, params)
     path = Path(directory)
     snap = imported.snapshot
+    if settle and snap["em_pose"].shape[0]:
+        engine = Engine.restore(params, snap)
+        engine.settle()
+        snap = engine.snapshot()
     with db.read() as conn:
         if find_map(conn=conn, name=map_name) is not None:
             msg = f"a map named {map_name!r} already exists; choose another --map"

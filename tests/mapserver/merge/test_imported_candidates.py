@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 
 from core import preset
+from mapserver.cli import main
 from mapserver.pipeline import process_log
+from mapserver.store import load_map, open_database
 from tests.mapserver.merge.scenario_metrics import cli_json, true_alignment
 from tests.simulations import simulate_once
 
@@ -99,10 +101,22 @@ def test_a_session_merges_into_an_imported_map_at_its_true_place_online_and_offl
     cli_json("import", str(save), "--format", "multisession-ratslam", "--map", "tool", "--preset", info["preset"],
              "--db", offline_db)  # fmt: skip
     cli_json("process", str(directory / s2["log"]), "--db", offline_db, "--no-merge")
+    with open_database(offline_db) as opened:
+        saved = load_map(opened, name="tool").snapshot["em_pose"]
     merged = cli_json("merge", "--db", offline_db, "--map", "session2", "--into", "tool")
-    assert merged["map"] == "tool"
+    assert (merged["map"], merged["settled"]) == ("tool", False)  # the tool's poses are kept: nothing settles
     (listed,) = cli_json("maps", "--db", offline_db)["maps"]
     assert (listed["name"], listed["sessions"]) == ("tool", 2)
+    with open_database(offline_db) as opened:
+        kept = load_map(opened, name="tool").snapshot["em_pose"][: saved.shape[0]]
+    np.testing.assert_array_equal(kept, saved)
+    # asked to settle, the same merge moves the imported experiences to the merged graph's fixed point
+    assert main(["unmerge", "--db", offline_db, "--event", str(merged["event"])]) == 0
+    settled = cli_json("merge", "--db", offline_db, "--map", "session2", "--into", "tool", "--settle")
+    assert settled["settled"] is True
+    with open_database(offline_db) as opened:
+        moved = load_map(opened, name="tool").snapshot["em_pose"][: saved.shape[0]]
+    assert np.abs(moved - saved).max() > 1e-3
 
 
 def test_a_look_alike_of_another_place_never_merges_into_an_imported_map(tmp_path: Path) -> None:
