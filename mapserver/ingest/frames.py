@@ -75,9 +75,14 @@ class IngestReport:
         """Return one line saying what was dropped and why, None when nothing was."""
         parts = []
         if self.dropped_messages:
-            why = ", ".join(f"{n} {k}" for k, n in self.dropped_messages.items())
-            parts.append(f"{sum(self.dropped_messages.values())} of {self.odometry_messages} odometry messages ({why})")
+            parts.append(f"{sum(self.dropped_messages.values())} of {self.odometry_messages} odometry messages "
+                         f"({_reasons(self.dropped_messages)})")  # fmt: skip
         if self.dropped_motions:
-            why = ", ".join(f"{n} {k}" for k, n in self.dropped_motions.items())
-            parts.append(f"the motion of {sum(self.dropped_motions.values())} of {self.frames} frames ({why})")
+            parts.append(f"the motion of {sum(self.dropped_motions.values())} of {self.frames} frames "
+                         f"({_reasons(self.dropped_motions)})")  # fmt: skip
         return f"dropped {' and '.join(parts)}" if parts else None
+
+
+def _reasons(counts: dict[str, int]) -> str:
+    """Return ``reason: count, ...``."""
+    return ", ".join(f"{reason}: {count}" for reason, count in counts.items())

@@ -159,22 +159,23 @@ def make_state(
         The state (see the module docstring for the projection).
 
     """
-    rotation = quaternion_matrix(*orientation)
-    yaw = yaw_of_matrix(rotation)
-    v_world = rotation @ np.asarray(linear, dtype=float)
-    w_world = rotation @ np.asarray(angular, dtype=float)
-    c, s = math.cos(yaw), math.sin(yaw)
-    return OdometryState(
-        stamp_ns=int(stamp_ns),
-        x=float(position[0]),
-        y=float(position[1]),
-        z=float(position[2]),
-        yaw=yaw,
-        forward=float(c * v_world[0] + s * v_world[1]),
-        lateral=float(-s * v_world[0] + c * v_world[1]),
-        vertical=float(v_world[2]),
-        yaw_rate=float(w_world[2]),
-    )
+    with np.errstate(invalid="ignore", over="ignore"):  # a non-finite message gives a state that is dropped
+        rotation = quaternion_matrix(*orientation)
+        yaw = yaw_of_matrix(rotation)
+        v_world = rotation @ np.asarray(linear, dtype=float)
+        w_world = rotation @ np.asarray(angular, dtype=float)
+        c, s = math.cos(yaw), math.sin(yaw)
+        return OdometryState(
+            stamp_ns=int(stamp_ns),
+            x=float(position[0]),
+            y=float(position[1]),
+            z=float(position[2]),
+            yaw=yaw,
+            forward=float(c * v_world[0] + s * v_world[1]),
+            lateral=float(-s * v_world[0] + c * v_world[1]),
+            vertical=float(v_world[2]),
+            yaw_rate=float(w_world[2]),
+        )
 
 
 def state_from_message(msg: Any, stamp_ns: int) -> OdometryState:
@@ -416,7 +417,7 @@ class OdometryCheck:
             return True
         dropped = self.report.dropped_messages
         dropped[problem] = dropped.get(problem, 0) + 1
-        self._refuse_past(sum(dropped.values()), max(self.messages, self.report.odometry_messages), "odometry messages")
+        self._refuse_past(dropped, max(self.messages, self.report.odometry_messages), "odometry messages")
         return False
 
     def motion(self, motion: Motion) -> Motion:
@@ -431,15 +432,17 @@ class OdometryCheck:
             return motion
         dropped = self.report.dropped_motions
         dropped[problem] = dropped.get(problem, 0) + 1
-        self._refuse_past(sum(dropped.values()), max(self.frames, self.report.frames), "frame motions")
+        self._refuse_past(dropped, max(self.frames, self.report.frames), "frames' motions")
         dt = motion.dt if math.isfinite(motion.dt) else 0.0
         return Motion(0.0, 0.0, 0.0, 0.0, dt)
 
-    def _refuse_past(self, bad: int, total: int, what: str) -> None:
+    def _refuse_past(self, dropped: dict[str, int], total: int, what: str) -> None:
+        bad = sum(dropped.values())
         if bad > MAX_BAD_FRACTION * total:
+            reasons = ", ".join(f"{reason}: {count}" for reason, count in dropped.items())
             msg = (
-                f"{self.source}: unusable odometry: {self.report.warning()}; a log is refused when more than "
-                f"{MAX_BAD_FRACTION:.0%} of its {what} are dropped"
+                f"{self.source}: unusable odometry: {bad} of the log's {total} {what} dropped ({reasons}); a log "
+                f"is refused when more than {MAX_BAD_FRACTION:.0%} are"
             )
             raise IngestError(msg)
 
