@@ -11,7 +11,6 @@ frame over the pixel limit with 413, before any job exists.
 
 from __future__ import annotations
 
-import copy
 import json
 import logging
 import secrets
@@ -23,7 +22,7 @@ from typing import Any
 
 from mapserver.api.archives import ARCHIVE_SUFFIXES, ArchiveLimits, archive_suffix, extract_archive
 from mapserver.api.uploads import ReceivedUpload
-from mapserver.errors import InputError
+from mapserver.errors import InputError, LimitError
 from mapserver.ingest import LOG_SUFFIXES, open_log, parse_topics_arg
 from mapserver.params import DEFAULT_PRESET, resolve_params
 
@@ -174,9 +173,8 @@ def store_log(
                 mapping = log.mapping.as_dict()
                 log.verify()  # every stream reads through as its index says; the odometry is usable
         except InputError as err:  # the message names the server's path: show the upload's name instead
-            renamed = copy.copy(err)  # same class and attributes (a LimitError keeps its limit)
-            renamed.args = (str(err).replace(str(path), upload.filename).replace(str(folder), ""),)
-            raise renamed from err
+            text = str(err).replace(str(path), upload.filename).replace(str(folder), "")
+            raise (LimitError(text, limit=err.limit) if isinstance(err, LimitError) else type(err)(text)) from err
         if frames == 0:
             msg = f"{upload.filename!r}: the camera topic has no frames"
             raise InputError(msg)
