@@ -357,3 +357,18 @@ def test_a_served_server_keeps_its_bytes_and_memory_under_the_limits(tmp_path: P
         assert after["VmHWM"] - start["VmHWM"] < 64 * MIB, (start, after)
     finally:
         server.stop()
+
+
+def test_limits_come_from_the_environment_and_are_checked() -> None:
+    from mapserver.api import Settings
+    from mapserver.errors import ConfigError
+
+    environment = {"MAPSERVER_MAX_UNPACKED_BYTES": "1000", "MAPSERVER_MAX_UNPACKED_RATIO": "2.5",
+                   "MAPSERVER_MAX_ARCHIVE_ENTRIES": "7", "MAPSERVER_MAX_IMAGE_PIXELS": "99"}  # fmt: skip
+    settings = Settings.from_env(environment)
+    assert settings.limits() == {"max_upload_bytes": 4 << 30, "max_unpacked_bytes": 1000, "max_unpacked_ratio": 2.5,
+                                 "max_archive_entries": 7, "max_image_pixels": 99}  # fmt: skip
+    for bad in ({"MAPSERVER_MAX_UNPACKED_RATIO": "nan"}, {"MAPSERVER_MAX_UNPACKED_RATIO": "0.5"},
+                {"MAPSERVER_MAX_ARCHIVE_ENTRIES": "0"}, {"MAPSERVER_MAX_IMAGE_PIXELS": "lots"}):  # fmt: skip
+        with pytest.raises(ConfigError):
+            Settings.from_env(bad)
