@@ -9,9 +9,9 @@ Limits (:class:`ArchiveLimits`, each refusal a :class:`~mapserver.errors.LimitEr
 * ``max_unpacked_bytes`` and ``max_unpacked_ratio``: the unpacked bytes may be at most
   ``min(max_unpacked_bytes, max_unpacked_ratio × the archive's own size)``. They are counted as the
   decompressor produces them, never trusted from the archive's headers: for a tar, every byte of the
-  decompressed stream (headers and padding included) is counted, so a bomb stops once its output passes
-  the budget whatever the tar headers say; for a zip, every byte of member data (a zip's declared sizes
-  are checked first as well, and the zip reader never returns more than an entry declares).
+  decompressed stream (headers and padding included) is counted, and an entry whose header declares more
+  than the budget left is refused before its data is read; for a zip, every byte of member data (the
+  declared sizes are checked first as well, and the zip reader never returns more than an entry declares).
 * ``max_archive_entries``: entries (files and directories). A zip's count is read from its end record
   before the central directory is parsed, and a central directory larger than 4 KiB per allowed entry is
   refused unread; a tar's entries are counted as they come.
@@ -255,6 +255,8 @@ def _untar(archive: Path, dest: Path, budget: _Budget) -> None:
                 kind = "a link" if (member.issym() or member.islnk()) else "a special file"
                 msg = f"archive entry {member.name!r} is {kind}; only files and directories are accepted"
                 raise InputError(msg)
+            if member.offset_data + member.size > budget.max_bytes:  # refused before its data is read
+                budget.too_big(f"entry {member.name!r} of {member.size} bytes ends past", budget.max_bytes)
             source = tf.extractfile(member)
             if source is None:  # pragma: no cover - isreg() members always have data
                 msg = f"archive entry {member.name!r} has no data"

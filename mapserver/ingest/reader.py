@@ -44,7 +44,7 @@ from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
 
 from core.motion import ZERO_MOTION, Motion
-from mapserver.errors import IngestError, InputError, describe_cause
+from mapserver.errors import IngestError, InputError, LimitError, describe_cause
 from mapserver.ingest.decode import decode_image
 from mapserver.ingest.frames import Frame, IngestReport, PoseSample
 from mapserver.ingest.odometry import (
@@ -464,6 +464,9 @@ def open_log(
             raise IngestError(msg)
         try:
             decode_image(first, mapping.image)
+        except LimitError as err:
+            msg = f"{err} in {str(log_path)!r}"
+            raise LimitError(msg, limit=err.limit) from err
         except IngestError as err:
             msg = f"{err} in {str(log_path)!r}"
             raise IngestError(msg) from err

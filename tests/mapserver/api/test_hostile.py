@@ -22,7 +22,7 @@ from fastapi.testclient import TestClient
 
 from mapserver.api import archives
 from mapserver.api.archives import ArchiveLimits
-from mapserver.errors import StoreError
+from mapserver.errors import LimitError, StoreError
 from tests.mapserver.api.conftest import Api, Server, free_port, make_token
 from tests.mapserver.api.logs import write_strip_log, zip_directory
 from tests.mapserver.hostile import (
@@ -101,7 +101,35 @@ def test_archive_bombs_stop_at_their_budget_and_name_it(api: Api, tmp_path: Path
 def test_archive_bytes_over_max_unpacked_bytes_name_that_limit(make_api: Any, tmp_path: Path) -> None:
     api = make_api(max_unpacked_bytes=1_000_000)
     body = _refused(api, zeros_tar(tmp_path / "z.tar.gz", 8 * MIB, "gz"), "max_unpacked_bytes")
-    assert "archive unpacks to more than 1000000 bytes; the limit is max_unpacked_bytes = 1000000" in body["detail"]
+    assert body["detail"] == ("archive entry 'bag/zeros.db3' of 8388608 bytes ends past 1000000 bytes; the limit is "
+                              "max_unpacked_bytes = 1000000")  # refused from its header, before its data
+
+
+def test_a_tar_whose_entries_each_fit_is_refused_at_the_entry_that_would_pass_the_budget(
+    make_api: Any, tmp_path: Path
+) -> None:
+    """Every entry is under the budget; the one whose data would end past it (its position in the decompressed
+    stream) is refused from its header, so the bytes written stay under the budget."""
+    api = make_api(max_unpacked_bytes=10 * MIB, max_unpacked_ratio=1e6)
+    archive = tmp_path / "parts.tar.gz"
+    with tarfile.open(archive, "w:gz") as tf:
+        for k in range(16):
+            info = tarfile.TarInfo(f"bag/part{k}.db3")
+            info.size = MIB
+            tf.addfile(info, io.BytesIO(bytes(MIB)))
+    before = _wchar()
+    body = _refused(api, archive, "max_unpacked_bytes")
+    assert body["detail"].startswith(f"archive entry 'bag/part9.db3' of {MIB} bytes ends past {10 * MIB} bytes")
+    assert _wchar() - before <= archive.stat().st_size + 10 * MIB
+
+
+def test_the_decompressed_stream_is_counted_as_it_is_read() -> None:
+    """The backstop under the header checks: a stream read past the budget raises, whoever reads it."""
+    budget = archives._Budget(ArchiveLimits(MIB, 1e6, 10), archive_bytes=100)
+    counted = archives._Counted(io.BytesIO(bytes(3 * MIB)), budget)
+    assert len(counted.read(MIB)) == MIB
+    with pytest.raises(LimitError, match=f"archive unpacks to more than {MIB} bytes"):
+        counted.read(1)
 
 
 def test_many_entries_are_refused_before_the_zip_directory_is_read(api: Api, tmp_path: Path) -> None:
