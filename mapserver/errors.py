@@ -25,6 +25,20 @@ class ConfigError(InputError):
     """A preset, configuration file or parameter is invalid."""
 
 
+class LimitError(InputError):
+    """The input exceeds one of the configured limits (exit 2, HTTP 413); ``limit`` names it.
+
+    ``limit`` is the limit's key in ``GET /v1/limits`` (e.g. ``max_unpacked_bytes``, ``max_image_pixels``);
+    the message names it too, with the value that applied.
+    """
+
+    http_status = 413
+
+    def __init__(self, message: str, *, limit: str) -> None:
+        super().__init__(message)
+        self.limit = limit
+
+
 class NotFoundError(MapServerError):
     """A named map, session, experience or job does not exist (exit 2, HTTP 404)."""
 
@@ -54,3 +68,21 @@ class NoConfirmedMatchError(MergeError):
     """
 
     exit_code = 2
+
+
+_OPAQUE = (AssertionError, KeyError, IndexError, AttributeError, TypeError)
+
+
+def describe_cause(err: BaseException, *, limit: int = 200) -> str:
+    """Return a one-line reason for a library's error, or ``malformed data`` when it would say nothing useful.
+
+    A library's own message (``Invalid string length 3951624202 at offset 20.``) is kept, shortened to
+    ``limit`` characters; an assertion, a lookup error's bare key or number, a message of one word or one
+    spanning several lines (a message definition, a traceback) becomes ``malformed data``.
+    """
+    raw = str(err)
+    text = " ".join(raw.split())
+    opaque = isinstance(err, _OPAQUE) or "\n" in raw.strip() or len(text.split()) < 2
+    if opaque or not any(c.isalpha() for c in text):
+        return "malformed data"
+    return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -231,7 +231,7 @@ def _process_session(
         session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
         merger=merger if not complete else None, candidates=candidates, progress=progress, collector=live.collector,
         frames_run=run.frames, activations=(read.activations, live.activation_rows),
-        relevance=(set() if merger is None else merger.observed, live.views),
+        relevance=(set() if merger is None else merger.observed, live.views), dropped=run.info["dropped"],
     ))  # fmt: skip
 
 
@@ -360,6 +360,7 @@ class _RunOutcome:
     frames_run: int
     activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
     relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
+    dropped: Any = None  # what reading the log dropped (mapserver.ingest.frames.IngestReport)
 
 
 def _store_session(
@@ -525,7 +526,7 @@ def _answer(
         frames=progress.processed, templates=engine.template_count, experiences=engine.experience_count,
         links=int(snapshot["em_link_from"].shape[0]), loop_closures=engine.loop_closures, map_name=map_name,
         seconds=time.perf_counter() - opts.started, merges=merges, session_id=session_id, engine=engine,
-        document=document, frames_run=run.frames_run,
+        document=document, frames_run=run.frames_run, dropped=run.dropped,
     )  # fmt: skip
 
 

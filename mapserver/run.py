@@ -24,6 +24,7 @@ from core.localview import load_compiled
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import MissionLog, open_log
+from mapserver.ingest.frames import IngestReport
 from mapserver.reckoning import DeadReckoning
 
 logger = logging.getLogger(__name__)
@@ -47,12 +48,14 @@ class ProcessResult:
     engine: Engine | None = None
     document: dict[str, Any] | None = None
     frames_run: int | None = None
+    dropped: IngestReport | None = None
 
     def summary(self) -> dict[str, Any]:
         """Return the contract's ``process --json`` object.
 
         ``frames`` counts the session's frames so far; ``frames_per_s`` is this run's rate (frames run
-        now, a resumed session's earlier frames not counted).
+        now, a resumed session's earlier frames not counted); ``dropped`` what this run's reading of the log
+        dropped (:meth:`IngestReport.as_dict`).
         """
         run = self.frames if self.frames_run is None else self.frames_run
         return {
@@ -65,6 +68,7 @@ class ProcessResult:
             "map": self.map_name,
             "seconds": round(self.seconds, 3),
             "frames_per_s": round(run / self.seconds, 1) if self.seconds > 0 else None,
+            "dropped": (self.dropped or IngestReport()).as_dict(),
         }
 
 
@@ -145,7 +149,8 @@ def run_engine(
             count += 1
             if progress is not None:
                 progress(count, max(end - start, count))
-        info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total}
+        info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total,
+                "dropped": opened.report}  # fmt: skip
     return EngineRun(engine, count, reckoning, info)
 
 
@@ -203,4 +208,5 @@ def process_log(
         engine=engine,
         document=document,
         frames_run=frames,
+        dropped=info["dropped"],
     )

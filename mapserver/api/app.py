@@ -12,10 +12,11 @@ from starlette.concurrency import run_in_threadpool
 
 from mapserver import __version__
 from mapserver.api.errors import install_error_handlers
-from mapserver.api.routes import health, jobs, maps, sessions
+from mapserver.api.routes import health, jobs, limits, maps, sessions
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
 from mapserver.api.viewer import install_viewer
+from mapserver.ingest.decode import set_max_image_pixels
 
 DESCRIPTION = """\
 Multisession RatSLAM map server. Upload mission logs (ROS 1/ROS 2 bags), follow their processing
@@ -43,6 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        previous_pixels = set_max_image_pixels(chosen.max_image_pixels)  # read by every job's decoder
         services = await run_in_threadpool(Services.start, chosen)
         app.state.services = services
         # the long-lived startup objects (modules, routes, schemas) leave the collector's view: a full
@@ -53,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             await run_in_threadpool(services.close)
+            set_max_image_pixels(previous_pixels)
 
     app = FastAPI(
         title="mapserver",
@@ -63,7 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = chosen
     install_error_handlers(app)
-    for module in (health, sessions, jobs, maps):
+    for module in (health, sessions, jobs, maps, limits):
         app.include_router(module.router)
     install_viewer(app)  # the web viewer at / and its routes (issue 16)
     return app

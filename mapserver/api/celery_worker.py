@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from mapserver.api.worker import JobInterrupted, execute_job
 from mapserver.store import Database, open_database
-from mapserver.store.jobs import JobRecord
+from mapserver.store.jobs import JobRecord, set_job_dropped
 from mapserver.store.leases import MapLock, claim_map_job, complete_job, has_unfinished, renew_lease
 
 logger = logging.getLogger(__name__)
@@ -147,6 +147,8 @@ def _run_one(db: Database, lock: MapLock, job: JobRecord, owner: str, config: Wo
     with db.write() as conn:
         recorded = complete_job(conn=conn, job_id=job.id, owner=owner, session_id=outcome.session_id,
                                 map_id=outcome.map_id, error=outcome.error)  # fmt: skip
+        if recorded and outcome.error is None and outcome.dropped is not None:
+            set_job_dropped(conn=conn, job_id=job.id, dropped=outcome.dropped)
     if not recorded:
         logger.warning("job %d: its lease was taken over; outcome left to the new owner", job.id)
     elif outcome.error is not None:

@@ -1,29 +1,33 @@
 """The one place where errors become HTTP responses: ``{"detail": "..."}`` with the right status.
 
 ``mapserver.errors`` carries each class's status (``InputError`` 400, ``NotFoundError`` 404,
-``ConflictError`` 409, anything else 500); this module adds the API's own members (413, 401, 403),
-turns request validation failures into 422 with a one-line detail, and keeps 5xx bodies free of
-internals (the traceback goes to the log).
+``ConflictError`` 409, ``LimitError`` 413, anything else 500); this module adds the API's own members
+(413, 415, 401, 403), turns request validation failures into 422 with a one-line detail, adds ``"limit"``
+(the limit's name in ``GET /v1/limits``) to the body of a refusal by a limit, and keeps 5xx bodies free of
+internals: ``internal error (reference R)``, where R is a random tag the server log shows beside the
+message and traceback.
 """
 
 from __future__ import annotations
 
 import logging
+import secrets
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from mapserver.errors import InputError, MapServerError
+from mapserver.errors import InputError, LimitError, MapServerError
 
 logger = logging.getLogger(__name__)
 
 
-class PayloadTooLargeError(InputError):
-    """The upload is larger than the server accepts (HTTP 413)."""
+class PayloadTooLargeError(LimitError):
+    """The upload is larger than the server accepts (HTTP 413, limit ``max_upload_bytes``)."""
 
-    http_status = 413
+    def __init__(self, message: str, *, limit: str = "max_upload_bytes") -> None:
+        super().__init__(message, limit=limit)
 
 
 class UnsupportedMediaError(InputError):
@@ -63,11 +67,18 @@ async def _mapserver_error(request: Request, err: Exception) -> JSONResponse:
     if isinstance(err, AuthenticationError):
         headers["WWW-Authenticate"] = 'Bearer error="invalid_token"' if err.invalid_token else "Bearer"
     if status >= 500:
-        logger.error("%s %s failed: %s", request.method, request.url.path, err, exc_info=err)
-        detail = f"internal error ({type(err).__name__}): {err}"
-    else:
-        detail = str(err)
-    return JSONResponse({"detail": detail}, status_code=status, headers=headers)
+        return _internal(request, err)
+    body = {"detail": str(err)}
+    if isinstance(err, LimitError):
+        body["limit"] = err.limit
+    return JSONResponse(body, status_code=status, headers=headers)
+
+
+def _internal(request: Request, err: Exception) -> JSONResponse:
+    """Log ``err`` with a fresh reference and answer 500 with only that reference."""
+    reference = secrets.token_hex(4)
+    logger.error("%s %s failed (reference %s): %s", request.method, request.url.path, reference, err, exc_info=err)
+    return JSONResponse({"detail": f"internal error (reference {reference})"}, status_code=500)
 
 
 async def _validation_error(request: Request, err: Exception) -> JSONResponse:
@@ -84,8 +95,7 @@ async def _http_error(request: Request, err: Exception) -> JSONResponse:
 
 
 async def _unexpected_error(request: Request, err: Exception) -> JSONResponse:
-    logger.error("%s %s failed unexpectedly", request.method, request.url.path, exc_info=err)
-    return JSONResponse({"detail": f"internal error ({type(err).__name__})"}, status_code=500)
+    return _internal(request, err)
 
 
 def install_error_handlers(app: FastAPI) -> None:

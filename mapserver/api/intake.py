@@ -2,9 +2,11 @@
 
 A ``.bag``/``.db3``/``.mcap`` file is kept as it is; a ``.zip``/``.tar`` archive is unpacked safely
 (:mod:`mapserver.api.archives`) and must hold one ROS 2 bag directory (``metadata.yaml``) or one log
-file. The log is then opened with :func:`mapserver.ingest.open_log` — exactly the check ``process``
-makes — so a file that is not a bag, a truncated bag or a log without a usable camera topic is
-refused with 400 and the reason before any job exists.
+file. The log is then opened with :func:`mapserver.ingest.open_log` — the check ``process`` makes — and
+read through once (:meth:`~mapserver.ingest.MissionLog.verify`: every mapped topic as long as its index
+says, the odometry within its bounds), so a file that is not a bag, a truncated or damaged bag, a log
+without a usable camera topic or with unusable odometry is refused with 400 and the reason, and a first
+frame over the pixel limit with 413, before any job exists.
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mapserver.api.archives import ARCHIVE_SUFFIXES, archive_suffix, extract_archive
+from mapserver.api.archives import ARCHIVE_SUFFIXES, ArchiveLimits, archive_suffix, extract_archive
 from mapserver.api.uploads import ReceivedUpload
-from mapserver.errors import InputError
+from mapserver.errors import InputError, LimitError
 from mapserver.ingest import LOG_SUFFIXES, open_log, parse_topics_arg
 from mapserver.params import DEFAULT_PRESET, resolve_params
 
@@ -137,16 +139,12 @@ def _log_root(root: Path) -> Path:
 
 
 def store_log(
-    upload: ReceivedUpload,
-    *,
-    uploads_dir: Path,
-    topics: Mapping[str, str] | None,
-    max_unpacked_bytes: int,
-    max_archive_members: int,
+    upload: ReceivedUpload, *, uploads_dir: Path, topics: Mapping[str, str] | None, limits: ArchiveLimits
 ) -> StoredLog:
     """Move (or unpack) a staged upload into its own folder and check that it is a usable log.
 
     Raises:
+        LimitError: the archive passes one of ``limits``, or the first camera frame passes the pixel limit.
         InputError: unsupported file type, unsafe or unreadable archive, not a bag, truncated or
             corrupt bag, no usable camera topic, bad topic override. Nothing is kept then.
     """
@@ -157,8 +155,7 @@ def store_log(
         suffix = Path(upload.filename).suffix.lower()
         if kind is not None:
             stem = upload.filename[: -len(kind)] or "log"
-            extract_archive(upload.path, folder / stem, kind=kind, max_bytes=max_unpacked_bytes,
-                            max_members=max_archive_members)  # fmt: skip
+            extract_archive(upload.path, folder / stem, kind=kind, limits=limits)
             upload.discard()
             path = _log_root(folder / stem)
         elif suffix in LOG_SUFFIXES:
@@ -174,9 +171,10 @@ def store_log(
             with open_log(path, topics) as log:
                 frames = log.count_frames()
                 mapping = log.mapping.as_dict()
+                log.verify()  # every stream reads through as its index says; the odometry is usable
         except InputError as err:  # the message names the server's path: show the upload's name instead
-            msg = str(err).replace(str(path), upload.filename).replace(str(folder), "")
-            raise type(err)(msg) from err
+            text = str(err).replace(str(path), upload.filename).replace(str(folder), "")
+            raise (LimitError(text, limit=err.limit) if isinstance(err, LimitError) else type(err)(text)) from err
         if frames == 0:
             msg = f"{upload.filename!r}: the camera topic has no frames"
             raise InputError(msg)

@@ -42,6 +42,7 @@ from mapserver.store.jobs import (
     finish_job,
     recover_interrupted_jobs,
     requeue_job,
+    set_job_dropped,
 )
 
 logger = logging.getLogger(__name__)
@@ -162,9 +163,13 @@ class EmbeddedJobEngine:
             self._record(lambda conn: fail_job(conn=conn, job_id=job.id, error=outcome.error or "failed"))
         else:
             logger.info("job %d done: session %s, map %s", job.id, outcome.session_id, outcome.map_id)
-            self._record(
-                lambda conn: finish_job(conn=conn, job_id=job.id, session_id=outcome.session_id, map_id=outcome.map_id)
-            )
+
+            def done(conn: Connection) -> None:
+                finish_job(conn=conn, job_id=job.id, session_id=outcome.session_id, map_id=outcome.map_id)
+                if outcome.dropped is not None:
+                    set_job_dropped(conn=conn, job_id=job.id, dropped=outcome.dropped)
+
+            self._record(done)
 
     def _record(self, write: Callable[[Connection], None]) -> None:
         try:

@@ -11,9 +11,33 @@ JobStatus = Literal["queued", "running", "done", "failed"]
 
 
 class ErrorPublic(BaseModel):
-    """Every error: one line saying what went wrong."""
+    """Every error: one line saying what went wrong (a refusal by a limit also names the limit)."""
 
     detail: str
+    limit: str | None = Field(None, description="the limit that refused the request (a key of GET /v1/limits)")
+
+
+class OdometryRulesPublic(BaseModel):
+    """The fixed bounds odometry must keep (``mapserver.ingest.odometry``): beyond them a message is dropped."""
+
+    max_position_m: float = Field(description="|x|, |y|, |z| of a pose")
+    max_speed_m_s: float = Field(description="speed of a twist, and of a frame's motion over its dt")
+    max_yaw_rate_rad_s: float = Field(description="yaw rate of a twist")
+    max_bad_fraction: float = Field(
+        description="a log is refused when more than this fraction of its odometry messages, or of its frames' "
+        "motions, is dropped"
+    )
+
+
+class LimitsPublic(BaseModel):
+    """``GET /v1/limits``: what the server accepts (``serve`` flags of the same names, dashes for underscores)."""
+
+    max_upload_bytes: int = Field(description="largest upload (413 beyond)")
+    max_unpacked_bytes: int = Field(description="most bytes one archive may unpack to")
+    max_unpacked_ratio: float = Field(description="an archive may unpack to at most this multiple of its own size")
+    max_archive_entries: int = Field(description="most entries (files and directories) in one archive")
+    max_image_pixels: int = Field(description="most pixels (width × height) of one camera frame")
+    odometry: OdometryRulesPublic
 
 
 class HealthPublic(BaseModel):
@@ -42,6 +66,14 @@ class UploadAccepted(BaseModel):
     map: str | None = Field(None, description="the map the job stores the session in")
 
 
+class DroppedPublic(BaseModel):
+    """What reading a log dropped on its way to the engine (``process --json``'s ``dropped``)."""
+
+    odometry_messages: int = Field(description="odometry messages dropped (non-finite or beyond the bounds)")
+    frame_motions: int = Field(description="frames whose motion was dropped (zero displacement over their dt)")
+    reasons: dict[str, int] = Field(description="counts by reason")
+
+
 class JobPublic(BaseModel):
     """``GET /v1/jobs/{job}``."""
 
@@ -56,6 +88,7 @@ class JobPublic(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    dropped: DroppedPublic | None = Field(None, description="what reading the log dropped, when it dropped anything")
 
 
 class MapHealthPublic(BaseModel):

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from mapserver.api.archives import ArchiveLimits
 from mapserver.errors import ConfigError
+from mapserver.ingest.decode import DEFAULT_MAX_IMAGE_PIXELS
 from mapserver.store import DEFAULT_DB_URL
 
 ENV_PREFIX = "MAPSERVER_"
 GIB = 1 << 30
+LIMITS = ("max_upload_bytes", "max_unpacked_bytes", "max_unpacked_ratio", "max_archive_entries", "max_image_pixels")
 
 
 @dataclass(frozen=True, slots=True)
@@ -22,8 +26,12 @@ class Settings:
         db_url: SQLAlchemy URL of the map store (an empty database gets the schema on start).
         upload_dir: where uploaded logs are kept (None: ``uploads/`` beside a SQLite file, else ``./var/uploads``).
         max_upload_bytes: largest accepted upload (the request body's file part); larger → 413.
-        max_unpacked_bytes: largest total size of the files unpacked from one archive upload.
-        max_archive_members: most entries one archive upload may hold.
+        max_unpacked_bytes: most bytes one archive upload may unpack to (counted as they are decompressed).
+        max_unpacked_ratio: an archive may unpack to at most this multiple of its own size (the smaller of
+            the two byte limits applies).
+        max_archive_entries: most entries (files and directories) one archive upload may hold.
+        max_image_pixels: most pixels (width × height) of one camera frame, read from the image's header
+            before it is decoded, at upload and in every job.
         workers: worker threads of the embedded job engine (different maps run in parallel).
         allow_anonymous_reads: GET endpoints need no token.
         host: interface ``serve`` binds to.
@@ -41,8 +49,10 @@ class Settings:
     db_url: str = DEFAULT_DB_URL
     upload_dir: Path | None = None
     max_upload_bytes: int = 4 * GIB
-    max_unpacked_bytes: int = 16 * GIB
-    max_archive_members: int = 100_000
+    max_unpacked_bytes: int = 8 * GIB
+    max_unpacked_ratio: float = 200.0
+    max_archive_entries: int = 1000
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
     workers: int = 2
     allow_anonymous_reads: bool = False
     host: str = "127.0.0.1"
@@ -59,7 +69,9 @@ class Settings:
         checks = {
             "max_upload_bytes": self.max_upload_bytes >= 1,
             "max_unpacked_bytes": self.max_unpacked_bytes >= 1,
-            "max_archive_members": self.max_archive_members >= 1,
+            "max_unpacked_ratio": self.max_unpacked_ratio >= 1 and math.isfinite(self.max_unpacked_ratio),
+            "max_archive_entries": self.max_archive_entries >= 1,
+            "max_image_pixels": self.max_image_pixels >= 1,
             "workers": 1 <= self.workers <= 64,
             "port": 0 <= self.port <= 65535,
             "progress_interval_s": self.progress_interval_s >= 0,
@@ -89,6 +101,15 @@ class Settings:
             return database.parent / "uploads"
         return Path("var") / "uploads"
 
+    @property
+    def archive_limits(self) -> ArchiveLimits:
+        """Return what one archive upload may unpack to."""
+        return ArchiveLimits(self.max_unpacked_bytes, self.max_unpacked_ratio, self.max_archive_entries)
+
+    def limits(self) -> dict[str, int | float]:
+        """Return the limits ``GET /v1/limits`` lists, by name (each refusal names one of them)."""
+        return {name: getattr(self, name) for name in LIMITS}
+
     def with_overrides(self, **values: object) -> Settings:
         """Return a copy with the non-None ``values`` replaced."""
         chosen = {k: v for k, v in values.items() if v is not None}
@@ -99,7 +120,8 @@ class Settings:
         """Return the defaults overridden by ``MAPSERVER_*`` environment variables.
 
         Variables: ``MAPSERVER_DB``, ``MAPSERVER_UPLOAD_DIR``, ``MAPSERVER_MAX_UPLOAD_BYTES``,
-        ``MAPSERVER_MAX_UNPACKED_BYTES``, ``MAPSERVER_WORKERS``, ``MAPSERVER_ALLOW_ANONYMOUS_READS``
+        ``MAPSERVER_MAX_UNPACKED_BYTES``, ``MAPSERVER_MAX_UNPACKED_RATIO``, ``MAPSERVER_MAX_ARCHIVE_ENTRIES``,
+        ``MAPSERVER_MAX_IMAGE_PIXELS``, ``MAPSERVER_WORKERS``, ``MAPSERVER_ALLOW_ANONYMOUS_READS``
         (1/true/yes), ``MAPSERVER_HOST``, ``MAPSERVER_PORT``, ``MAPSERVER_JOBS``, ``MAPSERVER_BROKER``.
 
         Raises:
@@ -109,6 +131,7 @@ class Settings:
         values: dict[str, object] = {}
         text = {"DB": "db_url", "UPLOAD_DIR": "upload_dir", "HOST": "host", "JOBS": "jobs", "BROKER": "broker_url"}
         numbers = {"MAX_UPLOAD_BYTES": "max_upload_bytes", "MAX_UNPACKED_BYTES": "max_unpacked_bytes",
+                   "MAX_ARCHIVE_ENTRIES": "max_archive_entries", "MAX_IMAGE_PIXELS": "max_image_pixels",
                    "WORKERS": "workers", "PORT": "port"}  # fmt: skip
         for key, field in text.items():
             if (value := env.get(ENV_PREFIX + key)) is not None:
@@ -120,6 +143,12 @@ class Settings:
                 except ValueError as err:
                     msg = f"{ENV_PREFIX}{key} must be an integer, got {value!r}"
                     raise ConfigError(msg) from err
+        if (ratio := env.get(ENV_PREFIX + "MAX_UNPACKED_RATIO")) is not None:
+            try:
+                values["max_unpacked_ratio"] = float(ratio)
+            except ValueError as err:
+                msg = f"{ENV_PREFIX}MAX_UNPACKED_RATIO must be a number, got {ratio!r}"
+                raise ConfigError(msg) from err
         if (flag := env.get(ENV_PREFIX + "ALLOW_ANONYMOUS_READS")) is not None:
             values["allow_anonymous_reads"] = flag.strip().lower() in ("1", "true", "yes", "on")
         return cls().with_overrides(**values)

@@ -137,7 +137,7 @@ class _FormSink:
         if self._is_file:
             self.size += len(chunk)
             if self.size > self.max_bytes:
-                msg = f"upload larger than the server's limit of {self.max_bytes} bytes"
+                msg = f"upload larger than the server's limit of {self.max_bytes} bytes (max_upload_bytes)"
                 raise PayloadTooLargeError(msg)
             self.digest.update(chunk)
             assert self.handle is not None
@@ -195,7 +195,10 @@ async def receive_upload(request: Request, *, staging: Path, max_bytes: int) -> 
     boundary = _boundary(request)
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes + MULTIPART_OVERHEAD:
-        msg = f"upload of {int(declared)} bytes is larger than the server's limit of {max_bytes} bytes"
+        msg = (
+            f"upload of {int(declared)} bytes is larger than the server's limit of {max_bytes} bytes "
+            "(max_upload_bytes)"
+        )
         raise PayloadTooLargeError(msg)
     staging.mkdir(parents=True, exist_ok=True)
     target = staging / f"{secrets.token_hex(12)}.part"

@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from mapserver import pipeline
 from mapserver.errors import MapServerError
@@ -34,13 +35,15 @@ class JobOutcome:
     """What a finished job produced: the session and map ids, or the one-line error.
 
     ``stale``: the error is the pipeline's last :class:`~mapserver.store.StaleMapError` (maps it may merge
-    into kept changing while it ran); running the job again may succeed.
+    into kept changing while it ran); running the job again may succeed. ``dropped``: what reading the log
+    dropped (``IngestReport.as_dict()``), None when nothing was.
     """
 
     session_id: int | None = None
     map_id: int | None = None
     error: str | None = None
     stale: bool = False
+    dropped: dict[str, Any] | None = None
 
 
 class ProgressReporter:
@@ -127,9 +130,13 @@ def execute_job(
         raise
     except MapServerError as err:
         return JobOutcome(error=str(err).replace(str(log_path.parent) + "/", ""), stale=isinstance(err, StaleMapError))
-    except Exception as err:
+    except Exception:
         logger.exception("job %d failed unexpectedly", job.id)
-        return JobOutcome(error=f"internal error ({type(err).__name__}): {err}")
+        return JobOutcome(error=f"internal error while processing the log (the server log has job {job.id}'s details)")
     with db.read() as conn:
         record = find_map(conn=conn, name=result.map_name)
-    return JobOutcome(session_id=result.session_id, map_id=None if record is None else record.id)
+    warning = None if result.dropped is None else result.dropped.warning()
+    if warning is not None:
+        logger.warning("job %d: %s", job.id, warning)
+    dropped = None if warning is None or result.dropped is None else result.dropped.as_dict()
+    return JobOutcome(session_id=result.session_id, map_id=None if record is None else record.id, dropped=dropped)

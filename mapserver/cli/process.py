@@ -11,6 +11,7 @@ from mapserver import pipeline
 from mapserver.cli._output import emit_json, info
 from mapserver.cli._progress import progress_bar
 from mapserver.errors import InputError
+from mapserver.ingest.decode import DEFAULT_MAX_IMAGE_PIXELS, PIXELS_ENV, set_max_image_pixels
 from mapserver.ingest.topics import parse_topics_arg
 from mapserver.params import resolve_params, with_frontend, with_settings
 
@@ -54,6 +55,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--weights", help="torchvision state-dict file of the --backbone (never downloaded)")
     parser.add_argument("--stop-after", type=int, help="process only this many frames (resume later with --db); "
                         "a merge then on probation is verified first: the run stops when its probation ends")
+    parser.add_argument(
+        "--max-image-pixels", type=int, metavar="N",
+        help=f"refuse a frame of more than N pixels, read from its header before decoding (default: "
+        f"${PIXELS_ENV} or {DEFAULT_MAX_IMAGE_PIXELS})",
+    )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line of stdout")
     parser.set_defaults(func=run)
 
@@ -80,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     if args.map_name and not args.db:
         msg = "--map needs --db"
         raise InputError(msg)
+    if args.max_image_pixels is not None:
+        set_max_image_pixels(args.max_image_pixels)
     update, close = progress_bar(f"processing {log.name}")
     try:
         if args.db:
@@ -106,6 +114,15 @@ def run(args: argparse.Namespace) -> int:
             result = pipeline.process_log(log, params, topics=topics, out=args.out, progress=update)
     finally:
         close()
+    _report(result, as_json=args.json)
+    return 0
+
+
+def _report(result: pipeline.ProcessResult, *, as_json: bool) -> None:
+    """Print the summary on stderr (what reading dropped as a warning first), and as JSON on stdout when asked."""
+    warning = None if result.dropped is None else result.dropped.warning()
+    if warning is not None:
+        info(f"warning: {warning}")
     summary = result.summary()
     info(
         f"{summary['frames']} frames → {summary['templates']} templates, {summary['experiences']} experiences, "
@@ -117,6 +134,5 @@ def run(args: argparse.Namespace) -> int:
             f"merged into map {merge['into']!r} at frame {merge['frame']} (event {merge['event']}, "
             f"{merge['confirmations']} confirmations, {merge['matched_templates']} templates matched)"
         )
-    if args.json:
+    if as_json:
         emit_json(summary)
-    return 0

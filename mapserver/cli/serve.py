@@ -1,4 +1,7 @@
-"""``mapserver serve [--db URL] [--host H] [--port P] [--jobs embedded|celery --broker URL]``: run the REST API."""
+"""``mapserver serve [--db URL] [--host H] [--port P] [--jobs embedded|celery --broker URL]``: run the REST API.
+
+The ``--max-*`` flags set the limits uploads are refused by (``GET /v1/limits`` lists them).
+"""
 
 from __future__ import annotations
 
@@ -23,6 +26,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--upload-dir", type=Path, help="where uploads are kept (default: uploads/ beside the DB)")
     parser.add_argument("--max-upload-bytes", type=int,
                         help=f"largest accepted upload (default: {defaults.max_upload_bytes})")  # fmt: skip
+    parser.add_argument("--max-unpacked-bytes", type=int,
+                        help=f"most bytes one archive upload may unpack to (default: {defaults.max_unpacked_bytes})")
+    parser.add_argument("--max-unpacked-ratio", type=float,
+                        help="an archive upload may unpack to at most this multiple of its own size "
+                             f"(default: {defaults.max_unpacked_ratio:g})")  # fmt: skip
+    parser.add_argument("--max-archive-entries", type=int,
+                        help=f"most entries in one archive upload (default: {defaults.max_archive_entries})")
+    parser.add_argument("--max-image-pixels", type=int,
+                        help="most pixels of one camera frame, read from its header before decoding "
+                             f"(default: {defaults.max_image_pixels})")  # fmt: skip
     parser.add_argument("--jobs", choices=("embedded", "celery"),
                         help="job engine: threads in this process, or `mapserver worker` processes (PostgreSQL only)")
     parser.add_argument("--broker", help=f"Celery broker URL for --jobs celery (default: {defaults.broker_url})")
@@ -40,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     settings = Settings.from_env().with_overrides(
         db_url=args.db, host=args.host, port=args.port, allow_anonymous_reads=args.allow_anonymous_reads,
         workers=args.workers, upload_dir=args.upload_dir, max_upload_bytes=args.max_upload_bytes,
+        max_unpacked_bytes=args.max_unpacked_bytes, max_unpacked_ratio=args.max_unpacked_ratio,
+        max_archive_entries=args.max_archive_entries, max_image_pixels=args.max_image_pixels,
         jobs=args.jobs, broker_url=args.broker, job_queue=args.queue, lease_s=args.lease_seconds,
     )  # fmt: skip
     with open_database(settings.db_url) as db:  # fail here, with one ERROR line, on a bad or old database
@@ -47,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     reads = "anonymous reads allowed" if settings.allow_anonymous_reads else "reads need a token"
     jobs = f"jobs on Celery workers, queue {settings.job_queue!r}" if settings.jobs == "celery" else "embedded jobs"
     info(f"serving {url} on http://{settings.host}:{settings.port} ({reads}; {jobs}; docs at /docs)")
+    info("limits: " + ", ".join(f"{name} {value:g}" for name, value in settings.limits().items()))
     uvicorn.run(
         create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
         timeout_graceful_shutdown=30,

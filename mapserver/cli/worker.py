@@ -28,6 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
                         help="a job whose worker was lost this many times is failed (default: 3)")  # fmt: skip
     parser.add_argument("--pool", default="prefork", choices=("prefork", "threads", "solo"),
                         help="Celery pool (default: prefork, one process per job)")  # fmt: skip
+    parser.add_argument("--max-image-pixels", type=int,
+                        help="most pixels of one camera frame, read from its header before decoding "
+                             "(default: $MAPSERVER_MAX_IMAGE_PIXELS or 33554432)")  # fmt: skip
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
     parser.set_defaults(func=run)
 
@@ -35,6 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     """Check the database, then consume jobs until stopped (SIGTERM: finish the running jobs first)."""
     from mapserver.api.celery_worker import WorkerConfig, configure, serve_worker
+    from mapserver.ingest.decode import PIXELS_ENV, set_max_image_pixels
     from mapserver.store import open_database
 
     if not args.db or not str(args.db).startswith("postgresql"):
@@ -43,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
     if args.concurrency < 1 or args.lease_seconds <= 0 or args.max_attempts < 1:
         msg = "--concurrency and --max-attempts must be at least 1 and --lease-seconds positive"
         raise ConfigError(msg)
+    if args.max_image_pixels is not None:  # the environment carries it into the pool's processes too
+        set_max_image_pixels(args.max_image_pixels)
+        os.environ[PIXELS_ENV] = str(args.max_image_pixels)
     with open_database(args.db) as db:  # one ERROR line on a bad or old database
         url = db.display_url()
     name = args.name or f"mapserver-{uuid.uuid4().hex[:6]}@{socket.gethostname()}"

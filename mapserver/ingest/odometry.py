@@ -23,6 +23,22 @@ Two ways to turn a stream of states into the motion between two frame stamps ``t
 
 :class:`OdometryTrack` holds the states between two frames for streaming use; everything else is a pure
 function.
+
+Validation (:class:`OdometryCheck`, on the way from the log to the engine; the bounds are module constants):
+
+* an odometry message is **dropped** when a value of its state is not finite (NaN, ±inf), a position
+  coordinate is beyond :data:`MAX_POSITION_M` (1e8 m), its speed (the norm of forward, lateral and vertical)
+  is above :data:`MAX_SPEED_M_S` (1000 m/s) or its yaw rate is above :data:`MAX_YAW_RATE_RAD_S` (100 rad/s).
+  The motion across it then comes from its neighbours (the previous twist held; the poses on either side
+  interpolated);
+* a frame's motion is **dropped** (zero displacement and heading change over the frame's ``dt``) when a value
+  is not finite or it moves faster than :data:`MAX_SPEED_M_S` over ``dt`` (a jump of the poses, or of the
+  stamps);
+* the log is **refused** (:class:`~mapserver.errors.IngestError`) as soon as the dropped messages are more
+  than :data:`MAX_BAD_FRACTION` (5 %) of the odometry topic's messages, or the dropped frame motions more
+  than 5 % of the log's frames.
+
+The counts, by reason, are the run's :class:`~mapserver.ingest.frames.IngestReport`.
 """
 
 from __future__ import annotations
@@ -37,11 +53,18 @@ import numpy as np
 import numpy.typing as npt
 
 from core.motion import Motion
+from mapserver.errors import IngestError
+from mapserver.ingest.frames import IngestReport
 
 OdometryMode = Literal["twist", "pose"]
 NS = 1e-9
 _SMALL_ANGLE = 1e-4
 POSE_EPSILON = 1e-9  # metres / radians: a pose change above this counts as motion (mode detection)
+MAX_POSITION_M = 1e8  # |x|, |y|, |z| of an odometry pose (the Earth's scale is 1e7 m)
+MAX_SPEED_M_S = 1e3  # speed of an odometry twist, and of a frame's motion over its dt
+MAX_YAW_RATE_RAD_S = 1e2  # yaw rate of an odometry twist (a gyroscope's range is ~35 rad/s)
+MAX_BAD_FRACTION = 0.05  # dropped messages (of the topic's) or dropped frame motions (of the frames) refuse the log
+_SLACK_M = 1e-6  # rounding allowed on a frame's displacement bound
 
 Increment = tuple[float, float, float, float]
 Pose4 = tuple[float, float, float, float]
@@ -136,22 +159,23 @@ def make_state(
         The state (see the module docstring for the projection).
 
     """
-    rotation = quaternion_matrix(*orientation)
-    yaw = yaw_of_matrix(rotation)
-    v_world = rotation @ np.asarray(linear, dtype=float)
-    w_world = rotation @ np.asarray(angular, dtype=float)
-    c, s = math.cos(yaw), math.sin(yaw)
-    return OdometryState(
-        stamp_ns=int(stamp_ns),
-        x=float(position[0]),
-        y=float(position[1]),
-        z=float(position[2]),
-        yaw=yaw,
-        forward=float(c * v_world[0] + s * v_world[1]),
-        lateral=float(-s * v_world[0] + c * v_world[1]),
-        vertical=float(v_world[2]),
-        yaw_rate=float(w_world[2]),
-    )
+    with np.errstate(invalid="ignore", over="ignore"):  # a non-finite message gives a state that is dropped
+        rotation = quaternion_matrix(*orientation)
+        yaw = yaw_of_matrix(rotation)
+        v_world = rotation @ np.asarray(linear, dtype=float)
+        w_world = rotation @ np.asarray(angular, dtype=float)
+        c, s = math.cos(yaw), math.sin(yaw)
+        return OdometryState(
+            stamp_ns=int(stamp_ns),
+            x=float(position[0]),
+            y=float(position[1]),
+            z=float(position[2]),
+            yaw=yaw,
+            forward=float(c * v_world[0] + s * v_world[1]),
+            lateral=float(-s * v_world[0] + c * v_world[1]),
+            vertical=float(v_world[2]),
+            yaw_rate=float(w_world[2]),
+        )
 
 
 def state_from_message(msg: Any, stamp_ns: int) -> OdometryState:
@@ -168,7 +192,11 @@ def state_from_message(msg: Any, stamp_ns: int) -> OdometryState:
 
 
 def twist_is_zero(msg: Any) -> bool:
-    """Return True when all six twist components of an ``Odometry`` message are exactly zero."""
+    """Return True when an ``Odometry`` message carries no twist: all six components exactly zero.
+
+    A twist with a non-finite component, or one beyond the bounds (the message would be dropped), carries
+    none either.
+    """
     twist = msg.twist.twist
     values = (
         twist.linear.x,
@@ -178,11 +206,39 @@ def twist_is_zero(msg: Any) -> bool:
         twist.angular.y,
         twist.angular.z,
     )
-    return all(v == 0.0 for v in values)
+    if all(v == 0.0 for v in values):
+        return True
+    finite = all(math.isfinite(float(v)) for v in values)
+    return not finite or math.hypot(*values[:3]) > MAX_SPEED_M_S or abs(float(values[5])) > MAX_YAW_RATE_RAD_S
+
+
+def state_problem(state: OdometryState) -> str | None:
+    """Return why ``state`` must be dropped (see the module docstring), None when it is usable."""
+    values = (state.x, state.y, state.z, state.yaw, state.forward, state.lateral, state.vertical, state.yaw_rate)
+    if not all(math.isfinite(v) for v in values):
+        return "non-finite value"
+    if max(abs(state.x), abs(state.y), abs(state.z)) > MAX_POSITION_M:
+        return f"position beyond {MAX_POSITION_M:g} m"
+    if math.hypot(state.forward, state.lateral, state.vertical) > MAX_SPEED_M_S:
+        return f"speed above {MAX_SPEED_M_S:g} m/s"
+    if abs(state.yaw_rate) > MAX_YAW_RATE_RAD_S:
+        return f"yaw rate above {MAX_YAW_RATE_RAD_S:g} rad/s"
+    return None
+
+
+def motion_problem(motion: Motion) -> str | None:
+    """Return why a frame's ``motion`` must be dropped (see the module docstring), None when it is usable."""
+    if not all(math.isfinite(v) for v in (motion.dx, motion.dy, motion.dz, motion.dyaw, motion.dt)):
+        return "non-finite value"
+    if math.hypot(motion.dx, motion.dy, motion.dz) > MAX_SPEED_M_S * max(motion.dt, 0.0) + _SLACK_M:
+        return f"faster than {MAX_SPEED_M_S:g} m/s"
+    return None
 
 
 def pose_moved(a: OdometryState, b: OdometryState, epsilon: float = POSE_EPSILON) -> bool:
-    """Return True when two states' poses differ by more than ``epsilon`` (m or rad)."""
+    """Return True when two usable states' poses differ by more than ``epsilon`` (m or rad)."""
+    if state_problem(a) is not None or state_problem(b) is not None:
+        return False
     return (
         abs(a.x - b.x) > epsilon
         or abs(a.y - b.y) > epsilon
@@ -334,22 +390,83 @@ def frame_motion(mode: OdometryMode, states: Sequence[OdometryState], t0_ns: int
     return difference_poses(states, t0_ns, t1_ns)
 
 
+class OdometryCheck:
+    """Drops unusable odometry messages and frame motions, counts them, refuses a log with too many.
+
+    Args:
+        messages: the odometry topic's message count (the base of the message fraction).
+        frames: the log's frame count (the base of the frame-motion fraction).
+        source: what the refusal's message names (the log).
+    """
+
+    def __init__(self, *, messages: int, frames: int, source: str = "") -> None:
+        self.messages = messages
+        self.frames = frames
+        self.source = source
+        self.report = IngestReport()
+
+    def accept(self, state: OdometryState) -> bool:
+        """Return whether ``state`` is usable; count it as dropped otherwise.
+
+        Raises:
+            IngestError: the dropped messages are now more than ``MAX_BAD_FRACTION`` of the topic's.
+        """
+        self.report.odometry_messages += 1
+        problem = state_problem(state)
+        if problem is None:
+            return True
+        dropped = self.report.dropped_messages
+        dropped[problem] = dropped.get(problem, 0) + 1
+        self._refuse_past(dropped, max(self.messages, self.report.odometry_messages), "odometry messages")
+        return False
+
+    def motion(self, motion: Motion) -> Motion:
+        """Return a frame's ``motion``, or zero displacement over its ``dt`` when it is dropped (counted).
+
+        Raises:
+            IngestError: the dropped frame motions are now more than ``MAX_BAD_FRACTION`` of the frames.
+        """
+        self.report.frames += 1
+        problem = motion_problem(motion)
+        if problem is None:
+            return motion
+        dropped = self.report.dropped_motions
+        dropped[problem] = dropped.get(problem, 0) + 1
+        self._refuse_past(dropped, max(self.frames, self.report.frames), "frames' motions")
+        dt = motion.dt if math.isfinite(motion.dt) else 0.0
+        return Motion(0.0, 0.0, 0.0, 0.0, dt)
+
+    def _refuse_past(self, dropped: dict[str, int], total: int, what: str) -> None:
+        bad = sum(dropped.values())
+        if bad > MAX_BAD_FRACTION * total:
+            reasons = ", ".join(f"{reason}: {count}" for reason, count in dropped.items())
+            msg = (
+                f"{self.source}: unusable odometry: {bad} of the log's {total} {what} dropped ({reasons}); a log "
+                f"is refused when more than {MAX_BAD_FRACTION:.0%} are"
+            )
+            raise IngestError(msg)
+
+
 class OdometryTrack:
     """A bounded buffer of odometry states for streaming frame-by-frame integration.
 
     Push states in stamp order (a state older than the newest one is dropped: header stamps must not go
     backwards within a topic); ask :meth:`motion` once :meth:`covers` the frame stamp or the stream has
     ended; :meth:`motion` then drops the states no later interval can need, so memory stays bounded by the
-    odometry between two frames.
+    odometry between two frames. With a ``check``, unusable states are dropped on :meth:`push` and every
+    motion goes through :meth:`OdometryCheck.motion`.
     """
 
-    def __init__(self, mode: OdometryMode) -> None:
+    def __init__(self, mode: OdometryMode, check: OdometryCheck | None = None) -> None:
         self.mode: OdometryMode = mode
+        self.check = check
         self.states: list[OdometryState] = []
         self.dropped = 0
 
     def push(self, state: OdometryState) -> None:
-        """Append a state (dropped when its stamp is older than the newest state's)."""
+        """Append a state (dropped when unusable, or when its stamp is older than the newest state's)."""
+        if self.check is not None and not self.check.accept(state):
+            return
         if self.states and state.stamp_ns < self.states[-1].stamp_ns:
             self.dropped += 1
             return
@@ -363,7 +480,7 @@ class OdometryTrack:
         """Return the motion from ``t0_ns`` to ``t1_ns``; forget the states no later interval needs."""
         result = frame_motion(self.mode, self.states, t0_ns, t1_ns)
         self.trim(max(t0_ns, t1_ns))
-        return result
+        return result if self.check is None else self.check.motion(result)
 
     def trim(self, t_ns: int) -> None:
         """Drop the states before the last one at or before ``t_ns``."""

@@ -44,15 +44,17 @@ from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
 
 from core.motion import ZERO_MOTION, Motion
-from mapserver.errors import IngestError
+from mapserver.errors import IngestError, InputError, LimitError, describe_cause
 from mapserver.ingest.decode import decode_image
-from mapserver.ingest.frames import Frame, PoseSample
+from mapserver.ingest.frames import Frame, IngestReport, PoseSample
 from mapserver.ingest.odometry import (
+    OdometryCheck,
     OdometryMode,
     OdometryState,
     OdometryTrack,
     pose_moved,
     state_from_message,
+    state_problem,
     twist_is_zero,
 )
 from mapserver.ingest.ordering import raw_header_stamp, stamp_ordered
@@ -125,8 +127,7 @@ def _new_reader(path: Path) -> AnyReader:
 
 
 def _describe(err: BaseException) -> str:
-    text = " ".join(str(err).split()) or type(err).__name__
-    return text if len(text) <= 200 else text[:197] + "..."
+    return describe_cause(err)
 
 
 class MissionLog:
@@ -158,6 +159,7 @@ class MissionLog:
         self._odometry_mode = odometry_mode
         self._sha256: str | None = None
         self._stamp_indices: dict[str, npt.NDArray[np.int64]] = {}
+        self.odometry_check: OdometryCheck | None = None
 
     # -- lifecycle -------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -224,7 +226,7 @@ class MissionLog:
                 return "twist"
             state = state_from_message(msg, _header_stamp(msg, receive_ns))
             if first is None:
-                first = state
+                first = None if state_problem(state) is not None else state
             elif pose_moved(first, state):
                 return "pose"
         return "twist"
@@ -261,6 +263,10 @@ class MissionLog:
                 stamp = _header_stamp(self._deserialize(reader, raw, conn), receive_ns)
             stamps.append(stamp if stamp != 0 else int(receive_ns))
         index = np.asarray(stamps, dtype=np.int64)
+        listed = next((t.count for t in self.topics if t.name == topic), index.size)
+        if index.size != listed:  # a damaged file whose reader stops early (or reads on past its index)
+            msg = f"corrupt log {str(self.path)!r}: {topic} has {index.size} readable messages of the {listed} listed"
+            raise IngestError(msg)
         self._stamp_indices[topic] = index
         return index
 
@@ -285,6 +291,34 @@ class MissionLog:
         for conn, receive_ns, raw in self._ordered(reader, self.mapping.odometry):
             msg = self._deserialize(reader, raw, conn)
             yield state_from_message(msg, _header_stamp(msg, receive_ns))
+
+    def _odometry_check(self) -> OdometryCheck:
+        """Return a new check of the odometry, kept as :attr:`odometry_check` (its counts are :attr:`report`)."""
+        messages = next((t.count for t in self.topics if t.name == self.mapping.odometry), 0)
+        self.odometry_check = OdometryCheck(messages=messages, frames=self.count_frames(), source=str(self.path))
+        return self.odometry_check
+
+    @property
+    def report(self) -> IngestReport:
+        """What the last :meth:`frames` (or :meth:`verify`) dropped, by reason (empty before either)."""
+        return IngestReport() if self.odometry_check is None else self.odometry_check.report
+
+    def verify(self) -> IngestReport:
+        """Read every mapped topic through once, decoding no image; return what the odometry check dropped.
+
+        Raises:
+            IngestError: a topic has fewer (or more) readable messages than its index lists, a message does
+                not read, or the odometry is unusable (see :mod:`mapserver.ingest.odometry`).
+        """
+        reader = self._require_open()
+        for topic in self.mapping.as_dict().values():
+            if topic is not None:
+                self._stamp_index(reader, topic)
+        check = self._odometry_check()
+        if self.mapping.odometry is not None:
+            for state in self._odometry_states(reader):
+                check.accept(state)
+        return check.report
 
     def first_image(self) -> Any:
         """Return the first deserialised message of the image topic (None when there is none)."""
@@ -322,7 +356,7 @@ class MissionLog:
                 odom_reader = _new_reader(self.path)
                 stack.callback(odom_reader.close)
                 states = self._odometry_states(odom_reader)
-                track = OdometryTrack(mode)
+                track = OdometryTrack(mode, self._odometry_check())
             sonar = None
             if self.mapping.sonar is not None:
                 sonar_reader = _new_reader(self.path)
@@ -413,6 +447,7 @@ def open_log(
     Raises:
         IngestError: missing path, not a bag, truncated or corrupt, no usable camera topic, bad override,
             unsupported image encoding (checked on the first image).
+        LimitError: the first image has more pixels than the limit (:mod:`mapserver.ingest.decode`).
 
     """
     log_path = Path(path)
@@ -429,10 +464,13 @@ def open_log(
             raise IngestError(msg)
         try:
             decode_image(first, mapping.image)
+        except LimitError as err:
+            msg = f"{err} in {str(log_path)!r}"
+            raise LimitError(msg, limit=err.limit) from err
         except IngestError as err:
             msg = f"{err} in {str(log_path)!r}"
             raise IngestError(msg) from err
-    except IngestError:
+    except InputError:  # IngestError, a bad override, or a first frame over the pixel limit (LimitError)
         reader.close()
         raise
     except Exception as err:

@@ -139,6 +139,13 @@ def finish_job(*, conn: Connection, job_id: int, session_id: int | None, map_id:
     )
 
 
+def set_job_dropped(*, conn: Connection, job_id: int, dropped: Mapping[str, Any]) -> None:
+    """Keep what reading the job's log dropped (``IngestReport.as_dict()``) as ``options.dropped``."""
+    record = get_job(conn=conn, job_id=job_id)
+    options = {**(record.options or {}), "dropped": dict(dropped)}
+    conn.execute(update(Job).where(Job.id == job_id).values(options=options, updated_at=utcnow()))
+
+
 def fail_job(*, conn: Connection, job_id: int, error: str) -> None:
     """Mark a job ``failed`` with a one-line error."""
     now = utcnow()

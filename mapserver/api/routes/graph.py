@@ -20,6 +20,7 @@ from mapserver.store.evidence import get_evidence
 from mapserver.store.models import LINK_KIND_NAMES
 
 router = APIRouter(prefix="/v1/maps", tags=["viewer"])
+MAX_COORDINATE = 1e12  # metres: a query point beyond is refused (422), as is NaN or ±inf
 ViewParam = Annotated[Literal["xy", "xz"], Query(description="drawing plane: xy (top view) or xz (side view)")]
 
 
@@ -46,7 +47,9 @@ async def read_graph(
     bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in the drawing plane (default: all)")] = None,
     max_nodes: Annotated[int, Query(ge=1, le=MAX_NODES, description="most experiences returned")] = 20_000,
     view: ViewParam = "xy",
-    resolution: Annotated[float, Query(ge=0, le=1e9, description="finest grid cell worth drawing (m)")] = 0.0,
+    resolution: Annotated[
+        float, Query(ge=0, le=1e9, allow_inf_nan=False, description="finest grid cell worth drawing (m)")
+    ] = 0.0,
 ) -> Response:
     """Return the map's experience graph inside ``bbox``, thinned on a grid to at most ``max_nodes`` nodes.
 
@@ -65,8 +68,10 @@ async def read_nearest(
     request: Request,
     services: ServicesDep,
     _token: ReadAccess,
-    x: Annotated[float, Query(description="x in the drawing plane (m)")],
-    y: Annotated[float, Query(description="y (or z in the side view) in the drawing plane (m)")],
+    x: Annotated[float, Query(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False,
+                              description="x in the drawing plane (m)")],
+    y: Annotated[float, Query(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False,
+                              description="y (or z in the side view) in the drawing plane (m)")],
     view: ViewParam = "xy",
 ) -> dict[str, Any]:
     """Return ``{"id", "distance"}`` of the experience nearest to a point of the drawing plane (404 when none)."""

@@ -48,6 +48,7 @@ def job_public(conn: Connection, job: JobRecord) -> JobPublic:
         created_at=job.created_at,
         started_at=job.started_at,
         finished_at=job.finished_at,
+        dropped=(job.options or {}).get("dropped"),
     )
 
 

@@ -78,7 +78,7 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
         if job is None:
             stored = await run_in_threadpool(
                 store_log, received, uploads_dir=settings.uploads, topics=options.topics,
-                max_unpacked_bytes=settings.max_unpacked_bytes, max_archive_members=settings.max_archive_members,
+                limits=settings.archive_limits,
             )  # fmt: skip
             job, duplicate = await run_in_threadpool(services.queue_job, received, stored, options)
     except BaseException:

@@ -123,6 +123,7 @@ class Server:
     port: int
     log: Path
     process: subprocess.Popen[bytes] | None = None
+    extra: tuple[str, ...] = ()  # more ``serve`` flags
 
     @property
     def url(self) -> str:
@@ -133,7 +134,7 @@ class Server:
         handle = self.log.open("ab")
         self.process = subprocess.Popen(
             [MAPSERVER, "serve", "--db", self.db_url, "--host", "127.0.0.1", "--port", str(self.port),
-             "--upload-dir", str(self.upload_dir), "--workers", "2", "--log-level", "warning"],
+             "--upload-dir", str(self.upload_dir), "--workers", "2", "--log-level", "warning", *self.extra],
             stdout=handle, stderr=subprocess.STDOUT, env=env,
         )  # fmt: skip
         deadline = time.monotonic() + timeout

@@ -10,6 +10,7 @@ import io
 import math
 import tarfile
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +31,13 @@ def _texture(seed: int, height: int = 20, columns: int = int(PERIMETER_M * PX_PE
 
 
 def write_strip_log(path: Path, *, laps: float = 1.3, seed: int = 3, rate_hz: float = 2.0, fmt: str = "bag",
-                    width: int = 64, t0_ns: int = T0_NS, directory: bool = False) -> Path:  # fmt: skip
-    """Write a log of the strip world driven ``laps`` times around (images at ``rate_hz``, odometry 10 Hz)."""
+                    width: int = 64, t0_ns: int = T0_NS, directory: bool = False,
+                    odometry_edit: Callable[[list[OdomSample]], list[OdomSample]] | None = None,
+                    pose_only: bool = False) -> Path:  # fmt: skip
+    """Write a log of the strip world driven ``laps`` times around (images at ``rate_hz``, odometry 10 Hz).
+
+    ``odometry_edit`` gets the odometry samples and returns the ones written; ``pose_only`` writes zero twists.
+    """
     texture = _texture(seed)
     columns = texture.shape[1]
     speed = 1.0
@@ -49,7 +55,10 @@ def write_strip_log(path: Path, *, laps: float = 1.3, seed: int = 3, rate_hz: fl
         yaw = wz * t
         odometry.append(OdomSample(t0_ns + round(t * 1e9), radius * math.sin(yaw), radius * (1 - math.cos(yaw)),
                                    0.0, yaw, speed, 0.0, 0.0, wz))  # fmt: skip
-    return write_log(path, fmt, images, odometry, directory=directory)  # type: ignore[arg-type]
+    if odometry_edit is not None:
+        odometry = odometry_edit(odometry)
+    return write_log(path, fmt, images, odometry, directory=directory,  # type: ignore[arg-type]
+                     pose_only_odometry=pose_only)  # fmt: skip
 
 
 def zip_directory(directory: Path, out: Path, *, prefix: str | None = None) -> Path:

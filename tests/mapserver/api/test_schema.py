@@ -39,7 +39,7 @@ def test_no_server_errors(tmp_path: Path) -> None:
         headers = bearer(make_token(app_settings.db_url, "write"))
         schema = schemathesis.openapi.from_asgi("/openapi.json", app)
         operations = [result.ok() for result in schema.get_all_operations()]
-        assert len(operations) == 17  # 8, the viewer's 8 (graph, nearest, node, evidence, merges x4), metrics
+        assert len(operations) == 18  # 8, the viewer's 8 (graph, nearest, node, evidence, merges x4), metrics, limits
         statuses: dict[str, set[int]] = {}
         for operation in operations:
             _exercise(operation, headers, statuses.setdefault(operation.label, set()))

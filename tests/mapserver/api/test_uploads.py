@@ -185,14 +185,15 @@ def test_zip_bomb_stops_at_the_unpacked_limit(make_api: Any) -> None:
     data = buffer.getvalue()
     assert len(data) < 100_000
     response = _post_bytes(api, "bomb.zip", data)
-    assert response.status_code == 400
-    assert "more than the server's limit of 1000000" in response.json()["detail"]
+    assert response.status_code == 413
+    assert response.json()["limit"] == "max_unpacked_bytes"
+    assert "limit is max_unpacked_bytes = 1000000" in response.json()["detail"]
     assert _files(api) == []
 
 
 def test_zip_with_lying_headers_is_refused(make_api: Any) -> None:
     """A zip whose headers under-state an entry's size is refused (nothing unpacked beyond what it declares)."""
-    from mapserver.api.archives import extract_archive
+    from mapserver.api.archives import ArchiveLimits, extract_archive
 
     api = make_api()
     buffer = io.BytesIO()
@@ -207,6 +208,6 @@ def test_zip_with_lying_headers_is_refused(make_api: Any) -> None:
     archive.write_bytes(bytes(raw))
     dest = api.settings.uploads / "lying"
     with pytest.raises(InputError, match=r"archive"):
-        extract_archive(archive, dest, kind=".zip", max_bytes=1_000_000, max_members=10)
+        extract_archive(archive, dest, kind=".zip", limits=ArchiveLimits(1_000_000, 1e6, 10))
     assert not dest.exists()
 
