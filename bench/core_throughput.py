@@ -38,11 +38,11 @@ from core.neocortex import NeocortexViewCells
 def corridor_frames(n: int, height: int, width: int, seed: int = 0) -> Iterator[tuple[np.ndarray, Motion, float]]:
     """Yield (image, motion, stamp): a smooth random texture strip viewed along a loop.
 
-    The loop is 60 m (600 columns at 10 px/m), or four image widths when the image is wider than 150 px.
+    The loop is 60 m (600 columns at 10 px/m), or two image widths when the image is wider than 300 px.
     """
     rng = np.random.default_rng(seed)
     px_per_m = 10
-    columns = max(60 * px_per_m, 4 * width)
+    columns = max(60 * px_per_m, 2 * width)
     loop_m = columns / px_per_m
     base = rng.random((height, columns))
     kernel = np.ones(9) / 9.0
@@ -103,16 +103,28 @@ def prefill_views(view_cells: LocalViewCells | NeocortexViewCells, n: int, rng: 
     ty, tx = p.template_y_size, p.template_x_size
     levels = rng.uniform(0.15, 0.85, size=(n, 1, 1))
     templates = np.clip(levels + rng.normal(0, 0.08, size=(n, ty, tx)), 0, 1).astype(np.float32)
-    view_cells.add_templates(templates, templates.reshape(n, -1).mean(axis=1, dtype=np.float64))
+    view_cells.add_templates(templates, templates.reshape(n, -1).mean(axis=1).astype(np.float64))
 
 
 def image_size(params: Params, width: int | None, height: int | None) -> tuple[int, int]:
-    """Return (width, height) of the bench's images: as given, else 160 × 120 widened to the preset's crop."""
-    if width is None:
-        width = max(160, params.image_crop_x_max)
-    if height is None:
-        height = max(120, params.image_crop_y_max)
-    return width, height
+    """Return (width, height) of the bench's images: as given, else 160 × 120.
+
+    A side whose crop would keep fewer pixels than the template has cells (``stlucia``, ``lake``: rows 150..300)
+    is widened to the crop's far edge.
+    """
+    p = params
+    return (
+        _side(width, 160, p.image_crop_x_min, p.image_crop_x_max, p.template_x_size),
+        _side(height, 120, p.image_crop_y_min, p.image_crop_y_max, p.template_y_size),
+    )
+
+
+def _side(given: int | None, default: int, low: int, high: int, cells: int) -> int:
+    """Return ``given``, else ``default`` if crop ``low..high`` (−1: the end) keeps ``cells`` pixels, else ``high``."""
+    if given is not None:
+        return given
+    kept = (default if high < 0 else min(high, default)) - min(low, default)
+    return default if kept >= cells else max(default, high)
 
 
 def main() -> None:
@@ -120,8 +132,8 @@ def main() -> None:
     parser.add_argument("--preset", default="irat")
     parser.add_argument("--templates", type=int, default=1000)
     parser.add_argument("--frames", type=int, default=1500)
-    parser.add_argument("--width", type=int, help="image width (default: 160, or the preset's crop if wider)")
-    parser.add_argument("--height", type=int, help="image height (default: 120, or the preset's crop if taller)")
+    parser.add_argument("--width", type=int, help="image width (default: 160, or the crop's far edge if needed)")
+    parser.add_argument("--height", type=int, help="image height (default: 120, or the crop's far edge if needed)")
     args = parser.parse_args()
     params = preset(args.preset)
     engine = Engine(params)
