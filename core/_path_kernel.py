@@ -1,7 +1,8 @@
 """The compiled search of :mod:`core.contraction`: Dijkstra over a CSR graph that stops at its target.
 
-Importing this module imports numba and compiles (or loads from ``__pycache__``, ``cache=True``) the
-functions below; :mod:`core.contraction` imports it when it builds its first graph. The search keeps its
+numba compiles the functions below on their first call (``cache=True``: once per machine, then they are
+loaded from ``__pycache__``); :func:`load` makes those calls, and :mod:`core.contraction` makes it when it
+builds its first graph, so that no query pays for it. The search keeps its
 frontier in an indexed binary heap (one entry per node, decreased in place) ordered by (distance, node id),
 so equal distances are settled in node order whatever the machine. It only reads the graph's arrays and
 releases the GIL (``nogil``): threads query one graph at once.
@@ -157,3 +158,17 @@ def through_chains(
         out[i] = nodes[k + 1]
         i += 1
     return out
+
+
+def load() -> None:
+    """Compile or load every function above for the argument types :mod:`core.contraction` calls them with.
+
+    The graph's arrays are read-only there (a distinct numba type from writable arrays), the others writable.
+    """
+    graph = [np.zeros(2, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones(1)]  # one node, one self-link
+    for array in graph:
+        array.setflags(write=False)
+    ends = np.zeros(1, dtype=np.int64)
+    _, pred = settle(*graph, ends, np.zeros(1), ends, np.zeros(1), np.inf)
+    hops(pred, 0)
+    through_chains(ends, ends[:0], ends, ends, ends)

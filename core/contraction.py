@@ -116,8 +116,9 @@ class Chains:
         junction_id[junctions] = np.arange(junctions.size)
         component = connected_components(_pattern(n, lo, hi), directed=False)[1]
         return cls(
-            n=n, chain=chain, order=order, start=start, position=position, a=junction_end[0::2],
-            b=junction_end[1::2], first_link=attach[0::2], last_link=attach[1::2], inner_links=inner_links,
+            n=n, chain=chain, order=order, start=start, position=position, a=np.ascontiguousarray(junction_end[0::2]),
+            b=np.ascontiguousarray(junction_end[1::2]), first_link=attach[0::2], last_link=attach[1::2],
+            inner_links=inner_links,
             junctions=junctions, junction_id=junction_id, component=component,
         )  # fmt: skip
 
@@ -262,7 +263,8 @@ def _frozen(array: np.ndarray) -> np.ndarray:
 
 @functools.cache
 def _kernel() -> ModuleType:
-    """Return :mod:`core._path_kernel` (imported on the first call: numba's import and the compiled search)."""
+    """Return :mod:`core._path_kernel`, imported and its functions loaded (:func:`core._path_kernel.load`) once."""
     from core import _path_kernel
 
+    _path_kernel.load()
     return _path_kernel
