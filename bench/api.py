@@ -8,7 +8,9 @@ Usage: python bench/api.py [--experiences 100000] [--clients 8] [--requests 200]
    so paths are hundreds of experiences long and Dijkstra sees a large, sparse graph.
 2. Starts a real ``mapserver serve`` process on a free loopback port (anonymous reads), warms the
    graph cache with one query, then ``--clients`` threads each send ``--requests`` /path queries
-   between random experiences (seeded) over keep-alive connections; prints p50/p90/p99/max latency.
+   between random experiences (seeded) over keep-alive connections; prints p50/p90/p99/max latency and
+   the server's CPU time per request (user + system, from /proc: a figure that other work on the machine
+   moves less than it moves latency).
    ``--read-token`` sends a read token with every query (the server then looks it up each time).
 3. Simulates the ``loop`` scenario, uploads its log with a write token and polls the job until it is
    done: prints the end-to-end seconds (upload + queue + processing + store).
@@ -113,6 +115,15 @@ def start_server(db_url: str, folder: Path) -> tuple[subprocess.Popen[bytes], st
     raise SystemExit("server did not start")
 
 
+def process_cpu_s(pid: int) -> float:
+    """Return the CPU seconds (user + system) process ``pid`` has used (Linux ``/proc``; 0 elsewhere)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def path_latency(
     url: str, experiences: int, clients: int, requests: int, headers: dict[str, str] | None = None
 ) -> dict[str, float]:
@@ -212,11 +223,14 @@ def main() -> None:
             if args.read_token:
                 with open_database(db_url) as db, db.write() as conn:
                     headers = {"Authorization": f"Bearer {create_token(conn=conn, scope='read')[0]}"}
+            cpu = process_cpu_s(process.pid)
             latency = path_latency(url, args.experiences, args.clients, args.requests, headers)
+            cpu = process_cpu_s(process.pid) - cpu
+            latency["server_cpu_ms_per_request"] = round(cpu / latency["requests"] * 1e3, 3)
             print(f"/path under {args.clients} clients: p50 {latency['p50_ms']} ms, p90 {latency['p90_ms']} ms, "
                   f"p99 {latency['p99_ms']} ms, max {latency['max_ms']} ms ({latency['requests']} requests, "
-                  f"{latency['throughput_rps']} req/s, mean path {latency['mean_path_nodes']} nodes); "
-                  "target p99 ≤ 50 ms")  # fmt: skip
+                  f"{latency['throughput_rps']} req/s, mean path {latency['mean_path_nodes']} nodes; "
+                  f"server CPU {latency['server_cpu_ms_per_request']} ms per request); target p99 ≤ 50 ms")  # fmt: skip
             result.update(latency)
             if not args.skip_upload:
                 e2e = upload_to_done(url, db_url, folder)

@@ -35,6 +35,10 @@ class GrowBuffer:
         grown[: self._n] = self._data[: self._n]
         self._data = grown
 
+    def reserve(self, n: int) -> None:
+        """Make room for ``n`` rows in all (the capacity doubles until it holds them), so that appends do not copy."""
+        self._reserve(n)
+
     def append(self, row: npt.ArrayLike) -> int:
         """Append one row and return its index."""
         self._reserve(self._n + 1)

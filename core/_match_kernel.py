@@ -38,8 +38,17 @@ def fixed_point_bits(width: int, peak: float) -> int:
 
 
 def quantise(values: np.ndarray, bits: int) -> np.ndarray:
-    """Return ``round(values · 2^bits)`` as int32 (the kernel's fixed point)."""
-    return np.rint(np.asarray(values, dtype=np.float64) * float(2**bits)).astype(np.int32)
+    """Return ``round(values · 2^bits)`` (half to even) as int32 (the kernel's fixed point).
+
+    float32 values are scaled and rounded in float32, anything else in float64: the same integers either
+    way (multiplying by a power of two is exact, and so is rounding a float to an integer), with one
+    temporary of the input's size and type.
+    """
+    values = np.asarray(values)
+    work = np.float32 if values.dtype == np.float32 else np.float64
+    scaled = np.empty(values.shape, dtype=work)
+    np.multiply(values, work(2**bits), out=scaled, dtype=work)
+    return np.rint(scaled, out=scaled).astype(np.int32)
 
 
 def best_pair(

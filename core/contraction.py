@@ -15,18 +15,23 @@ with an edge per junction–junction link and per chain between two distinct jun
 ``w(a, first) + cum[last] + w(last, b)``), the cheapest of parallel ones kept, and which chain (or
 direct link) each edge stands for.
 
-A query joins the source to its chain's junctions (the cost along the chain to each end) through a
-virtual node, runs one Dijkstra over the contracted graph, joins the target the same way, compares with
-the direct way when both lie on one chain, and expands the contracted path into node ids. Every
-candidate is a path of the original graph and every simple path is covered by one, so the cost is the
-exact optimum (to floating-point rounding). Build: a few vectorised csgraph passes, ``O(L log L)`` for
-``L`` links; query: ``O(E_J log J)`` for ``J`` junctions and ``E_J`` contracted edges, plus the path.
+A query starts Dijkstra over the contracted graph from the source's ways in (its junction, or the two
+junctions at its chain's ends at their costs along the chain), and stops as soon as no junction left in
+its heap can improve the best way out to the target (the target's junction, or its chain's end junctions
+plus the costs along the chain, and the direct way when both lie on one chain); it then expands the
+contracted path into node ids. Every candidate is a path of the original graph and every simple path is
+covered by one, so the cost is the exact optimum (to floating-point rounding). The search
+(:func:`core._path_kernel.settle`) is compiled by numba and releases the GIL; it reads the graph's
+read-only arrays and writes only its own, so any number of threads query one built graph at once without
+a lock. Build: a few vectorised csgraph passes, ``O(L log L)`` for ``L`` links; query: ``O(E_r log J_r)``
+for the ``J_r`` junctions nearer the source than the target (and their ``E_r`` edges), plus the path.
 """
 
 from __future__ import annotations
 
-import threading
+import functools
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 import scipy.sparse as sp
@@ -111,8 +116,9 @@ class Chains:
         junction_id[junctions] = np.arange(junctions.size)
         component = connected_components(_pattern(n, lo, hi), directed=False)[1]
         return cls(
-            n=n, chain=chain, order=order, start=start, position=position, a=junction_end[0::2],
-            b=junction_end[1::2], first_link=attach[0::2], last_link=attach[1::2], inner_links=inner_links,
+            n=n, chain=chain, order=order, start=start, position=position, a=np.ascontiguousarray(junction_end[0::2]),
+            b=np.ascontiguousarray(junction_end[1::2]), first_link=attach[0::2], last_link=attach[1::2],
+            inner_links=inner_links,
             junctions=junctions, junction_id=junction_id, component=component,
         )  # fmt: skip
 
@@ -136,9 +142,9 @@ class ContractedGraph:
             along = sp.csr_matrix((weight[links], (lo[links], hi[links])), shape=(n, n))
             cum = dijkstra(along, directed=False, indices=c.order[c.start[:-1]], min_only=True)
             cum[c.chain < 0] = 0.0
-        self.cum = cum
-        self.length = cum[c.order[c.start[1:] - 1]]  # first → last of each chain
-        self.to_a, self.to_b = weight[c.first_link], weight[c.last_link]
+        self.cum = _frozen(cum)
+        self.length = _frozen(cum[c.order[c.start[1:] - 1]])  # first → last of each chain
+        self.to_a, self.to_b = _frozen(weight[c.first_link]), _frozen(weight[c.last_link])
         # contracted edges, both directions: junction–junction links, chains between distinct junctions
         direct = np.flatnonzero((c.junction_id[lo] >= 0) & (c.junction_id[hi] >= 0))
         crossing = np.flatnonzero(c.a != c.b)
@@ -154,19 +160,19 @@ class ContractedGraph:
         keep[1:] = (u[1:] != u[:-1]) | (v[1:] != v[:-1])
         u, v, w, via = u[keep], v[keep], w[keep], via[keep]
         m = c.junctions.size
-        # row m is the virtual source of a query that starts on a chain: its two entries are scratch
-        # space, rewritten by each such query under ``_lock`` (no per-query copy of the graph)
-        indptr = np.append(np.searchsorted(u, np.arange(m + 1)), u.size + 2).astype(np.int32)
-        indices = np.concatenate([v, [0, m]]).astype(np.int32)
-        data = np.concatenate([w, [np.inf, np.inf]])
-        self.matrix = sp.csr_matrix((data, indices, indptr), shape=(m + 1, m + 1))
-        self._scratch = u.size
-        self._lock = threading.Lock()
-        self.keys = u * m + v  # sorted: which entry joins two junctions, and ``via`` what
-        self.via = via
+        self.indptr = _frozen(np.searchsorted(u, np.arange(m + 1)).astype(np.int64))
+        self.indices = _frozen(v.astype(np.int64))
+        self.data = _frozen(w.astype(np.float64))
+        self.keys = _frozen(u * m + v)  # sorted: which entry joins two junctions, and ``via`` what
+        self.via = _frozen(via)
+        _kernel()  # numba's import and the compiled search are loaded with the graph, not on a query
 
     def search(self, source: int, target: int) -> tuple[float, list[int]] | None:
-        """Return (cost, node ids from ``source`` to ``target``) of a shortest path, None when there is none."""
+        """Return (cost, node ids from ``source`` to ``target``) of a shortest path, None when there is none.
+
+        Dijkstra from the source's ways in stops once the heap holds no junction nearer than the best way out
+        (:func:`core._path_kernel.settle`); the direct way along a shared chain wins a tie with the junctions' way.
+        """
         c = self.chains
         if source == target:
             return 0.0, [source]
@@ -177,15 +183,15 @@ class ContractedGraph:
             best = abs(float(self.cum[target]) - float(self.cum[source]))
         starts = self._ways(source, target)
         ends = self._ways(target, source)
-        root = starts[0][0] if starts[0][2] == 0 else c.junctions.size
-        with self._lock:
-            if root == c.junctions.size:
-                self._set_source(starts)
-            dist, pred = dijkstra(self.matrix, directed=True, indices=root, return_predecessors=True)
+        dist, pred = _kernel().settle(
+            self.indptr, self.indices, self.data,
+            np.array([s[0] for s in starts], dtype=np.int64), np.array([s[1] for s in starts]),
+            np.array([e[0] for e in ends], dtype=np.int64), np.array([e[1] for e in ends]), best,
+        )  # fmt: skip
         end = min(ends, key=lambda e: dist[e[0]] + e[1])
         via = float(dist[end[0]]) + end[1]
         if via < best:
-            return via, self._expand(source, target, starts, end, root, pred)
+            return via, self._expand(source, target, starts, end, pred)
         if np.isfinite(best):
             return best, self._along(source, target)
         return None
@@ -208,47 +214,23 @@ class ContractedGraph:
             return [ways[0]] if c.position[node] < c.position[other] else [ways[1]]
         return ways
 
-    def _set_source(self, starts: list[_Way]) -> None:
-        """Link the virtual node (index m) to ``starts``' junctions: the scratch entries of its row."""
-        m = self.chains.junctions.size
-        cheapest: dict[int, float] = {}
-        for junction, cost, _side in starts:
-            cheapest[junction] = min(cost, cheapest.get(junction, np.inf))
-        entries = [*sorted(cheapest.items()), (m, np.inf)]  # (m, inf): an unused slot, a self-link never taken
-        k = self._scratch
-        self.matrix.indices[k : k + 2] = [entries[0][0], entries[1][0]]
-        self.matrix.data[k : k + 2] = [entries[0][1], entries[1][1]]
-
     def _along(self, source: int, target: int) -> list[int]:
         """Return the nodes from ``source`` to ``target`` along their shared chain."""
         i, j = int(self.chains.position[source]), int(self.chains.position[target])
         order = self.chains.order
         return order[i : j + 1].tolist() if i <= j else order[j : i + 1][::-1].tolist()
 
-    def _expand(
-        self, source: int, target: int, starts: list[_Way], end: _Way, root: int, pred: np.ndarray
-    ) -> list[int]:
-        """Return the node ids of the contracted path ``root → … → end``, with the source and target segments."""
+    def _expand(self, source: int, target: int, starts: list[_Way], end: _Way, pred: np.ndarray) -> list[int]:
+        """Return the node ids of the contracted path to ``end`` (``pred``: −1 at a way in), with the chain ends."""
         c = self.chains
         m = c.junctions.size
-        hops = [end[0]]
-        while hops[-1] != root:
-            hops.append(int(pred[hops[-1]]))
-        hops.reverse()
-        pieces: list[np.ndarray] = []
-        if root == m:  # leave the source's chain by the side whose junction the path enters first
-            side = min((s for s in starts if s[0] == hops[1]), key=lambda s: s[1])[2]
-            pieces.append(self._to_end(source, side))
-            hops = hops[1:]
-        junctions = np.asarray(hops, dtype=np.int64)
-        nodes = c.junctions[junctions]
-        pieces.append(nodes[:1])
+        kernel = _kernel()
+        junctions = kernel.hops(pred, end[0])
         chains = self.via[np.searchsorted(self.keys, junctions[:-1] * m + junctions[1:])]
-        for k, chain in enumerate(chains.tolist()):
-            if chain >= 0:
-                inner = c.order[c.start[chain] : c.start[chain + 1]]
-                pieces.append(inner if c.a[chain] == nodes[k] else inner[::-1])
-            pieces.append(nodes[k + 1 : k + 2])
+        pieces = [kernel.through_chains(c.junctions[junctions], chains, c.order, c.start, c.a)]
+        if c.chain[source] >= 0:  # leave the source's chain by the side whose junction the path enters first
+            side = min((s for s in starts if s[0] == junctions[0]), key=lambda s: s[1])[2]
+            pieces.insert(0, self._to_end(source, side))
         if end[2] != 0:
             pieces.append(self._to_end(target, end[2])[::-1])
         return np.concatenate(pieces).tolist()
@@ -271,3 +253,18 @@ def _inner_components(n: int, lo: np.ndarray, hi: np.ndarray, inner: np.ndarray)
     """Return component labels of the subgraph induced by the ``inner`` nodes, and its links (indices)."""
     links = np.flatnonzero(inner[lo] & inner[hi])
     return connected_components(_pattern(n, lo[links], hi[links]), directed=False)[1], links
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    """Return ``array`` made read-only: a built graph is shared by concurrent queries and never written."""
+    array.setflags(write=False)
+    return array
+
+
+@functools.cache
+def _kernel() -> ModuleType:
+    """Return :mod:`core._path_kernel`, imported and its functions loaded (:func:`core._path_kernel.load`) once."""
+    from core import _path_kernel
+
+    _path_kernel.load()
+    return _path_kernel

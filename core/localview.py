@@ -52,6 +52,10 @@ if TYPE_CHECKING:
 
 
 
+QUANTISE_ROWS = 512
+"""Templates turned into fixed point at a time (:meth:`LocalViewCells._extend_fixed`): 8 MB for 128 × 32 templates."""
+
+
 class ImageError(ValueError):
     """An image cannot be turned into a template with these parameters (shape, crop or size)."""
 
@@ -171,15 +175,26 @@ class LocalViewCells:
         stored = np.asarray(templates, dtype=np.float32)
         self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
-        peak = float(np.abs(stored).max()) if stored.size else 0.0
+        peak = float(np.maximum(stored.max(), -stored.min())) if stored.size else 0.0  # max |value|, no copy
         if peak > 1.0:  # values beyond [−1, 1]: fewer fixed-point bits
             bits = fixed_point_bits(self._span, peak)
             if bits < self._bits:
                 self._bits = bits
                 everything = self._templates.view
                 self._fixed = GrowBuffer(self._fixed.view.shape[1:], np.int32)
-                self._fixed.extend(self._to_fixed(everything[: len(everything) - len(stored)]))
-        self._fixed.extend(self._to_fixed(stored))
+                self._extend_fixed(everything[: len(everything) - len(stored)])
+        self._extend_fixed(stored)
+
+    def _extend_fixed(self, templates: np.ndarray) -> None:
+        """Append templates (n, ty, tx) to the fixed-point store, ``QUANTISE_ROWS`` at a time.
+
+        The store is filled in blocks so that a restore of a large map needs temporaries of one block only.
+        """
+        if not len(templates):
+            return
+        self._fixed.reserve(len(self._fixed) + len(templates))
+        for first in range(0, len(templates), QUANTISE_ROWS):
+            self._fixed.extend(self._to_fixed(templates[first : first + QUANTISE_ROWS]))
 
     def _to_fixed(self, templates: np.ndarray) -> np.ndarray:
         """Return templates (n, ty, tx) in the matcher's fixed point, panoramic ones widened to wrap."""

@@ -1,8 +1,8 @@
 """Shortest paths over the experience graph (OpenRatSLAM ``dijkstra_distance_between_experiences``).
 
 The graph is contracted once (:mod:`core.contraction`: chains of degree-2 experiences between
-junctions), so that a query runs Dijkstra over the junctions only and still returns an exact
-shortest path of the whole graph.
+junctions), so that a query runs Dijkstra over the junctions only, stopping at the target, and still
+returns an exact shortest path of the whole graph. A built graph is read-only: threads share it.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ class ExperienceGraph:
     Δt (time-optimal, as OpenRatSLAM) or its length (metric), at least ``1e-9`` (a zero-length link is
     still an edge). Parallel links keep the cheapest; self-links are ignored, and so is a link whose
     cost is not finite (for that weight). Construction takes a few vectorised csgraph passes
-    (``O(L log L)`` for ``L`` links); a query one Dijkstra over the junctions (see :mod:`core.contraction`).
+    (``O(L log L)`` for ``L`` links); a query one Dijkstra over the junctions nearer than the target
+    (see :mod:`core.contraction`). Queries take no lock and change nothing: any number of threads may run them.
 
     Raises:
         ValueError: the link arrays differ in length or name an experience that does not exist.

@@ -9,15 +9,22 @@ state — in one read transaction with the map's row, so graph and version alway
 used maps are evicted beyond ``capacity``. The version check is not cached in memory: a write by
 another process (``mapserver process`` on the same database) is seen by the very next query.
 
+Graphs are built once, under a lock, and shared: a query takes no lock. The table of cached graphs is
+never changed in place (a build or an eviction installs a new one), a built graph is read-only
+(:class:`core.paths.ExperienceGraph`), and recency is one counter value per map.
+
 The API calls :meth:`current` and :meth:`path` on the event loop (both are short: an indexed lookup,
-and one Dijkstra over the contracted graph) and :meth:`get` in a worker thread (a load and a build).
+and one Dijkstra over the contracted graph that stops at the target) and :meth:`get` in a worker thread
+(a load and a build).
 """
 
 from __future__ import annotations
 
+import itertools
 import threading
-from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 from core.paths import ExperienceGraph, NoPath, PathResult, Weight
 from mapserver.errors import ConflictError, NotFoundError
@@ -56,7 +63,7 @@ class CachedGraph:
 
 
 class GraphCache:
-    """Thread-safe LRU of experience graphs (see the module docstring).
+    """Thread-safe LRU of experience graphs, read without a lock (see the module docstring).
 
     Args:
         db: the map store.
@@ -66,18 +73,30 @@ class GraphCache:
     def __init__(self, db: Database, capacity: int = 8) -> None:
         self.db = db
         self.capacity = capacity
-        self._entries: OrderedDict[int, CachedGraph] = OrderedDict()
-        self._lock = threading.Lock()
+        self._entries: Mapping[int, CachedGraph] = MappingProxyType({})
+        self._used: dict[int, int] = {}  # map id → tick of its latest query (the LRU order)
+        self._ticks = itertools.count()
         self._build_lock = threading.Lock()
         self.builds = 0
 
     def _lookup(self, map_id: int, version: int) -> CachedGraph | None:
-        with self._lock:
-            entry = self._entries.get(map_id)
-            if entry is not None and entry.version == version:
-                self._entries.move_to_end(map_id)
-                return entry
+        """Return the cached graph of ``map_id`` if it is of ``version`` (no lock: one read of the table)."""
+        entry = self._entries.get(map_id)
+        if entry is None or entry.version != version:
             return None
+        self._used[map_id] = next(self._ticks)
+        return entry
+
+    def _install(self, entry: CachedGraph) -> None:
+        """Install a new table with ``entry``, evicting the least recently queried maps beyond ``capacity``."""
+        entries = dict(self._entries)
+        entries[entry.map_id] = entry
+        self._used[entry.map_id] = next(self._ticks)
+        while len(entries) > self.capacity:
+            del entries[min(entries, key=lambda key: self._used.get(key, -1))]
+        self._entries = MappingProxyType(entries)
+        for key in [key for key in list(self._used) if key not in entries]:
+            self._used.pop(key, None)
 
     def current(self, name: str) -> CachedGraph | None:
         """Return the cached graph of map ``name`` if it is the stored version, else None (no such map included).
@@ -109,11 +128,7 @@ class GraphCache:
             )
             entry = CachedGraph(record.id, record.name, record.version, graph)
             self.builds += 1
-            with self._lock:
-                self._entries[record.id] = entry
-                self._entries.move_to_end(record.id)
-                while len(self._entries) > self.capacity:
-                    self._entries.popitem(last=False)
+            self._install(entry)
         return entry
 
     def shortest_path(self, name: str, source: int, target: int, weight: Weight) -> PathResult:

@@ -331,3 +331,58 @@ def test_templates_beyond_unit_range_are_matched_after_a_fixed_point_rescale() -
         best, error, _ = cells.match(view, float(stored.mean()))
         assert best == index
         assert error == pytest.approx(0.01, abs=1e-5)
+
+
+def _fixed_reference(templates: np.ndarray, bits: int, span: int) -> np.ndarray:
+    """The matcher's fixed point computed in one piece in float64: round(v · 2^bits), panoramic rows wrapped."""
+    fixed = np.rint(templates.astype(np.float64) * 2.0**bits).astype(np.int32)
+    return np.concatenate([fixed, fixed[..., : span - fixed.shape[-1]]], axis=-1)
+
+
+@pytest.mark.parametrize("panoramic", [False, True])
+def test_a_restored_store_is_quantised_block_by_block_as_in_one_piece(panoramic: bool) -> None:
+    """2·QUANTISE_ROWS + 37 templates, a block of them up to 2.5 in the middle: the restored fixed point is the
+    float64 reference of the whole store at the bits of its peak (a row sum of 60 columns of |differences| up to
+    2·2.5 fits int32 at 22 bits; the panoramic span of 119 columns at 21), and the matcher finds a stored template
+    at error 0."""
+    from core.localview import QUANTISE_ROWS
+
+    n = 2 * QUANTISE_ROWS + 37
+    rng = np.random.default_rng(11)
+    templates = rng.uniform(0.0, 1.0, (n, 3, 60)).astype(np.float32)
+    templates[600:700] *= np.float32(2.5)  # an imported map's values beyond [0, 1]: fewer bits for every row
+    cells = _cells(template_x_size=60, template_y_size=3, vt_panoramic=panoramic)
+    _store(cells, list(templates[:10]))
+    assert cells._bits == (23 if panoramic else 24)  # before the large values arrive: (2^31 − 1)/(2 · span)
+    back = LocalViewCells.restore(cells.params, {**cells.snapshot(), "lv_templates": templates,
+                                                 "lv_means": templates.reshape(n, -1).mean(axis=1)})  # fmt: skip
+    span = 119 if panoramic else 60
+    bits = 21 if panoramic else 22
+    assert back._bits == bits and math.floor(math.log2((2**31 - 1) / (2 * float(templates.max()) * span))) == bits
+    np.testing.assert_array_equal(back._fixed.view, _fixed_reference(templates, bits, span))
+    for index in (0, 650, n - 1):
+        best, error, _ = back.match(templates[index], float(templates[index].mean()))
+        assert (best, error) == (index, 0.0)
+
+
+def test_restoring_a_large_store_holds_one_block_of_temporaries() -> None:
+    """2,048 templates of 32 × 128 (32 MB in float32): the restore's traced peak is the two stores (the
+    templates and their int32 fixed point, 32 MB each) and one block's float32 and int32 temporaries (8 MB
+    each), not float64 copies of the whole store (64 MB each); the fixed point is still the reference's
+    (22 bits: 2^31 − 1 over a row sum of 128 columns of |differences| ≤ 2 is just under 2^23)."""
+    import tracemalloc
+
+    rng = np.random.default_rng(5)
+    templates = rng.random((2048, 32, 128), dtype=np.float32)
+    params = Params().replace(template_x_size=128, template_y_size=32)
+    state = {**LocalViewCells(params).snapshot(), "lv_templates": templates,
+             "lv_means": templates.reshape(2048, -1).mean(axis=1)}  # fmt: skip
+    tracemalloc.start()
+    try:
+        back = LocalViewCells.restore(params, state)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 * 32 * 2**20 + 2 * 8 * 2**20 + 4 * 2**20
+    assert back._bits == 22
+    np.testing.assert_array_equal(back._fixed.view, _fixed_reference(templates, 22, 128))

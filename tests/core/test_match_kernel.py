@@ -81,3 +81,34 @@ def test_loading_the_kernel_early_gives_it_the_types_the_matcher_calls_it_with(
     assert list(_compiled().signatures) == loaded
     monkeypatch.setattr(_match_kernel, "_use_compiled", False)  # numpy's sums: the same answer
     assert cells.match(template, mean) == answers[0]
+
+
+def _float64_reference(values: np.ndarray, bits: int) -> np.ndarray:
+    return np.rint(values.astype(np.float64) * 2.0**bits).astype(np.int32)
+
+
+@settings(max_examples=200, deadline=None)
+@given(bits=st.integers(0, 24), data=st.data())
+def test_float32_values_are_quantised_in_float32_to_the_float64_integers(bits: int, data: st.DataObject) -> None:
+    """Any float32 whose fixed point fits int32 (subnormals, halves, negatives included) gives the integer that
+    float64 arithmetic gives: scaling by 2^bits and rounding to an integer are exact in float32 too."""
+    bound = float(np.float32(2.0 ** (30 - bits)))
+    values = np.array(data.draw(st.lists(st.floats(-bound, bound, width=32), min_size=1, max_size=50)), np.float32)
+    np.testing.assert_array_equal(quantise(values, bits), _float64_reference(values, bits))
+
+
+def test_quantise_rounds_halves_to_even_without_a_float64_copy() -> None:
+    import tracemalloc
+
+    ulp = 2.0**-24
+    halves = np.array([0.5 * ulp, 1.5 * ulp, 2.5 * ulp, -2.5 * ulp, 1e-45, 1.0 - ulp / 2], dtype=np.float32)
+    assert quantise(halves, 24).tolist() == [0, 2, 2, -2, 0, 2**24]  # 1 − 2^-25 is float32: 2^24 − 0.5 → even
+    values = np.random.default_rng(3).random(2**20, dtype=np.float32)  # 4 MB
+    tracemalloc.start()
+    try:
+        fixed = quantise(values, 24)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * 2**20 + 2**16  # a float32 temporary and the int32 result; a float64 copy alone is 8 MB
+    np.testing.assert_array_equal(fixed, _float64_reference(values, 24))

@@ -81,6 +81,34 @@ def test_each_view_cell_keeps_the_packed_sdr_of_the_frame_that_made_it() -> None
     assert not Engine.restore(SMALL, older).snapshot()["lv_sdr"].any()
 
 
+def test_added_prototypes_are_matched_kept_in_snapshots_and_padded_with_unknown_codes() -> None:
+    """``add_prototypes`` prefills the store (the throughput bench's way): the matcher then finds those rows.
+
+    Two rows of ``sv_tm_topk`` = 10 ids and one of 9 (padded −1). A descriptor sharing 9 ids with row 1 and 1 with
+    row 0: I = 9, R = 9/10, F1 = 2·9/(10 + 10) = 0.9 ≥ 0.55, accepted (I_min 8); one sharing 5 with row 2 only:
+    I = 5 < 8, refused.
+    """
+    cells = NeocortexViewCells(SMALL)
+    rows = np.array([np.arange(0, 10), np.arange(100, 110), [*range(200, 209), -1]])
+    codes = np.zeros((2, SMALL.lsbh_bits // 8), dtype=np.uint8)
+    codes[0, 0], codes[1, -1] = 0b1000_0001, 0b0100_0000
+    cells.add_prototypes(rows, np.array([10, 10, 9]), codes)  # codes for the first two rows only
+    assert cells.count == 3
+    stored, sizes = cells.prototypes
+    np.testing.assert_array_equal(stored, rows)
+    np.testing.assert_array_equal(sizes, [10, 10, 9])
+    assert cells.codes[0, 0] == 0b1000_0001 and cells.codes[1, -1] == 0b0100_0000
+    assert not cells.codes[2].any() and int(np.count_nonzero(cells.codes)) == 2  # the third row: unknown (zeros)
+    found = cells.match(np.array([0, *range(101, 110)]))
+    assert found is not None and found.accepted
+    assert (found.index, found.intersection, found.recall, found.f1) == (1, 9, 0.9, 0.9)
+    weak = cells.match(np.array([200, 201, 202, 203, 204, 900, 901, 902, 903, 904]))
+    assert weak is not None and (weak.index, weak.intersection, weak.accepted) == (2, 5, False)
+    again = NeocortexViewCells.restore(SMALL, cells.snapshot())
+    np.testing.assert_array_equal(again.prototypes[0], rows)
+    np.testing.assert_array_equal(again.codes, cells.codes)
+
+
 def test_restore_refuses_a_projection_of_another_seed() -> None:
     engine = Engine(SMALL)
     _run(engine, list(StripWorld().drive(laps=0.1)))

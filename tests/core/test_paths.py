@@ -2,7 +2,10 @@
 
 The references are an independent heapq Dijkstra over the raw link list (hypothesis graphs made of
 chains, junctions, pure cycles, parallel and self links, zero weights, separate parts) and plain scipy
-Dijkstra over every experience (a large RatSLAM-like graph).
+Dijkstra over every experience (a large RatSLAM-like graph, and hypothesis graphs whose distinct
+power-of-two costs make every shortest path unique: node for node). The search that stops at its target
+is checked against scipy's search run to the end on the same graph (hand-worked lines and squares, and
+hypothesis graphs with tied weights), and a graph is queried by eight threads at once.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -18,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.sparse.csgraph import dijkstra
 
+from core.contraction import Chains, ContractedGraph
 from core.paths import ExperienceGraph, NoPath, PathResult
 
 Links = list[tuple[int, int, float, float]]
@@ -265,3 +270,167 @@ def test_a_large_ratslam_like_graph_matches_scipy() -> None:
                 assert np.all(steps > 0)  # consecutive experiences are linked
                 assert steps.sum() == pytest.approx(result.cost, rel=1e-9)
                 assert np.array_equal(result.poses, poses[nodes])
+
+
+# ------------------------------------------------------------------ the search stops at its target
+def csr(n: int, edges: list[tuple[int, int, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (indptr, indices, data) of the undirected graph ``edges`` (both directions), rows sorted."""
+    both = sorted([(a, b, w) for a, b, w in edges] + [(b, a, w) for a, b, w in edges])
+    indptr = np.searchsorted(np.array([e[0] for e in both], dtype=np.int64), np.arange(n + 1))
+    indices = np.array([e[1] for e in both], dtype=np.int64)
+    return indptr.astype(np.int64), indices, np.array([e[2] for e in both], dtype=np.float64)
+
+
+def settle(graph: tuple[np.ndarray, ...], starts: dict[int, float], ends: dict[int, float], bound: float = math.inf):
+    from core._path_kernel import settle as kernel
+
+    return kernel(*graph, np.array(list(starts), dtype=np.int64), np.array(list(starts.values())),
+                  np.array(list(ends), dtype=np.int64), np.array(list(ends.values())), bound)  # fmt: skip
+
+
+def test_the_search_stops_at_the_target_and_still_reaches_a_far_one() -> None:
+    # a line 0-1-…-9 of 1 s links: from 0 to 2 the search settles 0, 1, 2 (distances 0, 1, 2), reaches 3
+    # (a tentative 3) and stops there (3 > 2): 4…9 are never reached
+    line = csr(10, [(k, k + 1, 1.0) for k in range(9)])
+    dist, pred = settle(line, {0: 0.0}, {2: 0.0})
+    assert dist[:4].tolist() == [0.0, 1.0, 2.0, 3.0] and np.isinf(dist[4:]).all()
+    assert pred[:4].tolist() == [-1, 0, 1, 2]
+    # an end cost of 0.5 (the target 0.5 s along a chain from node 2): bound 2.5, the same stop
+    dist, _ = settle(line, {0: 0.0}, {2: 0.5})
+    assert np.isinf(dist[4:]).all()
+    # a target at the far end is still reached, through every node
+    dist, pred = settle(line, {0: 0.0}, {9: 0.0})
+    assert dist.tolist() == [float(k) for k in range(10)] and pred.tolist() == [-1, *range(9)]
+    # a direct way of 1.5 s (along a chain shared by source and target) bounds the search from the start:
+    # node 2 is only reached (2 > 1.5), so the caller keeps the direct way
+    dist, _ = settle(line, {0: 0.0}, {2: 0.0}, bound=1.5)
+    assert dist[:3].tolist() == [0.0, 1.0, 2.0] and np.isinf(dist[3:]).all()
+
+
+def test_two_ways_in_and_two_ways_out() -> None:
+    # a square 0-1-2-3-0 of 1 s links with a 0.25 s diagonal 0-2; the source lies on a chain entering the
+    # graph at 1 (4 s) and at 3 (0.5 s), the target on one leaving it at 0 (3 s) and at 2 (0.25 s).
+    # Settled: 3 (0.5); 0 and 2 tie at 1.5 (0 first, the lower id: bound 1.5 + 3 = 4.5; 1 reached at 2.5);
+    # 2 (bound 1.5 + 0.25 = 1.75); the next, 1 at 2.5, is past the bound. Best: 3 → 2 → out, 1.75 s.
+    square = csr(4, [(0, 1, 1.0), (1, 2, 1.0), (2, 3, 1.0), (3, 0, 1.0), (0, 2, 0.25)])
+    dist, pred = settle(square, {1: 4.0, 3: 0.5}, {0: 3.0, 2: 0.25})
+    assert dist.tolist() == [1.5, 2.5, 1.5, 0.5] and pred.tolist() == [3, 0, 3, -1]
+    assert min(dist[0] + 3.0, dist[2] + 0.25) == 1.75
+
+
+@st.composite
+def weighted_graphs(draw: st.DrawFn) -> tuple[int, list[tuple[int, int, float]], dict[int, float], dict[int, float]]:
+    """Random undirected graphs with tied weights, one or two ways in and out at random costs."""
+    n = draw(st.integers(2, 25))
+    node = st.integers(0, n - 1)
+    pair = st.tuples(node, node).filter(lambda p: p[0] != p[1])
+    pairs = draw(st.lists(pair, max_size=60, unique_by=lambda p: (min(p), max(p))))
+    weight = st.one_of(st.integers(1, 4).map(float), st.floats(0.01, 10.0))
+    edges = [(a, b, draw(weight)) for a, b in pairs]
+    starts = draw(st.dictionaries(node, st.floats(0.0, 5.0), min_size=1, max_size=2))
+    ends = draw(st.dictionaries(node, st.floats(0.0, 5.0), min_size=1, max_size=2))
+    return n, edges, starts, ends
+
+
+@given(case=weighted_graphs(), direct=st.one_of(st.just(math.inf), st.floats(0.0, 20.0)))
+@settings(max_examples=300, deadline=None)
+def test_the_stopped_search_equals_the_full_search_up_to_the_target(
+    case: tuple[int, list[tuple[int, int, float]], dict[int, float], dict[int, float]], direct: float
+) -> None:
+    """Every node as near as the target's best way out has the full search's distance, bit for bit.
+
+    The full search: scipy's Dijkstra to the end from a virtual node joined to the ways in (as the
+    contracted search ran before it stopped at its target).
+    """
+    n, edges, starts, ends = case
+    graph = csr(n, edges)
+    dist, pred = settle(graph, starts, ends, direct)
+    rows = [(a, b, w) for a, b, w in edges] + [(b, a, w) for a, b, w in edges] + [(n, s, c) for s, c in starts.items()]
+    full = sp.csr_matrix(([r[2] for r in rows], ([r[0] for r in rows], [r[1] for r in rows])), shape=(n + 1, n + 1))
+    expected = dijkstra(full, directed=True, indices=n)[:n]
+    via = min(expected[e] + c for e, c in ends.items())
+    got = min(dist[e] + c for e, c in ends.items())
+    assert got == via if via <= direct else got >= via  # the target's cost, bit for bit, unless the direct way wins
+    near = expected <= min(via, direct)
+    assert dist[near].tobytes() == expected[near].tobytes()  # must: settled as the full search settles them
+    assert np.all(dist >= expected)  # must not: a distance below the truth (the rest are upper bounds)
+    weights = {(a, b): w for a, b, w in rows}
+    for v in np.flatnonzero(np.isfinite(dist)):  # a reached node's pred chain adds up to its distance, in order
+        chain = [int(v)]
+        while pred[chain[-1]] >= 0:
+            chain.append(int(pred[chain[-1]]))
+        total = starts[chain[-1]]
+        for u, w in itertools.pairwise(chain[::-1]):
+            total += weights[(u, w)]
+        assert total == dist[v]
+
+
+def cheapest(n: int, links: Links, column: int) -> sp.csr_matrix:
+    """Return the (n, n) upper-triangular matrix of the cheapest link of each pair (no self links)."""
+    best: dict[tuple[int, int], float] = {}
+    for link in links:
+        a, b = sorted((int(link[0]), int(link[1])))
+        if a != b:
+            best[(a, b)] = min(float(link[column]), best.get((a, b), math.inf))
+    rows = list(best)
+    return sp.csr_matrix(([best[r] for r in rows], ([r[0] for r in rows], [r[1] for r in rows])), shape=(n, n))
+
+
+@st.composite
+def unique_path_graphs(draw: st.DrawFn) -> tuple[int, Links]:
+    """Chains and extra links whose costs are distinct powers of two: every shortest path is unique, sums exact."""
+    n = draw(st.integers(2, 25))
+    node = st.integers(0, n - 1)
+    pairs: list[tuple[int, int]] = []
+    for _ in range(draw(st.integers(0, 4))):
+        walk = draw(st.lists(node, min_size=2, max_size=10, unique=True))
+        if len(walk) >= 3 and draw(st.booleans()):
+            walk.append(walk[0])
+        pairs += list(itertools.pairwise(walk))
+    pairs = (pairs + draw(st.lists(st.tuples(node, node).filter(lambda p: p[0] != p[1]), max_size=8)))[:50]
+    time_bits = draw(st.permutations(range(len(pairs))))
+    distance_bits = draw(st.permutations(range(len(pairs))))
+    return n, [(a, b, 2.0**t, 2.0**d) for (a, b), t, d in zip(pairs, time_bits, distance_bits, strict=True)]
+
+
+@given(case=unique_path_graphs(), data=st.data())
+@settings(max_examples=150, deadline=None)
+def test_unique_shortest_paths_are_the_full_searchs_node_for_node(case: tuple[int, Links], data: st.DataObject) -> None:
+    """With distinct power-of-two costs the path and its cost are those of a full scipy search, exactly."""
+    n, links = case
+    g = make(n, links)
+    for weight, column in (("time", 2), ("distance", 3)):
+        for source in data.draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=3, unique=True)):
+            full, pred = dijkstra(cheapest(n, links, column), directed=False, indices=source, return_predecessors=True)
+            for target in range(n):
+                result = g.shortest_path(source, target, weight)  # type: ignore[arg-type]
+                if math.isinf(full[target]):
+                    assert isinstance(result, NoPath)
+                    continue
+                assert isinstance(result, PathResult)
+                nodes = [target]
+                while nodes[-1] != source:
+                    nodes.append(int(pred[nodes[-1]]))
+                assert result.nodes == nodes[::-1] and result.cost == full[target], (source, target, weight)
+
+
+def test_threads_share_one_graph_without_a_lock() -> None:
+    """Eight threads query one built graph at once and get the answers one thread gets; the graph is read-only."""
+    rng = np.random.default_rng(3)
+    n = 3_000  # three laps of a 1,000-experience route, closed onto the first lap every 23 experiences
+    laps = np.arange(1_000, n, 23)
+    src = np.concatenate([np.arange(n - 1), laps])
+    dst = np.concatenate([np.arange(1, n), laps % 1_000])
+    g = ExperienceGraph(rng.normal(size=(n, 4)), src, dst, rng.uniform(0.1, 1.0, src.size), np.ones(src.size))
+    pairs = rng.integers(0, n, size=(400, 2)).tolist()
+    alone = [g.shortest_path(a, b) for a, b in pairs]
+    with ThreadPoolExecutor(8) as pool:
+        together = list(pool.map(lambda p: g.shortest_path(*p), pairs * 4))
+    for one, other in zip(alone * 4, together, strict=True):
+        assert isinstance(one, PathResult) and isinstance(other, PathResult)
+        assert (other.nodes, other.cost) == (one.nodes, one.cost)
+    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
+    contracted = ContractedGraph(Chains.build(n, lo, hi), lo, hi, np.ones(src.size))
+    for array in (contracted.indptr, contracted.indices, contracted.data, contracted.keys, contracted.via):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] = 0

@@ -72,3 +72,28 @@ def test_graph_is_cached_until_the_map_changes(api: Api) -> None:
     joined = api.client.get("/v1/maps/islands/path?from=0&to=5", headers=api.read).json()
     assert joined["nodes"] in ([0, 1, 2, 4, 5], [0, 3, 2, 4, 5]) and joined["cost"] == 2.0 + 10.0 + 2.0
     assert cache.builds == 2
+
+
+def test_the_cache_keeps_the_most_recently_queried_maps_and_shares_one_graph_between_threads(api: Api) -> None:
+    """Capacity 2, maps a, b, c: queries a, b, a, c evict b (queried least recently) and keep a and c; a query of
+    b builds it again (evicting a). Eight threads querying c at once all get the one cached graph."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mapserver.api.graphs import GraphCache
+    from mapserver.store import open_database
+
+    poses = np.zeros((3, 4))
+    for name, dt in (("a", 1.0), ("b", 2.0), ("c", 3.0)):
+        store_graph_map(api.db_url, name, poses, [(0, 1, dt, 1.0), (1, 2, dt, 1.0)])
+    with open_database(api.db_url) as db:
+        cache = GraphCache(db, capacity=2)
+        for name in ("a", "b", "a", "c"):
+            assert cache.shortest_path(name, 0, 2, "time").cost == 2 * {"a": 1.0, "b": 2.0, "c": 3.0}[name]
+        assert cache.builds == 3
+        assert cache.current("a") is not None and cache.current("c") is not None  # must still be cached
+        assert cache.current("b") is None  # must not: evicted
+        assert cache.get("b").graph.shortest_path(2, 0).cost == 4.0 and cache.builds == 4
+        assert cache.current("a") is None and cache.current("c") is not None
+        with ThreadPoolExecutor(8) as pool:
+            entries = list(pool.map(lambda _: cache.get("c"), range(32)))
+        assert cache.builds == 4 and all(entry is entries[0] for entry in entries)
