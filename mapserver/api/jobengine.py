@@ -170,6 +170,8 @@ class EmbeddedJobEngine:
                 except MapServerError as err:  # retried at the next beat; the lease may lapse meanwhile
                     logger.warning("cannot renew job leases: %s", err)
                     lost = []
+                with self._cond:  # a job that ended meanwhile (its lease given up) was not lost
+                    lost = [i for i in lost if self._leases.get(i) == leases[i]]
                 for job_id in lost:
                     logger.error("job %d: its lease was taken over by another server; stopping it here", job_id)
                     leases[job_id][1].set()
@@ -221,12 +223,14 @@ class EmbeddedJobEngine:
                 should_stop=lambda: self._stopping.is_set() or lost.is_set(),
             )  # fmt: skip
         except JobInterrupted as stop:
+            self._end_lease(job.id)
             if isinstance(stop, LeaseLost) or lost.is_set():
                 logger.warning("job %d stopped: another server holds it now (fencing token %d is stale)", job.id, token)
                 return
             logger.warning("job %d interrupted by the server stop; it will rerun from the start", job.id)
             self._record(job, lambda conn: requeue_job(conn=conn, job_id=job.id, lease_token=token))
             return
+        self._end_lease(job.id)
         if outcome.error is not None:
             logger.warning("job %d failed: %s", job.id, outcome.error)
             self._record(job, lambda conn: fail_job(conn=conn, job_id=job.id, error=outcome.error or "failed",
@@ -235,6 +239,11 @@ class EmbeddedJobEngine:
             logger.info("job %d done: session %s, map %s", job.id, outcome.session_id, outcome.map_id)
             self._record(job, lambda conn: finish_job(conn=conn, job_id=job.id, session_id=outcome.session_id,
                                                       map_id=outcome.map_id, lease_token=token))  # fmt: skip
+
+    def _end_lease(self, job_id: int) -> None:
+        """Stop renewing a job's lease: its run ended, only its (fenced) outcome write is left."""
+        with self._cond:
+            self._leases.pop(job_id, None)
 
     def _record(self, job: JobRecord, write: Callable[[Connection], bool]) -> None:
         """Run a fenced write of ``job``'s outcome; log when the token no longer holds the job."""

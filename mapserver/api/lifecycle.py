@@ -8,9 +8,9 @@ file stays on disk (removing it could let two servers lock two different files);
 last holder. PostgreSQL databases and Celery workers need no such lock: several servers on one database are
 replicas, kept apart by job leases and fencing tokens (:mod:`mapserver.api.jobengine`).
 
-:func:`serve_forever` is ``mapserver serve``: take the lock, bind and listen on the port (a taken port is
-refused here, before the application starts), then start the application on that socket — so the job
-engine's recovery of interrupted jobs runs only in a server that holds its port.
+:func:`claim_server` and :func:`serve_forever` are ``mapserver serve``: take the lock, bind and listen on
+the port (a taken port is refused here, before the application starts), then start the application on
+that socket — so the job engine's recovery of interrupted jobs runs only in a server that holds its port.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import fcntl
 import logging
 import os
 import socket
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -115,27 +116,53 @@ def bind_listener(host: str, port: int) -> socket.socket:
     return sock
 
 
-def serve_forever(settings: Settings, *, log_level: str) -> None:
-    """Run the server until it is stopped: server lock (SQLite, embedded jobs), then the port, then the app.
+@dataclass
+class ServerClaim:
+    """What a server holds before its application starts: the database's server lock (if any) and its socket."""
+
+    lock: ServerLock | None
+    sock: socket.socket
+
+    def release(self) -> None:
+        """Close the socket and release the lock."""
+        self.sock.close()
+        if self.lock is not None:
+            self.lock.release()
+
+
+def claim_server(settings: Settings) -> ServerClaim:
+    """Take the database's server lock (SQLite with embedded jobs), then bind and listen on the port.
 
     Raises:
-        ConflictError: another server holds the database's lock, or the port is taken.
+        ConflictError: another server holds the lock, or the port is taken (one line each).
     """
-    import uvicorn
-
-    from mapserver.api.app import create_app
-
     lock = ServerLock.for_settings(settings)
     if lock is not None:
         lock.acquire()
     try:
         sock = bind_listener(settings.host, settings.port)
-        with sock:
-            config = uvicorn.Config(
-                create_app(settings, server_lock=lock), host=settings.host, port=settings.port, log_level=log_level,
-                timeout_graceful_shutdown=30,
-            )  # fmt: skip
-            uvicorn.Server(config).run(sockets=[sock])
-    finally:
+    except BaseException:
         if lock is not None:
             lock.release()
+        raise
+    return ServerClaim(lock, sock)
+
+
+def serve_forever(settings: Settings, claim: ServerClaim, *, log_level: str) -> None:
+    """Run the application on the claimed socket until the server is stopped; release the claim then.
+
+    The application's lifespan (database, leftovers, job engine and its recovery) starts only now, in a
+    process that holds the port and, for SQLite, the database's server lock.
+    """
+    import uvicorn
+
+    from mapserver.api.app import create_app
+
+    try:
+        config = uvicorn.Config(
+            create_app(settings, server_lock=claim.lock), host=settings.host, port=settings.port,
+            log_level=log_level, timeout_graceful_shutdown=30,
+        )  # fmt: skip
+        uvicorn.Server(config).run(sockets=[claim.sock])
+    finally:
+        claim.release()

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from mapserver.api import Settings
-from mapserver.api.lifecycle import serve_forever
+from mapserver.api.lifecycle import claim_server, serve_forever
 from mapserver.cli._output import info
 from mapserver.store import open_database
 
@@ -51,8 +51,9 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     with open_database(settings.db_url) as db:  # fail here, with one ERROR line, on a bad or old database
         url = db.display_url()
+    claim = claim_server(settings)  # the database's server lock, then the port: refused here, in one line
     reads = "anonymous reads allowed" if settings.allow_anonymous_reads else "reads need a token"
     jobs = f"jobs on Celery workers, queue {settings.job_queue!r}" if settings.jobs == "celery" else "embedded jobs"
     info(f"serving {url} on http://{settings.host}:{settings.port} ({reads}; {jobs}; docs at /docs)")
-    serve_forever(settings, log_level=args.log_level)  # server lock, then the port, then the app and its jobs
+    serve_forever(settings, claim, log_level=args.log_level)  # the app and its jobs start on the claimed port
     return 0
