@@ -13,10 +13,11 @@ its own folder ``<hex>/`` (the log file, or the unpacked archive) named by its j
   jobs' folders are never removed.
 
 The directory may be shared by servers of *other* databases (two SQLite files in one directory share the
-default ``uploads/``), whose jobs this database does not know: the first server marks the directory with
+default ``uploads/``), whose jobs this database does not know: the first cleanup marks the directory with
 an empty folder ``.owner-<hash of the database's identity>`` (a folder, so nothing counts it as a file)
-and leftovers are removed only while that is the one owner mark (retention is safe either way: it removes
-only folders this database's jobs name).
+and removes nothing that time (what is there may be another database's); leftovers are removed only
+while that is the one owner mark (retention is safe either way: it removes only folders this database's
+jobs name).
 """
 
 from __future__ import annotations
@@ -97,21 +98,22 @@ def database_identity(db: Database) -> str:
 
 
 def owns_directory(db: Database, root: Path) -> bool:
-    """Return whether ``root`` belongs to ``db`` (marking it when nobody has); log when another database has it."""
+    """Return whether ``root`` is marked as ``db``'s; mark it when nobody has (False that time); log otherwise."""
     mine = OWNER_PREFIX + hashlib.sha256(database_identity(db).encode()).hexdigest()[:16]
     marks = sorted(p.name for p in root.glob(OWNER_PREFIX + "*"))
-    if not marks:
-        try:
-            (root / mine).mkdir(exist_ok=True)
-        except OSError as err:
-            logger.warning("cannot mark the upload directory %s as this database's: %s", root, err)
-            return False
+    if marks == [mine]:
         return True
-    if marks != [mine]:
+    if marks:
         logger.warning("the upload directory %s is shared with another database (%s): leftovers are not removed",
                        root, ", ".join(m for m in marks if m != mine))  # fmt: skip
         return False
-    return True
+    try:
+        (root / mine).mkdir(exist_ok=True)
+    except OSError as err:
+        logger.warning("cannot mark the upload directory %s as this database's: %s", root, err)
+    else:
+        logger.info("marked the upload directory %s as this database's; leftovers go from the next cleanup", root)
+    return False
 
 
 def remove_leftovers(db: Database, root: Path, *, grace_s: float) -> list[Removed]:
