@@ -95,8 +95,8 @@ def raise_server_fault(err: BaseException, *, doing: str, where: Path) -> None:
             continue
         if cause.errno in STORAGE_FULL_ERRNOS:
             free = shutil.disk_usage(where).free if where.exists() else -1
-            logger.error("disk full while %s in %s (%s; %d bytes free): answered 507; free space there",
-                         doing, where, os.strerror(cause.errno), free)  # fmt: skip
+            logger.error("disk full while %s in %s (%s; %d bytes free once the partial upload was removed): "
+                         "answered 507; free space there", doing, where, os.strerror(cause.errno), free)  # fmt: skip
             raise InsufficientStorageError(STORAGE_FULL_DETAIL) from err
         if cause.errno in SERVER_FAULT_ERRNOS:
             msg = f"the server could not read or write its files while {doing}"
