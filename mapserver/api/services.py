@@ -51,7 +51,7 @@ class Services:
     jobs: JobEngine
     graphs: GraphCache
     janitor: Janitor | None = None
-    own_lock: ServerLock | None = None
+    server_lock: ServerLock | None = None
     _touch: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="token-touch"))
     _touched: dict[int, float] = field(default_factory=dict)
     _touch_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -61,7 +61,7 @@ class Services:
         """Open the database, take its server lock, clean the upload directory, start the job engine.
 
         ``server_lock``: the lock ``mapserver serve`` took already; without it the lock the settings need
-        (SQLite with embedded jobs) is taken here and released by :meth:`close`. Holding it, this server is
+        (SQLite with embedded jobs) is taken here. :meth:`close` releases either. Holding it, this server is
         the only one on the database: leftovers of a killed server (staged ``.part`` files, folders no job
         names) are removed before the engine starts and recovers the jobs it left running. The retention
         of processed uploads (:class:`~mapserver.api.housekeeping.Janitor`) starts last.
@@ -91,17 +91,21 @@ class Services:
             db.dispose()
             raise
         graphs = GraphCache(db, settings.graph_cache_maps)
-        return cls(settings=settings, db=db, jobs=engine, graphs=graphs, janitor=janitor, own_lock=own)
+        held = server_lock if server_lock is not None else own
+        return cls(settings=settings, db=db, jobs=engine, graphs=graphs, janitor=janitor, server_lock=held)
 
     def close(self) -> None:
-        """Stop the job engine (running jobs are queued again) and the housekeeping; close the database."""
+        """Stop the job engine (running jobs are queued again) and the housekeeping; close the database.
+
+        The server lock is released last: nothing of this server touches the jobs any more.
+        """
         self.jobs.stop()
         if self.janitor is not None:
             self.janitor.stop()
         self._touch.shutdown(wait=True)
         self.db.dispose()
-        if self.own_lock is not None:
-            self.own_lock.release()
+        if self.server_lock is not None:
+            self.server_lock.release()
 
     # -- uploads ---------------------------------------------------------------------------------------
     @staticmethod

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -21,12 +22,12 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from mapserver.api import create_app, jobengine
+from mapserver.api import Settings, create_app, jobengine
 from mapserver.api.lifecycle import ServerLock
 from mapserver.api.worker import JobInterrupted, JobOutcome, ProgressReporter
 from mapserver.errors import ConflictError
 from mapserver.store import Database, open_database
-from mapserver.store.jobs import create_job, get_job
+from mapserver.store.jobs import claim_next_job, create_job, get_job
 from tests.mapserver.api.conftest import Api
 from tests.mapserver.store.conftest import _pg_drop, _pg_schema_url, pg_unreachable
 
@@ -179,3 +180,29 @@ def test_the_lock_of_a_killed_process_is_taken_over(tmp_path: Path) -> None:
         holder.wait(10)
         lock.release()
     assert lock.path.read_text() == ""  # released: the file stays, naming nobody
+
+
+def test_a_taken_port_is_refused_before_any_job_is_touched(store: tuple[str, Database], tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+    """The measured fault: a second server recovered the first's running job, then found its port taken."""
+    from mapserver.cli import main
+
+    url, db = store
+    with db.write() as conn:
+        job_id = create_job(conn=conn, upload_path="/up/a/x.bag", map_name="a", options={"attempts": 0}).id
+        claim_next_job(conn=conn, owner="first", lease_s=None)  # running, no lease: recovery would take it
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        code = main(["serve", "--db", url, "--port", str(port), "--upload-dir", str(tmp_path / "uploads")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and err == [f"ERROR: cannot listen on 127.0.0.1:{port}: Address already in use "
+                                 "(another server on this port? see --port)"]  # fmt: skip
+    with db.read() as conn:
+        record = get_job(conn=conn, job_id=job_id)
+    assert (record.status, record.lease_token, record.options) == ("running", 1, {"attempts": 0})  # untouched
+    lock = ServerLock.for_settings(Settings(db_url=url))
+    if lock is not None:  # SQLite: the refused server let go of the database's lock
+        lock.acquire()
+        lock.release()
