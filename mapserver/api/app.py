@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from mapserver import __version__
 from mapserver.api.errors import install_error_handlers
+from mapserver.api.lifecycle import ServerLock
 from mapserver.api.routes import health, jobs, limits, maps, sessions
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
@@ -31,11 +32,13 @@ def _operation_id(route: APIRoute) -> str:
     return route.operation_id or route.name
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None, *, server_lock: ServerLock | None = None) -> FastAPI:
     """Return the REST API application; the database and job engine start with its lifespan.
 
     Args:
         settings: server settings (default: :meth:`Settings.from_env`).
+        server_lock: the database's server lock, already held by the caller (``mapserver serve``); without
+            it the lifespan takes the lock itself when the settings need one (SQLite, embedded jobs).
 
     Returns:
         The application (run it with uvicorn, or wrap it in ``fastapi.testclient.TestClient``).
@@ -45,7 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         previous_pixels = set_max_image_pixels(chosen.max_image_pixels)  # read by every job's decoder
-        services = await run_in_threadpool(Services.start, chosen)
+        services = await run_in_threadpool(Services.start, chosen, server_lock)
         app.state.services = services
         # the long-lived startup objects (modules, routes, schemas) leave the collector's view: a full
         # collection then scans only what requests leave behind, not ~150k objects (tens of ms: p99, issue 6)

@@ -107,9 +107,10 @@ def _run_claimed(db: Database, lock: MapLock, key: str, owner: str, config: Work
 class _Heartbeat(threading.Thread):
     """Renews a job's lease every ``lease_s / 3`` seconds; sets ``lost`` when the lease or the lock is gone."""
 
-    def __init__(self, db: Database, lock: MapLock, job_id: int, owner: str, lease_s: float) -> None:
-        super().__init__(name=f"lease-{job_id}", daemon=True)
-        self.db, self.lock, self.job_id, self.owner, self.lease_s = db, lock, job_id, owner, lease_s
+    def __init__(self, db: Database, lock: MapLock, job: JobRecord, owner: str, lease_s: float) -> None:
+        super().__init__(name=f"lease-{job.id}", daemon=True)
+        self.db, self.lock, self.job_id, self.owner, self.lease_s = db, lock, job.id, owner, lease_s
+        self.token = job.lease_token
         self.lost = threading.Event()
         self.done = threading.Event()
 
@@ -117,7 +118,8 @@ class _Heartbeat(threading.Thread):
         while not self.done.wait(self.lease_s / 3):
             try:
                 with self.db.write() as conn:
-                    held = renew_lease(conn=conn, job_id=self.job_id, owner=self.owner, lease_s=self.lease_s)
+                    held = renew_lease(conn=conn, job_id=self.job_id, owner=self.owner, lease_s=self.lease_s,
+                                       lease_token=self.token)  # fmt: skip
             except Exception as err:  # the database is unreachable: the lease will lapse
                 logger.warning("job %d: cannot renew its lease: %s", self.job_id, err)
                 held = True  # retry; the lock check below decides
@@ -129,7 +131,7 @@ class _Heartbeat(threading.Thread):
 
 def _run_one(db: Database, lock: MapLock, job: JobRecord, owner: str, config: WorkerConfig) -> None:
     """Run one leased job and record its outcome (only while the lease is still ours)."""
-    heartbeat = _Heartbeat(db, lock, job.id, owner, config.lease_s)
+    heartbeat = _Heartbeat(db, lock, job, owner, config.lease_s)
     heartbeat.start()
     try:
         for rerun in range(STALE_RERUNS + 1):
@@ -138,15 +140,15 @@ def _run_one(db: Database, lock: MapLock, job: JobRecord, owner: str, config: Wo
             if not outcome.stale or rerun == STALE_RERUNS:
                 break
             logger.warning("job %d: %s; running it again", job.id, outcome.error)
-    except JobInterrupted:
+    except JobInterrupted:  # the heartbeat or a rejected progress write (LeaseLost) found the lease gone
         logger.warning("job %d interrupted (lease lost); another worker reruns it", job.id)
         return
     finally:
         heartbeat.done.set()
         heartbeat.join()
     with db.write() as conn:
-        recorded = complete_job(conn=conn, job_id=job.id, owner=owner, session_id=outcome.session_id,
-                                map_id=outcome.map_id, error=outcome.error)  # fmt: skip
+        recorded = complete_job(conn=conn, job_id=job.id, owner=owner, lease_token=job.lease_token,
+                                session_id=outcome.session_id, map_id=outcome.map_id, error=outcome.error)  # fmt: skip
         if recorded and outcome.error is None and outcome.dropped is not None:
             set_job_dropped(conn=conn, job_id=job.id, dropped=outcome.dropped)
     if not recorded:

@@ -10,8 +10,12 @@ message and traceback.
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import secrets
+import shutil
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -52,6 +56,57 @@ class PermissionDeniedError(MapServerError):
     http_status = 403
 
 
+class InsufficientStorageError(MapServerError):
+    """The server's disk is full: the upload cannot be stored now (HTTP 507, the server's fault, not the client's)."""
+
+    http_status = 507
+
+
+class ServerFilesError(MapServerError):
+    """The server could not read or write its own files (HTTP 500; the cause goes to the log only)."""
+
+
+STORAGE_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+"""File-system errors that mean "no room to store this": answered 507."""
+SERVER_FAULT_ERRNOS = frozenset({errno.EIO, errno.EROFS, errno.EACCES, errno.EPERM, errno.EMFILE, errno.ENFILE,
+                                 errno.ENOMEM, errno.EBADF})  # fmt: skip
+"""File-system errors on the server's own files that are never the client's fault: answered 500. (Not
+``ENOENT``: a bag directory uploaded without one of its files is the client's fault.)"""
+STORAGE_FULL_DETAIL = "insufficient storage: the server has no room left to store this upload; try again later"
+
+
+def _causes(err: BaseException) -> list[BaseException]:
+    """Return ``err`` and the errors it was raised from or while handling, nearest first."""
+    chain: list[BaseException] = []
+    current: BaseException | None = err
+    while current is not None and current not in chain and len(chain) < 16:
+        chain.append(current)
+        current = current.__cause__ or current.__context__
+    return chain
+
+
+def raise_server_fault(err: BaseException, *, doing: str, where: Path) -> None:
+    """Raise the server's own error instead of ``err`` when the server's file system caused it; else return.
+
+    A full disk (``ENOSPC``, ``EDQUOT``, ``EFBIG`` anywhere in the chain of causes) raises
+    :class:`InsufficientStorageError` (507) after one log line for the operator (``doing``, ``where``, free
+    bytes); another failure of the server's own files (``EIO``, ``EROFS``, ``EACCES``, ...) raises
+    :class:`ServerFilesError` (500, no internals in the body), even when a reader wrapped it as the
+    client's :class:`~mapserver.errors.InputError`.
+    """
+    for cause in _causes(err):
+        if not isinstance(cause, OSError) or cause.errno is None:
+            continue
+        if cause.errno in STORAGE_FULL_ERRNOS:
+            free = shutil.disk_usage(where).free if where.exists() else -1
+            logger.error("disk full while %s in %s (%s; %d bytes free once the partial upload was removed): "
+                         "answered 507; free space there", doing, where, os.strerror(cause.errno), free)  # fmt: skip
+            raise InsufficientStorageError(STORAGE_FULL_DETAIL) from err
+        if cause.errno in SERVER_FAULT_ERRNOS:
+            msg = f"the server could not read or write its files while {doing}"
+            raise ServerFilesError(msg) from err
+
+
 def _validation_detail(err: RequestValidationError) -> str:
     parts = []
     for item in err.errors()[:5]:
@@ -81,6 +136,12 @@ def _internal(request: Request, err: Exception) -> JSONResponse:
     return JSONResponse({"detail": f"internal error (reference {reference})"}, status_code=500)
 
 
+async def _storage_error(request: Request, err: Exception) -> JSONResponse:
+    """507 with the cause in REST words (the operator's log line was written where the error was found)."""
+    del request
+    return JSONResponse({"detail": str(err)}, status_code=507)
+
+
 async def _validation_error(request: Request, err: Exception) -> JSONResponse:
     del request
     assert isinstance(err, RequestValidationError)
@@ -101,6 +162,7 @@ async def _unexpected_error(request: Request, err: Exception) -> JSONResponse:
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers that turn every error into ``{"detail": ...}`` with its status."""
     app.add_exception_handler(MapServerError, _mapserver_error)
+    app.add_exception_handler(InsufficientStorageError, _storage_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(Exception, _unexpected_error)

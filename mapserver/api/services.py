@@ -12,8 +12,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from mapserver.api.graphs import GraphCache
+from mapserver.api.housekeeping import Janitor, describe, remove_leftovers
 from mapserver.api.intake import StoredLog, UploadOptions
 from mapserver.api.jobengine import EmbeddedJobEngine, JobEngine
+from mapserver.api.lifecycle import ServerLock
 from mapserver.api.settings import Settings
 from mapserver.api.uploads import ReceivedUpload
 from mapserver.errors import MapServerError
@@ -24,8 +26,11 @@ from mapserver.store.tokens import LAST_USED_RESOLUTION_S, mark_token_used
 logger = logging.getLogger(__name__)
 
 
-def _job_engine(settings: Settings, db: Database) -> JobEngine:
-    """Return the job engine the settings name (``embedded`` threads, or ``celery`` workers)."""
+def _job_engine(settings: Settings, db: Database, *, exclusive: bool) -> JobEngine:
+    """Return the job engine the settings name (``embedded`` threads, or ``celery`` workers).
+
+    ``exclusive``: this server holds the database's server lock (no other embedded engine on it).
+    """
     if settings.jobs == "celery":
         from mapserver.api.cluster import CeleryJobEngine
 
@@ -33,6 +38,7 @@ def _job_engine(settings: Settings, db: Database) -> JobEngine:
     return EmbeddedJobEngine(
         db, db_url=settings.db_url, workers=settings.workers,
         progress_interval_s=settings.progress_interval_s, max_attempts=settings.max_job_attempts,
+        lease_s=settings.lease_s, exclusive=exclusive,
     )  # fmt: skip
 
 
@@ -44,32 +50,62 @@ class Services:
     db: Database
     jobs: JobEngine
     graphs: GraphCache
+    janitor: Janitor | None = None
+    server_lock: ServerLock | None = None
     _touch: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="token-touch"))
     _touched: dict[int, float] = field(default_factory=dict)
     _touch_lock: threading.Lock = field(default_factory=threading.Lock)
 
     @classmethod
-    def start(cls, settings: Settings) -> Services:
-        """Open the database (an empty one gets the schema), start the job engine, return the services.
+    def start(cls, settings: Settings, server_lock: ServerLock | None = None) -> Services:
+        """Open the database, take its server lock, clean the upload directory, start the job engine.
+
+        ``server_lock``: the lock ``mapserver serve`` took already; without it the lock the settings need
+        (SQLite with embedded jobs) is taken here. :meth:`close` releases either. Holding it, this server is
+        the only one on the database: leftovers of a killed server (staged ``.part`` files, folders no job
+        names) are removed before the engine starts and recovers the jobs it left running. The retention
+        of processed uploads (:class:`~mapserver.api.housekeeping.Janitor`) starts last.
 
         Raises:
             StoreError: the database is unreachable or at another schema revision.
+            ConflictError: another server holds the database's server lock.
         """
         db = open_database(settings.db_url)
+        own = None if server_lock is not None else ServerLock.for_settings(settings)
         try:
+            if own is not None:
+                own.acquire()
+            exclusive = server_lock is not None or own is not None
             settings.uploads.mkdir(parents=True, exist_ok=True)
-            engine = _job_engine(settings, db)
+            if exclusive:
+                removed = remove_leftovers(db, settings.uploads, grace_s=0.0)
+                if removed:
+                    logger.warning("removed uploads left by a stopped server: %s", describe(removed))
+            engine = _job_engine(settings, db, exclusive=exclusive)
             engine.start()
+            janitor = Janitor(db, settings.uploads, keep_s=settings.keep_uploads_days * 86400.0)
+            janitor.start()
         except BaseException:
+            if own is not None:
+                own.release()
             db.dispose()
             raise
-        return cls(settings=settings, db=db, jobs=engine, graphs=GraphCache(db, settings.graph_cache_maps))
+        graphs = GraphCache(db, settings.graph_cache_maps)
+        held = server_lock if server_lock is not None else own
+        return cls(settings=settings, db=db, jobs=engine, graphs=graphs, janitor=janitor, server_lock=held)
 
     def close(self) -> None:
-        """Stop the job engine (running jobs are queued again) and close the database."""
+        """Stop the job engine (running jobs are queued again) and the housekeeping; close the database.
+
+        The server lock is released last: nothing of this server touches the jobs any more.
+        """
         self.jobs.stop()
+        if self.janitor is not None:
+            self.janitor.stop()
         self._touch.shutdown(wait=True)
         self.db.dispose()
+        if self.server_lock is not None:
+            self.server_lock.release()
 
     # -- uploads ---------------------------------------------------------------------------------------
     @staticmethod

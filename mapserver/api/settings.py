@@ -43,7 +43,10 @@ class Settings:
             processes; PostgreSQL only).
         broker_url: Celery broker URL (``redis://…`` or ``amqp://…``; default the local Redis).
         job_queue: the Celery queue the workers consume.
-        lease_s: the Celery workers' job lease (dispatch is repeated after twice this).
+        lease_s: a running job's lease, for the Celery workers (dispatch is repeated after twice this) and the
+            embedded engine (renewed every third of it; another server takes over a job whose lease expired).
+        keep_uploads_days: a job's upload folder is kept until the job is processed (done or failed), then
+            this many days (``inf``: forever; checked at start and every hour).
     """
 
     db_url: str = DEFAULT_DB_URL
@@ -64,6 +67,7 @@ class Settings:
     broker_url: str = "redis://127.0.0.1:6379/0"
     job_queue: str = "mapserver"
     lease_s: float = 30.0
+    keep_uploads_days: float = 7.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -79,6 +83,7 @@ class Settings:
             "graph_cache_maps": self.graph_cache_maps >= 1,
             "jobs": self.jobs in ("embedded", "celery"),
             "lease_s": self.lease_s > 0,
+            "keep_uploads_days": self.keep_uploads_days >= 0,
         }
         for name, ok in checks.items():
             if not ok:

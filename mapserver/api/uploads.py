@@ -8,6 +8,7 @@ already says so); a refused or broken upload leaves no file behind.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import re
@@ -160,7 +161,8 @@ class _FormSink:
 
     def close(self) -> None:
         if self.handle is not None and not self.handle.closed:
-            self.handle.close()
+            with contextlib.suppress(OSError):  # a full disk fails the last flush too; the file is removed anyway
+                self.handle.close()
 
 
 def _boundary(request: Request) -> bytes:

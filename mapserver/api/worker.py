@@ -30,6 +30,13 @@ class JobInterrupted(Exception):  # noqa: N818 - a control-flow signal, not an e
     """Raised inside a running job when the engine stops; the job is queued again."""
 
 
+class LeaseLost(JobInterrupted):
+    """Raised inside a running job whose progress write was refused: another holder has the job now.
+
+    The job is not queued again by this holder (its writes are fenced off); the new holder runs it.
+    """
+
+
 @dataclass(frozen=True, slots=True)
 class JobOutcome:
     """What a finished job produced: the session and map ids, or the one-line error.
@@ -51,14 +58,17 @@ class ProgressReporter:
 
     A write happens when ``interval_s`` has passed since the last one (and for the last frame), so a
     long log costs a handful of small transactions, not one per frame. ``should_stop()`` is checked on
-    every frame; when it returns True the job is interrupted (:class:`JobInterrupted`).
+    every frame; when it returns True the job is interrupted (:class:`JobInterrupted`). Each write presents
+    the job's fencing token; a refused write means the job was taken over (:class:`LeaseLost`).
     """
 
     def __init__(
-        self, db: Database, job_id: int, *, interval_s: float, should_stop: Callable[[], bool] | None = None
-    ) -> None:
+        self, db: Database, job_id: int, *, interval_s: float, should_stop: Callable[[], bool] | None = None,
+        lease_token: int = 0,
+    ) -> None:  # fmt: skip
         self.db = db
         self.job_id = job_id
+        self.lease_token = lease_token
         self.interval_s = interval_s
         self.should_stop = should_stop
         self._last_write = time.monotonic()
@@ -75,7 +85,9 @@ class ProgressReporter:
         if done >= total:
             fraction = min(fraction, 0.999)  # "done" (1.0) is set when the result is stored
         with self.db.write() as conn:
-            set_job_progress(conn=conn, job_id=self.job_id, progress=fraction)
+            held = set_job_progress(conn=conn, job_id=self.job_id, progress=fraction, lease_token=self.lease_token)
+        if not held:
+            raise LeaseLost
         self._last_write = now
         self.writes += 1
 
@@ -109,9 +121,11 @@ def execute_job(
 
     Raises:
         JobInterrupted: ``should_stop`` turned True while the log was being processed (nothing stored).
+        LeaseLost: a progress write was refused: the job's fencing token moved on (another holder runs it).
     """
     log_path = Path(job.upload_path)
-    reporter = ProgressReporter(db, job.id, interval_s=interval_s, should_stop=should_stop)
+    reporter = ProgressReporter(db, job.id, interval_s=interval_s, should_stop=should_stop,
+                                lease_token=job.lease_token)  # fmt: skip
     try:
         if not log_path.exists():
             msg = f"the uploaded log is gone from the server ({log_path.name!r}); upload it again"

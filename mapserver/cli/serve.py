@@ -8,7 +8,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mapserver.api import Settings, create_app
+from mapserver.api import Settings
+from mapserver.api.lifecycle import claim_server, serve_forever
 from mapserver.cli._output import info
 from mapserver.store import open_database
 
@@ -43,28 +44,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--lease-seconds", type=float, help=f"workers' job lease (default: {defaults.lease_s})")
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"),
                         help="server log level (default: info)")  # fmt: skip
+    parser.add_argument("--keep-uploads-days", type=float,
+                        help="keep a processed job's upload this many days, then remove it; inf keeps it "
+                             f"(default: {defaults.keep_uploads_days:g})")  # fmt: skip
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Check the database (creating an empty one's schema), then serve until interrupted."""
-    import uvicorn
+    """Check the database (creating an empty one's schema), then serve until interrupted.
 
+    A second server with the embedded job engine on the same SQLite database, or on a taken port, is
+    refused with one line (exit 1) before it touches any job.
+    """
     settings = Settings.from_env().with_overrides(
         db_url=args.db, host=args.host, port=args.port, allow_anonymous_reads=args.allow_anonymous_reads,
         workers=args.workers, upload_dir=args.upload_dir, max_upload_bytes=args.max_upload_bytes,
         max_unpacked_bytes=args.max_unpacked_bytes, max_unpacked_ratio=args.max_unpacked_ratio,
         max_archive_entries=args.max_archive_entries, max_image_pixels=args.max_image_pixels,
         jobs=args.jobs, broker_url=args.broker, job_queue=args.queue, lease_s=args.lease_seconds,
+        keep_uploads_days=args.keep_uploads_days,
     )  # fmt: skip
     with open_database(settings.db_url) as db:  # fail here, with one ERROR line, on a bad or old database
         url = db.display_url()
+    claim = claim_server(settings)  # the database's server lock, then the port: refused here, in one line
     reads = "anonymous reads allowed" if settings.allow_anonymous_reads else "reads need a token"
     jobs = f"jobs on Celery workers, queue {settings.job_queue!r}" if settings.jobs == "celery" else "embedded jobs"
     info(f"serving {url} on http://{settings.host}:{settings.port} ({reads}; {jobs}; docs at /docs)")
     info("limits: " + ", ".join(f"{name} {value:g}" for name, value in settings.limits().items()))
-    uvicorn.run(
-        create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
-        timeout_graceful_shutdown=30,
-    )  # fmt: skip
+    serve_forever(settings, claim, log_level=args.log_level)  # the app and its jobs start on the claimed port
     return 0

@@ -65,6 +65,16 @@ def _sqlite_file(url: URL) -> Path | None:
     return Path(database)
 
 
+def sqlite_database_file(url: str | URL | None) -> Path | None:
+    """Return the database file of a SQLite URL (None for other backends, in-memory or URI-style databases).
+
+    Raises:
+        InputError: the URL cannot be parsed.
+    """
+    parsed = parse_url(url)
+    return _sqlite_file(parsed) if parsed.get_backend_name() == "sqlite" else None
+
+
 def create_db_engine(url: str | URL | None = None, **kwargs: Any) -> Engine:
     """Create a SQLAlchemy engine configured for the map store.
 

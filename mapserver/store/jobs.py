@@ -1,13 +1,20 @@
-"""Processing jobs of the REST API (issue 6): queued uploads, claimed by a worker, progress, outcome."""
+"""Processing jobs of the REST API (issue 6): queued uploads, claimed by a worker, progress, outcome.
+
+Fencing: every claim of a job (queued → running) and every takeover by someone other than its holder
+(recovery of a job whose holder died) adds one to ``jobs.lease_token``; the claimer gets the new value in
+its :class:`JobRecord`. Every later write of the holder — progress, lease renewal, outcome, giving the job
+back — is an ``UPDATE ... WHERE id = ? AND lease_token = ? AND status = 'running'`` and returns whether a
+row changed, so a holder that lost the job writes nothing and learns that it should stop.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import Connection, func, insert, select, text, update
+from sqlalchemy import ColumnElement, Connection, func, insert, or_, select, text, update
 
 from mapserver.errors import NotFoundError
 from mapserver.store.models import JOB_STATUSES, Job, utcnow
@@ -15,7 +22,11 @@ from mapserver.store.models import JOB_STATUSES, Job, utcnow
 
 @dataclass(frozen=True, slots=True)
 class JobRecord:
-    """A stored job (``status``: queued, running, done or failed; ``progress`` in [0, 1])."""
+    """A stored job (``status``: queued, running, done or failed; ``progress`` in [0, 1]).
+
+    ``lease_token``: the job's fencing token as read (see the module docstring); a claimed record carries
+    the value its holder must present with every write.
+    """
 
     id: int
     status: str
@@ -33,6 +44,7 @@ class JobRecord:
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    lease_token: int = 0
 
 
 def _record(row: Any) -> JobRecord:
@@ -53,6 +65,7 @@ def _record(row: Any) -> JobRecord:
         created_at=row.created_at,
         started_at=row.started_at,
         finished_at=row.finished_at,
+        lease_token=int(row.lease_token),
     )
 
 
@@ -102,8 +115,21 @@ def get_job(*, conn: Connection, job_id: int) -> JobRecord:
     return _record(row)
 
 
-def claim_next_job(*, conn: Connection) -> JobRecord | None:
-    """Mark the oldest queued job ``running`` and return it (None when the queue is empty).
+def _claim_values(owner: str | None, lease_s: float | None) -> dict[str, Any]:
+    """Return the column values of a claim: running, a new fencing token, the holder and its lease."""
+    now = utcnow()
+    expires = None if lease_s is None else now + timedelta(seconds=lease_s)
+    return {"status": "running", "started_at": now, "updated_at": now, "progress": 0.0,
+            "lease_token": Job.lease_token + 1, "lease_owner": owner, "lease_expires_at": expires}  # fmt: skip
+
+
+def _held(job_id: int, lease_token: int) -> tuple[ColumnElement[bool], ...]:
+    """Return the WHERE clause of a holder's write: this job, still running, still at the holder's token."""
+    return (Job.id == job_id, Job.lease_token == lease_token, Job.status == "running")
+
+
+def claim_next_job(*, conn: Connection, owner: str | None = None, lease_s: float | None = None) -> JobRecord | None:
+    """Mark the oldest queued job ``running`` (a new fencing token) and return it (None when the queue is empty).
 
     The status check in the UPDATE makes the claim safe between workers: a job another worker
     claimed first is skipped.
@@ -112,31 +138,31 @@ def claim_next_job(*, conn: Connection) -> JobRecord | None:
         select(Job.id).where(Job.status == "queued").order_by(Job.created_at, Job.id).limit(5)
     ).scalars().all()
     for job_id in candidates:
-        now = utcnow()
         result = conn.execute(
-            update(Job)
-            .where(Job.id == job_id, Job.status == "queued")
-            .values(status="running", started_at=now, updated_at=now)
+            update(Job).where(Job.id == job_id, Job.status == "queued").values(**_claim_values(owner, lease_s))
         )
         if result.rowcount == 1:
             return get_job(conn=conn, job_id=int(job_id))
     return None
 
 
-def set_job_progress(*, conn: Connection, job_id: int, progress: float) -> None:
-    """Record a running job's progress (clipped to [0, 1])."""
+def set_job_progress(*, conn: Connection, job_id: int, progress: float, lease_token: int) -> bool:
+    """Record a running job's progress (clipped to [0, 1]); return False when ``lease_token`` no longer holds it."""
     value = min(max(float(progress), 0.0), 1.0)
-    conn.execute(update(Job).where(Job.id == job_id).values(progress=value, updated_at=utcnow()))
+    result = conn.execute(update(Job).where(*_held(job_id, lease_token)).values(progress=value, updated_at=utcnow()))
+    return result.rowcount == 1
 
 
-def finish_job(*, conn: Connection, job_id: int, session_id: int | None, map_id: int | None) -> None:
-    """Mark a job ``done`` with the session and map it produced."""
+def finish_job(*, conn: Connection, job_id: int, session_id: int | None, map_id: int | None, lease_token: int) -> bool:
+    """Mark a job ``done`` with the session and map it produced, if ``lease_token`` still holds it; return that."""
     now = utcnow()
-    conn.execute(
+    result = conn.execute(
         update(Job)
-        .where(Job.id == job_id)
-        .values(status="done", progress=1.0, session_id=session_id, map_id=map_id, finished_at=now, updated_at=now)
-    )
+        .where(*_held(job_id, lease_token))
+        .values(status="done", progress=1.0, session_id=session_id, map_id=map_id, finished_at=now, updated_at=now,
+                lease_expires_at=None)
+    )  # fmt: skip
+    return result.rowcount == 1
 
 
 def set_job_dropped(*, conn: Connection, job_id: int, dropped: Mapping[str, Any]) -> None:
@@ -146,13 +172,20 @@ def set_job_dropped(*, conn: Connection, job_id: int, dropped: Mapping[str, Any]
     conn.execute(update(Job).where(Job.id == job_id).values(options=options, updated_at=utcnow()))
 
 
-def fail_job(*, conn: Connection, job_id: int, error: str) -> None:
-    """Mark a job ``failed`` with a one-line error."""
+def one_line(error: str) -> str:
+    """Return ``error`` on one line, at most 2000 characters (how job errors are stored)."""
+    return " ".join(error.split())[:2000]
+
+
+def fail_job(*, conn: Connection, job_id: int, error: str, lease_token: int) -> bool:
+    """Mark a job ``failed`` with a one-line error, if ``lease_token`` still holds it; return that."""
     now = utcnow()
-    line = " ".join(error.split())[:2000]
-    conn.execute(
-        update(Job).where(Job.id == job_id).values(status="failed", error=line, finished_at=now, updated_at=now)
+    result = conn.execute(
+        update(Job)
+        .where(*_held(job_id, lease_token))
+        .values(status="failed", error=one_line(error), finished_at=now, updated_at=now, lease_expires_at=None)
     )
+    return result.rowcount == 1
 
 
 # --------------------------------------------------------------------------------- job engine support
@@ -196,10 +229,13 @@ def lock_upload(*, conn: Connection, upload_sha256: str) -> None:
         conn.execute(text("SELECT pg_advisory_xact_lock(hashtext(:key))"), {"key": f"mapserver-upload:{upload_sha256}"})
 
 
-def claim_next_job_excluding(*, conn: Connection, busy_maps: Collection[str]) -> JobRecord | None:
+def claim_next_job_excluding(
+    *, conn: Connection, busy_maps: Collection[str], owner: str | None = None, lease_s: float | None = None
+) -> JobRecord | None:
     """Mark the oldest queued job whose ``map_name`` is not in ``busy_maps`` ``running``; return it (or None).
 
-    Jobs of one map therefore run one after another when the caller passes the maps it is running.
+    Jobs of one map therefore run one after another when the caller passes the maps it is running. The
+    claim takes a new fencing token and leases the job to ``owner`` for ``lease_s`` seconds.
     """
     rows = conn.execute(
         select(Job.id, Job.map_name).where(Job.status == "queued").order_by(Job.created_at, Job.id).limit(200)
@@ -207,56 +243,94 @@ def claim_next_job_excluding(*, conn: Connection, busy_maps: Collection[str]) ->
     for job_id, map_name in rows:
         if map_name is not None and map_name in busy_maps:
             continue
-        now = utcnow()
         result = conn.execute(
-            update(Job)
-            .where(Job.id == job_id, Job.status == "queued")
-            .values(status="running", started_at=now, updated_at=now, progress=0.0)
+            update(Job).where(Job.id == job_id, Job.status == "queued").values(**_claim_values(owner, lease_s))
         )
         if result.rowcount == 1:
             return get_job(conn=conn, job_id=int(job_id))
     return None
 
 
-def requeue_job(*, conn: Connection, job_id: int, count_attempt: bool = False) -> None:
-    """Put a running job back in the queue (progress 0); ``count_attempt`` increments ``options.attempts``."""
+def requeue_job(*, conn: Connection, job_id: int, lease_token: int, count_attempt: bool = False) -> bool:
+    """Give a running job back to the queue (progress 0) if ``lease_token`` still holds it; return that.
+
+    ``count_attempt`` increments ``options.attempts``.
+    """
     record = get_job(conn=conn, job_id=job_id)
     options = dict(record.options or {})
     if count_attempt:
         options["attempts"] = int(options.get("attempts", 0)) + 1
-    conn.execute(
+    result = conn.execute(
         update(Job)
-        .where(Job.id == job_id)
-        .values(status="queued", progress=0.0, started_at=None, options=options, updated_at=utcnow())
-    )
+        .where(*_held(job_id, lease_token))
+        .values(status="queued", progress=0.0, started_at=None, options=options, updated_at=utcnow(),
+                lease_owner=None, lease_expires_at=None)
+    )  # fmt: skip
+    return result.rowcount == 1
 
 
-def recover_interrupted_jobs(*, conn: Connection, max_attempts: int) -> tuple[list[int], list[int]]:
-    """After a server start: rerun jobs left ``running`` from the start, or fail those interrupted too often.
+def renew_job_leases(*, conn: Connection, leases: Mapping[int, int], lease_s: float) -> list[int]:
+    """Push the leases of running jobs (job id → fencing token) ``lease_s`` seconds ahead; return the ids lost.
 
-    A job whose ``options.attempts`` (interruptions so far, this one included) reaches ``max_attempts``
-    is failed with the reason; the others are queued again.
+    A job is lost when its token or status changed: someone else took it over or finished it.
+    """
+    expires = utcnow() + timedelta(seconds=lease_s)
+    lost = []
+    for job_id, token in sorted(leases.items()):
+        result = conn.execute(update(Job).where(*_held(job_id, token)).values(lease_expires_at=expires))
+        if result.rowcount != 1:
+            lost.append(job_id)
+    return lost
+
+
+def recover_interrupted_jobs(
+    *, conn: Connection, max_attempts: int, expired_only: bool = False
+) -> tuple[list[int], list[int]]:
+    """Take over jobs left ``running`` by a holder that is gone: queue them again, or fail those interrupted too often.
+
+    ``expired_only``: only jobs whose lease expired (or that have none); otherwise every running job — for
+    a caller that knows no other job engine runs on this database. A job whose ``options.attempts``
+    (interruptions so far, this one included) reaches ``max_attempts`` is failed with the reason; the others
+    are queued again. Each takeover adds one to the job's fencing token, so the old holder, should it still
+    run, writes nothing more.
 
     Returns:
         (ids queued again, ids failed).
     """
+    query = select(Job.id, Job.lease_token, Job.options).where(Job.status == "running").order_by(Job.id)
+    if expired_only:
+        query = query.where(or_(Job.lease_expires_at.is_(None), Job.lease_expires_at < utcnow()))
     requeued: list[int] = []
     failed: list[int] = []
-    running = conn.execute(select(Job.id).where(Job.status == "running").order_by(Job.id)).scalars().all()
-    for job_id in running:
-        record = get_job(conn=conn, job_id=int(job_id))
-        attempts = int((record.options or {}).get("attempts", 0)) + 1
+    for job_id, token, stored in conn.execute(query).all():
+        options = dict(stored or {})
+        options["attempts"] = attempts = int(options.get("attempts", 0)) + 1
+        now = utcnow()
+        values: dict[str, Any] = {"options": options, "updated_at": now, "lease_token": token + 1,
+                                  "lease_owner": None, "lease_expires_at": None}  # fmt: skip
         if attempts >= max_attempts:
-            fail_job(
-                conn=conn,
-                job_id=record.id,
-                error=f"the server stopped while this job was running, {attempts} times; giving up (upload it again)",
-            )
-            failed.append(record.id)
+            msg = f"the server stopped while this job was running, {attempts} times; giving up (upload it again)"
+            values.update(status="failed", error=msg, finished_at=now)
         else:
-            requeue_job(conn=conn, job_id=record.id, count_attempt=True)
-            requeued.append(record.id)
+            values.update(status="queued", progress=0.0, started_at=None)
+        if conn.execute(update(Job).where(*_held(int(job_id), int(token))).values(**values)).rowcount == 1:
+            (failed if attempts >= max_attempts else requeued).append(int(job_id))
     return requeued, failed
+
+
+def job_uploads(
+    *, conn: Connection, statuses: Collection[str] | None = None, finished_before: datetime | None = None
+) -> list[tuple[int, str, str]]:
+    """Return (id, status, upload path) of the jobs with one of ``statuses`` (None: any), in id order.
+
+    ``finished_before``: only jobs that finished (done or failed) before this time.
+    """
+    query = select(Job.id, Job.status, Job.upload_path).order_by(Job.id)
+    if statuses is not None:
+        query = query.where(Job.status.in_(tuple(statuses)))
+    if finished_before is not None:
+        query = query.where(Job.finished_at.is_not(None), Job.finished_at < finished_before)
+    return [(int(i), str(status), str(path)) for i, status, path in conn.execute(query).all()]
 
 
 def count_jobs(*, conn: Connection) -> dict[str, int]:

@@ -6,8 +6,9 @@ PostgreSQL session-level advisory lock (:class:`MapLock`). Holding the lock, it 
 unfinished job of the map (:func:`claim_map_job`): a queued one, or a ``running`` one — which, since
 no one else holds the lock, lost its worker (killed, machine gone: the database dropped the dead
 connection and with it the lock) and is taken over (``options.attempts`` + 1; failed after
-``max_attempts``). While it runs, a heartbeat pushes ``lease_expires_at`` forward
-(:func:`renew_lease`); the outcome is written only by the lease owner (:func:`complete_job`).
+``max_attempts``). Every claim and takeover adds one to the job's fencing token (``jobs.lease_token``,
+see :mod:`mapserver.store.jobs`). While it runs, a heartbeat pushes ``lease_expires_at`` forward
+(:func:`renew_lease`); the outcome is written only by the lease owner at its token (:func:`complete_job`).
 
 Queued jobs are *dispatched* (a message naming their map is sent to the workers) by
 :func:`due_job_maps`, which also marks them (``lease_expires_at`` = when to dispatch again), so a
@@ -21,10 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import timedelta
 
-from sqlalchemy import Connection, and_, func, or_, select, text, update
+from sqlalchemy import ColumnElement, Connection, and_, func, or_, select, text, update
 
 from mapserver.store.db import Database
-from mapserver.store.jobs import JobRecord, fail_job, get_job
+from mapserver.store.jobs import JobRecord, get_job, one_line
 from mapserver.store.models import Job, utcnow
 
 MAP_LOCK_NAMESPACE = 0x6D61_7073  # "maps": first key of the two-key advisory locks of map jobs
@@ -104,7 +105,8 @@ def claim_map_job(*, conn: Connection, key: str, owner: str, lease_s: float, max
     """Lease the oldest unfinished job of a map to ``owner``; call it only while holding the map's lock.
 
     A ``running`` job found here lost its worker (its lock is free): it is taken over with
-    ``options.attempts`` + 1, or failed with the reason once that reaches ``max_attempts``.
+    ``options.attempts`` + 1, or failed with the reason once that reaches ``max_attempts``. Both, and the
+    claim, add one to the job's fencing token.
     """
     failed: list[int] = []
     while True:
@@ -123,8 +125,13 @@ def claim_map_job(*, conn: Connection, key: str, owner: str, lease_s: float, max
             options["attempts"] = int(options.get("attempts", 0)) + 1
             if options["attempts"] >= max_attempts:
                 msg = f"the worker running this job was lost {options['attempts']} times; giving up (upload it again)"
-                fail_job(conn=conn, job_id=record.id, error=msg)
-                conn.execute(update(Job).where(Job.id == record.id).values(options=options, lease_owner=None))
+                now = utcnow()
+                conn.execute(
+                    update(Job)
+                    .where(Job.id == record.id)
+                    .values(status="failed", error=msg, finished_at=now, updated_at=now, options=options,
+                            lease_owner=None, lease_expires_at=None, lease_token=Job.lease_token + 1)
+                )  # fmt: skip
                 failed.append(record.id)
                 continue
         now = utcnow()
@@ -132,35 +139,37 @@ def claim_map_job(*, conn: Connection, key: str, owner: str, lease_s: float, max
             update(Job)
             .where(Job.id == record.id)
             .values(status="running", progress=0.0, started_at=now, updated_at=now, options=options,
-                    lease_owner=owner, lease_expires_at=now + timedelta(seconds=lease_s))
+                    lease_owner=owner, lease_expires_at=now + timedelta(seconds=lease_s),
+                    lease_token=Job.lease_token + 1)
         )  # fmt: skip
         return Claim(get_job(conn=conn, job_id=record.id), tuple(failed), taken_over)
 
 
-def renew_lease(*, conn: Connection, job_id: int, owner: str, lease_s: float) -> bool:
-    """Push a running job's lease ``lease_s`` seconds ahead; return False when ``owner`` no longer holds it."""
+def _held(job_id: int, owner: str, lease_token: int) -> tuple[ColumnElement[bool], ...]:
+    return (Job.id == job_id, Job.status == "running", Job.lease_owner == owner, Job.lease_token == lease_token)
+
+
+def renew_lease(*, conn: Connection, job_id: int, owner: str, lease_s: float, lease_token: int) -> bool:
+    """Push a running job's lease ``lease_s`` seconds ahead; return False when ``owner`` at ``lease_token`` lost it."""
     now = utcnow()
     result = conn.execute(
-        update(Job)
-        .where(Job.id == job_id, Job.status == "running", Job.lease_owner == owner)
-        .values(lease_expires_at=now + timedelta(seconds=lease_s))
+        update(Job).where(*_held(job_id, owner, lease_token)).values(lease_expires_at=now + timedelta(seconds=lease_s))
     )
     return result.rowcount == 1
 
 
 def complete_job(
-    *, conn: Connection, job_id: int, owner: str, session_id: int | None, map_id: int | None, error: str | None
+    *, conn: Connection, job_id: int, owner: str, lease_token: int, session_id: int | None, map_id: int | None,
+    error: str | None,
 ) -> bool:
-    """Record a leased job's outcome (done, or failed with ``error``) if ``owner`` still holds its lease."""
+    """Record a leased job's outcome (done, or failed with ``error``) if ``owner`` still holds it at ``lease_token``."""
     now = utcnow()
     values: dict[str, object] = {"finished_at": now, "updated_at": now, "lease_expires_at": None}
     if error is None:
         values.update(status="done", progress=1.0, session_id=session_id, map_id=map_id)
     else:
-        values.update(status="failed", error=" ".join(error.split())[:2000])
-    result = conn.execute(
-        update(Job).where(Job.id == job_id, Job.status == "running", Job.lease_owner == owner).values(**values)
-    )
+        values.update(status="failed", error=one_line(error))
+    result = conn.execute(update(Job).where(*_held(job_id, owner, lease_token)).values(**values))
     return result.rowcount == 1
 
 

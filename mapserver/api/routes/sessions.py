@@ -9,6 +9,7 @@ from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from mapserver.api.deps import ServicesDep, WriteAccess
+from mapserver.api.errors import raise_server_fault
 from mapserver.api.intake import StoredLog, parse_options, store_log
 from mapserver.api.schemas import ErrorPublic, UploadAccepted
 from mapserver.api.uploads import FILE_FIELD, receive_upload
@@ -42,7 +43,7 @@ UPLOAD_BODY: dict[str, Any] = {
     }
 }
 ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorPublic} for code in (400, 401, 403, 413, 415, 422)
+    code: {"model": ErrorPublic} for code in (400, 401, 403, 413, 415, 422, 507)
 }
 
 
@@ -65,11 +66,16 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
     """Store an uploaded log and queue its processing; answer 202 with the job.
 
     The upload is streamed to disk and hashed; the same log uploaded again with the same request is
-    answered with the earlier job (``duplicate: true``) instead of being queued twice.
+    answered with the earlier job (``duplicate: true``) instead of being queued twice. A full disk while
+    receiving or unpacking is answered 507 (:func:`mapserver.api.errors.raise_server_fault`).
     """
     settings = services.settings
     staging = settings.uploads / ".incoming"
-    received = await receive_upload(request, staging=staging, max_bytes=settings.max_upload_bytes)
+    try:
+        received = await receive_upload(request, staging=staging, max_bytes=settings.max_upload_bytes)
+    except Exception as err:
+        raise_server_fault(err, doing="receiving an upload", where=staging)
+        raise
     stored: StoredLog | None = None
     try:
         options = parse_options(received.fields)
@@ -81,10 +87,11 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
                 limits=settings.archive_limits,
             )  # fmt: skip
             job, duplicate = await run_in_threadpool(services.queue_job, received, stored, options)
-    except BaseException:
+    except BaseException as err:
         received.discard()
         if stored is not None:
             stored.discard()
+        raise_server_fault(err, doing="storing an upload", where=settings.uploads)
         raise
     received.discard()
     if duplicate and stored is not None:

@@ -136,15 +136,17 @@ def test_same_file_name_of_another_log_gets_its_own_map(api: Api, tmp_path: Path
     assert len({r["session"] for r in results}) == 2
 
 
-def test_progress_is_the_fraction_of_frames(api: Api, tmp_path: Path) -> None:
+def test_progress_is_the_fraction_of_frames(tmp_path: Path) -> None:
     from mapserver.api.worker import ProgressReporter
     from mapserver.store import open_database
-    from mapserver.store.jobs import create_job, get_job
+    from mapserver.store.jobs import claim_next_job, create_job, get_job
 
-    with open_database(api.db_url) as db:
+    with open_database(f"sqlite:///{tmp_path / 'progress.db'}") as db:
         with db.write() as conn:
-            job = create_job(conn=conn, upload_path=str(tmp_path / "x.bag"))
-        reporter = ProgressReporter(db, job.id, interval_s=3600.0)
+            create_job(conn=conn, upload_path=str(tmp_path / "x.bag"))
+            job = claim_next_job(conn=conn)
+        assert job is not None
+        reporter = ProgressReporter(db, job.id, interval_s=3600.0, lease_token=job.lease_token)
         reporter(1, 4)  # first call within the interval: not written
         with db.read() as conn:
             assert get_job(conn=conn, job_id=job.id).progress == 0.0

@@ -69,19 +69,26 @@ def test_claims_follow_queue_order_take_over_lost_jobs_and_give_up(pg: tuple[str
     with db.write() as conn:
         claim = claim_map_job(conn=conn, key="a", owner="w1:1", lease_s=30, max_attempts=3)
     assert claim.job is not None and (claim.job.id, claim.taken_over) == (a1, False)
+    first_token = claim.job.lease_token
     # w1 dies holding a1; the next holder of the lock takes a1 over before a2 (attempts + 1)
     with db.write() as conn:
         claim = claim_map_job(conn=conn, key="a", owner="w2:7", lease_s=30, max_attempts=3)
         assert claim.job is not None and (claim.job.id, claim.taken_over) == (a1, True)
         assert claim.job.options == {"attempts": 1}
-        assert not renew_lease(conn=conn, job_id=a1, owner="w1:1", lease_s=30)  # the old owner lost the lease
-        assert not complete_job(conn=conn, job_id=a1, owner="w1:1", session_id=None, map_id=None, error=None)
-        assert renew_lease(conn=conn, job_id=a1, owner="w2:7", lease_s=30)
+        token = claim.job.lease_token
+        assert token == first_token + 1  # every claim and takeover moves the fencing token on
+        assert not renew_lease(conn=conn, job_id=a1, owner="w1:1", lease_s=30, lease_token=first_token)  # lost
+        assert not complete_job(conn=conn, job_id=a1, owner="w1:1", lease_token=first_token, session_id=None,
+                                map_id=None, error=None)  # fmt: skip
+        # the same worker name at a stale token (a restarted process reusing a pid) writes nothing either
+        assert not renew_lease(conn=conn, job_id=a1, owner="w2:7", lease_s=30, lease_token=first_token)
+        assert renew_lease(conn=conn, job_id=a1, owner="w2:7", lease_s=30, lease_token=token)
         # lost once more: the third loss fails it (max_attempts=3), and the claim moves on to a2
         claim_map_job(conn=conn, key="a", owner="w3:1", lease_s=30, max_attempts=3)
         claim = claim_map_job(conn=conn, key="a", owner="w4:1", lease_s=30, max_attempts=3)
         assert claim.failed == (a1,) and claim.job is not None and claim.job.id == a2
-        assert complete_job(conn=conn, job_id=a2, owner="w4:1", session_id=None, map_id=None, error=None)
+        assert complete_job(conn=conn, job_id=a2, owner="w4:1", lease_token=claim.job.lease_token, session_id=None,
+                            map_id=None, error=None)  # fmt: skip
         lost, done, other = (get_job(conn=conn, job_id=i) for i in (a1, a2, b1))
         lease = conn.execute(sa.select(Job.lease_expires_at).where(Job.id == a2)).scalar_one()
     assert lost.status == "failed" and "lost 3 times" in (lost.error or "")

@@ -39,12 +39,13 @@ def test_jobs_are_claimed_once_in_order_and_finish(db: Database) -> None:
     with db.write() as conn:
         claimed = claim_next_job(conn=conn)
         assert claimed is not None and claimed.id == first.id and claimed.status == "running"
-        set_job_progress(conn=conn, job_id=first.id, progress=1.7)
+        assert claimed.lease_token == 1
+        assert set_job_progress(conn=conn, job_id=first.id, progress=1.7, lease_token=1)
         assert get_job(conn=conn, job_id=first.id).progress == 1.0
         assert claim_next_job(conn=conn).id == second.id  # type: ignore[union-attr]
         assert claim_next_job(conn=conn) is None
-        finish_job(conn=conn, job_id=first.id, session_id=None, map_id=None)
-        fail_job(conn=conn, job_id=second.id, error="bad\nbag:  corrupt")
+        assert finish_job(conn=conn, job_id=first.id, session_id=None, map_id=None, lease_token=1)
+        assert fail_job(conn=conn, job_id=second.id, error="bad\nbag:  corrupt", lease_token=1)
     with db.read() as conn:
         assert get_job(conn=conn, job_id=first.id).status == "done"
         failed = get_job(conn=conn, job_id=second.id)
