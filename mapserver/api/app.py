@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from mapserver import __version__
 from mapserver.api.errors import install_error_handlers
+from mapserver.api.requestid import RequestIdMiddleware
 from mapserver.api.routes import health, jobs, maps, sessions
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
@@ -63,6 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = chosen
     install_error_handlers(app)
+    app.add_middleware(RequestIdMiddleware)  # X-Request-ID on every response; the reference of 5xx answers
     for module in (health, sessions, jobs, maps):
         app.include_router(module.router)
     install_viewer(app)  # the web viewer at / and its routes (issue 16)

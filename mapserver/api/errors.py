@@ -3,7 +3,8 @@
 ``mapserver.errors`` carries each class's status (``InputError`` 400, ``NotFoundError`` 404,
 ``ConflictError`` 409, anything else 500); this module adds the API's own members (413, 401, 403),
 turns request validation failures into 422 with a one-line detail, and keeps 5xx bodies free of
-internals (the traceback goes to the log).
+internals: ``internal error (reference R; ...)``, where R is the request's id (``X-Request-ID``,
+:mod:`mapserver.api.requestid`) that the server log shows beside the message and traceback.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from mapserver.api.requestid import current_request_id, internal_error_detail, new_request_id
 from mapserver.errors import InputError, MapServerError
 
 logger = logging.getLogger(__name__)
@@ -63,11 +65,15 @@ async def _mapserver_error(request: Request, err: Exception) -> JSONResponse:
     if isinstance(err, AuthenticationError):
         headers["WWW-Authenticate"] = 'Bearer error="invalid_token"' if err.invalid_token else "Bearer"
     if status >= 500:
-        logger.error("%s %s failed: %s", request.method, request.url.path, err, exc_info=err)
-        detail = f"internal error ({type(err).__name__}): {err}"
-    else:
-        detail = str(err)
-    return JSONResponse({"detail": detail}, status_code=status, headers=headers)
+        return _internal(request, err)
+    return JSONResponse({"detail": str(err)}, status_code=status, headers=headers)
+
+
+def _internal(request: Request, err: Exception) -> JSONResponse:
+    """Log ``err`` under the request's id and answer 500 with only that id."""
+    reference = getattr(request.state, "request_id", None) or current_request_id() or new_request_id()
+    logger.error("%s %s failed (reference %s): %s", request.method, request.url.path, reference, err, exc_info=err)
+    return JSONResponse({"detail": internal_error_detail(reference)}, status_code=500)
 
 
 async def _validation_error(request: Request, err: Exception) -> JSONResponse:
@@ -84,8 +90,7 @@ async def _http_error(request: Request, err: Exception) -> JSONResponse:
 
 
 async def _unexpected_error(request: Request, err: Exception) -> JSONResponse:
-    logger.error("%s %s failed unexpectedly", request.method, request.url.path, exc_info=err)
-    return JSONResponse({"detail": f"internal error ({type(err).__name__})"}, status_code=500)
+    return _internal(request, err)
 
 
 def install_error_handlers(app: FastAPI) -> None:
