@@ -234,8 +234,9 @@ class Database:
             yield
         except MapServerError:
             raise
-        except IntegrityError as err:
-            msg = f"the database refused a conflicting write: {_describe(err)}"
+        except IntegrityError as err:  # the constraint's text goes to the log, not into answers or job records
+            logger.warning("the database refused a conflicting write: %s", _describe(err))
+            msg = "another writer stored the same record at the same time; nothing was written (try again)"
             raise ConflictError(msg) from err
         except DBAPIError as err:
             msg = f"database error on {self.display_url()}: {_describe(err)}"
