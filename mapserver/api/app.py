@@ -16,6 +16,7 @@ from mapserver.api.requestid import RequestIdMiddleware
 from mapserver.api.routes import health, jobs, maps, sessions
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
+from mapserver.api.slots import ReadSlots
 from mapserver.api.viewer import install_viewer
 
 DESCRIPTION = """\
@@ -63,6 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         generate_unique_id_function=_operation_id,
     )
     app.state.settings = chosen
+    app.state.export_slots = ReadSlots(chosen.max_exports)
     install_error_handlers(app)
     app.add_middleware(RequestIdMiddleware)  # X-Request-ID on every response; the reference of 5xx answers
     for module in (health, sessions, jobs, maps):

@@ -1,7 +1,8 @@
 """The one place where errors become HTTP responses: ``{"detail": "..."}`` with the right status.
 
 ``mapserver.errors`` carries each class's status (``InputError`` 400, ``NotFoundError`` 404,
-``ConflictError`` 409, anything else 500); this module adds the API's own members (413, 401, 403),
+``ConflictError`` 409, anything else 500); this module adds the API's own members (413, 415, 401, 403,
+408, 503 with ``Retry-After``),
 turns request validation failures into 422 with a one-line detail, and keeps 5xx bodies free of
 internals: ``internal error (reference R; ...)``, where R is the request's id (``X-Request-ID``,
 :mod:`mapserver.api.requestid`) that the server log shows beside the message and traceback.
@@ -50,6 +51,25 @@ class PermissionDeniedError(MapServerError):
     http_status = 403
 
 
+class RequestTimeoutError(InputError):
+    """The client sent nothing for longer than the server waits (HTTP 408; the connection is closed)."""
+
+    http_status = 408
+
+
+class BusyError(MapServerError):
+    """The server runs as many requests of this kind as it allows (HTTP 503 with ``Retry-After``).
+
+    The message says what is busy; unlike other 5xx answers it carries no internals and is shown as it is.
+    """
+
+    http_status = 503
+
+    def __init__(self, message: str, *, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
 def _validation_detail(err: RequestValidationError) -> str:
     parts = []
     for item in err.errors()[:5]:
@@ -64,7 +84,9 @@ async def _mapserver_error(request: Request, err: Exception) -> JSONResponse:
     headers: dict[str, str] = {}
     if isinstance(err, AuthenticationError):
         headers["WWW-Authenticate"] = 'Bearer error="invalid_token"' if err.invalid_token else "Bearer"
-    if status >= 500:
+    if isinstance(err, BusyError):
+        headers["Retry-After"] = str(err.retry_after_s)
+    elif status >= 500:
         return _internal(request, err)
     return JSONResponse({"detail": str(err)}, status_code=status, headers=headers)
 

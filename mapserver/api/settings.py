@@ -36,6 +36,9 @@ class Settings:
         broker_url: Celery broker URL (``redis://…`` or ``amqp://…``; default the local Redis).
         job_queue: the Celery queue the workers consume.
         lease_s: the Celery workers' job lease (dispatch is repeated after twice this).
+        max_exports: most map exports (``GET /v1/maps/{name}/export``) running at once; more get 503 with
+            ``Retry-After``.
+        read_timeout_s: an upload that sends no byte for this long is answered 408 and its connection closed.
     """
 
     db_url: str = DEFAULT_DB_URL
@@ -54,6 +57,8 @@ class Settings:
     broker_url: str = "redis://127.0.0.1:6379/0"
     job_queue: str = "mapserver"
     lease_s: float = 30.0
+    max_exports: int = 4
+    read_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -67,6 +72,8 @@ class Settings:
             "graph_cache_maps": self.graph_cache_maps >= 1,
             "jobs": self.jobs in ("embedded", "celery"),
             "lease_s": self.lease_s > 0,
+            "max_exports": 1 <= self.max_exports <= 1024,
+            "read_timeout_s": 0 < self.read_timeout_s <= 86_400,
         }
         for name, ok in checks.items():
             if not ok:
