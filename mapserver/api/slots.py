@@ -4,6 +4,10 @@ An export holds its slot from the request until its last byte is sent (or the cl
 streamed export reads the database and formats rows for as long as the client reads, a PNG export draws
 a figure in a worker thread. Refusing beyond the limit, instead of queueing, keeps worker threads and
 memory free for every other request (``/healthz``, ``/v1/maps``, paths).
+
+The streamed exports' chunks are formatted in at most ``FORMAT_THREADS`` threads at a time
+(:attr:`ReadSlots.threads`), however many exports stream: formatting holds the GIL, and every thread that
+wants it delays the event loop that answers the other requests.
 """
 
 from __future__ import annotations
@@ -11,7 +15,11 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
+import anyio
+
 from mapserver.api.errors import BusyError
+
+FORMAT_THREADS = 2
 
 
 class ReadSlots:
@@ -23,6 +31,7 @@ class ReadSlots:
         self.what = what
         self._lock = threading.Lock()
         self._running = 0
+        self.threads = anyio.CapacityLimiter(FORMAT_THREADS)
 
     @property
     def running(self) -> int:

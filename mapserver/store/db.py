@@ -41,6 +41,9 @@ SQLITE_BUSY_TIMEOUT_S = 60.0
 SQLITE_CACHE_KIB = 65536
 """Page cache per SQLite connection (64 MiB): bulk index inserts of large maps stay in memory."""
 
+SQLITE_STREAM_CACHE_KIB = 1024
+"""Page cache of a SQLite connection while it streams a map out (:func:`small_page_cache`)."""
+
 _WRITE_OPTION = "mapserver_write"
 
 
@@ -145,6 +148,25 @@ def _switch_to_wal(cursor: Any) -> None:
                 raise
         time.sleep(delay)
         delay = min(2 * delay, 0.05)
+
+
+@contextmanager
+def small_page_cache(conn: Connection) -> Iterator[None]:
+    """Keep a SQLite connection's page cache at ``SQLITE_STREAM_CACHE_KIB`` for a long sequential read.
+
+    A pooled connection keeps the pages it read (up to ``SQLITE_CACHE_KIB``) for as long as it lives: a
+    read of a whole map's rows by each of several connections would leave the server that much larger
+    for good. The cache is set back to its size afterwards (it then holds only what the read left, at most
+    the small size). Other databases: nothing.
+    """
+    if conn.dialect.name != "sqlite":
+        yield
+        return
+    conn.exec_driver_sql(f"PRAGMA cache_size=-{SQLITE_STREAM_CACHE_KIB}")
+    try:
+        yield
+    finally:
+        conn.exec_driver_sql(f"PRAGMA cache_size=-{SQLITE_CACHE_KIB}")
 
 
 def _set_foreign_keys(conn: Connection, *, on: bool) -> None:

@@ -32,7 +32,7 @@ from mapserver.formats import MAP_FORMAT, TUM_HEADER, _plain
 from mapserver.formats_csv import EXPERIENCE_COLUMNS, LINK_COLUMNS
 from mapserver.formats_g2o import _upper, information_se2, information_se3
 from mapserver.store.bulk import iter_tuples
-from mapserver.store.db import Database
+from mapserver.store.db import Database, small_page_cache
 from mapserver.store.errors import CorruptStateError
 from mapserver.store.maps import get_map
 from mapserver.store.models import Experience, Link, MapState
@@ -158,6 +158,7 @@ def open_export(db: Database, *, name: str, fmt: str, batch: int = BATCH_ROWS) -
     stack = ExitStack()
     try:
         conn = stack.enter_context(db.read())
+        stack.enter_context(small_page_cache(conn))
         head = read_export_head(conn, name)
         chunks = writer(conn, head, batch)
     except BaseException:

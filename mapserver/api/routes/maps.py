@@ -184,7 +184,8 @@ async def read_export(
     JSON, TUM, g2o and CSV are streamed from the database a batch of rows at a time (the same bytes as
     ``mapserver export``); at most ``--max-exports`` exports run at once, more are answered 503.
     """
-    release = request.app.state.export_slots.acquire()
+    slots = request.app.state.export_slots
+    release = slots.acquire()
     headers = {"Content-Disposition": f"inline; filename*=UTF-8''{_quote(_filename(name, format, table))}"}
     if format == "png":
         try:
@@ -195,11 +196,12 @@ async def read_export(
         return Response(body, media_type=EXPORT_TYPES[format], headers=headers)
     try:
         fmt = "links.csv" if format == "csv" and table == "links" else format
-        stream = await run_in_threadpool(partial(open_export, services.db, name=name, fmt=fmt))
+        stream = await anyio.to_thread.run_sync(partial(open_export, services.db, name=name, fmt=fmt),
+                                                limiter=slots.threads)  # fmt: skip
     except BaseException:
         release()
         raise
-    return ExportResponse(stream, release, media_type=EXPORT_TYPES[format], headers=headers)
+    return ExportResponse(stream, release, slots.threads, media_type=EXPORT_TYPES[format], headers=headers)
 
 
 def _filename(name: str, format: str, table: str) -> str:
@@ -208,15 +210,18 @@ def _filename(name: str, format: str, table: str) -> str:
 
 
 class ExportResponse(StreamingResponse):
-    """A streamed export: chunks read in worker threads; its read ends and its slot is freed however it ends."""
+    """A streamed export: chunks formatted in the export threads; its read ends and its slot frees at its end."""
 
-    def __init__(self, stream: ExportStream, release: Callable[[], None], **kwargs: Any) -> None:
+    def __init__(
+        self, stream: ExportStream, release: Callable[[], None], threads: anyio.CapacityLimiter, **kwargs: Any
+    ) -> None:
         self._stream = stream
         self._release = release
+        self._threads = threads
         super().__init__(self._chunks(), **kwargs)
 
     async def _chunks(self) -> AsyncIterator[bytes]:
-        while (chunk := await run_in_threadpool(next, self._stream, None)) is not None:
+        while (chunk := await anyio.to_thread.run_sync(next, self._stream, None, limiter=self._threads)) is not None:
             yield chunk
 
     async def stream_response(self, send: Send) -> None:
