@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from mapserver import __version__
 from mapserver.api.errors import install_error_handlers
+from mapserver.api.openapi import install_openapi
 from mapserver.api.requestid import RequestIdMiddleware
 from mapserver.api.routes import health, jobs, maps, sessions
 from mapserver.api.services import Services
@@ -70,4 +71,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (health, sessions, jobs, maps):
         app.include_router(module.router)
     install_viewer(app)  # the web viewer at / and its routes (issue 16)
+    install_openapi(app)  # errors declared as answered: {"detail": str}, 422 included
     return app
