@@ -84,6 +84,8 @@ async def _mapserver_error(request: Request, err: Exception) -> JSONResponse:
     headers: dict[str, str] = {}
     if isinstance(err, AuthenticationError):
         headers["WWW-Authenticate"] = 'Bearer error="invalid_token"' if err.invalid_token else "Bearer"
+    if isinstance(err, RequestTimeoutError):
+        headers["Connection"] = "close"
     if isinstance(err, BusyError):
         headers["Retry-After"] = str(err.retry_after_s)
     elif status >= 500:

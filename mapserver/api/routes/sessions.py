@@ -42,7 +42,7 @@ UPLOAD_BODY: dict[str, Any] = {
     }
 }
 ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorPublic} for code in (400, 401, 403, 409, 413, 415, 422)
+    code: {"model": ErrorPublic} for code in (400, 401, 403, 408, 409, 413, 415, 422)
 }
 
 
@@ -71,7 +71,9 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
     """
     settings = services.settings
     staging = settings.uploads / ".incoming"
-    received = await receive_upload(request, staging=staging, max_bytes=settings.max_upload_bytes)
+    received = await receive_upload(
+        request, staging=staging, max_bytes=settings.max_upload_bytes, read_timeout_s=settings.read_timeout_s
+    )
     stored: StoredLog | None = None
     try:
         options = parse_options(received.fields)
