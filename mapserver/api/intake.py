@@ -88,7 +88,10 @@ def _topics(text: str | None) -> dict[str, str] | None:
             msg = 'topics must be a JSON object of strings, e.g. {"image": "/camera/image"}'
             raise InputError(msg)
         return dict(value)
-    return parse_topics_arg(stripped)
+    try:
+        return parse_topics_arg(stripped)
+    except InputError as err:  # the parser speaks of the CLI flag; this is the form field
+        raise InputError(str(err).replace("--topics", "topics")) from err
 
 
 @dataclass(frozen=True, slots=True)
