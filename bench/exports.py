@@ -9,7 +9,7 @@ Usage: python bench/exports.py [--experiences 100000] [--clients 8] [--rounds 3]
    reads its resident memory (``/proc/PID/status`` VmRSS) when idle, after one ``GET /v1/maps``.
 3. ``--rounds`` times: ``--clients`` threads export the map at once (``GET /v1/maps/city/export``; bodies
    are read and counted, not kept) while one thread samples the server's VmRSS every 20 ms and another
-   asks ``/healthz`` every 20 ms; after each round it waits 3 s and reads VmRSS again.
+   asks ``--probe`` (default ``/healthz``) every 20 ms; after each round it waits 3 s and reads VmRSS again.
 
 Prints per round the peak RSS over idle, the RSS after the round, the exports' seconds and statuses, and
 ``/healthz`` p50/p99/max during the exports; the last line is one JSON object with every figure. Run it
@@ -77,7 +77,7 @@ def idle_healthz(url: str, probes: int = 200) -> dict[str, float]:
     return {"p50_ms": round(float(np.percentile(ms, 50)), 1), "p99_ms": round(float(np.percentile(ms, 99)), 1)}
 
 
-def export_round(url: str, pid: int, clients: int, fmt: str) -> dict[str, Any]:
+def export_round(url: str, pid: int, clients: int, fmt: str, probe_path: str = "/healthz") -> dict[str, Any]:
     """Run ``clients`` concurrent exports; return their statuses, bytes, seconds, peak RSS and /healthz latency."""
     done = threading.Event()
     peak = [rss_bytes(pid)]
@@ -94,7 +94,7 @@ def export_round(url: str, pid: int, clients: int, fmt: str) -> dict[str, Any]:
         with httpx.Client(base_url=url, timeout=60) as http:
             while not done.is_set():
                 start = time.perf_counter()
-                http.get("/healthz").raise_for_status()
+                http.get(probe_path).raise_for_status()
                 health_ms.append((time.perf_counter() - start) * 1000)
                 time.sleep(0.02)
 
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
         print(f"server idle: {idle / MIB:.0f} MiB; /healthz alone p50 {quiet['p50_ms']} ms, p99 {quiet['p99_ms']} ms")
         rounds = []
         for k in range(args.rounds):
-            figures = export_round(url, process.pid, args.clients, args.format)
+            figures = export_round(url, process.pid, args.clients, args.format, args.probe)
             time.sleep(3.0)
             figures["after_rss"] = rss_bytes(process.pid)
             figures["peak_over_idle_mib"] = round((figures["peak_rss"] - idle) / MIB, 1)
@@ -154,13 +154,14 @@ def run(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
             print(f"round {k + 1}: {args.clients} × {args.format} ({figures['bytes'] / MIB:.1f} MiB each) "
                   f"statuses {figures['statuses']}, {figures['wall_s']} s; peak RSS {figures['peak_rss'] / MIB:.0f} "
                   f"MiB (+{figures['peak_over_idle_mib']} over idle), after {figures['after_rss'] / MIB:.0f} MiB "
-                  f"(+{figures['after_over_idle_mib']}); /healthz p50 {figures['healthz_p50_ms']} ms, p99 "
+                  f"(+{figures['after_over_idle_mib']}); {args.probe} p50 {figures['healthz_p50_ms']} ms, p99 "
                   f"{figures['healthz_p99_ms']} ms, max {figures['healthz_max_ms']} ms")  # fmt: skip
         hwm = rss_bytes(process.pid, "VmHWM")
     finally:
         process.terminate()
         process.wait(60)
     return {"experiences": args.experiences, "links": links, "clients": args.clients, "format": args.format,
+            "probe": args.probe,
             "max_exports": args.max_exports, "db": db_url.split(":", 1)[0], "idle_rss_mib": round(idle / MIB, 1),
             "idle_healthz": quiet,
             "vm_hwm_mib": round(hwm / MIB, 1), "load_average_1min": round(os.getloadavg()[0], 2),
@@ -175,6 +176,7 @@ def main() -> None:
     parser.add_argument("--format", default="json", choices=("json", "tum", "png", "g2o", "csv"))
     parser.add_argument("--db-url", help="an empty database (default: a SQLite file in a temporary directory)")
     parser.add_argument("--max-exports", type=int, help="passed to serve (absent: the server's default)")
+    parser.add_argument("--probe", default="/healthz", help="the path timed during the exports (e.g. /v1/maps)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="mapserver-bench-exports-") as tmp:
         result = run(args, Path(tmp))

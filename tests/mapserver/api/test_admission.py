@@ -175,3 +175,9 @@ def test_concurrent_uploads_of_one_log_under_three_names_queue_one(backend_api: 
     done = api.wait(winner["job"])
     assert done["status"] == "done", done
     assert done["map"] == winner["map"]
+
+
+def test_rest_answers_name_no_cli_flag(api: Api, strip_log: Path) -> None:
+    response = api.upload(strip_log, preset="irat", topics="image")
+    assert response.status_code == 400
+    assert "topics" in response.json()["detail"] and "--" not in response.json()["detail"]
