@@ -21,6 +21,7 @@ from core import ConfigError, Engine, Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import MissionLog, open_log
+from mapserver.names import check_map_name, default_map_name
 from mapserver.reckoning import DeadReckoning
 from mapserver.run import (  # re-exported: the pipeline is where callers find them
     EngineRun,
@@ -107,9 +108,10 @@ def process_into_store(
     merge with it (:func:`mapserver.atlas.merge_candidates`); a confirmed match merges the session
     into that map online and mapping continues in the merged map; the session may merge again into
     another map (a session bridging two maps joins them). A session that connects to no map becomes a
-    new map called ``map_name`` (default: the log's name). A log stored partially (``stop_after``)
-    continues from its next frame in the same session and map, from the exact stored engine state (and
-    merge driver state), so processing frames [0, k) then [k, N) gives the same map as [0, N) in one go.
+    new map called ``map_name`` (default: the log's name, :func:`mapserver.names.default_map_name`). A log
+    stored partially (``stop_after``) continues from its next frame in the same session and map, from the
+    exact stored engine state (and merge driver state), so processing frames [0, k) then [k, N) gives the
+    same map as [0, N) in one go.
     A complete log is answered with the stored session (a warning says so). The map is relaxed to
     convergence (``settle``) only when the session's last frame has been processed.
 
@@ -117,8 +119,9 @@ def process_into_store(
         log_path: the mission log.
         params: engine parameters (a continued session must use the ones it was stored with).
         db_url: SQLAlchemy URL (None: the default SQLite file); an empty database gets the schema.
-        map_name: name of the new map when the session connects to none (an error if a map of that name
-            exists and the log is not one of its sessions).
+        map_name: name of the new map when the session connects to none (an error if it breaks the map
+            name rule, :func:`mapserver.names.check_map_name`, or a map of that name exists and the log is
+            not one of its sessions).
         topics: topic overrides.
         merge: merge online into the stored maps the session connects to; False keeps it a separate map.
         stop_after: stop when the session has processed this many frames in total (resume later); a merge
@@ -148,6 +151,8 @@ def process_into_store(
     if confirm is not None and confirm < 1:
         msg = f"--confirm must be at least 1, got {confirm!r}"
         raise InputError(msg)
+    if map_name is not None:
+        check_map_name(map_name)
     load_frontend(params)
     started = time.perf_counter()
     options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice)
@@ -187,7 +192,7 @@ def _process_session(
     from mapserver.merge.relevance import ViewLog
     from mapserver.store.evidence import EvidenceCollector
 
-    name = opts.map_name or _log_stem(log_path)
+    name = opts.map_name or default_map_name(log_path)
     total = int(identity["total"])
     read = _read_atlas(db, log_path, params, identity, opts, name)
     if isinstance(read, ProcessResult):
@@ -284,7 +289,10 @@ def _read_atlas(
             read.rows, read.pose = get_reckoning(conn=conn, session_id=session.id)
             read.activations = get_activations(conn=conn, session_id=session.id)
         elif find_map(conn=conn, name=name) is not None:
-            msg = f"a map named {name!r} already exists and this log is not one of its sessions; choose --map NAME"
+            msg = (
+                f"a map named {name!r} already exists and this log is not one of its sessions; "
+                "choose another map name"
+            )
             raise InputError(msg)
         if opts.merge:
             exclude = None if read.own is None else read.own.id

@@ -126,7 +126,7 @@ def run_engine(
         opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
         if opened.mapping.sonar is not None and engine.params.frontend != "sdr-htm":
             msg = (f"{opened.path}: a sonar topic ({opened.mapping.sonar}) is a modality of the sdr-htm front-end "
-                   f"only: use --preset poseidon or neoslam, or leave out sonar= in --topics")
+                   f"only: use the preset poseidon or neoslam, or leave sonar= out of the topics")
             raise InputError(msg)
         total = opened.count_frames()
         end = total if stop is None else min(stop, total)

@@ -85,7 +85,7 @@ def _undoable_event(conn: Connection, event_id: int) -> Any:
     if later:
         msg = (
             f"merge event {later[-1]} (later) involves the same sessions; undo it first "
-            f"(mapserver unmerge --event {later[-1]}), newest first"
+            f"(merge events are undone newest first)"
         )
         raise ConflictError(msg)
     return event

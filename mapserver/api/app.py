@@ -13,9 +13,12 @@ from starlette.concurrency import run_in_threadpool
 from mapserver import __version__
 from mapserver.api.errors import install_error_handlers
 from mapserver.api.lifecycle import ServerLock
+from mapserver.api.openapi import install_openapi
+from mapserver.api.requestid import RequestIdMiddleware
 from mapserver.api.routes import health, jobs, limits, maps, sessions
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
+from mapserver.api.slots import ReadSlots
 from mapserver.api.viewer import install_viewer
 from mapserver.ingest.decode import set_max_image_pixels
 
@@ -68,8 +71,11 @@ def create_app(settings: Settings | None = None, *, server_lock: ServerLock | No
         generate_unique_id_function=_operation_id,
     )
     app.state.settings = chosen
+    app.state.export_slots = ReadSlots(chosen.max_exports)
     install_error_handlers(app)
+    app.add_middleware(RequestIdMiddleware)  # X-Request-ID on every response; the reference of 5xx answers
     for module in (health, sessions, jobs, maps, limits):
         app.include_router(module.router)
     install_viewer(app)  # the web viewer at / and its routes (issue 16)
+    install_openapi(app)  # errors declared as answered: {"detail": str}, 422 included
     return app

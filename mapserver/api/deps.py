@@ -36,7 +36,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
 def _token(request: Request, services: Services) -> TokenRecord | None:
-    """Return the request's valid token, None when it sent none; 401 for a malformed or unknown one.
+    """Return the request's valid token, None when it sent none; 401 for a malformed, unknown, revoked or expired one.
 
     Dependencies are ``async``, so this runs on the event loop: one indexed lookup costs less than the
     worker-thread hop FastAPI gives every sync dependency (twice the /path p99 under load; issue 6).
@@ -51,8 +51,10 @@ def _token(request: Request, services: Services) -> TokenRecord | None:
     with services.db.read() as conn:
         found = authenticate_token(conn=conn, token=value.strip())
     if found is None:
-        msg = "invalid or revoked token"
+        msg = "unknown token"
         raise AuthenticationError(msg, invalid_token=True)
+    if found.refusal is not None:  # revoked or expired: named by its id, never by its characters
+        raise AuthenticationError(found.refusal, invalid_token=True)
     last_used = None if found.last_used_at is None else found.last_used_at.timestamp()
     services.touch_token(found.record.id, last_used)
     return found.record
@@ -82,7 +84,7 @@ async def require_write(
         msg = "writing needs a token with scope 'write': send 'Authorization: Bearer <token>'"
         raise AuthenticationError(msg)
     if token.scope != "write":
-        msg = f"token {token.prefix}… has scope {token.scope!r}; this request needs scope 'write'"
+        msg = f"token {token.id} has scope {token.scope!r}; this request needs scope 'write'"
         raise PermissionDeniedError(msg)
     return token
 

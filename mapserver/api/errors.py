@@ -2,10 +2,10 @@
 
 ``mapserver.errors`` carries each class's status (``InputError`` 400, ``NotFoundError`` 404,
 ``ConflictError`` 409, ``LimitError`` 413, anything else 500); this module adds the API's own members
-(413, 415, 401, 403), turns request validation failures into 422 with a one-line detail, adds ``"limit"``
-(the limit's name in ``GET /v1/limits``) to the body of a refusal by a limit, and keeps 5xx bodies free of
-internals: ``internal error (reference R)``, where R is a random tag the server log shows beside the
-message and traceback.
+(413, 415, 401, 403, 408, 503 with ``Retry-After``, 507), turns request validation failures into 422 with a
+one-line detail, adds ``"limit"`` (the limit's name in ``GET /v1/limits``) to the body of a refusal by a limit,
+and keeps 5xx bodies free of internals: ``internal error (reference R; ...)``, where R is the request's id
+(``X-Request-ID``, :mod:`mapserver.api.requestid`) that the server log shows beside the message and traceback.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from __future__ import annotations
 import errno
 import logging
 import os
-import secrets
 import shutil
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from mapserver.api.requestid import current_request_id, internal_error_detail, new_request_id
 from mapserver.errors import InputError, LimitError, MapServerError
 
 logger = logging.getLogger(__name__)
@@ -107,6 +107,25 @@ def raise_server_fault(err: BaseException, *, doing: str, where: Path) -> None:
             raise ServerFilesError(msg) from err
 
 
+class RequestTimeoutError(InputError):
+    """The client sent nothing for longer than the server waits (HTTP 408; the connection is closed)."""
+
+    http_status = 408
+
+
+class BusyError(MapServerError):
+    """The server runs as many requests of this kind as it allows (HTTP 503 with ``Retry-After``).
+
+    The message says what is busy; unlike other 5xx answers it carries no internals and is shown as it is.
+    """
+
+    http_status = 503
+
+    def __init__(self, message: str, *, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
 def _validation_detail(err: RequestValidationError) -> str:
     parts = []
     for item in err.errors()[:5]:
@@ -121,7 +140,11 @@ async def _mapserver_error(request: Request, err: Exception) -> JSONResponse:
     headers: dict[str, str] = {}
     if isinstance(err, AuthenticationError):
         headers["WWW-Authenticate"] = 'Bearer error="invalid_token"' if err.invalid_token else "Bearer"
-    if status >= 500:
+    if isinstance(err, RequestTimeoutError):
+        headers["Connection"] = "close"
+    if isinstance(err, BusyError):
+        headers["Retry-After"] = str(err.retry_after_s)
+    elif status >= 500:
         return _internal(request, err)
     body = {"detail": str(err)}
     if isinstance(err, LimitError):
@@ -130,10 +153,10 @@ async def _mapserver_error(request: Request, err: Exception) -> JSONResponse:
 
 
 def _internal(request: Request, err: Exception) -> JSONResponse:
-    """Log ``err`` with a fresh reference and answer 500 with only that reference."""
-    reference = secrets.token_hex(4)
+    """Log ``err`` under the request's id and answer 500 with only that id."""
+    reference = getattr(request.state, "request_id", None) or current_request_id() or new_request_id()
     logger.error("%s %s failed (reference %s): %s", request.method, request.url.path, reference, err, exc_info=err)
-    return JSONResponse({"detail": f"internal error (reference {reference})"}, status_code=500)
+    return JSONResponse({"detail": internal_error_detail(reference)}, status_code=500)
 
 
 async def _storage_error(request: Request, err: Exception) -> JSONResponse:

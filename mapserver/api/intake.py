@@ -24,11 +24,11 @@ from mapserver.api.archives import ARCHIVE_SUFFIXES, ArchiveLimits, archive_suff
 from mapserver.api.uploads import ReceivedUpload
 from mapserver.errors import InputError, LimitError
 from mapserver.ingest import LOG_SUFFIXES, open_log, parse_topics_arg
+from mapserver.names import check_map_name, default_map_name
 from mapserver.params import DEFAULT_PRESET, resolve_params
 
 logger = logging.getLogger(__name__)
 
-MAP_NAME_LIMIT = 200
 KNOWN_FIELDS = ("preset", "map", "topics", "merge")
 
 
@@ -56,7 +56,8 @@ def parse_options(fields: Mapping[str, str]) -> UploadOptions:
     ``true``/``false``.
 
     Raises:
-        InputError: unknown field, unknown preset, bad map name, bad topics or merge flag.
+        InputError: unknown field, unknown preset, a map name that breaks the rule
+            (:func:`mapserver.names.check_map_name`), bad topics or merge flag.
     """
     unknown = sorted(set(fields) - set(KNOWN_FIELDS))
     if unknown:
@@ -66,10 +67,7 @@ def parse_options(fields: Mapping[str, str]) -> UploadOptions:
     resolve_params(preset)  # ConfigError (400) names the valid presets
     map_name = fields.get("map")
     if map_name is not None:
-        map_name = map_name.strip()
-        if not map_name or len(map_name) > MAP_NAME_LIMIT or not map_name.isprintable():
-            msg = f"map name must be 1..{MAP_NAME_LIMIT} printable characters, got {fields.get('map')!r}"
-            raise InputError(msg)
+        map_name = check_map_name(map_name.strip())
     topics = _topics(fields.get("topics"))
     merge_text = (fields.get("merge") or "true").strip().lower()
     if merge_text not in ("true", "false", "1", "0", "yes", "no"):
@@ -92,7 +90,10 @@ def _topics(text: str | None) -> dict[str, str] | None:
             msg = 'topics must be a JSON object of strings, e.g. {"image": "/camera/image"}'
             raise InputError(msg)
         return dict(value)
-    return parse_topics_arg(stripped)
+    try:
+        return parse_topics_arg(stripped)
+    except InputError as err:  # the parser speaks of the CLI flag; this is the form field
+        raise InputError(str(err).replace("--topics", "topics")) from err
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,7 +103,7 @@ class StoredLog:
     Attributes:
         path: the log (file or ROS 2 bag directory) to process.
         folder: the upload's own folder (holds ``path``; delete it to drop the upload).
-        name: the log's name (the default session and map name).
+        name: the default name of the log's map (:func:`mapserver.names.default_map_name`).
         frames: camera frames in the log.
         mapping: the topic mapping that processing will use.
     """
@@ -182,4 +183,4 @@ def store_log(
         upload.discard()
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    return StoredLog(path=path, folder=folder, name=path.name.split(".")[0] or "log", frames=frames, mapping=mapping)
+    return StoredLog(path=path, folder=folder, name=default_map_name(path), frames=frames, mapping=mapping)

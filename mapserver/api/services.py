@@ -18,8 +18,10 @@ from mapserver.api.jobengine import EmbeddedJobEngine, JobEngine
 from mapserver.api.lifecycle import ServerLock
 from mapserver.api.settings import Settings
 from mapserver.api.uploads import ReceivedUpload
-from mapserver.errors import MapServerError
+from mapserver.errors import ConflictError, MapServerError
+from mapserver.ingest import open_log
 from mapserver.store import Database, open_database
+from mapserver.store.admission import UploadClaim, admission_conflict, lock_admission
 from mapserver.store.jobs import JobRecord, create_job, find_upload_job, lock_upload
 from mapserver.store.tokens import LAST_USED_RESOLUTION_S, mark_token_used
 
@@ -121,13 +123,38 @@ class Services:
                 options=self.job_options(options),
             )  # fmt: skip
 
-    def queue_job(self, upload: ReceivedUpload, log: StoredLog, options: UploadOptions) -> tuple[JobRecord, bool]:
+    def check_admission(self, upload: ReceivedUpload, options: UploadOptions) -> None:
+        """Refuse an upload whose job would fail for a reason known before its log is opened (409).
+
+        Raises:
+            ConflictError: another pending job processes the same log, or creates the map asked for.
+        """
+        claim = UploadClaim(upload.sha256, options.topics, options.map_name)
+        with self.db.read() as conn:
+            reason = admission_conflict(conn=conn, claim=claim)
+        if reason is not None:
+            raise ConflictError(reason)
+
+    def queue_job(
+        self, upload: ReceivedUpload, log: StoredLog, options: UploadOptions, request_id: str | None = None
+    ) -> tuple[JobRecord, bool]:
         """Queue a job for a stored log, or return the job of an identical upload queued meanwhile.
+
+        The duplicate check, the admission check (:func:`mapserver.store.admission.admission_conflict`) and
+        the insert are one write transaction under the admission lock, so concurrent uploads are decided
+        one after the other. ``request_id`` (the upload's) is kept in ``options``: an internal failure of
+        the job names it.
 
         Returns:
             (the job, True when it is an earlier upload's job).
+
+        Raises:
+            ConflictError: the job would fail for a reason known now (the message says which).
         """
+        identity = _log_sha256(upload, log, options)
+        claim = UploadClaim(upload.sha256, options.topics, options.map_name, identity, log.mapping)
         with self.db.write() as conn:
+            lock_admission(conn=conn)
             lock_upload(conn=conn, upload_sha256=upload.sha256)
             existing = find_upload_job(
                 conn=conn, upload_sha256=upload.sha256, topics=options.topics, preset=options.preset,
@@ -135,6 +162,9 @@ class Services:
             )  # fmt: skip
             if existing is not None:
                 return existing, True
+            reason = admission_conflict(conn=conn, claim=claim)
+            if reason is not None:
+                raise ConflictError(reason)
             job = create_job(
                 conn=conn,
                 upload_path=str(log.path.resolve()),
@@ -143,7 +173,7 @@ class Services:
                 map_name=options.map_name or log.name,
                 preset=options.preset,
                 topics=options.topics,
-                options={**self.job_options(options), "frames": log.frames, "attempts": 0},
+                options={**self.job_options(options), "frames": log.frames, "attempts": 0, "request_id": request_id},
             )
         return job, False
 
@@ -164,3 +194,11 @@ class Services:
                 mark_token_used(conn=conn, token_id=token_id)
         except MapServerError as err:  # bookkeeping only: never fail a request for it
             logger.warning("cannot record the use of token %d: %s", token_id, err)
+
+
+def _log_sha256(upload: ReceivedUpload, log: StoredLog, options: UploadOptions) -> str:
+    """Return the log's identity: the upload's SHA-256 for a log uploaded as it is, else the unpacked log's."""
+    if log.path == log.folder / upload.filename:
+        return upload.sha256
+    with open_log(log.path, options.topics) as opened:
+        return opened.sha256

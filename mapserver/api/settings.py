@@ -47,6 +47,9 @@ class Settings:
             embedded engine (renewed every third of it; another server takes over a job whose lease expired).
         keep_uploads_days: a job's upload folder is kept until the job is processed (done or failed), then
             this many days (``inf``: forever; checked at start and every hour).
+        max_exports: most map exports (``GET /v1/maps/{name}/export``) running at once; more get 503 with
+            ``Retry-After``.
+        read_timeout_s: an upload that sends no byte for this long is answered 408 and its connection closed.
     """
 
     db_url: str = DEFAULT_DB_URL
@@ -68,6 +71,8 @@ class Settings:
     job_queue: str = "mapserver"
     lease_s: float = 30.0
     keep_uploads_days: float = 7.0
+    max_exports: int = 4
+    read_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -84,6 +89,8 @@ class Settings:
             "jobs": self.jobs in ("embedded", "celery"),
             "lease_s": self.lease_s > 0,
             "keep_uploads_days": self.keep_uploads_days >= 0,
+            "max_exports": 1 <= self.max_exports <= 1024,
+            "read_timeout_s": 0 < self.read_timeout_s <= 86_400,
         }
         for name, ok in checks.items():
             if not ok:

@@ -3,7 +3,9 @@
 The request body is never held whole in memory: chunks are parsed as they arrive, the file part is
 written to a staging file in the upload directory and hashed (SHA-256) on the way, and the upload is
 refused with 413 as soon as it passes the size limit (before reading further when ``Content-Length``
-already says so); a refused or broken upload leaves no file behind.
+already says so); a refused or broken upload leaves no file behind. Reading stops at the multipart
+closing boundary: a body that goes on past it by more than ``MAX_TRAILING_BYTES`` is refused (400) without
+reading the rest, and an upload that sends nothing for ``read_timeout_s`` is answered 408.
 """
 
 from __future__ import annotations
@@ -13,16 +15,18 @@ import hashlib
 import logging
 import re
 import secrets
+from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+import anyio
 from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
-from mapserver.api.errors import PayloadTooLargeError, UnsupportedMediaError
+from mapserver.api.errors import PayloadTooLargeError, RequestTimeoutError, UnsupportedMediaError
 from mapserver.errors import InputError
 
 logger = logging.getLogger(__name__)
@@ -32,6 +36,8 @@ MAX_FIELD_BYTES = 64 * 1024
 MAX_FIELDS = 16
 MULTIPART_OVERHEAD = 1 << 20
 """Bytes of the request body allowed beyond the file itself (boundaries, headers, small fields)."""
+MAX_TRAILING_BYTES = 1024
+"""Bytes a body may carry after its closing boundary, in later reads (an epilogue, RFC 2046); more is refused."""
 
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
@@ -84,6 +90,7 @@ class _FormSink:
         self._is_file = False
         self._buffer = bytearray()
         self._files = 0
+        self.ended = False
 
     def callbacks(self) -> dict[str, object]:
         return {
@@ -94,6 +101,7 @@ class _FormSink:
             "on_header_value": self.on_header_value,
             "on_header_end": self.on_header_end,
             "on_headers_finished": self.on_headers_finished,
+            "on_end": self.on_end,
         }
 
     def on_part_begin(self) -> None:
@@ -159,6 +167,9 @@ class _FormSink:
                 raise InputError(msg)
             self.fields[self._name] = self._buffer.decode("utf-8", "replace")
 
+    def on_end(self) -> None:
+        self.ended = True
+
     def close(self) -> None:
         if self.handle is not None and not self.handle.closed:
             with contextlib.suppress(OSError):  # a full disk fails the last flush too; the file is removed anyway
@@ -178,13 +189,43 @@ def _boundary(request: Request) -> bytes:
     return boundary
 
 
-async def receive_upload(request: Request, *, staging: Path, max_bytes: int) -> ReceivedUpload:
+async def _chunks(request: Request, read_timeout_s: float) -> AsyncIterator[bytes]:
+    """Yield the request body's chunks; 408 when the client sends nothing for ``read_timeout_s`` seconds."""
+    stream = request.stream()
+    while True:
+        with anyio.move_on_after(read_timeout_s) as waited:
+            chunk = await anext(stream, None)
+        if waited.cancelled_caught:
+            msg = f"the upload sent nothing for {read_timeout_s:g} s; send the whole body without pausing that long"
+            raise RequestTimeoutError(msg)
+        if chunk is None:
+            return
+        yield chunk
+
+
+async def _parse(request: Request, parser: MultipartParser, sink: _FormSink, read_timeout_s: float) -> None:
+    """Feed the body to the parser up to its closing boundary; refuse more than a short epilogue after it."""
+    trailing = 0
+    async for chunk in _chunks(request, read_timeout_s):
+        if sink.ended:
+            trailing += len(chunk)
+            if trailing > MAX_TRAILING_BYTES:
+                msg = "the body goes on after the multipart closing boundary; send nothing after it"
+                raise InputError(msg)
+        elif chunk:
+            await run_in_threadpool(parser.write, chunk)
+
+
+async def receive_upload(
+    request: Request, *, staging: Path, max_bytes: int, read_timeout_s: float = 60.0
+) -> ReceivedUpload:
     """Stream a multipart upload's ``file`` part to ``staging`` (hashing it) and collect its text fields.
 
     Args:
-        request: the incoming request (its body is consumed).
+        request: the incoming request (its body is consumed up to the closing boundary).
         staging: directory for the staged file (created).
         max_bytes: largest accepted file part.
+        read_timeout_s: longest wait for the body's next bytes.
 
     Returns:
         The staged upload.
@@ -192,7 +233,9 @@ async def receive_upload(request: Request, *, staging: Path, max_bytes: int) -> 
     Raises:
         UnsupportedMediaError: not multipart/form-data (415).
         PayloadTooLargeError: the body or the file part is over the limit (413).
-        InputError: malformed multipart body, no ``file`` part, or an empty file (400).
+        InputError: malformed multipart body, no ``file`` part, an empty file, or more than a short epilogue
+            after the closing boundary (400).
+        RequestTimeoutError: the client sent nothing for ``read_timeout_s`` (408).
     """
     boundary = _boundary(request)
     declared = request.headers.get("content-length")
@@ -207,9 +250,7 @@ async def receive_upload(request: Request, *, staging: Path, max_bytes: int) -> 
     sink = _FormSink(target, max_bytes)
     parser = MultipartParser(boundary, sink.callbacks())  # type: ignore[arg-type]
     try:
-        async for chunk in request.stream():
-            if chunk:
-                await run_in_threadpool(parser.write, chunk)
+        await _parse(request, parser, sink, read_timeout_s)
         parser.finalize()
         if sink.filename is None:
             msg = f"the upload has no {FILE_FIELD!r} part"

@@ -17,10 +17,13 @@ from pathlib import Path
 from typing import Any
 
 from mapserver import pipeline
+from mapserver.api.requestid import internal_error_detail, new_request_id
 from mapserver.errors import MapServerError
 from mapserver.ingest import open_log
+from mapserver.names import default_map_name
 from mapserver.params import resolve_params
 from mapserver.store import Database, StaleMapError, find_map, find_session
+from mapserver.store.admission import pending_map_creator
 from mapserver.store.jobs import JobRecord, set_job_progress
 
 logger = logging.getLogger(__name__)
@@ -96,22 +99,32 @@ def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
     """Return the map name to pass to the pipeline.
 
     An explicit ``map`` is passed as given. Without one, the log's name is used, made unique
-    (``name-2``, ...) when another log already has a map of that name — unless this log is stored
-    already (then the pipeline continues or answers with its session and needs no name).
+    (``name-2``, ...) when another log already has a map of that name or a pending job's request names
+    it — unless this log is stored already (then the pipeline continues or answers with its session and
+    needs no name).
     """
     options = job.options or {}
     if options.get("map_given"):
         return job.map_name
-    base = job.map_name or log_path.name.split(".")[0] or "map"
+    base = job.map_name or default_map_name(log_path)
     with open_log(log_path, job.topics) as log:
         sha256, mapping = log.sha256, log.mapping.as_dict()
     with db.read() as conn:
         if find_session(conn=conn, log_sha256=sha256, topics=mapping) is not None:
             return None
         name, k = base, 2
-        while find_map(conn=conn, name=name) is not None:
+        while find_map(conn=conn, name=name) is not None or pending_map_creator(
+            conn=conn, name=name, except_job=job.id
+        ) is not None:
             name, k = f"{base}-{k}", k + 1
     return name
+
+
+def _internal_error(job: JobRecord, err: Exception) -> str:
+    """Log a job's internal failure under its upload's request id; return the job's error naming only that id."""
+    reference = str((job.options or {}).get("request_id") or new_request_id())
+    logger.error("job %d failed (reference %s): %s", job.id, reference, err, exc_info=err)
+    return internal_error_detail(reference)
 
 
 def execute_job(
@@ -143,10 +156,11 @@ def execute_job(
     except JobInterrupted:
         raise
     except MapServerError as err:
+        if err.http_status >= 500:  # the store's or the server's own failure: its text stays in the log
+            return JobOutcome(error=_internal_error(job, err))
         return JobOutcome(error=str(err).replace(str(log_path.parent) + "/", ""), stale=isinstance(err, StaleMapError))
-    except Exception:
-        logger.exception("job %d failed unexpectedly", job.id)
-        return JobOutcome(error=f"internal error while processing the log (the server log has job {job.id}'s details)")
+    except Exception as err:
+        return JobOutcome(error=_internal_error(job, err))
     with db.read() as conn:
         record = find_map(conn=conn, name=result.map_name)
     warning = None if result.dropped is None else result.dropped.warning()

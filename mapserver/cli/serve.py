@@ -42,6 +42,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--broker", help=f"Celery broker URL for --jobs celery (default: {defaults.broker_url})")
     parser.add_argument("--queue", help=f"Celery queue of the workers (default: {defaults.job_queue})")
     parser.add_argument("--lease-seconds", type=float, help=f"workers' job lease (default: {defaults.lease_s})")
+    parser.add_argument("--max-exports", type=int,
+                        help=f"most map exports at once; more are answered 503 (default: {defaults.max_exports})")
+    parser.add_argument("--read-timeout", type=float, dest="read_timeout",
+                        help="seconds an upload may send nothing before it is answered 408 "
+                             f"(default: {defaults.read_timeout_s:g})")  # fmt: skip
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"),
                         help="server log level (default: info)")  # fmt: skip
     parser.add_argument("--keep-uploads-days", type=float,
@@ -62,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         max_unpacked_bytes=args.max_unpacked_bytes, max_unpacked_ratio=args.max_unpacked_ratio,
         max_archive_entries=args.max_archive_entries, max_image_pixels=args.max_image_pixels,
         jobs=args.jobs, broker_url=args.broker, job_queue=args.queue, lease_s=args.lease_seconds,
-        keep_uploads_days=args.keep_uploads_days,
+        keep_uploads_days=args.keep_uploads_days, max_exports=args.max_exports, read_timeout_s=args.read_timeout,
     )  # fmt: skip
     with open_database(settings.db_url) as db:  # fail here, with one ERROR line, on a bad or old database
         url = db.display_url()

@@ -1,4 +1,4 @@
-"""``mapserver token create|list|revoke --db URL``: API tokens (stored as SHA-256 only)."""
+"""``mapserver token create|list|revoke --db URL``: API tokens (stored as SHA-256 only; ``--expires 30d``)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import sys
 
 from mapserver.cli._output import emit_json, info
 from mapserver.store import DEFAULT_DB_URL, open_database
-from mapserver.store.models import TOKEN_SCOPES
-from mapserver.store.tokens import create_token, list_tokens, revoke_token
+from mapserver.store.models import TOKEN_SCOPES, utcnow
+from mapserver.store.tokens import create_token, list_tokens, parse_duration, revoke_token
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -18,6 +18,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     create = actions.add_parser("create", help="create a token (printed once; only its hash is stored)")
     create.add_argument("--scope", required=True, choices=TOKEN_SCOPES, help="read, or write (includes read)")
     create.add_argument("--label", help="a note saying who or what uses the token")
+    create.add_argument("--expires", metavar="DURATION",
+                        help="the token stops working this long from now: N and a unit s, m, h, d or w (e.g. 30d); "
+                             "default: never")  # fmt: skip
     listing = actions.add_parser("list", help="list tokens (prefix, scope, label; never the token)")
     revoke = actions.add_parser("revoke", help="revoke a token by id")
     revoke.add_argument("--id", type=int, required=True, dest="token_id", help="token id (see token list)")
@@ -31,31 +34,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def run_create(args: argparse.Namespace) -> int:
     """Create a token and print it (the only time it is shown)."""
+    expires_at = None if args.expires is None else utcnow() + parse_duration(args.expires)
     with open_database(args.db) as db, db.write() as conn:
-        token, record = create_token(conn=conn, scope=args.scope, label=args.label)
-    info(f"created {record.scope} token {record.id} ({record.prefix}…); keep it: it is not shown again")
+        token, record = create_token(conn=conn, scope=args.scope, label=args.label, expires_at=expires_at)
+    expiry = None if record.expires_at is None else record.expires_at.isoformat(timespec="seconds")
+    until = "never expires" if expiry is None else f"expires {expiry}"
+    info(f"created {record.scope} token {record.id} ({until}); keep it: it is not shown again")
     if args.json:
-        emit_json({"token": token, "scope": record.scope, "id": record.id})
+        emit_json({"token": token, "scope": record.scope, "id": record.id, "expires_at": expiry})
     else:
         sys.stdout.write(token + "\n")
     return 0
 
 
 def run_list(args: argparse.Namespace) -> int:
-    """List the tokens."""
+    """List the tokens (id, scope, state, expiry, label; never the token)."""
     with open_database(args.db) as db, db.read() as conn:
         records = list_tokens(conn=conn)
+    now = utcnow()
     items = [
         {"id": r.id, "prefix": r.prefix, "scope": r.scope, "label": r.label, "created_at": r.created_at.isoformat(),
-         "revoked": r.revoked_at is not None}
+         "revoked": r.revoked_at is not None,
+         "expires_at": None if r.expires_at is None else r.expires_at.isoformat(),
+         "expired": r.expires_at is not None and r.expires_at <= now}
         for r in records
     ]  # fmt: skip
     if args.json:
         emit_json({"tokens": items})
         return 0
     for item in items:
-        state = "revoked" if item["revoked"] else "active"
-        sys.stdout.write(f"{item['id']:>4}  {item['prefix']}…  {item['scope']:<5}  {state:<7}  {item['label'] or ''}\n")
+        state = "revoked" if item["revoked"] else "expired" if item["expired"] else "active"
+        until = item["expires_at"][:19] if item["expires_at"] else "never"
+        sys.stdout.write(
+            f"{item['id']:>4}  {item['prefix']}…  {item['scope']:<5}  {state:<7}  expires {until:<19}  "
+            f"{item['label'] or ''}\n"
+        )
     return 0
 
 

@@ -41,6 +41,9 @@ SQLITE_BUSY_TIMEOUT_S = 60.0
 SQLITE_CACHE_KIB = 65536
 """Page cache per SQLite connection (64 MiB): bulk index inserts of large maps stay in memory."""
 
+SQLITE_STREAM_CACHE_KIB = 1024
+"""Page cache of a SQLite connection while it streams a map out (:func:`small_page_cache`)."""
+
 _WRITE_OPTION = "mapserver_write"
 
 
@@ -157,6 +160,25 @@ def _switch_to_wal(cursor: Any) -> None:
         delay = min(2 * delay, 0.05)
 
 
+@contextmanager
+def small_page_cache(conn: Connection) -> Iterator[None]:
+    """Keep a SQLite connection's page cache at ``SQLITE_STREAM_CACHE_KIB`` for a long sequential read.
+
+    A pooled connection keeps the pages it read (up to ``SQLITE_CACHE_KIB``) for as long as it lives: a
+    read of a whole map's rows by each of several connections would leave the server that much larger
+    for good. The cache is set back to its size afterwards (it then holds only what the read left, at most
+    the small size). Other databases: nothing.
+    """
+    if conn.dialect.name != "sqlite":
+        yield
+        return
+    conn.exec_driver_sql(f"PRAGMA cache_size=-{SQLITE_STREAM_CACHE_KIB}")
+    try:
+        yield
+    finally:
+        conn.exec_driver_sql(f"PRAGMA cache_size=-{SQLITE_CACHE_KIB}")
+
+
 def _set_foreign_keys(conn: Connection, *, on: bool) -> None:
     """Switch SQLite foreign-key enforcement on the connection's driver connection (outside a transaction)."""
     driver_connection: Any = conn.connection.driver_connection
@@ -244,8 +266,9 @@ class Database:
             yield
         except MapServerError:
             raise
-        except IntegrityError as err:
-            msg = f"the database refused a conflicting write: {_describe(err)}"
+        except IntegrityError as err:  # the constraint's text goes to the log, not into answers or job records
+            logger.warning("the database refused a conflicting write: %s", _describe(err))
+            msg = "another writer stored the same record at the same time; nothing was written (try again)"
             raise ConflictError(msg) from err
         except DBAPIError as err:
             msg = f"database error on {self.display_url()}: {_describe(err)}"

@@ -56,6 +56,7 @@ import numpy as np
 
 from core import Engine, Params
 from mapserver.errors import InputError
+from mapserver.names import check_map_name
 from mapserver.store.db import Database
 from mapserver.store.errors import MapExistsError
 from mapserver.store.mapio import save_map
@@ -494,8 +495,9 @@ def import_multisession_ratslam(
 
     Raises:
         InputError: the directory is malformed (see :func:`read_multisession_ratslam`) or was imported
-            already, or the map name is taken.
+            already, or the map name breaks the rule (:func:`mapserver.names.check_map_name`) or is taken.
     """
+    check_map_name(map_name)
     imported = read_multisession_ratslam(directory, params)
     path = Path(directory)
     snap = imported.snapshot
@@ -505,7 +507,7 @@ def import_multisession_ratslam(
         snap = engine.snapshot()
     with db.read() as conn:
         if find_map(conn=conn, name=map_name) is not None:
-            msg = f"a map named {map_name!r} already exists; choose another --map"
+            msg = f"a map named {map_name!r} already exists; choose another map name"
             raise InputError(msg)
         previous = find_session(conn=conn, log_sha256=imported.sha256, topics={"format": FORMAT})
     if previous is not None:

@@ -89,13 +89,12 @@ def get_map(*, conn: Connection, name: str) -> MapRecord:
     """Return the map called ``name``.
 
     Raises:
-        UnknownMapError: no such map (the message lists the stored names when there are few).
+        UnknownMapError: no such map (the message names no other map: ``mapserver maps`` and ``GET /v1/maps``
+            list them to whoever may read them).
     """
     record = find_map(conn=conn, name=name)
     if record is None:
-        names = conn.execute(select(Map.name).order_by(Map.name).limit(11)).scalars().all()
-        known = ", ".join(repr(n) for n in names[:10]) + (", ..." if len(names) > 10 else "")
-        msg = f"no map named {name!r} in this database" + (f" (maps: {known})" if names else " (it holds no map)")
+        msg = f"no map named {name!r} in this database"
         raise UnknownMapError(msg)
     return record
 

@@ -133,7 +133,7 @@ def payload_bag(path: Path, payloads: list[bytes], fmt: str, *, rate_hz: float =
     count = int(len(payloads) / rate_hz * 10) + 2
     odometry = [OdomSample(T0_NS + k * 100_000_000, 0.1 * k, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0) for k in range(count)]
     stream = iter([np.frombuffer(p, np.uint8) for p in payloads])
-    with mock.patch.object(writer, "encode_compressed", lambda pixels, kind: next(stream)):
+    with mock.patch.object(writer, "encode_compressed", lambda pixels, kind, *quality: next(stream)):
         return write_log(path, "bag", images, odometry, image_encoding=fmt)  # type: ignore[arg-type]
 
 

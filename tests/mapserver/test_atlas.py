@@ -152,7 +152,7 @@ def test_unmerge_refuses_while_a_later_merge_involves_the_same_sessions(tour: Pa
     assert code == 1
     assert err.strip().splitlines()[-1] == (
         f"ERROR: merge event {second} (later) involves the same sessions; undo it first "
-        f"(mapserver unmerge --event {second}), newest first"
+        "(merge events are undone newest first)"
     )
     cli_json("unmerge", "--db", url, "--event", str(second))
     cli_json("unmerge", "--db", url, "--event", str(first))

@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from mapserver.api.deps import ReadAccess, ServicesDep
 from mapserver.api.routes.maps import MAP_ERRORS, MAX_ID, MapName
+from mapserver.api.schemas import ErrorPublic
 from mapserver.api.services import Services
 from mapserver.api.viewdata import MAX_NODES, ViewCache, ViewGraph, decimate, nearest, parse_bbox
 from mapserver.errors import NotFoundError
@@ -38,7 +39,10 @@ async def _graph(request: Request, services: Services, name: str) -> ViewGraph:
     return await run_in_threadpool(cache.get, name)
 
 
-@router.get("/{name}/graph", operation_id="get_graph_view", responses=MAP_ERRORS)
+@router.get(
+    "/{name}/graph", operation_id="get_graph_view",
+    responses={**MAP_ERRORS, 400: {"model": ErrorPublic, "description": "bbox is not xmin,ymin,xmax,ymax"}},
+)  # fmt: skip
 async def read_graph(
     name: MapName,
     request: Request,

@@ -17,13 +17,17 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", operation_id="get_health", response_model=HealthPublic, response_model_exclude_none=True)
-def get_health(request: Request) -> HealthPublic:
-    """Return ``{"status": "ok"}`` while the server runs (plus broker and workers with Celery jobs)."""
+async def get_health(request: Request) -> HealthPublic:
+    """Return ``{"status": "ok"}`` while the server runs (plus broker and workers with Celery jobs).
+
+    Answered on the event loop (no worker-thread hop) unless the job engine has a health check of its own
+    (Celery: broker and workers, which may wait on the network), which runs in a worker thread.
+    """
     services = getattr(request.app.state, "services", None)
     health = getattr(getattr(services, "jobs", None), "health", None)
     if health is None:
         return HealthPublic()
-    return HealthPublic(**health())
+    return HealthPublic(**await run_in_threadpool(health))
 
 
 @router.get("/metrics", operation_id="get_metrics", response_class=Response,

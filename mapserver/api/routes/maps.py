@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-import tempfile
-import threading
 import time
-from pathlib import Path as FilePath
+from collections.abc import AsyncIterator, Callable
+from functools import partial
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query
-from fastapi.responses import Response
+import anyio
+from fastapi import APIRouter, Path, Query, Request
+from fastapi.responses import Response, StreamingResponse
 from pydantic_core import to_json
 from starlette.concurrency import run_in_threadpool
+from starlette.types import Send
 
 from core.paths import PathResult
 from mapserver.api.deps import ReadAccess, ServicesDep
@@ -28,10 +29,11 @@ from mapserver.api.schemas import (
     SessionPublic,
 )
 from mapserver.store import get_map, list_maps, sessions_of_map
-from mapserver.store.export import export_map
+from mapserver.store.export import read_plot_graph, render_png
 from mapserver.store.merge_events import list_merge_events
 from mapserver.store.queries import MAX_PAGE, page_experiences
 from mapserver.store.sessions import get_sessions
+from mapserver.store.streams import ExportStream, open_export
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
@@ -39,8 +41,8 @@ AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorPublic}, 403
 MAP_ERRORS: dict[int | str, dict[str, Any]] = {**AUTH_ERRORS, 404: {"model": ErrorPublic}}
 MAX_ID = 2**62
 MapName = Annotated[str, Path(min_length=1, max_length=200, description="the map's name")]
-_EXPORT_LOCK = threading.Lock()  # matplotlib's pyplot (PNG export) is not thread-safe
-EXPORT_TYPES = {"json": "application/json", "tum": "text/plain; charset=utf-8", "png": "image/png"}
+EXPORT_TYPES = {"json": "application/json", "tum": "text/plain; charset=utf-8", "png": "image/png",
+                "g2o": "text/plain; charset=utf-8", "csv": "text/csv; charset=utf-8"}
 
 
 @router.get("", operation_id="list_maps", response_model=MapsPublic, responses=AUTH_ERRORS)
@@ -159,34 +161,77 @@ def _path_json(result: PathResult) -> bytes:
     operation_id="export_map",
     responses={
         **MAP_ERRORS,
+        409: {"model": ErrorPublic, "description": "JSON of a map holding an infinite number"},
+        503: {"model": ErrorPublic, "description": "as many exports run as the server allows (see Retry-After)",
+              "headers": {"Retry-After": {"description": "seconds to wait", "schema": {"type": "integer"}}}},
         200: {
-            "content": {"application/json": {}, "text/plain": {}, "image/png": {}},
-            "description": "the map as map JSON (mapserver-map/1), TUM experience poses, or a PNG plot",
+            "content": {"application/json": {}, "text/plain": {}, "text/csv": {}, "image/png": {}},
+            "description": "the map as map JSON (mapserver-map/1), TUM poses, g2o, a CSV table or a PNG plot",
         },
     },
     response_class=Response,
 )
-def read_export(
+async def read_export(
     name: MapName,
+    request: Request,
     services: ServicesDep,
     _token: ReadAccess,
-    format: Annotated[Literal["json", "tum", "png"], Query(description="json, tum or png")] = "json",
+    format: Annotated[Literal["json", "tum", "png", "g2o", "csv"], Query(description="the format")] = "json",
+    table: Annotated[Literal["experiences", "links"], Query(description="csv: which table")] = "experiences",
 ) -> Response:
-    """Return a stored map as map JSON, TUM experience poses (stamp order) or a PNG plot of its graph."""
-    with tempfile.TemporaryDirectory(prefix="mapserver-export-") as folder:
-        target = FilePath(folder) / f"map.{format}"
-        if format == "png":
-            with _EXPORT_LOCK:
-                export_map(services.db, name=name, fmt=format, out=target)
-        else:
-            export_map(services.db, name=name, fmt=format, out=target)
-        content = target.read_bytes()
-    filename = f"{name}.{'txt' if format == 'tum' else format}"
-    return Response(
-        content,
-        media_type=EXPORT_TYPES[format],
-        headers={"Content-Disposition": f"inline; filename*=UTF-8''{_quote(filename)}"},
-    )
+    """Return a stored map as map JSON, TUM experience poses (stamp order), g2o, a CSV table or a PNG plot.
+
+    JSON, TUM, g2o and CSV are streamed from the database a batch of rows at a time (the same bytes as
+    ``mapserver export``); at most ``--max-exports`` exports run at once, more are answered 503.
+    """
+    slots = request.app.state.export_slots
+    release = slots.acquire()
+    headers = {"Content-Disposition": f"inline; filename*=UTF-8''{_quote(_filename(name, format, table))}"}
+    if format == "png":
+        try:
+            graph = await run_in_threadpool(partial(read_plot_graph, services.db, name=name))
+            body = await run_in_threadpool(render_png, graph)
+        finally:
+            release()
+        return Response(body, media_type=EXPORT_TYPES[format], headers=headers)
+    try:
+        fmt = "links.csv" if format == "csv" and table == "links" else format
+        stream = await anyio.to_thread.run_sync(partial(open_export, services.db, name=name, fmt=fmt),
+                                                limiter=slots.threads)  # fmt: skip
+    except BaseException:
+        release()
+        raise
+    return ExportResponse(stream, release, slots.threads, media_type=EXPORT_TYPES[format], headers=headers)
+
+
+def _filename(name: str, format: str, table: str) -> str:
+    suffix = {"tum": "txt", "csv": "links.csv" if table == "links" else "csv"}.get(format, format)
+    return f"{name}.{suffix}"
+
+
+class ExportResponse(StreamingResponse):
+    """A streamed export: chunks formatted in the export threads; its read ends and its slot frees at its end."""
+
+    def __init__(
+        self, stream: ExportStream, release: Callable[[], None], threads: anyio.CapacityLimiter, **kwargs: Any
+    ) -> None:
+        self._stream = stream
+        self._release = release
+        self._threads = threads
+        super().__init__(self._chunks(), **kwargs)
+
+    async def _chunks(self) -> AsyncIterator[bytes]:
+        while (chunk := await anyio.to_thread.run_sync(next, self._stream, None, limiter=self._threads)) is not None:
+            yield chunk
+
+    async def stream_response(self, send: Send) -> None:
+        """Send the chunks; then (sent, failed or the client gone) close the stream and free the slot."""
+        try:
+            await super().stream_response(send)
+        finally:
+            with anyio.CancelScope(shield=True):
+                await run_in_threadpool(self._stream.close)
+            self._release()
 
 
 def _quote(text: str) -> str:

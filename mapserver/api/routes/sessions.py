@@ -43,7 +43,7 @@ UPLOAD_BODY: dict[str, Any] = {
     }
 }
 ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorPublic} for code in (400, 401, 403, 413, 415, 422, 507)
+    code: {"model": ErrorPublic} for code in (400, 401, 403, 408, 409, 413, 415, 422, 507)
 }
 
 
@@ -66,13 +66,17 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
     """Store an uploaded log and queue its processing; answer 202 with the job.
 
     The upload is streamed to disk and hashed; the same log uploaded again with the same request is
-    answered with the earlier job (``duplicate: true``) instead of being queued twice. A full disk while
-    receiving or unpacking is answered 507 (:func:`mapserver.api.errors.raise_server_fault`).
+    answered with the earlier job (``duplicate: true``) instead of being queued twice. 409 when the job
+    would fail for a reason known now: another pending job processes the same log, or creates the map
+    named; the log is stored in another map; the named map exists and the log is not one of its sessions.
+    A full disk while receiving or unpacking is answered 507 (:func:`mapserver.api.errors.raise_server_fault`).
     """
     settings = services.settings
     staging = settings.uploads / ".incoming"
     try:
-        received = await receive_upload(request, staging=staging, max_bytes=settings.max_upload_bytes)
+        received = await receive_upload(
+            request, staging=staging, max_bytes=settings.max_upload_bytes, read_timeout_s=settings.read_timeout_s
+        )
     except Exception as err:
         raise_server_fault(err, doing="receiving an upload", where=staging)
         raise
@@ -82,11 +86,14 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
         job = await run_in_threadpool(services.find_duplicate, received, options)
         duplicate = job is not None
         if job is None:
+            await run_in_threadpool(services.check_admission, received, options)
             stored = await run_in_threadpool(
                 store_log, received, uploads_dir=settings.uploads, topics=options.topics,
                 limits=settings.archive_limits,
             )  # fmt: skip
-            job, duplicate = await run_in_threadpool(services.queue_job, received, stored, options)
+            job, duplicate = await run_in_threadpool(
+                services.queue_job, received, stored, options, getattr(request.state, "request_id", None)
+            )
     except BaseException as err:
         received.discard()
         if stored is not None:

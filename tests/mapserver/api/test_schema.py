@@ -1,19 +1,30 @@
-"""Property-based run of every endpoint against the OpenAPI schema (schemathesis): never a 5xx."""
+"""Property-based run of every endpoint against the OpenAPI schema (schemathesis): never a 5xx, and every
+answer as the schema declares it (status code, content type, headers and body schema, errors included)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import schemathesis
 from hypothesis import HealthCheck, given, settings
+from schemathesis.checks import not_a_server_error
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_headers_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
 from mapserver.api import create_app
 from tests.mapserver.api.conftest import api_settings, bearer, make_token
 from tests.mapserver.api.graphmaps import store_graph_map
 
-EXAMPLES = 40
+EXAMPLES = int(os.environ.get("MAPSERVER_SCHEMA_EXAMPLES", "40"))
+CONFORMANCE = [not_a_server_error, status_code_conformance, content_type_conformance, response_headers_conformance,
+               response_schema_conformance]  # fmt: skip
 
 
 def _exercise(operation: Any, headers: dict[str, str], seen: set[int]) -> None:
@@ -25,6 +36,7 @@ def _exercise(operation: Any, headers: dict[str, str], seen: set[int]) -> None:
         assert response.status_code < 500, (case.method, case.formatted_path, response.text)
         if response.status_code >= 400:
             assert isinstance(response.json()["detail"], str)
+        case.validate_response(response, checks=CONFORMANCE)
 
     check()
 

@@ -62,7 +62,7 @@ def test_bad_form_fields_are_400(api: Api, strip_log: Path) -> None:
         ("topics", '{"image": 3}'): "JSON object of strings",
         ("merge", "maybe"): "merge must be true or false",
         ("colour", "red"): "unknown form field",
-        ("map", " "): "map name must be",
+        ("map", " "): "invalid map name",
     }
     for (key, value), expected in cases.items():
         response = api.upload(strip_log, **{key: value})

@@ -107,7 +107,7 @@ def test_migration_0007_adds_the_token_to_existing_jobs_and_drops_it_again(db_ur
                         "VALUES ('running', 0.5, '/up/a/x.bag', :now, :now, 'old-server')"),
                 {"now": now},
             )  # fmt: skip
-        assert upgrade(db) == "0007"
+        assert upgrade(db, "0007") == "0007"
         with db.write() as conn:
             (job_id,) = conn.execute(sa.text("SELECT id FROM jobs")).scalars().all()
             record = get_job(conn=conn, job_id=job_id)
@@ -120,4 +120,4 @@ def test_migration_0007_adds_the_token_to_existing_jobs_and_drops_it_again(db_ur
             columns = {c["name"] for c in sa.inspect(conn).get_columns("jobs")}
             count = conn.execute(sa.text("SELECT count(*) FROM jobs")).scalar_one()
         assert "lease_token" not in columns and count == 1
-        assert upgrade(db) == "0007"
+        assert upgrade(db, "0007") == "0007"

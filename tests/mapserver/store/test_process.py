@@ -103,7 +103,7 @@ def test_refusals_are_one_line_exit_2(loop_log: Path, tmp_path: Path, db_url: st
     assert main(["process", str(other), "--preset", "irat", "--db", db_url, "--map", "loop"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == (
-        "ERROR: a map named 'loop' already exists and this log is not one of its sessions; choose --map NAME"
+        "ERROR: a map named 'loop' already exists and this log is not one of its sessions; choose another map name"
     )
     assert main(["process", str(loop_log), "--preset", "circle", "--db", db_url]) == 2
     assert "stored already as session 'loop' with other parameters" in capsys.readouterr().err

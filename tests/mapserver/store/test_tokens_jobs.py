@@ -52,3 +52,41 @@ def test_jobs_are_claimed_once_in_order_and_finish(db: Database) -> None:
         assert (failed.status, failed.error) == ("failed", "bad bag: corrupt")
         with pytest.raises(NotFoundError):
             get_job(conn=conn, job_id=999)
+
+
+def test_an_expired_token_is_refused_by_its_id_and_a_fresh_one_is_valid(db: Database) -> None:
+    from datetime import timedelta
+
+    from mapserver.store.models import utcnow
+    from mapserver.store.tokens import authenticate_token, parse_duration
+
+    now = utcnow()
+    with db.write() as conn:
+        old, old_record = create_token(conn=conn, scope="read", expires_at=now - timedelta(seconds=1))
+        fresh, fresh_record = create_token(conn=conn, scope="read", expires_at=now + parse_duration("30d"))
+        forever, _ = create_token(conn=conn, scope="read")
+    with db.read() as conn:
+        expired = authenticate_token(conn=conn, token=old)
+        assert expired is not None and expired.refusal is not None
+        assert expired.refusal.startswith(f"token {old_record.id} expired at ")
+        assert old not in expired.refusal and old[:12] not in expired.refusal
+        assert verify_token(conn=conn, token=old) is None
+        valid = authenticate_token(conn=conn, token=fresh)
+        assert valid is not None and valid.refusal is None
+        assert valid.record.expires_at is not None
+        assert abs((valid.record.expires_at - now - timedelta(days=30)).total_seconds()) < 1
+        assert verify_token(conn=conn, token=fresh) == fresh_record
+        assert verify_token(conn=conn, token=forever) is not None
+
+
+def test_durations_are_a_number_and_a_unit() -> None:
+    from datetime import timedelta
+
+    from mapserver.store.tokens import parse_duration
+
+    assert parse_duration("30d") == timedelta(days=30)
+    assert parse_duration("12h") == timedelta(hours=12)
+    assert parse_duration("2w") == timedelta(weeks=2)
+    for bad in ("0d", "1.5d", "30", "d", "-1d", "30 days"):
+        with pytest.raises(InputError, match="duration"):
+            parse_duration(bad)
