@@ -49,6 +49,13 @@ it goes all the way). ``exp_loops`` is the number of full iterations
 changes the fixed point. ``max_correction_step`` / ``max_correction_norm`` (thesis
 §4.2.4) cap how far one iteration / one frame moves an experience: they limit the
 speed of relaxation, not where it settles.
+
+Switched subsets. The robust check (:mod:`core.robust`) scores the fixed point over many subsets of one
+set of links. :class:`SwitchedRelaxation` computes their residuals without a factorisation each: only
+the links of the graph's 2-core (:func:`cycle_links`) can have a residual other than zero, and their
+normal matrix over a subset is a low-rank change of one factorised for a reference subset
+(Sherman–Morrison–Woodbury). :class:`LinkComponents` tells whether a subset still joins what the whole
+graph joins, which the update needs.
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import LinAlgError
 from scipy.linalg.lapack import dpotrf, dpotrs
+from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.sparse.linalg import splu
 
 from core._buffers import GrowBuffer
@@ -479,3 +487,286 @@ def refine_jointly(
             break
     out[free, 3] = np.remainder(out[free, 3] + math.pi, TWO_PI) - math.pi
     return out
+
+
+def subtree_sums(parent: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Return, for every node of a forest, the sum of ``value`` over its subtree (itself and its descendants).
+
+    ``parent[i]`` is i's parent (a root is its own parent). Doubling: with ``T_k(v)`` the sum over the
+    descendants less than ``2^k`` links below v, ``T_{k+1}(v) = T_k(v) + Σ_{w: 2^k-th ancestor of w is v} T_k(w)``;
+    O(n log depth), no loop over nodes.
+    """
+    n = parent.size
+    depth, _ = sums_to_root(parent, (parent != np.arange(n)).astype(np.int64))
+    total = np.asarray(value, dtype=np.float64).copy()
+    up, reach = parent.copy(), 1
+    while n and reach <= int(depth.max()):
+        below = depth >= reach  # w with a 2^k-th ancestor
+        total = total + np.bincount(up[below], weights=total[below], minlength=n)
+        up, reach = up[up], 2 * reach
+    return total
+
+
+def cycle_links(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Return a mask (K,) of the links in the 2-core of the graph: on a cycle, or on a path between two cycles.
+
+    The rest are trees hanging from it (or joining an anchor to it), whose links every least-squares
+    solution satisfies exactly. Over a spanning forest (breadth first), the 2-core is the links outside the
+    forest and the forest links on the paths between their ends: the link from v to its parent is one when
+    v's subtree holds some but not all of its tree's ends of non-forest links (:func:`subtree_sums`).
+    """
+    k = src.size
+    out = np.zeros(k, dtype=bool)
+    if k == 0:
+        return out
+    _, labels = connected_components(sp.csr_matrix((np.ones(k), (src, dst)), shape=(n, n)), directed=False)
+    first = np.full(int(labels.max()) + 1, n, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
+    # one breadth-first forest: a virtual node n joined to each component's lowest node
+    rows = np.concatenate([src, first])
+    cols = np.concatenate([dst, np.full(first.size, n)])
+    graph = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n + 1, n + 1))
+    _, pred = breadth_first_order(graph, n, directed=False, return_predecessors=True)
+    parent = pred[:n].copy()
+    top = parent == n
+    parent[top] = np.flatnonzero(top)  # each component's lowest node is its tree's root
+    child = np.flatnonzero(parent != np.arange(n))
+    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
+    key = lo * n + hi
+    order = np.argsort(key, kind="stable")
+    tree = order[np.searchsorted(key[order], np.minimum(child, parent[child]) * n + np.maximum(child, parent[child]))]
+    out[:] = True
+    out[tree] = False  # the non-forest links
+    ends = np.bincount(np.concatenate([src[out], dst[out]]), minlength=n).astype(np.float64)
+    below = subtree_sums(parent, ends)
+    total = below[roots(parent)]
+    out[tree] = (below[child] > 0) & (below[child] < total[child])
+    return out
+
+
+#: a normalised residual above which a link is taken to lie on a cycle of the links solved over: a bridge's is zero
+#: but for rounding, below 1e-9 on the bench's maps
+ON_A_CYCLE = 1e-3
+
+
+class LinkComponents:
+    """The connected parts of a graph whose links other than ``fixed`` ones may be switched off.
+
+    The fixed links are contracted once (``node``: each experience's part of the fixed graph); the parts over a
+    set of switches are those of the contracted graph over the switched links that are on, kept as both
+    directions of each link sorted by their first end, so that a set's graph is a mask of one array.
+    """
+
+    def __init__(self, n: int, src: np.ndarray, dst: np.ndarray, fixed: np.ndarray) -> None:
+        fixed = np.asarray(fixed, dtype=bool)
+        on = np.flatnonzero(fixed)
+        self.size, self.node = connected_components(
+            sp.csr_matrix((np.ones(on.size), (src[on], dst[on])), shape=(n, n)), directed=False
+        )
+        self.fixed = on
+        self.switched = np.flatnonzero(~fixed)
+        a, b = self.node[src[self.switched]], self.node[dst[self.switched]]
+        first, second = np.concatenate([a, b]), np.concatenate([b, a])
+        order = np.argsort(first, kind="stable")
+        self._first, self._second = first[order], second[order].astype(np.int32)
+        self._link = np.tile(self.switched, 2)[order]  # the link of each direction
+        every = self.labels(np.ones(src.size, dtype=bool))
+        self.parts = int(np.max(every, initial=-1)) + 1  # the whole graph's
+        self._known: dict[bytes, bool] = {}  # the last sets tested
+
+    def labels(self, active: np.ndarray) -> np.ndarray | None:
+        """Return each fixed part's component over ``active`` (None when a fixed link is off)."""
+        if not active[self.fixed].all():
+            return None
+        on = active[self._link]
+        indptr = np.zeros(self.size + 1, dtype=np.int32)
+        np.cumsum(np.bincount(self._first[on], minlength=self.size), out=indptr[1:])
+        indices = self._second[on]
+        graph = sp.csr_matrix((np.ones(indices.size), indices, indptr), shape=(self.size, self.size))
+        return connected_components(graph, directed=True, connection="weak")[1]
+
+    def whole(self, active: np.ndarray, known: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
+        """Return whether ``active`` joins every part the whole graph joins.
+
+        ``known``: a set of switches found whole and its links' residuals ``z`` at the least-squares fixed point
+        over it. A link whose residual is not zero there lies on a cycle of it (a bridge's residual is zero: nothing
+        else pulls on it), so that set less that one link, with any links added, is whole too, and no count is
+        needed. Otherwise the parts are counted (the last sets tested are kept).
+        """
+        key = active.tobytes()
+        found = self._known.get(key)
+        if found is None and known is not None and self._known.get(known[0].tobytes()):
+            removed = np.flatnonzero(known[0] & ~active)
+            found = True if removed.size == 0 or (removed.size == 1 and known[1][removed[0]] > ON_A_CYCLE) else None
+        if found is None:
+            labels = self.labels(active)
+            found = labels is not None and int(np.max(labels, initial=-1)) + 1 == self.parts
+        self._remember(key, found)
+        return found
+
+    def remember(self, active: np.ndarray) -> None:
+        """Record that ``active`` is whole (a set Kruskal's rule has just joined)."""
+        self._remember(active.tobytes(), True)
+
+    def _remember(self, key: bytes, found: bool) -> None:
+        if key not in self._known and len(self._known) >= 64:
+            self._known.pop(next(iter(self._known)))
+        self._known[key] = found
+
+
+class SwitchedRelaxation:
+    """The relaxation's fixed point over subsets of one set of links, by low-rank updates of one factorisation.
+
+    Computes the link residuals of :func:`solve` (``passes=1``: windings from ``pose``'s headings, fixed per
+    link) over any subset ``A`` of the links that keeps the graph's parts whole, for the links whose residual
+    can be other than zero: those of the 2-core (:func:`cycle_links`). The trees hanging from it move rigidly
+    with their root and their links fit exactly; and a part with one anchor has residuals that a rigid motion
+    of the part leaves as they are (headings shift, positions turn), so each part of the 2-core is solved with
+    its lowest experience held at the origin (its *gauge*) instead of its anchor.
+
+    Over the free experiences of the 2-core the normal matrix is ``L_A = Bᵀ_A B_A`` (B: incidence, +1 at the
+    target, −1 at the source). It is factorised once for a reference set R; for A, with D the links on in
+    exactly one of the two and ``S = diag(±1)`` (+1: on in A), ``L_A = L_R + B_D S B_Dᵀ`` and by the
+    Sherman–Morrison–Woodbury identity (Golub & Van Loan, *Matrix Computations*, 4th ed., §2.1.4)
+
+        L_A⁻¹ b = L_R⁻¹ b − W_D (S + B_Dᵀ W_D)⁻¹ B_Dᵀ L_R⁻¹ b,   W_D = L_R⁻¹ B_D,
+
+    one solve with R's factor per right-hand side plus a |D| × |D| system; the columns of W are solved once
+    per reference and kept. When |D| exceeds ``REBASE`` the reference moves to A (a new factorisation).
+    Headings first (right-hand side ``Bᵀ_A m_ψ``), then positions for those headings (``Bᵀ_A R(ψ_src) t``).
+    The residuals equal :func:`solve`'s up to rounding (tests/core/test_robust.py compares them on random graphs).
+    """
+
+    #: links in D beyond which the reference is factorised afresh at A (a factorisation costs about as much as
+    #: applying that many columns to every solve of the search's states)
+    REBASE = 24
+
+    def __init__(
+        self, pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, anchor: np.ndarray,
+        parts: LinkComponents,
+    ) -> None:  # fmt: skip
+        n = pose.shape[0]
+        self.parts = parts  # the graph's parts over the links that may be switched off
+        self.usable = _one_anchor_each(n, src, dst, anchor) and not np.any(src == dst)
+        self.links = np.flatnonzero(cycle_links(n, src, dst)) if self.usable else np.zeros(0, np.int64)
+        yaw = pose[:, 3]
+        winding = np.round((yaw[dst] - yaw[src] - transform[:, 3]) / TWO_PI)  # as solve() takes them
+        t = transform[self.links]
+        self.turn = t[:, 3]
+        # the fields linear in the switches: headings (windings taken) and heights; translations in the plane complex
+        self.linear = np.stack([t[:, 3] + TWO_PI * winding[self.links], t[:, 2]])
+        self.planar = t[:, 0] + 1j * t[:, 1]
+        self.local_src, self.local_dst, self.free = _local_indices(src[self.links], dst[self.links])
+        nf, kc = self.free, self.links.size
+        rows = np.concatenate([self.local_dst, self.local_src])
+        keep = rows < nf  # a gauge's row is dropped: it is held at the origin
+        values = np.concatenate([np.ones(kc), -np.ones(kc)])[keep]
+        self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kc), 2)[keep])), shape=(nf, kc))
+        self._reference = np.zeros(kc, dtype=bool)
+        self._factor: object | None = None
+        self._fields = np.zeros((2, nf + 1))
+        self._slot = np.full(kc, -1, dtype=np.int64)
+        self._columns = np.zeros((0, nf + 1))
+        self._filled = 0
+
+    def residuals(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return the 2-core's links' residuals at the fixed point over ``active``: translation norms and headings.
+
+        The heading residuals are wrapped to [−π, π) as :func:`residuals` wraps them. None when ``active`` splits
+        a part of the graph (or turns a fixed link off): :func:`solve` then holds the experiences cut off still,
+        which the update does not model.
+        """
+        if not self.usable or not self.parts.whole(active):
+            return None
+        on = active[self.links]
+        d = np.flatnonzero(on != self._reference)
+        if self._factor is None or d.size > self.REBASE:
+            self._rebase(on)
+            d = d[:0]
+        fields = self._fields  # headings and heights: L_A⁻¹ Bᵀ_A m
+        if d.size:
+            columns = self._solved_columns(d)
+            ls, ld = self.local_src[d], self.local_dst[d]
+            sign = np.where(on[d], 1.0, -1.0)
+            inverse = np.linalg.inv(np.diag(sign) + columns[:, ld].T - columns[:, ls].T)  # the capacitance's
+            fields = fields + (self.linear[:, d] * sign) @ columns
+            fields = fields - ((fields[:, ld] - fields[:, ls]) @ inverse.T) @ columns
+        yaw, height = fields
+        src, dst = self.local_src, self.local_dst
+        source = yaw[src]
+        planar = np.exp(1j * source) * self.planar  # each translation turned by its source's heading
+        rhs = np.ascontiguousarray(self.incidence_t @ (planar * on))
+        xy = np.zeros(self.free + 1, dtype=np.complex128)
+        xy[: self.free] = np.ascontiguousarray(self._factor.solve(rhs.view(np.float64).reshape(-1, 2))).view(
+            np.complex128
+        )[:, 0]
+        if d.size:
+            xy -= (inverse @ (xy[ld] - xy[ls])) @ columns
+        gap = np.abs(xy[dst] - xy[src] - planar)
+        rise = height[dst] - height[src] - self.linear[1]
+        turn = np.remainder(yaw[dst] - source - self.turn + math.pi, TWO_PI) - math.pi
+        return np.sqrt(gap * gap + rise * rise), turn
+
+    def _rebase(self, on: np.ndarray) -> None:
+        """Factorise the normal matrix over the 2-core's links ``on`` and solve its linear fields: the new reference."""
+        weight = sp.diags(on.astype(np.float64))
+        normal = (self.incidence_t @ weight @ self.incidence_t.T).tocsc()
+        self._factor = splu(normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                            options={"SymmetricMode": True})  # fmt: skip
+        self._fields = np.zeros((2, self.free + 1))
+        rhs = np.ascontiguousarray(self.incidence_t @ (self.linear * on).T)
+        self._fields[:, : self.free] = self._factor.solve(rhs).T
+        self._reference = on.copy()
+        self._slot[:] = -1
+        self._filled = 0
+
+    def _solved_columns(self, d: np.ndarray) -> np.ndarray:
+        """Return ``W_D`` as rows (|D|, free + 1; the gauge's entry 0): ``L_R⁻¹ b_l`` of each link, solved once."""
+        missing = d[self._slot[d] < 0]
+        if missing.size:
+            need = self._filled + missing.size
+            if need > self._columns.shape[0]:
+                grown = np.zeros((max(need, 2 * self._columns.shape[0], 8), self.free + 1))
+                grown[: self._filled] = self._columns[: self._filled]
+                self._columns = grown
+            rhs = np.zeros((self.free + 1, missing.size))
+            which = np.arange(missing.size)
+            rhs[self.local_dst[missing], which] = 1.0
+            rhs[self.local_src[missing], which] = -1.0
+            solved = self._factor.solve(np.ascontiguousarray(rhs[: self.free]))
+            self._columns[self._filled : need, : self.free] = solved.T
+            self._slot[missing] = np.arange(self._filled, need)
+            self._filled = need
+        return self._columns[self._slot[d]]
+
+
+def _one_anchor_each(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> bool:
+    """Return whether every connected part of the graph holds exactly one anchor among its linked experiences."""
+    if src.size == 0:
+        return True
+    _, labels = connected_components(sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n)), directed=False)
+    linked = np.zeros(n, dtype=bool)
+    linked[src] = linked[dst] = True
+    parts = np.unique(labels[linked])
+    count = np.bincount(labels[linked & np.asarray(anchor, dtype=bool)], minlength=int(labels.max()) + 1)
+    return bool(np.all(count[parts] == 1))
+
+
+def _local_indices(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Return the links' ends as indices among the free experiences of their graph, and their number.
+
+    Each connected part's lowest experience is its gauge, held at the origin: its index is the number of free
+    experiences (one past the last), where the solvers keep a zero.
+    """
+    if src.size == 0:
+        return src.astype(np.int64), dst.astype(np.int64), 0
+    nodes = np.unique(np.concatenate([src, dst]))
+    size = nodes.size
+    a, b = np.searchsorted(nodes, src), np.searchsorted(nodes, dst)
+    _, labels = connected_components(sp.csr_matrix((np.ones(a.size), (a, b)), shape=(size, size)), directed=False)
+    gauge = np.zeros(size, dtype=bool)
+    gauge[np.unique(labels, return_index=True)[1]] = True  # the first (lowest) node of each part
+    index = np.cumsum(~gauge) - 1
+    free = int(np.count_nonzero(~gauge))
+    index[gauge] = free
+    return index[a], index[b], free
