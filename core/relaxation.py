@@ -656,12 +656,14 @@ class SwitchedRelaxation:
         # the fields linear in the switches: headings (windings taken) and heights; translations in the plane complex
         self.linear = np.stack([t[:, 3] + TWO_PI * winding[self.links], t[:, 2]])
         self.planar = t[:, 0] + 1j * t[:, 1]
+        self.flat = not np.any(t[:, 2])  # no climb: the heights stay 0
         self.local_src, self.local_dst, self.free = _local_indices(src[self.links], dst[self.links])
         nf, kc = self.free, self.links.size
         rows = np.concatenate([self.local_dst, self.local_src])
         keep = rows < nf  # a gauge's row is dropped: it is held at the origin
         values = np.concatenate([np.ones(kc), -np.ones(kc)])[keep]
         self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kc), 2)[keep])), shape=(nf, kc))
+        self._incidence_c = self.incidence_t.astype(np.complex128)  # for the turned translations
         self._reference = np.zeros(kc, dtype=bool)
         self._factor: object | None = None
         self._fields = np.zeros((2, nf + 1))
@@ -693,19 +695,25 @@ class SwitchedRelaxation:
             fields = fields - ((fields[:, ld] - fields[:, ls]) @ inverse.T) @ columns
         yaw, height = fields
         src, dst = self.local_src, self.local_dst
-        source = yaw[src]
-        planar = np.exp(1j * source) * self.planar  # each translation turned by its source's heading
-        rhs = np.ascontiguousarray(self.incidence_t @ (planar * on))
+        turned = np.empty(yaw.size, dtype=np.complex128)  # e^{iψ} of each experience
+        np.cos(yaw, out=turned.real)
+        np.sin(yaw, out=turned.imag)
+        planar = turned[src] * self.planar  # each translation turned by its source's heading
+        solved = self._factor.solve((self._incidence_c @ (planar * on)).view(np.float64).reshape(-1, 2))
         xy = np.zeros(self.free + 1, dtype=np.complex128)
-        xy[: self.free] = np.ascontiguousarray(self._factor.solve(rhs.view(np.float64).reshape(-1, 2))).view(
-            np.complex128
-        )[:, 0]
+        xy.real[: self.free] = solved[:, 0]
+        xy.imag[: self.free] = solved[:, 1]
         if d.size:
             xy -= (inverse @ (xy[ld] - xy[ls])) @ columns
-        gap = np.abs(xy[dst] - xy[src] - planar)
-        rise = height[dst] - height[src] - self.linear[1]
-        turn = np.remainder(yaw[dst] - source - self.turn + math.pi, TWO_PI) - math.pi
-        return np.sqrt(gap * gap + rise * rise), turn
+        distance = np.abs(xy[dst] - xy[src] - planar)
+        if not self.flat:
+            rise = height[dst] - height[src] - self.linear[1]
+            distance = np.sqrt(distance * distance + rise * rise)
+        turn = yaw[dst] - yaw[src] - self.linear[0]  # the windings taken: within π but where a link is far off
+        wrap = np.abs(turn) > math.pi
+        if wrap.any():
+            turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
+        return distance, turn
 
     def _rebase(self, on: np.ndarray) -> None:
         """Factorise the normal matrix over the 2-core's links ``on`` and solve its linear fields: the new reference."""

@@ -749,31 +749,29 @@ class _Problem:
         z = np.zeros(self.src.size)
         core = _normalise(*found, self.length, self.drift)
         z[switched.links] = core
-        if self._at_threshold(active, z, core):
+        links, _ = self.standby
+        off = ~active[links]
+        if self._at_threshold(core, z[links[off]] * self.standby_scale[off]):
             return self.exact(_State(active, z, 0.0, self))
         return _State(active, z, self._core_cost(active, z, core), self)
 
-    def _at_threshold(self, active: np.ndarray, z: np.ndarray, core: np.ndarray) -> bool:
+    def _at_threshold(self, core: np.ndarray, own: np.ndarray) -> bool:
         """Return whether a ``z`` lies within rounding of a threshold the search compares it with.
 
-        ``c̄`` (outliers), ``c̄/2`` (strain), and a standby link's reach (:meth:`overreached`); ``core``: the
-        2-core's ``z``, the others' being 0.
+        ``c̄`` (outliers) and ``c̄/2`` (strain) for the 2-core's ``z`` (``core``; the others' are 0), and the reach
+        of a standby link left out (``own``, :meth:`overreached`).
         """
         c = self.drift.threshold
-        links, _ = self.standby
-        off = ~active[links]
-        own = z[links[off]] * self.standby_scale[off]
         reach = 1.0 / self.drift.drift
-        tolerance = ROUNDING * max(1.0, c)
-        return bool(np.any(np.abs(core - c) <= tolerance) or np.any(np.abs(core - 0.5 * c) <= tolerance)
+        return bool(np.any(np.abs(np.abs(core - 0.75 * c) - 0.25 * c) <= ROUNDING * max(1.0, c))
                     or np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach)))  # fmt: skip
 
     def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray) -> float:
         """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual."""
         links, can = self._core
         c2 = self.drift.threshold**2
-        on = active[links]
-        cost = float(ODOMETRY_WEIGHT * np.sum(core[~can & on] ** 2) + np.sum(np.minimum(core[can] ** 2, c2)))
+        square = core * core
+        cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
         cost += c2 * float(np.sum(self.prior[self._held][~active[self._held]]))
         return cost + 2.0 * c2 * self.overreached(active, z)
 
