@@ -662,7 +662,8 @@ class _Problem:
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
         self.joint = False  # score on the joint least squares (exp_relax_joint), not RatSLAM's fixed point
-        self._solver: tuple[LinkComponents, SwitchedRelaxation] | None = None  # built on the first state
+        self._solver: tuple[LinkComponents, SwitchedRelaxation, np.ndarray, np.ndarray] | None = None  # on first use
+        self._can = np.zeros(0, np.int64)  # the switchable links
         self._core = (np.zeros(0, np.int64), np.zeros(0, bool))  # the 2-core's links, and which may be switched
         self._held = np.zeros(0, np.int64)  # the links with a switch prior
         self._exact: dict[bytes, _State] = {}  # states solved in full, by their switches
@@ -687,15 +688,14 @@ class _Problem:
         that one: :meth:`keep_connected`).
         """
         links, partner = self.standby
-        if not links.size and not self.gated.any():
+        gated, began = self._prepared()[2:]
+        if not links.size and not gated.size:
             return active
         active = active.copy()
-        active[self.gated] = False
+        active[gated] = False
         on = ~active[partner]
-        closure = self.standby_closure
-        if closure.size:
-            began = closure >= 0
-            on[began] |= ~active[closure[began]]
+        if began.size:
+            on[began] |= ~active[self.standby_closure[began]]
         active[links] = on
         return self.keep_connected(active, np.zeros(active.size) if z is None else z, scored, near)
 
@@ -820,16 +820,22 @@ class _Problem:
         cost += c2 * float(np.sum(self.prior[~active]))  # the switch priors of the links that stood
         return cost + 2.0 * c2 * self.overreached(active, z)
 
-    def _prepared(self) -> tuple[LinkComponents, SwitchedRelaxation]:
-        """Return the graph's parts over the links the search may switch, and the low-rank solver (built once)."""
+    def _prepared(self) -> tuple[LinkComponents, SwitchedRelaxation, np.ndarray, np.ndarray]:
+        """Return the search's fixed structures, built once: parts, solver, gated links, standby links begun.
+
+        The graph's parts over the links the search may switch (:class:`core.relaxation.LinkComponents`), the
+        low-rank solver, the gated links, and the standby links whose relocalisation a loop link began.
+        """
         if self._solver is None:
             changing = self.can | self.gated
             changing[self.standby[0]] = True
             parts = LinkComponents(self.start.shape[0], self.src, self.dst, ~changing)
             switched = SwitchedRelaxation(self.start, self.src, self.dst, self.transform, self.anchor, parts)
-            self._solver = (parts, switched)
+            began = np.flatnonzero(self.standby_closure >= 0) if self.standby_closure.size else np.zeros(0, np.int64)
+            self._solver = (parts, switched, np.flatnonzero(self.gated), began)
             self._core = switched.links, self.can[switched.links]
             self._held = np.flatnonzero(self.prior)
+            self._can = np.flatnonzero(self.can)
         return self._solver
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:
@@ -903,12 +909,10 @@ class _Problem:
         """
         current = self.state(self.couple(active, near=near))
         while self.solves < self.limit:
-            over = current.active & self.can & (current.z > self.drift.threshold)
-            if keep_on >= 0:
-                over[keep_on] = False
-            if not over.any():
+            can = self._can
+            candidates = can[current.active[can] & (current.z[can] > self.drift.threshold) & (can != keep_on)]
+            if not candidates.size:
                 break
-            candidates = np.flatnonzero(over)
             current = self.decided(current, candidates, top=True)
             trial = current.active.copy()
             trial[candidates[np.argmax(current.z[candidates])]] = False
