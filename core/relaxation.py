@@ -61,6 +61,7 @@ graph joins, which the update needs.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -624,16 +625,23 @@ class SwitchedRelaxation:
     of the part leaves as they are (headings shift, positions turn), so each part of the 2-core is solved with
     its lowest experience held at the origin (its *gauge*) instead of its anchor.
 
-    Over the free experiences of the 2-core the normal matrix is ``L_A = Bᵀ_A B_A`` (B: incidence, +1 at the
-    target, −1 at the source). It is factorised once for a reference set R; for A, with D the links on in
-    exactly one of the two and ``S = diag(±1)`` (+1: on in A), ``L_A = L_R + B_D S B_Dᵀ`` and by the
+    Chains. A run of fixed links through experiences with no other link (:func:`_chains`) takes, at the least
+    squares, the same residual on each of its m links, 1/m of the run's misclosure: the equations of its inner
+    experiences eliminated (Kron reduction), it is one link of weight 1/m between the experiences at its ends
+    (*terminals*) that measures the run's sum. Headings: the sum of the links' (windings taken). Positions: the
+    sum of each link's translation turned by its source's heading, which lies on the run at ``ψ_a + P + (k/m)·e``
+    (P the headings measured from the start ``a``, k links along, e the run's heading misclosure).
+
+    Over the free terminals the normal matrix is ``L_A = Bᵀ_A W B_A`` (B: incidence, +1 at the target, −1 at the
+    source; W the runs' weights). It is factorised once for a reference set R; for A, with D the switched links
+    on in exactly one of the two and ``S = diag(±1)`` (+1: on in A), ``L_A = L_R + B_D S B_Dᵀ`` and by the
     Sherman–Morrison–Woodbury identity (Golub & Van Loan, *Matrix Computations*, 4th ed., §2.1.4)
 
         L_A⁻¹ b = L_R⁻¹ b − W_D (S + B_Dᵀ W_D)⁻¹ B_Dᵀ L_R⁻¹ b,   W_D = L_R⁻¹ B_D,
 
     one solve with R's factor per right-hand side plus a |D| × |D| system; the columns of W are solved once
     per reference and kept. When |D| exceeds ``REBASE`` the reference moves to A (a new factorisation).
-    Headings first (right-hand side ``Bᵀ_A m_ψ``), then positions for those headings (``Bᵀ_A R(ψ_src) t``).
+    Headings and heights first (right-hand sides linear in the switches), then positions for those headings.
     The residuals equal :func:`solve`'s up to rounding (tests/core/test_relaxation.py compares them on random graphs).
     """
 
@@ -649,25 +657,34 @@ class SwitchedRelaxation:
         self.parts = parts  # the graph's parts over the links that may be switched off
         self.usable = _one_anchor_each(n, src, dst, anchor) and not np.any(src == dst)
         self.links = np.flatnonzero(cycle_links(n, src, dst)) if self.usable else np.zeros(0, np.int64)
+        switched = np.zeros(src.size, dtype=bool)
+        switched[parts.switched] = True
         yaw = pose[:, 3]
         winding = np.round((yaw[dst] - yaw[src] - transform[:, 3]) / TWO_PI)  # as solve() takes them
         t = transform[self.links]
-        self.turn = t[:, 3]
-        # the fields linear in the switches: headings (windings taken) and heights; translations in the plane complex
-        self.linear = np.stack([t[:, 3] + TWO_PI * winding[self.links], t[:, 2]])
-        self.planar = t[:, 0] + 1j * t[:, 1]
+        heading = t[:, 3] + TWO_PI * winding[self.links]
+        runs = _chains(n, src[self.links], dst[self.links], switched[self.links], heading)
+        self.run, self.offset, self.along, self.sign = runs.run, runs.offset, runs.along, runs.sign
+        self.switched = runs.switched  # the runs that are one switched link, and that link's position in ``links``
+        self.length = runs.length.astype(np.float64)
+        self.turned = self.sign * (t[:, 0] + 1j * t[:, 1])  # each link's translation, along its run
+        self.member = sp.csr_matrix((np.ones(self.links.size), (self.run, np.arange(self.links.size))),
+                                    shape=(runs.length.size, self.links.size)).astype(np.complex128)  # fmt: skip
+        rise = np.bincount(self.run, weights=self.sign * t[:, 2], minlength=runs.length.size)
+        self.linear = np.stack([runs.heading, rise])  # what each run measures of the fields linear in the switches
         self.flat = not np.any(t[:, 2])  # no climb: the heights stay 0
-        self.local_src, self.local_dst, self.free = _local_indices(src[self.links], dst[self.links])
-        nf, kc = self.free, self.links.size
+        self.local_src, self.local_dst, self.free = _local_indices(runs.start, runs.end)
+        nf, kr = self.free, runs.length.size
         rows = np.concatenate([self.local_dst, self.local_src])
         keep = rows < nf  # a gauge's row is dropped: it is held at the origin
-        values = np.concatenate([np.ones(kc), -np.ones(kc)])[keep]
-        self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kc), 2)[keep])), shape=(nf, kc))
-        self._incidence_c = self.incidence_t.astype(np.complex128)  # for the turned translations
-        self._reference = np.zeros(kc, dtype=bool)
+        values = np.concatenate([np.ones(kr), -np.ones(kr)])[keep]
+        self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kr), 2)[keep])), shape=(nf, kr))
+        self._incidence_c = self.incidence_t.astype(np.complex128)
+        self.weight = 1.0 / np.maximum(self.length, 1.0)
+        self._reference = np.zeros(self.switched[0].size, dtype=bool)
         self._factor: object | None = None
         self._fields = np.zeros((2, nf + 1))
-        self._slot = np.full(kc, -1, dtype=np.int64)
+        self._slot = np.full(kr, -1, dtype=np.int64)
         self._columns = np.zeros((0, nf + 1))
         self._filled = 0
 
@@ -680,26 +697,30 @@ class SwitchedRelaxation:
         """
         if not self.usable or not self.parts.whole(active):
             return None
-        on = active[self.links]
-        d = np.flatnonzero(on != self._reference)
+        changed = active[self.links[self.switched[1]]]
+        d = np.flatnonzero(changed != self._reference)
         if self._factor is None or d.size > self.REBASE:
-            self._rebase(on)
+            self._rebase(changed)
             d = d[:0]
-        fields = self._fields  # headings and heights: L_A⁻¹ Bᵀ_A m
+        on = np.ones(self.length.size)
+        on[self.switched[0]] = changed
+        fields = self._fields  # headings and heights at the terminals: L_A⁻¹ Bᵀ_A W m
+        runs = self.switched[0][d]
         if d.size:
-            columns = self._solved_columns(d)
-            ls, ld = self.local_src[d], self.local_dst[d]
-            sign = np.where(on[d], 1.0, -1.0)
+            columns = self._solved_columns(runs)
+            ls, ld = self.local_src[runs], self.local_dst[runs]
+            sign = np.where(changed[d], 1.0, -1.0)
             inverse = np.linalg.inv(np.diag(sign) + columns[:, ld].T - columns[:, ls].T)  # the capacitance's
-            fields = fields + (self.linear[:, d] * sign) @ columns
+            fields = fields + (self.linear[:, runs] * sign) @ columns
             fields = fields - ((fields[:, ld] - fields[:, ls]) @ inverse.T) @ columns
-        yaw, height = fields
         src, dst = self.local_src, self.local_dst
-        turned = np.empty(yaw.size, dtype=np.complex128)  # e^{iψ} of each experience
-        np.cos(yaw, out=turned.real)
-        np.sin(yaw, out=turned.imag)
-        planar = turned[src] * self.planar  # each translation turned by its source's heading
-        solved = self._factor.solve((self._incidence_c @ (planar * on)).view(np.float64).reshape(-1, 2))
+        miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
+        source = fields[0, src][self.run] + self.offset + self.along * miss[0, self.run]  # each link's source
+        turned = np.empty(source.size, dtype=np.complex128)
+        np.cos(source, out=turned.real)
+        np.sin(source, out=turned.imag)
+        planar = self.member @ (turned * self.turned)  # what each run measures in the plane
+        solved = self._factor.solve((self._incidence_c @ (planar * (on * self.weight))).view(np.float64).reshape(-1, 2))
         xy = np.zeros(self.free + 1, dtype=np.complex128)
         xy.real[: self.free] = solved[:, 0]
         xy.imag[: self.free] = solved[:, 1]
@@ -707,30 +728,31 @@ class SwitchedRelaxation:
             xy -= (inverse @ (xy[ld] - xy[ls])) @ columns
         distance = np.abs(xy[dst] - xy[src] - planar)
         if not self.flat:
-            rise = height[dst] - height[src] - self.linear[1]
-            distance = np.sqrt(distance * distance + rise * rise)
-        turn = yaw[dst] - yaw[src] - self.linear[0]  # the windings taken: within π but where a link is far off
+            distance = np.hypot(distance, miss[1])
+        turn = miss[0] / self.length  # each link of a run takes 1/m of its misclosure
         wrap = np.abs(turn) > math.pi
         if wrap.any():
             turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
-        return distance, turn
+        return (distance / self.length)[self.run], self.sign * turn[self.run]
 
-    def _rebase(self, on: np.ndarray) -> None:
-        """Factorise the normal matrix over the 2-core's links ``on`` and solve its linear fields: the new reference."""
-        weight = sp.diags(on.astype(np.float64))
+    def _rebase(self, changed: np.ndarray) -> None:
+        """Factorise the normal matrix over the runs with the switched links ``changed`` on: the new reference."""
+        on = np.ones(self.length.size)
+        on[self.switched[0]] = changed
+        weight = sp.diags(on * self.weight)
         normal = (self.incidence_t @ weight @ self.incidence_t.T).tocsc()
         self._factor = splu(normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                             options={"SymmetricMode": True})  # fmt: skip
         self._fields = np.zeros((2, self.free + 1))
-        rhs = np.ascontiguousarray(self.incidence_t @ (self.linear * on).T)
+        rhs = np.ascontiguousarray(self.incidence_t @ (self.linear * (on * self.weight)).T)
         self._fields[:, : self.free] = self._factor.solve(rhs).T
-        self._reference = on.copy()
+        self._reference = changed.copy()
         self._slot[:] = -1
         self._filled = 0
 
-    def _solved_columns(self, d: np.ndarray) -> np.ndarray:
-        """Return ``W_D`` as rows (|D|, free + 1; the gauge's entry 0): ``L_R⁻¹ b_l`` of each link, solved once."""
-        missing = d[self._slot[d] < 0]
+    def _solved_columns(self, runs: np.ndarray) -> np.ndarray:
+        """Return ``W_D`` as rows (|D|, free + 1; the gauge's entry 0): ``L_R⁻¹ b_r`` of each run, solved once."""
+        missing = runs[self._slot[runs] < 0]
         if missing.size:
             need = self._filled + missing.size
             if need > self._columns.shape[0]:
@@ -745,7 +767,93 @@ class SwitchedRelaxation:
             self._columns[self._filled : need, : self.free] = solved.T
             self._slot[missing] = np.arange(self._filled, need)
             self._filled = need
-        return self._columns[self._slot[d]]
+        return self._columns[self._slot[runs]]
+
+
+@dataclass(frozen=True, slots=True)
+class _Runs:
+    """Links grouped into runs (:func:`_chains`): per run and per link."""
+
+    start: np.ndarray  # (R,) the experience a run starts from
+    end: np.ndarray  # (R,) the experience it ends at
+    length: np.ndarray  # (R,) its links, m
+    heading: np.ndarray  # (R,) the headings it measures from start to end (windings taken)
+    switched: tuple[np.ndarray, np.ndarray]  # the runs that are one switched link, and that link (position)
+    run: np.ndarray  # (K,) each link's run
+    offset: np.ndarray  # (K,) the headings measured along its run from the start to the link's source
+    along: np.ndarray  # (K,) k/m: how far along its run the link's source lies
+    sign: np.ndarray  # (K,) +1 where the link points along its run, −1 against
+
+
+def _chains(n: int, src: np.ndarray, dst: np.ndarray, switched: np.ndarray, heading: np.ndarray) -> _Runs:
+    """Return the links grouped into runs between terminals: each switched link alone, fixed links in chains.
+
+    Terminals: experiences with other than two links, or with a switched one, and each part's lowest experience.
+    ``heading``: each link's measured heading change (windings taken).
+    """
+    degree = np.bincount(np.concatenate([src, dst]), minlength=n)
+    terminal = degree != 2
+    terminal[src[switched]] = terminal[dst[switched]] = True
+    if src.size:
+        _, part = connected_components(sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n)), directed=False)
+        lowest = np.full(int(part.max()) + 1, n, dtype=np.int64)
+        np.minimum.at(lowest, part[degree > 0], np.flatnonzero(degree > 0))
+        terminal[lowest[lowest < n]] = True
+    fixed, alone = np.flatnonzero(~switched), np.flatnonzero(switched)
+    chain = _walk(n, np.stack([src[fixed], dst[fixed]], axis=1), terminal, heading[fixed])
+    count = chain.length.size
+    run = np.empty(src.size, dtype=np.int64)
+    run[fixed] = chain.run
+    run[alone] = count + np.arange(alone.size)
+    offset, along, sign = np.zeros(src.size), np.zeros(src.size), np.ones(src.size)
+    offset[fixed], along[fixed], sign[fixed] = chain.offset, chain.along, chain.sign
+    return _Runs(
+        start=np.concatenate([chain.start, src[alone]]), end=np.concatenate([chain.end, dst[alone]]),
+        length=np.concatenate([chain.length, np.ones(alone.size, dtype=np.int64)]),
+        heading=np.concatenate([chain.heading, heading[alone]]),
+        switched=(count + np.arange(alone.size), alone), run=run, offset=offset, along=along, sign=sign,
+    )  # fmt: skip
+
+
+def _walk(n: int, ends: np.ndarray, terminal: np.ndarray, heading: np.ndarray) -> _Runs:
+    """Return the chains of the links ``ends`` (f, 2): fixed links whose inner experiences are not ``terminal``.
+
+    A link's end at a terminal gets a node of its own (n + 2·link + end), so that the links form paths, the
+    chains; each is walked breadth first from its lowest such node, which gives every node its depth k along its
+    chain and the headings measured from the start to it (:func:`sums_to_root`). ``switched`` is left empty.
+    """
+    f = ends.shape[0]
+    node = np.where(terminal[ends], n + 2 * np.arange(f)[:, None] + np.arange(2), ends)
+    size = n + 2 * f  # and a root, ``size``, above every chain's start
+    graph = sp.csr_matrix((np.ones(f), (node[:, 0], node[:, 1])), shape=(size + 1, size + 1))
+    _, component = connected_components(graph, directed=False)
+    copies = node[terminal[ends]]
+    first = np.full(size + 1, size + 1, dtype=np.int64)
+    np.minimum.at(first, component[copies], copies)  # each chain's start: its lowest terminal node
+    starts = first[first <= size]
+    walk = graph + sp.csr_matrix((np.ones(starts.size), (np.full(starts.size, size), starts)), shape=graph.shape)
+    _, pred = breadth_first_order(walk, size, directed=False, return_predecessors=True)
+    parent = np.where((pred >= 0) & (pred != size), pred, np.arange(size + 1))
+    along_run = parent[node[:, 1]] == node[:, 0]  # the link points away from its chain's start
+    step = np.zeros(size + 1)
+    step[np.where(along_run, node[:, 1], node[:, 0])] = np.where(along_run, heading, -heading)
+    measured, _ = sums_to_root(parent, step)
+    depth, _ = sums_to_root(parent, (parent != np.arange(size + 1)).astype(np.int64))
+    label = np.unique(component[node[:, 0]], return_inverse=True)[1].astype(np.int64)
+    count = int(label.max()) + 1 if f else 0
+    length = np.zeros(count, dtype=np.int64)
+    np.maximum.at(length, label, depth[node].max(axis=1, initial=0))
+    far = node[np.arange(f), np.argmax(depth[node], axis=1)] if f else np.zeros(0, np.int64)
+    last = np.zeros(count, dtype=np.int64)
+    last[label[depth[far] == length[label]]] = far[depth[far] == length[label]]
+    begin = np.zeros(count, dtype=np.int64)
+    begin[label] = first[component[node[:, 0]]]
+    flat = ends.ravel()  # a terminal node n + 2·link + end is that link end's experience
+    return _Runs(
+        start=flat[begin - n], end=flat[last - n], length=length, heading=measured[last],
+        switched=(np.zeros(0, np.int64), np.zeros(0, np.int64)), run=label, offset=measured[node[:, 0]],
+        along=depth[node[:, 0]] / np.maximum(length[label], 1), sign=np.where(along_run, 1.0, -1.0),
+    )  # fmt: skip
 
 
 def _one_anchor_each(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> bool:

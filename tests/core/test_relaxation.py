@@ -363,6 +363,30 @@ def _random_graph(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return pose, src, dst, transform, fixed
 
 
+@st.composite
+def _laps_graph(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A route of fixed links (odometry) with closures between random places: long runs between the closures.
+
+    Some closures are fixed too (chords the search never switches), and the route's links point either way.
+    Returns (pose, src, dst, transform, fixed) as :func:`_random_graph`.
+    """
+    n = draw(st.integers(3, 60))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    closures = draw(st.integers(0, max(1, n // 4)))
+    a = rng.integers(0, n, closures)
+    b = (a + rng.integers(2, n, closures)) % n
+    flip = rng.random(n - 1) < 0.2
+    src = np.concatenate([np.where(flip, np.arange(1, n), np.arange(n - 1)), a])
+    dst = np.concatenate([np.where(flip, np.arange(n - 1), np.arange(1, n)), b])
+    transform = np.column_stack([rng.uniform(-2, 2, src.size), rng.uniform(-2, 2, src.size),
+                                 rng.uniform(-0.3, 0.3, src.size) * draw(st.sampled_from([0.0, 1.0])),
+                                 rng.uniform(-3, 3, src.size)])  # fmt: skip
+    pose = np.column_stack([rng.uniform(-5, 5, (n, 3)), rng.uniform(-math.pi, math.pi, n)])
+    fixed = np.concatenate([np.ones(n - 1, dtype=bool), rng.random(closures) < 0.3])
+    return pose, src, dst, transform, fixed
+
+
 def _exact_link_residuals(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray,
                           active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The old computation: the full solve over ``active`` (solve, passes=1), then every link's residual."""
@@ -480,6 +504,19 @@ def test_the_low_rank_solve_gives_the_full_solves_residuals(
     graph: tuple[np.ndarray, ...], seed: int, rebase: int
 ) -> None:
     """Differential: a run of random switches against the full solve of each; ``rebase`` 0 factorises every set."""
+    _compare_with_full_solves(graph, seed, rebase)
+
+
+@settings(max_examples=60, deadline=None)
+@given(_laps_graph(), st.integers(0, 2**31 - 1), st.sampled_from([0, 24]))
+def test_the_low_rank_solve_gives_the_full_solves_residuals_along_long_runs(
+    graph: tuple[np.ndarray, ...], seed: int, rebase: int
+) -> None:
+    """The same on routes with few closures: runs of many fixed links, some pointing against the run."""
+    _compare_with_full_solves(graph, seed, rebase)
+
+
+def _compare_with_full_solves(graph: tuple[np.ndarray, ...], seed: int, rebase: int) -> None:
     pose, src, dst, transform, fixed = graph
     n = pose.shape[0]
     rng = np.random.default_rng(seed)
