@@ -166,7 +166,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
-from threadpoolctl import threadpool_limits
 
 from core.pcm import (
     MAX_LINKS,
@@ -359,8 +358,7 @@ def switch_off_outliers(
         if standing is not None:  # the links added since the previous check: on as the map stands, off in previous
             problem.new[: np.size(previous)] = np.asarray(standing, dtype=bool) & ~np.asarray(previous, dtype=bool)
         problem.prior = _switch_prior(problem, status_quo, stored)
-    with threadpool_limits(limits=1, user_api="blas"):  # small dense products: threads only add their overhead
-        best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance, status_quo)
+    best = _search(problem, problem.eliminate(np.ones(k, dtype=bool)), distance, status_quo)
     return RobustResult(best.active, best.active.astype(np.float64), best.z, problem.solves, best.pose)
 
 
