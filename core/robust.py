@@ -150,7 +150,7 @@ outside the test hook :func:`false_loop_links`).
 Scoring. Each set of switches the search tries is scored without a factorisation of its own
 (:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
 that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
-exactly). Its residuals agree with the full solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9
+exactly), each run of odometry links between two closures as one link. Its residuals agree with the full solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9
 of ``z``. Where rounding could make the choice — two ``z`` that the search orders within ``ROUNDING`` of each
 other (links in series through experiences with two links carry the same ``z`` exactly, and the full solve's
 rounding has always ordered them), a ``z`` at a threshold, two costs at the edge of a comparison — that state is
