@@ -150,11 +150,12 @@ outside the test hook :func:`false_loop_links`).
 Scoring. Each set of switches the search tries is scored without a factorisation of its own
 (:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
 that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
-exactly), each run of odometry links between two closures as one link. Its residuals agree with the full solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9
-of ``z``. Where rounding could make the choice — two ``z`` that the search orders within ``ROUNDING`` of each
-other (links in series through experiences with two links carry the same ``z`` exactly, and the full solve's
-rounding has always ordered them), a ``z`` at a threshold, two costs at the edge of a comparison — that state is
-solved in full, so the search makes the full solve's choices, state by state; the answer is solved in full too.
+exactly), each run of odometry links between two closures as one link. Its residuals agree with the full
+solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z``. Where rounding could make the choice —
+two ``z`` that the search orders within ``ROUNDING`` of each other (links in series through experiences with two
+links carry the same ``z`` exactly, and the full solve's rounding has always ordered them), a ``z`` at a
+threshold, two costs at the edge of a comparison — that state is solved in full, so the search makes the full
+solve's choices, state by state; the answer is solved in full too.
 """
 
 from __future__ import annotations
