@@ -49,16 +49,25 @@ it goes all the way). ``exp_loops`` is the number of full iterations
 changes the fixed point. ``max_correction_step`` / ``max_correction_norm`` (thesis
 §4.2.4) cap how far one iteration / one frame moves an experience: they limit the
 speed of relaxation, not where it settles.
+
+Switched subsets. The robust check (:mod:`core.robust`) scores the fixed point over many subsets of one
+set of links. :class:`SwitchedRelaxation` computes their residuals without a factorisation each: only
+the links of the graph's 2-core (:func:`cycle_links`) can have a residual other than zero, and their
+normal matrix over a subset is a low-rank change of one factorised for a reference subset
+(Sherman–Morrison–Woodbury). :class:`LinkComponents` tells whether a subset still joins what the whole
+graph joins, which the update needs.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import LinAlgError
 from scipy.linalg.lapack import dpotrf, dpotrs
+from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.sparse.linalg import splu
 
 from core._buffers import GrowBuffer
@@ -479,3 +488,413 @@ def refine_jointly(
             break
     out[free, 3] = np.remainder(out[free, 3] + math.pi, TWO_PI) - math.pi
     return out
+
+
+def subtree_sums(parent: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Return, for every node of a forest, the sum of ``value`` over its subtree (itself and its descendants).
+
+    ``parent[i]`` is i's parent (a root is its own parent). Doubling: with ``T_k(v)`` the sum over the
+    descendants less than ``2^k`` links below v, ``T_{k+1}(v) = T_k(v) + Σ_{w: 2^k-th ancestor of w is v} T_k(w)``;
+    O(n log depth), no loop over nodes.
+    """
+    n = parent.size
+    depth, _ = sums_to_root(parent, (parent != np.arange(n)).astype(np.int64))
+    total = np.asarray(value, dtype=np.float64).copy()
+    up, reach = parent.copy(), 1
+    while n and reach <= int(depth.max()):
+        below = depth >= reach  # w with a 2^k-th ancestor
+        total = total + np.bincount(up[below], weights=total[below], minlength=n)
+        up, reach = up[up], 2 * reach
+    return total
+
+
+def cycle_links(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Return a mask (K,) of the links in the 2-core of the graph: on a cycle, or on a path between two cycles.
+
+    The rest are trees hanging from it (or joining an anchor to it), whose links every least-squares
+    solution satisfies exactly. Over a spanning forest (breadth first), the 2-core is the links outside the
+    forest and the forest links on the paths between their ends: the link from v to its parent is one when
+    v's subtree holds some but not all of its tree's ends of non-forest links (:func:`subtree_sums`).
+    """
+    k = src.size
+    out = np.zeros(k, dtype=bool)
+    if k == 0:
+        return out
+    _, labels = connected_components(sp.csr_matrix((np.ones(k), (src, dst)), shape=(n, n)), directed=False)
+    first = np.full(int(labels.max()) + 1, n, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
+    # one breadth-first forest: a virtual node n joined to each component's lowest node
+    rows = np.concatenate([src, first])
+    cols = np.concatenate([dst, np.full(first.size, n)])
+    graph = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n + 1, n + 1))
+    _, pred = breadth_first_order(graph, n, directed=False, return_predecessors=True)
+    parent = pred[:n].copy()
+    top = parent == n
+    parent[top] = np.flatnonzero(top)  # each component's lowest node is its tree's root
+    child = np.flatnonzero(parent != np.arange(n))
+    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
+    key = lo * n + hi
+    order = np.argsort(key, kind="stable")
+    tree = order[np.searchsorted(key[order], np.minimum(child, parent[child]) * n + np.maximum(child, parent[child]))]
+    out[:] = True
+    out[tree] = False  # the non-forest links
+    ends = np.bincount(np.concatenate([src[out], dst[out]]), minlength=n).astype(np.float64)
+    below = subtree_sums(parent, ends)
+    total = below[roots(parent)]
+    out[tree] = (below[child] > 0) & (below[child] < total[child])
+    return out
+
+
+#: a normalised residual above which a link is taken to lie on a cycle of the links solved over: a bridge's is zero
+#: but for rounding, below 1e-9 on the bench's maps
+ON_A_CYCLE = 1e-3
+
+
+class LinkComponents:
+    """The connected parts of a graph whose links other than ``fixed`` ones may be switched off.
+
+    The fixed links are contracted once (``node``: each experience's part of the fixed graph); the parts over a
+    set of switches are those of the contracted graph over the switched links that are on, kept as both
+    directions of each link sorted by their first end, so that a set's graph is a mask of one array.
+    """
+
+    def __init__(self, n: int, src: np.ndarray, dst: np.ndarray, fixed: np.ndarray) -> None:
+        fixed = np.asarray(fixed, dtype=bool)
+        on = np.flatnonzero(fixed)
+        self.size, self.node = connected_components(
+            sp.csr_matrix((np.ones(on.size), (src[on], dst[on])), shape=(n, n)), directed=False
+        )
+        self.fixed = on
+        self.switched = np.flatnonzero(~fixed)
+        a, b = self.node[src[self.switched]], self.node[dst[self.switched]]
+        first, second = np.concatenate([a, b]), np.concatenate([b, a])
+        order = np.argsort(first, kind="stable")
+        self._first, self._second = first[order], second[order].astype(np.int32)
+        self._link = np.tile(self.switched, 2)[order]  # the link of each direction
+        every = self.labels(np.ones(src.size, dtype=bool))
+        self.parts = int(np.max(every, initial=-1)) + 1  # the whole graph's
+        self._known: dict[bytes, bool] = {}  # the last sets tested
+
+    def labels(self, active: np.ndarray) -> np.ndarray | None:
+        """Return each fixed part's component over ``active`` (None when a fixed link is off)."""
+        if not active[self.fixed].all():
+            return None
+        on = active[self._link]
+        indptr = np.zeros(self.size + 1, dtype=np.int32)
+        np.cumsum(np.bincount(self._first[on], minlength=self.size), out=indptr[1:])
+        indices = self._second[on]
+        graph = sp.csr_matrix((np.ones(indices.size), indices, indptr), shape=(self.size, self.size))
+        return connected_components(graph, directed=True, connection="weak")[1]
+
+    def whole(self, active: np.ndarray, known: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
+        """Return whether ``active`` joins every part the whole graph joins.
+
+        ``known``: a set of switches found whole and its links' residuals ``z`` at the least-squares fixed point
+        over it. A link whose residual is not zero there lies on a cycle of it (a bridge's residual is zero: nothing
+        else pulls on it), so that set less that one link, with any links added, is whole too, and no count is
+        needed. Otherwise the parts are counted (the last sets tested are kept).
+        """
+        key = active.tobytes()
+        found = self._known.get(key)
+        if found is None and known is not None and self._known.get(known[0].tobytes()):
+            removed = np.flatnonzero(known[0] & ~active)
+            found = True if removed.size == 0 or (removed.size == 1 and known[1][removed[0]] > ON_A_CYCLE) else None
+        if found is None:
+            labels = self.labels(active)
+            found = labels is not None and int(np.max(labels, initial=-1)) + 1 == self.parts
+        self._remember(key, found)
+        return found
+
+    def remember(self, active: np.ndarray) -> None:
+        """Record that ``active`` is whole (a set Kruskal's rule has just joined)."""
+        self._remember(active.tobytes(), True)
+
+    def _remember(self, key: bytes, found: bool) -> None:
+        if key not in self._known and len(self._known) >= 64:
+            self._known.pop(next(iter(self._known)))
+        self._known[key] = found
+
+
+class SwitchedRelaxation:
+    """The relaxation's fixed point over subsets of one set of links, by low-rank updates of one factorisation.
+
+    Computes the link residuals of :func:`solve` (``passes=1``: windings from ``pose``'s headings, fixed per
+    link) over any subset ``A`` of the links that keeps the graph's parts whole, for the links whose residual
+    can be other than zero: those of the 2-core (:func:`cycle_links`). The trees hanging from it move rigidly
+    with their root and their links fit exactly; and a part with one anchor has residuals that a rigid motion
+    of the part leaves as they are (headings shift, positions turn), so each part of the 2-core is solved with
+    its lowest experience held at the origin (its *gauge*) instead of its anchor.
+
+    Chains. A run of fixed links through experiences with no other link (:func:`_chains`) takes, at the least
+    squares, the same residual on each of its m links, 1/m of the run's misclosure: the equations of its inner
+    experiences eliminated (Kron reduction), it is one link of weight 1/m between the experiences at its ends
+    (*terminals*) that measures the run's sum. Headings: the sum of the links' (windings taken). Positions: the
+    sum of each link's translation turned by its source's heading, which lies on the run at ``ψ_a + P + (k/m)·e``
+    (P the headings measured from the start ``a``, k links along, e the run's heading misclosure).
+
+    Over the free terminals the normal matrix is ``L_A = Bᵀ_A W B_A`` (B: incidence, +1 at the target, −1 at the
+    source; W the runs' weights). It is factorised once for a reference set R; for A, with D the switched links
+    on in exactly one of the two and ``S = diag(±1)`` (+1: on in A), ``L_A = L_R + B_D S B_Dᵀ`` and by the
+    Sherman–Morrison–Woodbury identity (Golub & Van Loan, *Matrix Computations*, 4th ed., §2.1.4)
+
+        L_A⁻¹ b = L_R⁻¹ b − W_D (S + B_Dᵀ W_D)⁻¹ B_Dᵀ L_R⁻¹ b,   W_D = L_R⁻¹ B_D,
+
+    one solve with R's factor per right-hand side plus a |D| × |D| system; the columns of W are solved once
+    per reference and kept. When |D| exceeds ``REBASE`` the reference moves to A (a new factorisation).
+    Headings and heights first (right-hand sides linear in the switches), then positions for those headings.
+    The residuals equal :func:`solve`'s up to rounding (tests/core/test_relaxation.py compares them on random graphs).
+    """
+
+    #: links in D beyond which the reference is factorised afresh at A. Measured on the bench's robust checks
+    #: (time per state scored): 16-24 the least, 8 and 48 1.2-1.7 times that (more factorisations; wider updates).
+    REBASE = 24
+
+    def __init__(
+        self, pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, anchor: np.ndarray,
+        parts: LinkComponents,
+    ) -> None:  # fmt: skip
+        n = pose.shape[0]
+        self.parts = parts  # the graph's parts over the links that may be switched off
+        self.usable = _one_anchor_each(n, src, dst, anchor) and not np.any(src == dst)
+        self.links = np.flatnonzero(cycle_links(n, src, dst)) if self.usable else np.zeros(0, np.int64)
+        switched = np.zeros(src.size, dtype=bool)
+        switched[parts.switched] = True
+        yaw = pose[:, 3]
+        winding = np.round((yaw[dst] - yaw[src] - transform[:, 3]) / TWO_PI)  # as solve() takes them
+        t = transform[self.links]
+        heading = t[:, 3] + TWO_PI * winding[self.links]
+        runs = _chains(n, src[self.links], dst[self.links], switched[self.links], heading)
+        self.run, self.offset, self.along, self.sign = runs.run, runs.offset, runs.along, runs.sign
+        self.switched = runs.switched  # the runs that are one switched link, and that link's position in ``links``
+        self.length = runs.length.astype(np.float64)
+        self.turned = self.sign * (t[:, 0] + 1j * t[:, 1])  # each link's translation, along its run
+        self.member = sp.csr_matrix((np.ones(self.links.size), (self.run, np.arange(self.links.size))),
+                                    shape=(runs.length.size, self.links.size)).astype(np.complex128)  # fmt: skip
+        rise = np.bincount(self.run, weights=self.sign * t[:, 2], minlength=runs.length.size)
+        self.linear = np.stack([runs.heading, rise])  # what each run measures of the fields linear in the switches
+        self.flat = not np.any(t[:, 2])  # no climb: the heights stay 0
+        self.local_src, self.local_dst, self.free = _local_indices(runs.start, runs.end)
+        nf, kr = self.free, runs.length.size
+        rows = np.concatenate([self.local_dst, self.local_src])
+        keep = rows < nf  # a gauge's row is dropped: it is held at the origin
+        values = np.concatenate([np.ones(kr), -np.ones(kr)])[keep]
+        self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kr), 2)[keep])), shape=(nf, kr))
+        self._incidence_c = self.incidence_t.astype(np.complex128)
+        self.weight = 1.0 / np.maximum(self.length, 1.0)
+        self._reference = np.zeros(self.switched[0].size, dtype=bool)
+        self._factor: object | None = None
+        self._fields = np.zeros((2, nf + 1))
+        self._slot = np.full(kr, -1, dtype=np.int64)
+        self._columns = np.zeros((0, nf + 1))
+        self._filled = 0
+
+    def residuals(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return the 2-core's links' residuals at the fixed point over ``active``: translation norms and headings.
+
+        The heading residuals are wrapped to [−π, π) as :func:`residuals` wraps them. None when ``active`` splits
+        a part of the graph (or turns a fixed link off): :func:`solve` then holds the experiences cut off still,
+        which the update does not model.
+        """
+        if not self.usable or not self.parts.whole(active):
+            return None
+        changed = active[self.links[self.switched[1]]]
+        d = np.flatnonzero(changed != self._reference)
+        if self._factor is None or d.size > self.REBASE:
+            self._rebase(changed)
+            d = d[:0]
+        on = np.ones(self.length.size)
+        on[self.switched[0]] = changed
+        fields = self._fields  # headings and heights at the terminals: L_A⁻¹ Bᵀ_A W m
+        runs = self.switched[0][d]
+        if d.size:
+            columns = self._solved_columns(runs)
+            ls, ld = self.local_src[runs], self.local_dst[runs]
+            sign = np.where(changed[d], 1.0, -1.0)
+            inverse = np.linalg.inv(np.diag(sign) + columns[:, ld].T - columns[:, ls].T)  # the capacitance's
+            fields = fields + _times(self.linear[:, runs] * sign, columns)
+            fields = fields - _times(_times(fields[:, ld] - fields[:, ls], inverse.T), columns)
+        src, dst = self.local_src, self.local_dst
+        miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
+        source = fields[0, src][self.run] + self.offset + self.along * miss[0, self.run]  # each link's source
+        turned = np.empty(source.size, dtype=np.complex128)
+        np.cos(source, out=turned.real)
+        np.sin(source, out=turned.imag)
+        planar = self.member @ (turned * self.turned)  # what each run measures in the plane
+        solved = self._factor.solve((self._incidence_c @ (planar * (on * self.weight))).view(np.float64).reshape(-1, 2))
+        xy = np.zeros(self.free + 1, dtype=np.complex128)
+        xy.real[: self.free] = solved[:, 0]
+        xy.imag[: self.free] = solved[:, 1]
+        if d.size:
+            xy -= _times(_times(inverse, xy[ld] - xy[ls]), columns)
+        distance = np.abs(xy[dst] - xy[src] - planar)
+        if not self.flat:
+            distance = np.hypot(distance, miss[1])
+        turn = miss[0] / self.length  # each link of a run takes 1/m of its misclosure
+        wrap = np.abs(turn) > math.pi
+        if wrap.any():
+            turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
+        return (distance / self.length)[self.run], self.sign * turn[self.run]
+
+    def _rebase(self, changed: np.ndarray) -> None:
+        """Factorise the normal matrix over the runs with the switched links ``changed`` on: the new reference."""
+        on = np.ones(self.length.size)
+        on[self.switched[0]] = changed
+        weight = sp.diags(on * self.weight)
+        normal = (self.incidence_t @ weight @ self.incidence_t.T).tocsc()
+        self._factor = splu(normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                            options={"SymmetricMode": True})  # fmt: skip
+        self._fields = np.zeros((2, self.free + 1))
+        rhs = np.ascontiguousarray(self.incidence_t @ (self.linear * (on * self.weight)).T)
+        self._fields[:, : self.free] = self._factor.solve(rhs).T
+        self._reference = changed.copy()
+        self._slot[:] = -1
+        self._filled = 0
+
+    def _solved_columns(self, runs: np.ndarray) -> np.ndarray:
+        """Return ``W_D`` as rows (|D|, free + 1; the gauge's entry 0): ``L_R⁻¹ b_r`` of each run, solved once."""
+        missing = runs[self._slot[runs] < 0]
+        if missing.size:
+            need = self._filled + missing.size
+            if need > self._columns.shape[0]:
+                grown = np.zeros((max(need, 2 * self._columns.shape[0], 8), self.free + 1))
+                grown[: self._filled] = self._columns[: self._filled]
+                self._columns = grown
+            rhs = np.zeros((self.free + 1, missing.size))
+            which = np.arange(missing.size)
+            rhs[self.local_dst[missing], which] = 1.0
+            rhs[self.local_src[missing], which] = -1.0
+            solved = self._factor.solve(np.ascontiguousarray(rhs[: self.free]))
+            self._columns[self._filled : need, : self.free] = solved.T
+            self._slot[missing] = np.arange(self._filled, need)
+            self._filled = need
+        return self._columns[self._slot[runs]]
+
+
+def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return ``a @ b`` (a vector or matrix times a matrix, or a matrix times a vector) without BLAS.
+
+    The low-rank update's products are small (tens of columns): BLAS splits them over its threads, which on a
+    busy machine made a scored state ten times slower (measured: 3.3 ms against 0.3 ms per state), and setting
+    its threads process-wide would reach every other thread of a server.
+    """
+    if b.ndim == 1:
+        return np.einsum("ij,j->i", a, b)
+    return np.einsum("...k,kj->...j", a, b)
+
+
+@dataclass(frozen=True, slots=True)
+class _Runs:
+    """Links grouped into runs (:func:`_chains`): per run and per link."""
+
+    start: np.ndarray  # (R,) the experience a run starts from
+    end: np.ndarray  # (R,) the experience it ends at
+    length: np.ndarray  # (R,) its links, m
+    heading: np.ndarray  # (R,) the headings it measures from start to end (windings taken)
+    switched: tuple[np.ndarray, np.ndarray]  # the runs that are one switched link, and that link (position)
+    run: np.ndarray  # (K,) each link's run
+    offset: np.ndarray  # (K,) the headings measured along its run from the start to the link's source
+    along: np.ndarray  # (K,) k/m: how far along its run the link's source lies
+    sign: np.ndarray  # (K,) +1 where the link points along its run, −1 against
+
+
+def _chains(n: int, src: np.ndarray, dst: np.ndarray, switched: np.ndarray, heading: np.ndarray) -> _Runs:
+    """Return the links grouped into runs between terminals: each switched link alone, fixed links in chains.
+
+    Terminals: experiences with other than two links, or with a switched one, and each part's lowest experience.
+    ``heading``: each link's measured heading change (windings taken).
+    """
+    degree = np.bincount(np.concatenate([src, dst]), minlength=n)
+    terminal = degree != 2
+    terminal[src[switched]] = terminal[dst[switched]] = True
+    if src.size:
+        _, part = connected_components(sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n)), directed=False)
+        lowest = np.full(int(part.max()) + 1, n, dtype=np.int64)
+        np.minimum.at(lowest, part[degree > 0], np.flatnonzero(degree > 0))
+        terminal[lowest[lowest < n]] = True
+    fixed, alone = np.flatnonzero(~switched), np.flatnonzero(switched)
+    chain = _walk(n, np.stack([src[fixed], dst[fixed]], axis=1), terminal, heading[fixed])
+    count = chain.length.size
+    run = np.empty(src.size, dtype=np.int64)
+    run[fixed] = chain.run
+    run[alone] = count + np.arange(alone.size)
+    offset, along, sign = np.zeros(src.size), np.zeros(src.size), np.ones(src.size)
+    offset[fixed], along[fixed], sign[fixed] = chain.offset, chain.along, chain.sign
+    return _Runs(
+        start=np.concatenate([chain.start, src[alone]]), end=np.concatenate([chain.end, dst[alone]]),
+        length=np.concatenate([chain.length, np.ones(alone.size, dtype=np.int64)]),
+        heading=np.concatenate([chain.heading, heading[alone]]),
+        switched=(count + np.arange(alone.size), alone), run=run, offset=offset, along=along, sign=sign,
+    )  # fmt: skip
+
+
+def _walk(n: int, ends: np.ndarray, terminal: np.ndarray, heading: np.ndarray) -> _Runs:
+    """Return the chains of the links ``ends`` (f, 2): fixed links whose inner experiences are not ``terminal``.
+
+    A link's end at a terminal gets a node of its own (n + 2·link + end), so that the links form paths, the
+    chains; each is walked breadth first from its lowest such node, which gives every node its depth k along its
+    chain and the headings measured from the start to it (:func:`sums_to_root`). ``switched`` is left empty.
+    """
+    f = ends.shape[0]
+    node = np.where(terminal[ends], n + 2 * np.arange(f)[:, None] + np.arange(2), ends)
+    size = n + 2 * f  # and a root, ``size``, above every chain's start
+    graph = sp.csr_matrix((np.ones(f), (node[:, 0], node[:, 1])), shape=(size + 1, size + 1))
+    _, component = connected_components(graph, directed=False)
+    copies = node[terminal[ends]]
+    first = np.full(size + 1, size + 1, dtype=np.int64)
+    np.minimum.at(first, component[copies], copies)  # each chain's start: its lowest terminal node
+    starts = first[first <= size]
+    walk = graph + sp.csr_matrix((np.ones(starts.size), (np.full(starts.size, size), starts)), shape=graph.shape)
+    _, pred = breadth_first_order(walk, size, directed=False, return_predecessors=True)
+    parent = np.where((pred >= 0) & (pred != size), pred, np.arange(size + 1))
+    along_run = parent[node[:, 1]] == node[:, 0]  # the link points away from its chain's start
+    step = np.zeros(size + 1)
+    step[np.where(along_run, node[:, 1], node[:, 0])] = np.where(along_run, heading, -heading)
+    measured, _ = sums_to_root(parent, step)
+    depth, _ = sums_to_root(parent, (parent != np.arange(size + 1)).astype(np.int64))
+    label = np.unique(component[node[:, 0]], return_inverse=True)[1].astype(np.int64)
+    count = int(label.max()) + 1 if f else 0
+    length = np.zeros(count, dtype=np.int64)
+    np.maximum.at(length, label, depth[node].max(axis=1, initial=0))
+    far = node[np.arange(f), np.argmax(depth[node], axis=1)] if f else np.zeros(0, np.int64)
+    last = np.zeros(count, dtype=np.int64)
+    last[label[depth[far] == length[label]]] = far[depth[far] == length[label]]
+    begin = np.zeros(count, dtype=np.int64)
+    begin[label] = first[component[node[:, 0]]]
+    flat = ends.ravel()  # a terminal node n + 2·link + end is that link end's experience
+    return _Runs(
+        start=flat[begin - n], end=flat[last - n], length=length, heading=measured[last],
+        switched=(np.zeros(0, np.int64), np.zeros(0, np.int64)), run=label, offset=measured[node[:, 0]],
+        along=depth[node[:, 0]] / np.maximum(length[label], 1), sign=np.where(along_run, 1.0, -1.0),
+    )  # fmt: skip
+
+
+def _one_anchor_each(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> bool:
+    """Return whether every connected part of the graph holds exactly one anchor among its linked experiences."""
+    if src.size == 0:
+        return True
+    _, labels = connected_components(sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n)), directed=False)
+    linked = np.zeros(n, dtype=bool)
+    linked[src] = linked[dst] = True
+    parts = np.unique(labels[linked])
+    count = np.bincount(labels[linked & np.asarray(anchor, dtype=bool)], minlength=int(labels.max()) + 1)
+    return bool(np.all(count[parts] == 1))
+
+
+def _local_indices(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Return the links' ends as indices among the free experiences of their graph, and their number.
+
+    Each connected part's lowest experience is its gauge, held at the origin: its index is the number of free
+    experiences (one past the last), where the solvers keep a zero.
+    """
+    if src.size == 0:
+        return src.astype(np.int64), dst.astype(np.int64), 0
+    nodes = np.unique(np.concatenate([src, dst]))
+    size = nodes.size
+    a, b = np.searchsorted(nodes, src), np.searchsorted(nodes, dst)
+    _, labels = connected_components(sp.csr_matrix((np.ones(a.size), (a, b)), shape=(size, size)), directed=False)
+    gauge = np.zeros(size, dtype=bool)
+    gauge[np.unique(labels, return_index=True)[1]] = True  # the first (lowest) node of each part
+    index = np.cumsum(~gauge) - 1
+    free = int(np.count_nonzero(~gauge))
+    index[gauge] = free
+    return index[a], index[b], free

@@ -146,11 +146,22 @@ switched off stays switchable (:meth:`core.experience_map.ExperienceMap.check_li
 and at a tie the map as it stood wins (two merge links, either of which alone joins a session without
 strain, cost the same; rounding noise chose between them). Everything is deterministic (no random numbers
 outside the test hook :func:`false_loop_links`).
+
+Scoring. Each set of switches the search tries is scored without a factorisation of its own
+(:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
+that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
+exactly), each run of odometry links between two closures as one link. Its residuals agree with the full
+solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z``. Where rounding could make the choice —
+two ``z`` that the search orders within ``ROUNDING`` of each other (links in series through experiences with two
+links carry the same ``z`` exactly, and the full solve's rounding has always ordered them), a ``z`` at a
+threshold, two costs at the edge of a comparison — that state is solved in full, so the search makes the full
+solve's choices, state by state; the answer is solved in full too.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -169,7 +180,16 @@ from core.pcm import (
     single_consistency,
     turn_allowance,
 )
-from core.relaxation import length_weights, refine_jointly, residuals, roots, solve, sums_to_root
+from core.relaxation import (
+    LinkComponents,
+    SwitchedRelaxation,
+    length_weights,
+    refine_jointly,
+    residuals,
+    roots,
+    solve,
+    sums_to_root,
+)
 
 #: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
 SWITCHABLE_KINDS = (1, 2)
@@ -192,6 +212,13 @@ STORED_LINK_HOLD = 1.0
 #: ``symmetric`` seed 4: 18.76023303 against 18.76023308); at 1e-7 a test's wrong links stayed on
 #: (``test_the_joint_scoring_switches_wrong_links_off_where_ratslams_does``).
 TIE = 1e-8
+#: Relative gap within which two ``z`` values, a ``z`` and a threshold, or two costs about to be compared are decided
+#: on the full solve (:meth:`_Problem.exact`) rather than the low-rank one: the two agree to about 3e-9 (``z``) and
+#: 2e-11 (costs) relative on the bench's maps, and links in series along experiences with two links carry the same
+#: ``z`` exactly, so that rounding decides which of them the full solve puts first.
+ROUNDING = 1e-6
+#: The same for costs (relative to the larger): 50 times the gap measured, a tenth of ``TIE``
+COST_ROUNDING = 1e-9
 
 
 @dataclass(frozen=True, slots=True)
@@ -239,10 +266,14 @@ def normalised_residuals(
 ) -> np.ndarray:
     """Return ``z_l`` (K,): each link's residual divided by the drift expected over one link length."""
     res = residuals(pose, src, dst, transform)
+    return _normalise(np.sqrt(np.einsum("ij,ij->i", res[:, :3], res[:, :3])), res[:, 3], length, drift)
+
+
+def _normalise(distance: np.ndarray, turn: np.ndarray, length: float, drift: Drift) -> np.ndarray:
+    """Return ``z_l`` from each link's translation residual (m) and heading residual (rad) (module docstring)."""
     scale_t = max(drift.drift * length, 1e-12)
     scale_y = max(drift.yaw_drift * length, 1e-12)
-    zt = np.sqrt(np.einsum("ij,ij->i", res[:, :3], res[:, :3])) / scale_t
-    return np.hypot(zt, res[:, 3] / scale_y)
+    return np.hypot(distance / scale_t, turn / scale_y)
 
 
 def switch_off_outliers(
@@ -472,13 +503,12 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
     # outliers found: by the descent, or new links the map as it stood refuted (the others may fit only beside them)
     descended = not first_active[problem.can].all() or bool(problem.refuted.any())
     if problem.can.any() and (strained or descended):
-        n, src, dst = problem.start.shape[0], problem.src, problem.dst
-        bare_active = problem.couple(keep_connected(n, src, dst, fixed, best.z), best.z)  # bridges stay on
+        bare_active = problem.couple(problem.keep_connected(fixed, best.z, best), best.z, best)  # bridges stay on
         bare = problem.state(bare_active)
         # Links that agree with one another bend the graph until none of them stands out (a look-alike place
         # closed again and again): start also from the odometry alone, with the switchable links that fit it on.
         if strained:
-            fits = problem.eliminate(keep_connected(n, src, dst, fixed | (bare.z <= problem.drift.threshold), bare.z))
+            fits = problem.eliminate(problem.keep_connected(fixed | (bare.z <= problem.drift.threshold), bare.z, bare))
             if _better(fits, best):
                 best = fits
     best = problem.switch_back_on(problem.switch_off_strained(best))
@@ -498,7 +528,7 @@ def _search(problem: _Problem, best: _State, distance: np.ndarray, status_quo: n
         kept = _status_quo_start(problem, status_quo)
         if kept is not None and _holds(kept, best, _hold(problem, kept, best) * margin):
             best = kept
-    return best
+    return problem.exact(best)
 
 
 def _hold(problem: _Problem, status_quo: _State, best: _State) -> float:
@@ -523,7 +553,7 @@ def _status_quo_start(problem: _Problem, status_quo: np.ndarray) -> _State | Non
     # ones that fit the map as it stood first (not the descent's answer, which may have bent the map round another)
     z_then = normalised_residuals(problem.start, problem.src, problem.dst, problem.transform, problem.length,
                                   problem.drift)  # fmt: skip
-    whole = keep_connected(problem.start.shape[0], problem.src, problem.dst, status_quo, z_then)
+    whole = problem.keep_connected(status_quo, z_then)
     return problem.switch_back_on(problem.eliminate(whole))
 
 
@@ -544,7 +574,25 @@ def _pairwise_start(problem: _Problem, bare: _State, bare_active: np.ndarray, di
 
 def _better(trial: _State, best: _State, margin: float = 0.0) -> bool:
     """Return whether ``trial`` has the lower TLS cost (by more than ``margin``, and more than a tie: :func:`_tie`)."""
+    trial, best = _settled(trial, best, lambda t, b: t.cost - b.cost + max(margin, TIE * max(1.0, b.cost)))
     return trial.cost < best.cost - max(margin, TIE * max(1.0, best.cost))
+
+
+def _close(values: np.ndarray) -> bool:
+    """Return whether two of ``values`` are within rounding of each other (``ROUNDING``, relative)."""
+    if values.size < 2:
+        return False
+    ordered = np.sort(values)
+    return bool(np.any(np.diff(ordered) <= ROUNDING * np.maximum(1.0, np.abs(ordered[1:]))))
+
+
+def _settled(trial: _State, best: _State, gap: Callable[[_State, _State], float]) -> tuple[_State, _State]:
+    """Return the two states, solved in full (:meth:`_Problem.exact`) where ``gap`` is within rounding of 0."""
+    if (trial.solved is None or best.solved is None) and abs(gap(trial, best)) <= COST_ROUNDING * max(
+        1.0, abs(trial.cost), abs(best.cost)
+    ):
+        return trial.problem.exact(trial), best.problem.exact(best)
+    return trial, best
 
 
 def _holds(status_quo: _State, best: _State, hold: float) -> bool:
@@ -552,6 +600,7 @@ def _holds(status_quo: _State, best: _State, hold: float) -> bool:
 
     A negative ``hold``: the status quo must itself be cheaper by more than −``hold``.
     """
+    status_quo, best = _settled(status_quo, best, lambda q, b: q.cost - b.cost - hold)
     return status_quo.cost <= best.cost + hold or _tie(status_quo, best)
 
 
@@ -561,15 +610,24 @@ def _tie(trial: _State, best: _State) -> bool:
     E.g. two links, either of which alone joins a part that then hangs on it without strain: the graph
     cannot tell them apart, the map as it stood can.
     """
+    trial, best = _settled(trial, best, lambda t, b: abs(t.cost - b.cost) - TIE * max(1.0, b.cost))
     return abs(trial.cost - best.cost) <= TIE * max(1.0, best.cost)
 
 
 @dataclass(frozen=True, slots=True)
 class _State:
+    """One set of switches scored: the links on, their ``z``, the TLS cost, and the poses when solved in full."""
+
     active: np.ndarray
-    pose: np.ndarray
     z: np.ndarray
     cost: float
+    problem: _Problem
+    solved: np.ndarray | None = None  # the poses, where the state was solved in full (:meth:`_Problem.exact`)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """Return the poses at the fixed point over ``active`` (:func:`core.relaxation.solve`, solved on demand)."""
+        return self.solved if self.solved is not None else self.problem.exact(self).pose
 
 
 class _Problem:
@@ -603,12 +661,19 @@ class _Problem:
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
         self.joint = False  # score on the joint least squares (exp_relax_joint), not RatSLAM's fixed point
+        self._solver: tuple[LinkComponents, SwitchedRelaxation, np.ndarray, np.ndarray] | None = None  # on first use
+        self._can = np.zeros(0, np.int64)  # the switchable links
+        self._core = (np.zeros(0, np.int64), np.zeros(0, bool))  # the 2-core's links, and which may be switched
+        self._held = np.zeros(0, np.int64)  # the links with a switch prior
+        self._exact: dict[bytes, _State] = {}  # states solved in full, by their switches
 
     def fresh_budget(self) -> None:
         """Give the next start of the search its own ``max_solves`` solves."""
         self.limit = self.solves + self.budget
 
-    def couple(self, active: np.ndarray, z: np.ndarray | None = None) -> np.ndarray:
+    def couple(
+        self, active: np.ndarray, z: np.ndarray | None = None, scored: _State | None = None, near: _State | None = None
+    ) -> np.ndarray:
         """Return ``active`` with gated links off and each standby link on when its partner is off.
 
         A standby link is also on when the loop link that began its relocalisation is off: the robot
@@ -618,39 +683,159 @@ class _Problem:
         session 2 hung from one end).
 
         Then the links that keep every component whole are turned back on (:func:`keep_connected`,
-        in increasing ``z``).
+        in increasing ``z``; ``scored``: the state ``z`` is of, and ``near`` the state ``active`` comes from, if not
+        that one: :meth:`keep_connected`).
         """
         links, partner = self.standby
-        if not links.size and not self.gated.any():
+        gated, began = self._prepared()[2:]
+        if not links.size and not gated.size:
             return active
         active = active.copy()
-        active[self.gated] = False
+        active[gated] = False
         on = ~active[partner]
-        closure = self.standby_closure
-        if closure.size:
-            began = closure >= 0
-            on[began] |= ~active[closure[began]]
+        if began.size:
+            on[began] |= ~active[self.standby_closure[began]]
         active[links] = on
-        return keep_connected(
-            self.start.shape[0], self.src, self.dst, active, np.zeros(active.size) if z is None else z
-        )
+        return self.keep_connected(active, np.zeros(active.size) if z is None else z, scored, near)
+
+    def keep_connected(
+        self, active: np.ndarray, z: np.ndarray, scored: _State | None = None, near: _State | None = None
+    ) -> np.ndarray:
+        """Return :func:`keep_connected` of ``active`` over this graph (Kruskal only where a part is split).
+
+        Off links whose ends ``active`` already joins are never turned on, so Kruskal's loop runs over the others
+        alone (in the same order), and a set that joins every part (:meth:`core.relaxation.LinkComponents.whole`)
+        is returned as it is without one. ``scored``: the state ``z`` is of, solved in full (:meth:`exact`) where
+        two of the links the loop orders are within rounding of each other. ``near`` (default ``scored``): a state
+        ``active`` was made from; when that one joins every part and ``active`` lacks at most one of its links,
+        on a cycle there, ``active`` joins every part too (:meth:`core.relaxation.LinkComponents.whole`).
+        """
+        parts = self._prepared()[0]
+        near = scored if near is None else near
+        if parts.whole(active, None if near is None or self.joint else (near.active, near.z)):
+            return active.copy()
+        labels = parts.labels(active)
+        if labels is None:
+            return keep_connected(self.start.shape[0], self.src, self.dst, active, z)
+        part = labels[parts.node]
+        a, b = part[self.src], part[self.dst]
+        out = active.copy()
+        joins = np.flatnonzero(~active & (a != b))
+        if scored is not None and _close(z[joins]):
+            z = self.exact(scored).z
+        parent = np.arange(int(labels.max()) + 1)
+        for link in joins[np.argsort(z[joins], kind="stable")].tolist():
+            ra, rb = _find(parent, int(a[link])), _find(parent, int(b[link]))
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+                out[link] = True
+        parts.remember(out)
+        return out
 
     def state(self, active: np.ndarray) -> _State:
-        """Solve the relaxation over ``active`` (windings from the start headings) and score it."""
+        """Score the relaxation's fixed point over ``active`` (windings from the start headings).
+
+        The residuals come from :class:`core.relaxation.SwitchedRelaxation` (low-rank updates of one
+        factorisation, the 2-core's links only; the others' are 0) where it applies: RatSLAM's fixed point
+        (not ``joint``) and a set of switches that keeps every part whole; otherwise from a full solve
+        (:meth:`exact`). The two agree to rounding (about 1e-10 m on the bench's maps).
+        """
+        self.solves += 1
+        switched = None if self.joint else self._prepared()[1]
+        found = None if switched is None else switched.residuals(active)
+        if found is None:
+            return self.exact(_State(active, np.zeros(0), 0.0, self))
+        z = np.zeros(self.src.size)
+        core = _normalise(*found, self.length, self.drift)
+        z[switched.links] = core
+        links, _ = self.standby
+        off = ~active[links]
+        if self._at_threshold(core, z[links[off]] * self.standby_scale[off]):
+            return self.exact(_State(active, z, 0.0, self))
+        return _State(active, z, self._core_cost(active, z, core), self)
+
+    def _at_threshold(self, core: np.ndarray, own: np.ndarray) -> bool:
+        """Return whether a ``z`` lies within rounding of a threshold the search compares it with.
+
+        ``c̄`` (outliers) and ``c̄/2`` (strain) for the 2-core's ``z`` (``core``; the others' are 0), and the reach
+        of a standby link left out (``own``, :meth:`overreached`).
+        """
+        c = self.drift.threshold
+        reach = 1.0 / self.drift.drift
+        return bool(np.any(np.abs(np.abs(core - 0.75 * c) - 0.25 * c) <= ROUNDING * max(1.0, c))
+                    or np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach)))  # fmt: skip
+
+    def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray) -> float:
+        """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual."""
+        links, can = self._core
+        c2 = self.drift.threshold**2
+        square = core * core
+        cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
+        cost += c2 * float(np.sum(self.prior[self._held][~active[self._held]]))
+        return cost + 2.0 * c2 * self.overreached(active, z)
+
+    def decided(self, state: _State, links: np.ndarray, top: bool = False) -> _State:
+        """Return ``state``, solved in full (:meth:`exact`) where two of ``links``' ``z`` are within rounding.
+
+        The search orders ``links`` by ``z`` (``top``: takes the largest only); the full solve's rounding is the
+        order the check has always taken where they tie.
+        """
+        if state.solved is not None or links.size < 2:
+            return state
+        z = state.z[links]
+        if top:
+            z = np.partition(z, links.size - 2)[-2:]
+        return self.exact(state) if _close(z) else state
+
+    def exact(self, state: _State) -> _State:
+        """Return ``state`` solved in full (:func:`core.relaxation.solve`, and the joint refinement if ``joint``)."""
+        if state.solved is not None:
+            return state
+        key = state.active.tobytes()
+        if key in self._exact:
+            return self._exact[key]
+        if len(self._exact) >= 16:
+            self._exact.clear()
+        self._exact[key] = solved = self._solve(state.active)
+        return solved
+
+    def _solve(self, active: np.ndarray) -> _State:
+        """Return the state over ``active`` from a full solve (as :meth:`state` before its low-rank form)."""
         on = np.flatnonzero(active)
         graph = (self.src[on], self.dst[on], self.transform[on])
         pose = solve(self.start, *graph, self.anchor, passes=1)
-        self.solves += 1
         scored = pose
         if self.joint:
             scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.heading_weight,
                                     weight=self.weight[on])  # fmt: skip
         z = normalised_residuals(scored, self.src, self.dst, self.transform, self.length, self.drift)
+        return _State(active, z, self.cost(active, z), self, pose)
+
+    def cost(self, active: np.ndarray, z: np.ndarray) -> float:
+        """Return the TLS cost C of the switches ``active`` with residuals ``z`` (module docstring)."""
         c2 = self.drift.threshold**2
         fixed = ~self.can & active  # standby links count while they stand in
         cost = float(ODOMETRY_WEIGHT * np.sum(z[fixed] ** 2) + np.sum(np.minimum(z[self.can] ** 2, c2)))
         cost += c2 * float(np.sum(self.prior[~active]))  # the switch priors of the links that stood
-        return _State(active, pose, z, cost + 2.0 * c2 * self.overreached(active, z))
+        return cost + 2.0 * c2 * self.overreached(active, z)
+
+    def _prepared(self) -> tuple[LinkComponents, SwitchedRelaxation, np.ndarray, np.ndarray]:
+        """Return the search's fixed structures, built once: parts, solver, gated links, standby links begun.
+
+        The graph's parts over the links the search may switch (:class:`core.relaxation.LinkComponents`), the
+        low-rank solver, the gated links, and the standby links whose relocalisation a loop link began.
+        """
+        if self._solver is None:
+            changing = self.can | self.gated
+            changing[self.standby[0]] = True
+            parts = LinkComponents(self.start.shape[0], self.src, self.dst, ~changing)
+            switched = SwitchedRelaxation(self.start, self.src, self.dst, self.transform, self.anchor, parts)
+            began = np.flatnonzero(self.standby_closure >= 0) if self.standby_closure.size else np.zeros(0, np.int64)
+            self._solver = (parts, switched, np.flatnonzero(self.gated), began)
+            self._core = switched.links, self.can[switched.links]
+            self._held = np.flatnonzero(self.prior)
+            self._can = np.flatnonzero(self.can)
+        return self._solver
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:
         """Return how many reckoning links left on standby miss the map by more than their own length.
@@ -686,12 +871,13 @@ class _Problem:
         while improved and self.solves < self.limit:
             improved = False
             strained = np.flatnonzero(best.active & self.closures & (best.z > 0.5 * self.drift.threshold))
+            best = self.decided(best, strained)
             for link in strained[np.argsort(-best.z[strained], kind="stable")].tolist():
                 if self.solves >= self.limit:
                     break
                 trial_active = best.active.copy()
                 trial_active[link] = False
-                trial = self.eliminate(trial_active)
+                trial = self.eliminate(trial_active, near=best)
                 if _better(trial, best):
                     best, improved = trial, True
                     break
@@ -703,31 +889,34 @@ class _Problem:
         while improved and self.solves < self.limit:
             improved = False
             off = np.flatnonzero(~best.active & self.can)
+            best = self.decided(best, off)
             for link in off[np.argsort(best.z[off], kind="stable")].tolist():
                 if best.active[link] or self.solves >= self.limit:
                     continue
                 trial_active = best.active.copy()
                 trial_active[link] = True
-                trial = self.eliminate(trial_active, keep_on=link)
+                trial = self.eliminate(trial_active, keep_on=link, near=best)
                 # a link that fits as the map stands comes back on at no cost, if nothing else goes off for it
                 if _better(trial, best) or (_tie(trial, best) and not (best.active & ~trial.active).any()):
                     best, improved = trial, True
         return best
 
-    def eliminate(self, active: np.ndarray, keep_on: int = -1) -> _State:
-        """Switch off the worst active switchable link while one exceeds ``c̄`` (never a bridge nor ``keep_on``)."""
-        current = self.state(self.couple(active))
+    def eliminate(self, active: np.ndarray, keep_on: int = -1, near: _State | None = None) -> _State:
+        """Switch off the worst active switchable link while one exceeds ``c̄`` (never a bridge nor ``keep_on``).
+
+        ``near``: the state ``active`` differs from by a link (:meth:`keep_connected`'s shortcut).
+        """
+        current = self.state(self.couple(active, near=near))
         while self.solves < self.limit:
-            over = current.active & self.can & (current.z > self.drift.threshold)
-            if keep_on >= 0:
-                over[keep_on] = False
-            if not over.any():
+            can = self._can
+            candidates = can[current.active[can] & (current.z[can] > self.drift.threshold) & (can != keep_on)]
+            if not candidates.size:
                 break
-            candidates = np.flatnonzero(over)
+            current = self.decided(current, candidates, top=True)
             trial = current.active.copy()
             trial[candidates[np.argmax(current.z[candidates])]] = False
-            trial = self.couple(trial, current.z)
-            trial = keep_connected(self.start.shape[0], self.src, self.dst, trial, current.z)
+            trial = self.couple(trial, current.z, current)
+            trial = self.keep_connected(trial, current.z, current)
             if np.array_equal(trial, current.active):  # only bridges exceed the threshold
                 break
             current = self.state(trial)

@@ -12,11 +12,21 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core import Engine
 from core.config import Params
 from core.experience_map import ExperienceMap, LinkKind
 from core.motion import Motion
+from core.relaxation import (
+    LinkComponents,
+    SwitchedRelaxation,
+    cycle_links,
+    residuals,
+    solve,
+    subtree_sums,
+)
 from tests.worlds import StripWorld
 
 TOLERANCE = 1e-6
@@ -325,3 +335,216 @@ def test_a_long_link_weighs_as_the_odometry_it_spans_in_the_joint_refinement(wei
     joint = refine_jointly(pose, src, dst, transform, anchor, weight=weight)
     assert joint[10, 0] == pytest.approx(end, abs=1e-9)
     np.testing.assert_allclose(np.diff(joint[:, 0]), end / 10.0, atol=1e-9)  # the chain stretches evenly
+
+
+# ---------------------------------------------------------------- the robust check's low-rank solve
+
+
+@st.composite
+def _random_graph(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A random tree of fixed links (odometry) and extra links between random ends; poses and switchable mask.
+
+    Returns (pose, src, dst, transform, fixed): the tree links come first; some of them are switchable too.
+    """
+    n = draw(st.integers(2, 24))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    parent = np.array([rng.integers(0, i) for i in range(1, n)], dtype=np.int64)
+    extra = draw(st.integers(0, 2 * n))
+    a = rng.integers(0, n, extra)
+    b = (a + rng.integers(1, n, extra)) % n  # never a self-loop
+    src = np.concatenate([parent, a])
+    dst = np.concatenate([np.arange(1, n), b])
+    transform = np.column_stack([rng.uniform(-2, 2, src.size), rng.uniform(-2, 2, src.size),
+                                 rng.uniform(-0.3, 0.3, src.size), rng.uniform(-3, 3, src.size)])  # fmt: skip
+    pose = np.column_stack([rng.uniform(-5, 5, (n, 3)), rng.uniform(-math.pi, math.pi, n)])
+    fixed = np.zeros(src.size, dtype=bool)
+    fixed[: n - 1] = rng.random(n - 1) < draw(st.sampled_from([0.5, 0.9, 1.0]))
+    return pose, src, dst, transform, fixed
+
+
+@st.composite
+def _laps_graph(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A route of fixed links (odometry) with closures between random places: long runs between the closures.
+
+    Some closures are fixed too (chords the search never switches), and the route's links point either way.
+    Returns (pose, src, dst, transform, fixed) as :func:`_random_graph`.
+    """
+    n = draw(st.integers(3, 60))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    closures = draw(st.integers(0, max(1, n // 4)))
+    a = rng.integers(0, n, closures)
+    b = (a + rng.integers(2, n, closures)) % n
+    flip = rng.random(n - 1) < 0.2
+    src = np.concatenate([np.where(flip, np.arange(1, n), np.arange(n - 1)), a])
+    dst = np.concatenate([np.where(flip, np.arange(n - 1), np.arange(1, n)), b])
+    transform = np.column_stack([rng.uniform(-2, 2, src.size), rng.uniform(-2, 2, src.size),
+                                 rng.uniform(-0.3, 0.3, src.size) * draw(st.sampled_from([0.0, 1.0])),
+                                 rng.uniform(-3, 3, src.size)])  # fmt: skip
+    pose = np.column_stack([rng.uniform(-5, 5, (n, 3)), rng.uniform(-math.pi, math.pi, n)])
+    fixed = np.concatenate([np.ones(n - 1, dtype=bool), rng.random(closures) < 0.3])
+    return pose, src, dst, transform, fixed
+
+
+def _exact_link_residuals(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray,
+                          active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The old computation: the full solve over ``active`` (solve, passes=1), then every link's residual."""
+    on = np.flatnonzero(active)
+    solved = solve(pose, src[on], dst[on], transform[on], _anchors(pose.shape[0], src, dst), passes=1)
+    res = residuals(solved, src, dst, transform)
+    return np.linalg.norm(res[:, :3], axis=1), res[:, 3]
+
+
+def _anchors(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Each connected part's lowest experience (as core.robust.component_anchors, computed by hand)."""
+    label = np.arange(n)
+    for _ in range(n):  # label propagation: the lowest id reachable
+        for a, b in zip(src.tolist(), dst.tolist(), strict=True):
+            label[a] = label[b] = min(label[a], label[b])
+    return label == np.arange(n)
+
+
+def _whole_by_count(n: int, src: np.ndarray, dst: np.ndarray, active: np.ndarray) -> bool:
+    """Whether ``active`` joins what all the links join: union-find by hand, component counts compared."""
+
+    def parts(links: np.ndarray) -> int:
+        root = list(range(n))
+
+        def find(i: int) -> int:
+            while root[i] != i:
+                i = root[i]
+            return i
+
+        for link in links.tolist():
+            root[find(int(src[link]))] = find(int(dst[link]))
+        return len({find(i) for i in range(n)})
+
+    return parts(np.flatnonzero(active)) == parts(np.arange(src.size))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 60), st.integers(0, 2**31 - 1))
+def test_subtree_sums_are_the_sums_over_each_nodes_descendants(n: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    parent = np.arange(n)
+    for i in range(1, n):
+        if rng.random() < 0.9:  # otherwise i roots a tree of its own
+            parent[i] = rng.integers(0, i)
+    value = rng.normal(size=n)
+    expected = np.zeros(n)
+    for i in range(n):  # walk up from each node, adding its value to itself and every ancestor
+        j = i
+        expected[j] += value[i]
+        while parent[j] != j:
+            j = parent[j]
+            expected[j] += value[i]
+    assert subtree_sums(parent, value) == pytest.approx(expected, abs=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(_random_graph())
+def test_cycle_links_are_what_peeling_the_leaves_leaves(graph: tuple[np.ndarray, ...]) -> None:
+    pose, src, dst, _, _ = graph
+    n = pose.shape[0]
+    alive = np.ones(src.size, dtype=bool)
+    changed = True
+    while changed:  # the 2-core: take away the links of experiences with one link until none is left
+        degree = np.bincount(np.concatenate([src[alive], dst[alive]]), minlength=n)
+        leaf = alive & ((degree[src] == 1) | (degree[dst] == 1))
+        changed = bool(leaf.any())
+        alive &= ~leaf
+    assert cycle_links(n, src, dst).tolist() == alive.tolist()
+
+
+def test_cycle_links_of_a_cycle_with_a_tail_and_a_pair_of_parallel_links() -> None:
+    # 0-1-2-0 a triangle, 2-3-4 a tail, 5=6 two links between the same pair, 7 alone
+    src = np.array([0, 1, 2, 2, 3, 5, 6])
+    dst = np.array([1, 2, 0, 3, 4, 6, 5])
+    assert cycle_links(8, src, dst).tolist() == [True, True, True, False, False, True, True]
+    assert not cycle_links(8, src[:5][[0, 1, 3, 4]], dst[:5][[0, 1, 3, 4]]).any()  # a tree has none
+
+
+@settings(max_examples=60, deadline=None)
+@given(_random_graph(), st.integers(0, 2**31 - 1))
+def test_link_components_tell_whole_sets_as_a_count_does(graph: tuple[np.ndarray, ...], seed: int) -> None:
+    pose, src, dst, _, fixed = graph
+    n = pose.shape[0]
+    rng = np.random.default_rng(seed)
+    parts = LinkComponents(n, src, dst, fixed)
+    for _ in range(6):
+        active = fixed | (rng.random(src.size) < rng.uniform(0.2, 1.0))
+        assert parts.whole(active) == _whole_by_count(n, src, dst, active)
+    # and must not: a fixed link off is never whole, though the rest may join the graph as all links do
+    if fixed.any():
+        active = np.ones(src.size, dtype=bool)
+        active[np.flatnonzero(fixed)[0]] = False
+        assert not parts.whole(active)
+
+
+def test_a_set_less_one_link_on_a_cycle_is_known_whole_without_a_count() -> None:
+    src, dst = np.array([0, 1, 2, 2]), np.array([1, 2, 0, 3])  # a triangle and a tail
+    parts = LinkComponents(4, src, dst, np.zeros(4, dtype=bool))
+    every = np.ones(4, dtype=bool)
+    assert parts.whole(every)
+    counted: list[bool] = []
+    count = parts.labels
+    parts.labels = lambda active: counted.append(True) or count(active)  # type: ignore[method-assign]
+    z = np.array([0.5, 0.5, 0.5, 0.0])  # the triangle's links pull; the tail's (a bridge) does not
+    assert parts.whole(np.array([False, True, True, True]), (every, z))
+    assert not counted
+    # must count: the bridge is no cycle link, and without it the set is not whole
+    assert not parts.whole(np.array([True, True, True, False]), (every, z))
+    assert counted == [True]
+
+
+@settings(max_examples=80, deadline=None)
+@given(_random_graph(), st.integers(0, 2**31 - 1), st.sampled_from([0, 2, 24]))
+def test_the_low_rank_solve_gives_the_full_solves_residuals(
+    graph: tuple[np.ndarray, ...], seed: int, rebase: int
+) -> None:
+    """Differential: a run of random switches against the full solve of each; ``rebase`` 0 factorises every set."""
+    _compare_with_full_solves(graph, seed, rebase)
+
+
+@settings(max_examples=60, deadline=None)
+@given(_laps_graph(), st.integers(0, 2**31 - 1), st.sampled_from([0, 24]))
+def test_the_low_rank_solve_gives_the_full_solves_residuals_along_long_runs(
+    graph: tuple[np.ndarray, ...], seed: int, rebase: int
+) -> None:
+    """The same on routes with few closures: runs of many fixed links, some pointing against the run."""
+    _compare_with_full_solves(graph, seed, rebase)
+
+
+def _compare_with_full_solves(graph: tuple[np.ndarray, ...], seed: int, rebase: int) -> None:
+    pose, src, dst, transform, fixed = graph
+    n = pose.shape[0]
+    rng = np.random.default_rng(seed)
+    anchor = _anchors(n, src, dst)
+    switched = SwitchedRelaxation(pose, src, dst, transform, anchor, LinkComponents(n, src, dst, fixed))
+    switched.REBASE = rebase
+    assert switched.usable
+    core = np.zeros(src.size, dtype=bool)
+    core[switched.links] = True
+    for _ in range(8):
+        active = fixed | (rng.random(src.size) < rng.uniform(0.3, 1.0))
+        found = switched.residuals(active)
+        if not _whole_by_count(n, src, dst, active):
+            assert found is None  # the full solve holds what is cut off still: not modelled
+            continue
+        assert found is not None
+        distance, turn = _exact_link_residuals(pose, src, dst, transform, active)
+        assert found[0] == pytest.approx(distance[core], abs=1e-8)
+        assert np.abs(np.remainder(found[1] - turn[core] + math.pi, 2 * math.pi) - math.pi).max(initial=0) < 1e-8
+        assert distance[~core] == pytest.approx(0.0, abs=1e-8)  # off the 2-core every link fits exactly
+        assert np.abs(turn[~core]).max(initial=0.0) < 1e-8
+
+
+def test_two_anchors_in_one_part_leave_the_low_rank_solve_unused() -> None:
+    src, dst = np.array([0, 1, 2]), np.array([1, 2, 0])
+    pose = np.zeros((3, 4))
+    parts = LinkComponents(3, src, dst, np.zeros(3, dtype=bool))
+    one = SwitchedRelaxation(pose, src, dst, np.ones((3, 4)), np.array([True, False, False]), parts)
+    two = SwitchedRelaxation(pose, src, dst, np.ones((3, 4)), np.array([True, True, False]), parts)
+    assert one.usable and one.residuals(np.ones(3, dtype=bool)) is not None
+    assert not two.usable and two.residuals(np.ones(3, dtype=bool)) is None
