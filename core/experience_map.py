@@ -659,7 +659,7 @@ class ExperienceMap:
         run = 0
         while run < max_iterations and float(np.abs(self.full_corrections()).max()) > self.params.exp_relax_tolerance:
             run += self.relax(min(1000, max_iterations - run))
-        if self.joint:
+        if self.joint or self.params.exp_settle_joint:
             self._refine_jointly()
         self._work.clear()
         self._stored = self.link_count  # a settled map is a finished one: its links stand as stored
