@@ -6,6 +6,7 @@ import dataclasses
 import difflib
 import enum
 import functools
+import re
 import typing
 from dataclasses import dataclass
 from typing import Any
@@ -36,12 +37,12 @@ class Departure(enum.StrEnum):
 
 
 def parse_departures(text: str) -> frozenset[Departure]:
-    """Return the departures named in a comma-separated list (``all`` names every one, ``none`` or "" none).
+    """Return the departures named in a list separated by commas or ``+`` (``all``: every one; ``none`` or "": none).
 
     Raises:
         ConfigError: a name that is not a :class:`Departure` (the valid ones are listed).
     """
-    names = [name.strip().lower() for name in text.split(",") if name.strip()]
+    names = [name.strip().lower() for name in re.split(r"[,+]", text) if name.strip()]
     if names == ["all"]:
         return frozenset(Departure)
     if names in ([], ["none"]):

@@ -111,6 +111,7 @@ def test_a_database_of_revision_0005_upgrades_and_its_maps_read_as_before(
     """A map written before the ``blobs`` table existed (its projection inline) reads the same after
     ``db upgrade``; writing it again moves the projection into a blob."""
     from mapserver.store import create_db_engine, upgrade
+    from mapserver.store.migrate import HEAD_REVISION
 
     projection = _projection()
     with Database(create_db_engine(db_url)) as old:
@@ -118,7 +119,7 @@ def test_a_database_of_revision_0005_upgrades_and_its_maps_read_as_before(
         monkeypatch.setattr(blob_module, "SHARED_KEYS", ())  # what the code before 0006 wrote
         _save(old, engine, "old", projection)
         monkeypatch.undo()
-        assert upgrade(old) == "0006"
+        assert upgrade(old) == HEAD_REVISION
         before = load_map(old, name="old")
         assert before.snapshot["nc_projection"].tobytes() == projection.tobytes()
         assert _sizes(old)[0] == 0
