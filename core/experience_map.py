@@ -692,8 +692,7 @@ class ExperienceMap:
 
     def _drift(self) -> Drift:
         """Return the expected odometry drift that normalises link residuals (``exp_robust_*``)."""
-        p = self.params
-        return Drift(p.exp_robust_drift, p.exp_robust_yaw_drift, p.exp_robust_threshold)
+        return Drift.of(self.params)
 
     def _refine_jointly(self) -> None:
         """Move the settled map to the joint least squares over its active links (``exp_relax_joint``)."""

@@ -163,10 +163,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+if TYPE_CHECKING:
+    from core.config import Params
 
 from core.pcm import (
     MAX_LINKS,
@@ -228,11 +232,34 @@ class Drift:
     drift: float  # metres per metre travelled
     yaw_drift: float  # radians per metre travelled
     threshold: float  # c̄ of the truncated quadratic, in normalised units
+    view_m: float = 0.0  # a view link's own position uncertainty (m): a view match places the robot this near
+    view_rad: float = 0.0  # and this near in heading (rad)
 
     @property
     def heading_weight(self) -> float:
         """Return the weight of a radian of heading against a metre of position (``drift / yaw_drift``)."""
         return self.drift / self.yaw_drift
+
+    @classmethod
+    def of(cls, params: Params) -> Drift:
+        """Return the drift that ``params`` expect (``exp_robust_*``).
+
+        With ``exp_robust_view`` a view link (loop or merge) also carries the uncertainty of the view match that
+        made it: a closure is made when the packet lies within ``exp_delta_pc_threshold`` cells of the matched
+        experience, so the robot stood within that gate, not at the place — half of it,
+        ``exp_delta_pc_threshold·pc_cell_x_size/2`` metres; a forward view matches over ``±vt_shift_match``
+        columns of ``camera_fov_deg/template_x_size`` degrees with no heading offset — half that span; a
+        panorama's match gives the heading to half a step of ``vt_step_match`` columns.
+        """
+        view_m = view_rad = 0.0
+        if params.exp_robust_view:
+            view_m = params.exp_delta_pc_threshold * params.pc_cell_x_size / 2.0
+            column = 2.0 * math.pi / params.template_x_size
+            if params.vt_panoramic:
+                view_rad = params.vt_step_match * column / 2.0
+            else:
+                view_rad = params.vt_shift_match * math.radians(params.camera_fov_deg) / params.template_x_size / 2.0
+        return cls(params.exp_robust_drift, params.exp_robust_yaw_drift, params.exp_robust_threshold, view_m, view_rad)
 
 
 @dataclass(frozen=True, slots=True)
@@ -262,18 +289,38 @@ def link_length(distance: np.ndarray, kind: np.ndarray) -> float:
 
 
 def normalised_residuals(
-    pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, length: float, drift: Drift
+    pose: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    transform: np.ndarray,
+    length: float,
+    drift: Drift,
+    view: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Return ``z_l`` (K,): each link's residual divided by the drift expected over one link length."""
+    """Return ``z_l`` (K,): each link's residual divided by the drift expected over one link length.
+
+    ``view`` (K,) marks the view links (loop and merge links), whose expected error adds the view match's own
+    (``drift.view_m``, ``drift.view_rad``) in quadrature.
+    """
     res = residuals(pose, src, dst, transform)
-    return _normalise(np.sqrt(np.einsum("ij,ij->i", res[:, :3], res[:, :3])), res[:, 3], length, drift)
+    return _normalise(np.sqrt(np.einsum("ij,ij->i", res[:, :3], res[:, :3])), res[:, 3], length, drift, view)
 
 
-def _normalise(distance: np.ndarray, turn: np.ndarray, length: float, drift: Drift) -> np.ndarray:
-    """Return ``z_l`` from each link's translation residual (m) and heading residual (rad) (module docstring)."""
+def _normalise(
+    distance: np.ndarray, turn: np.ndarray, length: float, drift: Drift, view: np.ndarray | None = None
+) -> np.ndarray:
+    """Return ``z_l`` from each link's translation residual (m) and heading residual (rad) (module docstring).
+
+    A view link (``view``) expects ``√((drift·s)² + view_m²)`` metres and ``√((yaw_drift·s)² + view_rad²)``
+    radians: a view match says the robot stood near the matched place, within the closure gate, not at it.
+    """
     scale_t = max(drift.drift * length, 1e-12)
     scale_y = max(drift.yaw_drift * length, 1e-12)
-    return np.hypot(distance / scale_t, turn / scale_y)
+    if view is None or not (drift.view_m > 0.0 or drift.view_rad > 0.0):
+        return np.hypot(distance / scale_t, turn / scale_y)
+    view_t = np.where(view, math.hypot(scale_t, drift.view_m), scale_t)
+    view_y = np.where(view, math.hypot(scale_y, drift.view_rad), scale_y)
+    return np.hypot(distance / view_t, turn / view_y)
 
 
 def switch_off_outliers(
@@ -352,6 +399,7 @@ def switch_off_outliers(
         problem.weight = length_weights(np.asarray(distance, dtype=np.float64), length)
     problem.closures = problem.can & switchable(kind)  # not a relocalisation's odometry link
     problem.merge = np.asarray(kind) == MERGE_KIND
+    problem.view = switchable(kind)  # loop and merge links: a view match's uncertainty in their z
     status_quo = None
     if previous is not None:
         status_quo = np.ones(k, dtype=bool)
@@ -552,7 +600,7 @@ def _status_quo_start(problem: _Problem, status_quo: np.ndarray) -> _State | Non
     # links added since the last check may be all that joins a component (a merge's links): those stay on, the
     # ones that fit the map as it stood first (not the descent's answer, which may have bent the map round another)
     z_then = normalised_residuals(problem.start, problem.src, problem.dst, problem.transform, problem.length,
-                                  problem.drift)  # fmt: skip
+                                  problem.drift, problem.view)  # fmt: skip
     whole = problem.keep_connected(status_quo, z_then)
     return problem.switch_back_on(problem.eliminate(whole))
 
@@ -661,6 +709,7 @@ class _Problem:
         self.weight = np.ones(0)  # each link's weight in the joint least squares (length_weights)
         self.standby_closure = np.zeros(0, np.int64)  # the loop link that began each one's relocalisation, or −1
         self.joint = False  # score on the joint least squares (exp_relax_joint), not RatSLAM's fixed point
+        self.view = np.zeros(src.size, dtype=bool)  # loop and merge links (Drift.view_m, view_rad)
         self._solver: tuple[LinkComponents, SwitchedRelaxation, np.ndarray, np.ndarray] | None = None  # on first use
         self._can = np.zeros(0, np.int64)  # the switchable links
         self._core = (np.zeros(0, np.int64), np.zeros(0, bool))  # the 2-core's links, and which may be switched
@@ -746,7 +795,7 @@ class _Problem:
         if found is None:
             return self.exact(_State(active, np.zeros(0), 0.0, self))
         z = np.zeros(self.src.size)
-        core = _normalise(*found, self.length, self.drift)
+        core = _normalise(*found, self.length, self.drift, self.view[switched.links])
         z[switched.links] = core
         links, _ = self.standby
         off = ~active[links]
@@ -808,7 +857,7 @@ class _Problem:
         if self.joint:
             scored = refine_jointly(pose, *graph, self.anchor, heading_weight=self.drift.heading_weight,
                                     weight=self.weight[on])  # fmt: skip
-        z = normalised_residuals(scored, self.src, self.dst, self.transform, self.length, self.drift)
+        z = normalised_residuals(scored, self.src, self.dst, self.transform, self.length, self.drift, self.view)
         return _State(active, z, self.cost(active, z), self, pose)
 
     def cost(self, active: np.ndarray, z: np.ndarray) -> float:
@@ -1037,7 +1086,8 @@ def health(
     if on.size:
         length = link_length(distance, kind)
         with np.errstate(invalid="ignore", over="ignore"):  # ∞ − ∞ in a stored transform: unmeasured, below
-            z = normalised_residuals(pose, src[on], np.asarray(dst)[on], np.asarray(transform)[on], length, drift)
+            z = normalised_residuals(pose, src[on], np.asarray(dst)[on], np.asarray(transform)[on], length, drift,
+                                     switchable(np.asarray(kind)[on]))  # fmt: skip
         finite = z[np.isfinite(z)]
         unmeasured = int(z.size - finite.size)
         if finite.size:

@@ -105,6 +105,7 @@ class Params:
     exp_relax_joint: bool = False  # settle and the robust check on the joint least squares (not OpenRatSLAM)
     exp_loop_weight: float = 1.0  # the joint least squares weighs a loop or merge link by this (odometry link: 1)
     exp_settle_joint: bool = False  # settle ends on the joint least squares; the robust check stays on RatSLAM's
+    exp_robust_view: bool = False  # a view link's z counts the view match's own uncertainty (core.robust.Drift.of)
     exp_robust_drift: float = 0.1  # expected odometry drift, metres per metre travelled
     exp_robust_yaw_drift: float = 0.1  # radians per metre travelled
     exp_robust_threshold: float = 4.0  # outlier when the normalised residual exceeds this

@@ -22,13 +22,9 @@ def map_health(params: Any, snapshot: Mapping[str, Any]) -> dict[str, float | in
     (4 by default) when an active link contradicts the rest. ``params`` is a ``core.Params`` or its dict
     (missing keys take the defaults).
     """
-    values = params.to_dict() if hasattr(params, "to_dict") else dict(params or {})
-    defaults = Params()
-    drift = Drift(
-        float(values.get("exp_robust_drift", defaults.exp_robust_drift)),
-        float(values.get("exp_robust_yaw_drift", defaults.exp_robust_yaw_drift)),
-        float(values.get("exp_robust_threshold", defaults.exp_robust_threshold)),
-    )
+    if not isinstance(params, Params):  # a stored map's parameter dict: the keys this engine knows
+        params = Params().replace(**{k: v for k, v in dict(params or {}).items() if k in Params.__dataclass_fields__})
+    drift = Drift.of(params)
     src = np.asarray(snapshot["em_link_from"], dtype=np.int64).reshape(-1)
     active = np.ones(src.size, dtype=bool)
     given = np.asarray(snapshot.get("em_link_active", np.zeros(0, dtype=bool)), dtype=bool).reshape(-1)
