@@ -103,9 +103,9 @@ class Params:
     # robust relaxation (core.robust): switch off loop/merge links inconsistent with the graph
     exp_robust: bool = True
     exp_relax_joint: bool = False  # settle and the robust check on the joint least squares (not OpenRatSLAM)
-    exp_loop_weight: float = 1.0  # the joint least squares weighs a loop or merge link by this (odometry link: 1)
-    exp_settle_joint: bool = False  # settle ends on the joint least squares; the robust check stays on RatSLAM's
-    exp_robust_view: bool = False  # a view link's z counts the view match's own uncertainty (core.robust.Drift.of)
+    exp_loop_weight: float = 0.3  # the joint least squares weighs a loop or merge link by this (odometry link: 1)
+    exp_settle_joint: bool = True  # settle ends on the joint least squares; the robust check stays on RatSLAM's
+    exp_robust_view: bool = True  # a view link's z counts the view match's own uncertainty (core.robust.Drift.of)
     exp_robust_drift: float = 0.1  # expected odometry drift, metres per metre travelled
     exp_robust_yaw_drift: float = 0.1  # radians per metre travelled
     exp_robust_threshold: float = 4.0  # outlier when the normalised residual exceeds this
@@ -146,7 +146,7 @@ class Params:
     merge_relax_joint: bool = True  # a merged map (a merge link, or two sessions' experiences): joint least squares
     # OpenRatSLAM's code behaviour wherever the engine departs from it (differential tests; README)
     openratslam_compat: bool = False
-    openratslam_parts: str = ""  # the departures run as OpenRatSLAM's code (comma list of Departure names, or all)
+    openratslam_parts: str = "translation,injection,decode"  # departures run as OpenRatSLAM's code (Departure names)
     # neocortical front-end (PoseidonSLAM §4.2.2 / NeoSLAM): "lvc" intensity templates or "sdr-htm"
     frontend: str = "lvc"
     frontend_backbone: str = "none"  # none (weight-free: LVC template through LSBH) | shufflenetv2 | alexnet

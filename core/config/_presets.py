@@ -9,6 +9,13 @@ from types import MappingProxyType
 from core.config._params import ConfigError, Params
 
 _DEFAULT = Params()
+# The map relaxation and pose cells that the merge benches (bench/merge_acceptance.py, bench/lookalike_sweep.py,
+# bench/robust_*.py) measured the simulator's panoramic and underwater presets with: every departure of the
+# engine on, RatSLAM's fixed point, loop links as precise as odometry. The defaults (docs/engine.md, "Defaults and
+# where they come from") were chosen on forward-camera logs; these presets keep what their own benches chose.
+_MEASURED_MERGING = {
+    "openratslam_parts": "", "exp_settle_joint": False, "exp_loop_weight": 1.0, "exp_robust_view": False,
+}
 
 PRESETS: Mapping[str, Params] = MappingProxyType(
     {
@@ -52,7 +59,7 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             vt_panoramic=False, vt_match_threshold=0.05, vt_shift_match=5, vt_step_match=2, vt_normalisation=0.5,
             vt_active_decay=1.5, template_x_size=128, template_y_size=32,
             pc_vt_restore=0.05, pc_dim_xy=80, pc_vt_inject_energy=0.06, pc_dim_th=35, exp_delta_pc_threshold=4.0,
-            pc_cell_x_size=1.0, exp_loops=250, exp_initial_em_deg=140.0,
+            pc_cell_x_size=1.0, exp_loops=250, exp_initial_em_deg=140.0, **_MEASURED_MERGING,
         ),
         # A forward camera on a metre-scale ground robot (ours): the keys a user's OpenRatSLAM INI for such a
         # camera sets, as the generalisation bench (bench/generalisation.py) runs them.
@@ -77,7 +84,7 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             # sdr-htm merges (poseidon): the cave's SDRs overlap less at a true place than a street's; at the
             # default 0.68 cave3d's true merges fail (9 of 10 seeds), at 0.62 none (README, 2026-11-27); raised per
             # map to the 95th percentile of its own look-alikes, so a street-like map gets a street's gate (stop 34)
-            merge_sdr_min_overlap=0.62, merge_sdr_null_quantile=0.95,
+            merge_sdr_min_overlap=0.62, merge_sdr_null_quantile=0.95, **_MEASURED_MERGING,
         ),
     }
 )
@@ -118,7 +125,7 @@ PRESETS = MappingProxyType(
         # merge_sdr_null_quantile: neoslam's code gate rises to its map's own look-alikes as poseidon's does; at the
         # plain 0.68 `twin` with 20 and 40 m look-alikes holding turns kept 3 and 3 false merges of 10 (README, stop 38)
         "neoslam": _DEFAULT.replace(**_NEOSLAM_YAML, **_SDR_HTM, template_x_size=64, template_y_size=24,
-                                    merge_sdr_null_quantile=0.95),
+                                    merge_sdr_null_quantile=0.95, **_MEASURED_MERGING),
     }
 )
 
