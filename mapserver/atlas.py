@@ -32,7 +32,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Connection, func, select
 
 from core import Params, params_from_dict
 from mapserver.errors import InputError, MergeError
@@ -42,13 +41,14 @@ from mapserver.merge.offline_evidence import confirmed_offline_match
 from mapserver.merge.provenance import match_to_dict, record_summary, transform7
 from mapserver.merge.relevance import ViewLog
 from mapserver.merge.snapshot import params_incompatibility
-from mapserver.store import Database, StaleMapError, UnknownMapError, claim_map, drop_map, get_map
+from mapserver.store import Connection, Database, StaleMapError, UnknownMapError, claim_map, drop_map, get_map
 from mapserver.store.archive import archive_map_state, archive_state
+from mapserver.store.identities import index_maxima
+from mapserver.store.maps import list_map_params, map_names
 from mapserver.store.merge_events import (
     MergeEventSpec,
     record_merge_event,
 )
-from mapserver.store.models import Evidence, Experience, Map, Template
 from mapserver.store.sessions import get_sessions, sessions_of_map
 from mapserver.store.state import WriteResult, read_map_state, read_map_templates, write_map_state
 
@@ -78,23 +78,6 @@ class AtlasMap:
         return StoredMap(self.id, self.params, self.snapshot)
 
 
-def _index_maxima(conn: Connection, session_ids: Sequence[int]) -> dict[int, tuple[int, int]]:
-    """Return session → (1 + largest template index, 1 + largest experience/evidence index) stored anywhere."""
-    out: dict[int, list[int]] = {int(s): [0, 0] for s in session_ids}
-    if not out:
-        return {}
-    ids = list(out)
-    for table, axis in ((Template, 0), (Experience, 1), (Evidence, 1)):
-        rows = conn.execute(
-            select(table.session_id, func.max(table.origin_index)).where(table.session_id.in_(ids))
-            .group_by(table.session_id)
-        ).all()  # fmt: skip
-        for sid, top in rows:
-            if top is not None:
-                out[int(sid)][axis] = max(out[int(sid)][axis], int(top) + 1)
-    return {k: (v[0], v[1]) for k, v in out.items()}
-
-
 def stored_identities(
     conn: Connection, rows: Any, snapshot: Mapping[str, np.ndarray], session_ids: Sequence[int]
 ) -> RowIdentities:
@@ -103,7 +86,7 @@ def stored_identities(
         rows.template_session, rows.template_index, rows.experience_session, rows.experience_index,
         next_index_from_table(snapshot.get(ID_NEXT_KEY)),
     )  # fmt: skip
-    for sid, (nt, ne) in _index_maxima(conn, session_ids).items():
+    for sid, (nt, ne) in index_maxima(conn=conn, session_ids=session_ids).items():
         identities.raise_next(sid, nt, ne)
     return identities
 
@@ -128,7 +111,7 @@ def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
 
 def _eligible_maps(conn: Connection, *, params: Params, exclude: int | None) -> tuple[dict[int, int], dict[str, str]]:
     """Return {map id: version} of the stored maps a session with ``params`` may merge into, and why not the others."""
-    rows = conn.execute(select(Map.id, Map.name, Map.params, Map.version).order_by(Map.id)).all()
+    rows = list_map_params(conn=conn)
     eligible: dict[int, int] = {}
     skipped: dict[str, str] = {}
     for map_id, name, map_params, version in rows:
@@ -189,7 +172,7 @@ def ensure_candidates_unchanged(
         logger.info("maps %s changed while the session ran; none of its views meets them: stored without a rerun",
                     sorted(differing))  # fmt: skip
         return
-    names = dict(conn.execute(select(Map.id, Map.name).where(Map.id.in_(differing))).all())
+    names = map_names(conn=conn, map_ids=differing)
     changed = sorted(names.get(k, str(k)) for k in differing)
     msg = f"the maps this session may merge into changed while it was processed ({', '.join(map(repr, changed))})"
     raise StaleMapError(msg)

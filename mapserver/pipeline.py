@@ -54,21 +54,15 @@ def _log_stem(log_path: str | Path) -> str:
 
 def _existing_result(db: Any, session: Any, map_id: int, started: float, out: str | Path | None) -> ProcessResult:
     """Answer with a stored session (no processing); write ``out`` from the stored map."""
-    from sqlalchemy import func, select
-
     from mapserver.store import load_map
     from mapserver.store.export import map_document
     from mapserver.store.maps import get_map_by_id
-    from mapserver.store.models import Link, MapState
+    from mapserver.store.queries import count_links, map_state_counts
 
     with db.read() as conn:
         record = get_map_by_id(conn=conn, map_id=map_id)
-        counts = conn.execute(
-            select(MapState.n_templates, MapState.n_experiences, MapState.n_links).where(MapState.map_id == map_id)
-        ).first()
-        loops = conn.execute(
-            select(func.count()).select_from(Link).where(Link.map_id == map_id, Link.kind == "loop")
-        ).scalar_one()
+        counts = map_state_counts(conn=conn, map_id=map_id)
+        loops = count_links(conn=conn, map_id=map_id, kind="loop")
     document = None
     if out is not None:
         document = map_document(load_map(db, name=record.name))

@@ -25,16 +25,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sqlalchemy import select
 
 from mapserver.errors import InputError, NotFoundError
 from mapserver.evaluation import evaluate_map, plot_map_vs_ground_truth
 from mapserver.formats import Trajectory, atomic_write_bytes, odometry_trajectory
-from mapserver.store import Database, find_map, get_map_by_id, load_map
+from mapserver.store import Connection, Database, find_map, get_map_by_id, load_map
 from mapserver.store.export import map_document
+from mapserver.store.identities import template_ids_by_identity, template_ids_matching
+from mapserver.store.jobs import last_done_upload
 from mapserver.store.merge_events import MergeEventRecord, list_merge_events
-from mapserver.store.models import Job, Session, Template
-from mapserver.store.sessions import get_activations, get_reckoning
+from mapserver.store.sessions import find_session_map, get_activations, get_reckoning
 
 COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 LINK_STYLE = {"odometry": ("#9e9e9e", "-"), "loop": ("#d62728", "-"), "merge": ("#6a1b9a", "--"),
@@ -67,14 +67,14 @@ def resolve_target(db: Database, name: str) -> tuple[str, str | None]:
         record = find_map(conn=conn, name=name)
         if record is not None:
             return record.name, None
-        row = conn.execute(select(Session.name, Session.map_id).where(Session.name == name)).first()
+        row = find_session_map(conn=conn, name=name)
         if row is None:
             msg = f"no map or session named {name!r}"
             raise NotFoundError(msg)
         if row[1] is None:
             msg = f"session {name!r} belongs to no map (it was merged away or its map was dropped)"
             raise NotFoundError(msg)
-        return get_map_by_id(conn=conn, map_id=int(row[1])).name, str(row[0])
+        return get_map_by_id(conn=conn, map_id=row[1]).name, row[0]
 
 
 def _template_places(db: Database, map_id: int, events: list[MergeEventRecord]) -> list[list[int]]:
@@ -84,26 +84,19 @@ def _template_places(db: Database, map_id: int, events: list[MergeEventRecord]) 
     if not uids:
         return []
     with db.read() as conn:
-        rows = conn.execute(
-            select(Template.local_id).where(
-                Template.map_id == map_id,
-                Template.session_id.in_([u[0] for u in uids]),
-                Template.origin_index.in_([u[1] for u in uids]),
-            )
-        ).all()
-    return [[int(r[0])] for r in rows]  # template ids; experiences are looked up from the document
+        ids = template_ids_matching(
+            conn=conn, map_id=map_id, session_ids=[u[0] for u in uids], origin_indices=[u[1] for u in uids]
+        )
+    return [[i] for i in ids]  # template ids; experiences are looked up from the document
 
 
 def stored_log(db: Database, session: str) -> Path | None:
     """Return the uploaded log the server kept for a session (None when there is none on disk)."""
     with db.read() as conn:
-        row = conn.execute(
-            select(Job.upload_path).join(Session, Session.id == Job.session_id)
-            .where(Session.name == session, Job.status == "done").order_by(Job.id.desc())
-        ).first()  # fmt: skip
-    if row is None or not row[0]:
+        upload = last_done_upload(conn=conn, session_name=session)
+    if upload is None:
         return None
-    path = Path(row[0])
+    path = Path(upload)
     return path if path.exists() else None
 
 
@@ -166,16 +159,13 @@ def gather(
     return ReportInputs(map_name, session, doc, events, places, truth, odometry, activations)
 
 
-def _activations(conn: Any, map_id: int, sessions: list[Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _activations(conn: Connection, map_id: int, sessions: list[Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Return each session's stored per-frame timeline with template identities resolved to this map's ids.
 
     A frame's template is named by its stable identity (origin session, origin index); merges renumber
     templates, the ``templates`` table says what each identity is called in the map now.
     """
-    rows = conn.execute(
-        select(Template.session_id, Template.origin_index, Template.local_id).where(Template.map_id == map_id)
-    ).all()
-    ids = {(int(r[0]), int(r[1])): int(r[2]) for r in rows if r[2] is not None}
+    ids = template_ids_by_identity(conn=conn, map_id=map_id)
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for s in sessions:
         stored = get_activations(conn=conn, session_id=s.id)

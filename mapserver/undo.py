@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Connection
 
 from core import Engine, Params, params_from_dict
 from mapserver.atlas import ID_NEXT_KEY, MergeOutcome, claim_all, stored_identities
@@ -22,7 +21,7 @@ from mapserver.merge.identity import RowIdentities
 from mapserver.merge.places import merged_template_places
 from mapserver.merge.provenance import match_from_dict
 from mapserver.merge.resume import MergerState, merger_keys
-from mapserver.store import Database, drop_map, find_map
+from mapserver.store import Connection, Database, drop_map, find_map
 from mapserver.store.archive import ArchivedState, load_archive, restore_map_states
 from mapserver.store.merge_events import get_merge_event, list_merge_events, set_merge_status, update_merge_details
 from mapserver.store.sessions import get_reckoning, get_sessions, sessions_of_map, update_session

@@ -1,62 +1,275 @@
-"""The package graph is one-way: walk every module's imports and check the layering rules."""
+"""The package graph is one-way: every import between the units of ``core`` and ``mapserver`` is in a table.
+
+A *unit* is ``core`` (one unit: its inner structure is its own), the ``mapserver`` package itself (its
+``__init__``: the version) and each package or top-level module directly under ``mapserver``. :data:`ALLOWED`
+names, for every unit, the units it may import; imports inside a unit are free. Relative imports are resolved
+against the importing module's package, and ``from pkg import name`` counts as an import of ``pkg.name`` when
+that is a module. Two more rules: :data:`PRIVATE` modules are imported only inside their own unit (the store's
+models and bulk SQL), and the libraries of :data:`LIBRARY_OWNERS` only by the units named there (SQL only in
+the store). docs/architecture.md ("Packages and import direction") draws the same table.
+"""
 
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
+TOPS = ("core", "mapserver")
+
+# ------------------------------------------------------------------------------------------------- the table
+
+BASE = frozenset({"core", "mapserver", "mapserver.errors"})
+"""What every unit of mapserver may import: the engine, the package's version, the exception family."""
+
+SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats_csv",
+                    "mapserver.formats_g2o"})  # fmt: skip
+"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats."""
+
+HELPERS = SHARED | {"mapserver.params", "mapserver.reckoning", "mapserver.evaluation"}
+"""Every leaf module: the shared ones, choosing parameters, dead reckoning, evaluation against ground truth."""
+
+DOMAIN = frozenset({"mapserver.ingest", "mapserver.store", "mapserver.merge"})
+"""Reading logs, keeping maps, merging engine states: they never import each other."""
+
+ORCHESTRATION = frozenset({"mapserver.run", "mapserver.live", "mapserver.atlas", "mapserver.undo", "mapserver.report",
+                           "mapserver.pipeline"})  # fmt: skip
+"""The modules that run the domain packages together (each row below says which ones it uses)."""
+
+FACES = ("mapserver.api", "mapserver.cli")
+
+ALLOWED: dict[str, frozenset[str]] = {
+    # the engine: pure computation
+    "core": frozenset(),
+    # leaves
+    "mapserver": frozenset(),
+    "mapserver.errors": frozenset(),
+    "mapserver.names": BASE,
+    "mapserver.pairs": BASE,
+    "mapserver.formats": BASE,
+    "mapserver.formats_csv": BASE | {"mapserver.formats"},
+    "mapserver.formats_g2o": BASE | {"mapserver.formats"},
+    "mapserver.params": BASE | {"mapserver.pairs"},
+    "mapserver.reckoning": BASE,
+    "mapserver.evaluation": BASE | {"mapserver.formats"},
+    # domain packages
+    "mapserver.ingest": BASE | SHARED,
+    "mapserver.store": BASE | SHARED,
+    "mapserver.merge": BASE | SHARED,
+    # orchestration
+    "mapserver.run": BASE | HELPERS | {"mapserver.ingest"},
+    "mapserver.atlas": BASE | HELPERS | {"mapserver.store", "mapserver.merge"},
+    "mapserver.undo": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
+    "mapserver.live": BASE | HELPERS | {"mapserver.merge", "mapserver.atlas"},
+    "mapserver.report": BASE | HELPERS | {"mapserver.ingest", "mapserver.store"},
+    "mapserver.pipeline": BASE | HELPERS | DOMAIN | {"mapserver.run", "mapserver.live", "mapserver.atlas"},
+    # faces
+    "mapserver.api": BASE | HELPERS | DOMAIN | ORCHESTRATION,
+    "mapserver.cli": BASE | HELPERS | DOMAIN | ORCHESTRATION | {"mapserver.api"},
+}
+
+SIDEWAYS: frozenset[tuple[str, str]] = frozenset({
+    *((a, b) for a in DOMAIN for b in DOMAIN if a != b),
+    ("mapserver.run", "mapserver.store"),  # a log through the engine alone
+    ("mapserver.run", "mapserver.merge"),
+    ("mapserver.live", "mapserver.store"),  # the running session's store view goes through atlas
+    ("mapserver.atlas", "mapserver.undo"),  # undo is built on atlas
+    ("mapserver.atlas", "mapserver.live"),
+    ("mapserver.report", "mapserver.merge"),
+    ("mapserver.api", "mapserver.cli"),
+    *((unit, face) for unit in set(ALLOWED) - set(FACES) for face in FACES),
+    *((unit, "mapserver.pipeline") for unit in set(ALLOWED) - {"mapserver.pipeline", *FACES}),
+})  # fmt: skip
+"""Imports the table must never allow (checked against :data:`ALLOWED`)."""
+
+PRIVATE: dict[str, str] = {
+    "mapserver.store.models": "mapserver.store",
+    "mapserver.store.bulk": "mapserver.store",
+}
+"""Modules imported only inside their unit: the store's schema and its bulk SQL."""
+
+LIBRARY_OWNERS: dict[str, frozenset[str]] = {
+    "sqlalchemy": frozenset({"mapserver.store"}),
+    "alembic": frozenset({"mapserver.store"}),
+    "rosbags": frozenset({"mapserver.ingest"}),
+    **{web: frozenset({"mapserver.api"}) for web in ("fastapi", "starlette", "uvicorn", "celery", "prometheus_client")},
+}
+"""Third-party libraries only these units import (``migrations/``, outside the walk, uses sqlalchemy too)."""
+
+# ------------------------------------------------------------------------------------------------ the walker
 
 
-def _imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    names: set[str] = set()
-    for node in ast.walk(tree):
+@dataclass(frozen=True)
+class Edge:
+    """One import: the importing file, its line, the importing module and the module imported."""
+
+    path: str
+    line: int
+    importer: str
+    imported: str
+
+
+def module_name(path: Path, root: Path) -> str:
+    """Return the dotted module name of a file under ``root`` (a package's ``__init__`` is the package)."""
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def is_module(name: str, root: Path) -> bool:
+    """Return whether ``name`` is a module or package of the tree under ``root``."""
+    base = root.joinpath(*name.split("."))
+    return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
+
+
+def _from_base(node: ast.ImportFrom, importer: str, is_package: bool) -> str:
+    """Return the absolute module a ``from ... import`` names (relative levels resolved against the package)."""
+    if node.level == 0:
+        return node.module or ""
+    package = importer.split(".") if is_package else importer.split(".")[:-1]
+    up = node.level - 1
+    if up > len(package) - 1:
+        msg = f"relative import beyond the top package in {importer}"
+        raise ValueError(msg)
+    base = package[: len(package) - up]
+    return ".".join([*base, *([node.module] if node.module else [])])
+
+
+def imports_of(path: Path, root: Path) -> Iterator[Edge]:
+    """Yield every module a file imports (nested imports included), resolved to absolute dotted names, once a line."""
+    importer = module_name(path, root)
+    is_package = path.name == "__init__.py"
+    rel = path.relative_to(root).as_posix()
+    found: dict[tuple[int, str], None] = {}
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.Import):
-            names.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module)
-    return names
+            found.update({(node.lineno, alias.name): None for alias in node.names})
+        elif isinstance(node, ast.ImportFrom):
+            base = _from_base(node, importer, is_package)
+            subs = (f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
+            found.update({(node.lineno, sub if is_module(sub, root) else base): None for sub in subs} or
+                         {(node.lineno, base): None})  # fmt: skip
+    for line, imported in sorted(found):
+        yield Edge(rel, line, importer, imported)
 
 
-def _modules(package: str) -> list[Path]:
-    return sorted((ROOT / package.replace(".", "/")).rglob("*.py"))
+def unit_of(module: str) -> str | None:
+    """Return the unit of a module of core or mapserver (None for any other module)."""
+    parts = module.split(".")
+    if parts[0] == "core":
+        return "core"
+    if parts[0] == "mapserver":
+        return ".".join(parts[:2])
+    return None
 
 
-def test_core_imports_nothing_of_mapserver() -> None:
-    offenders = [
-        (str(p.relative_to(ROOT)), name)
-        for p in _modules("core")
-        for name in _imports(p)
-        if name == "mapserver" or name.startswith("mapserver.")
-    ]
-    assert offenders == []
+def check(edge: Edge) -> str | None:
+    """Return why an import breaks a rule (None when it is allowed)."""
+    unit, target = unit_of(edge.importer), unit_of(edge.imported)
+    where = f"{edge.path}:{edge.line}: {edge.importer} imports {edge.imported}"
+    if unit is None:
+        return None
+    if target is None:
+        owners = LIBRARY_OWNERS.get(edge.imported.split(".")[0])
+        if owners is not None and unit not in owners:
+            return f"{where}: only {', '.join(sorted(owners))} may import {edge.imported.split('.')[0]}"
+        return None
+    if target != unit and target not in ALLOWED.get(unit, frozenset()):
+        allowed = ", ".join(sorted(ALLOWED.get(unit, frozenset()))) or "nothing"
+        return f"{where}: {unit} may not import {target} (it may import {allowed})"
+    for private, owner in PRIVATE.items():
+        if (edge.imported == private or edge.imported.startswith(private + ".")) and unit != owner:
+            return f"{where}: {private} is private to {owner}"
+    return None
 
 
-def test_ingest_store_merge_never_import_faces() -> None:
-    forbidden = ("mapserver.api", "mapserver.cli", "mapserver.pipeline")
-    offenders = [
-        (str(p.relative_to(ROOT)), name)
-        for pkg in ("mapserver.ingest", "mapserver.store", "mapserver.merge")
-        for p in _modules(pkg)
-        for name in _imports(p)
-        if name.startswith(forbidden)
-    ]
-    assert offenders == []
+def files(root: Path) -> list[Path]:
+    """Return every Python file of core and mapserver under ``root``."""
+    return sorted(p for top in TOPS for p in (root / top).rglob("*.py"))
 
 
-def test_only_faces_import_faces() -> None:
-    offenders = []
-    for p in _modules("mapserver"):
-        rel = p.relative_to(ROOT).as_posix()
-        if rel.startswith(("mapserver/cli/", "mapserver/api/")):
-            continue
-        for name in _imports(p):
-            if name.startswith(("mapserver.cli", "mapserver.api")):
-                offenders.append((rel, name))
-    assert offenders == []
+def violations(root: Path) -> list[str]:
+    """Return every broken rule in the tree under ``root``, one line each."""
+    return [msg for p in files(root) for e in imports_of(p, root) if (msg := check(e)) is not None]
+
+
+# ----------------------------------------------------------------------------------------------- the checks
+
+
+def test_imports_follow_the_table() -> None:
+    found = violations(ROOT)
+    assert found == [], "imports that break the layering:\n" + "\n".join(found)
+
+
+def test_the_table_names_every_unit() -> None:
+    units = {unit_of(module_name(p, ROOT)) for p in files(ROOT)}
+    missing, stale = sorted(str(u) for u in units - set(ALLOWED)), sorted(set(ALLOWED) - units)
+    assert units == set(ALLOWED), f"add to ALLOWED: {missing}; remove from it: {stale}"
+
+
+def test_the_table_keeps_the_sideways_rules() -> None:
+    broken = sorted((a, b) for a, b in SIDEWAYS if b in ALLOWED[a])
+    assert broken == []
+    assert ALLOWED["core"] == frozenset()
 
 
 def test_walker_sees_real_imports() -> None:
-    """Guard against a walker that finds nothing: core/engine must import numpy."""
-    assert any("numpy" in _imports(p) for p in _modules("core"))
+    """Guard against a walker that finds nothing: core must import numpy, the store sqlalchemy."""
+    edges = [e for p in files(ROOT) for e in imports_of(p, ROOT)]
+    assert any(e.importer.startswith("core") and e.imported == "numpy" for e in edges)
+    assert any(e.importer.startswith("mapserver.store") and e.imported.startswith("sqlalchemy") for e in edges)
+    # ``from mapserver import atlas`` is an import of the module mapserver.atlas
+    assert any(e.importer == "mapserver.live" and e.imported == "mapserver.atlas" for e in edges)
+
+
+# ------------------------------------------------------------------------- the checks fail on a bad import
+
+
+def _tree(root: Path, sources: dict[str, str]) -> Path:
+    """Write a small tree of core and mapserver packages (every folder a package) with these files."""
+    for rel, text in {"core/__init__.py": "", "mapserver/__init__.py": "", **sources}.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text, encoding="utf-8")
+    for folder in [p for top in TOPS for p in (root / top).rglob("*") if p.is_dir()]:
+        (folder / "__init__.py").touch()
+    return root
+
+
+@pytest.mark.parametrize(
+    ("sources", "expected"),
+    [
+        ({"core/a.py": "import mapserver.errors\n"}, "core may not import mapserver.errors (it may import nothing)"),
+        ({"mapserver/ingest/a.py": "from mapserver.store import maps\n", "mapserver/store/maps.py": ""},
+         "mapserver.ingest.a imports mapserver.store.maps: mapserver.ingest may not import mapserver.store"),
+        ({"mapserver/ingest/a.py": "from ..store.maps import x\n", "mapserver/store/maps.py": ""},
+         "mapserver.ingest.a imports mapserver.store.maps: mapserver.ingest may not import mapserver.store"),
+        ({"mapserver/merge/sub/a.py": "from ... import store\n", "mapserver/store/__init__.py": ""},
+         "mapserver.merge.sub.a imports mapserver.store: mapserver.merge may not import mapserver.store"),
+        ({"mapserver/api/a.py": "from mapserver.store.models import Job\n", "mapserver/store/models.py": ""},
+         "mapserver.store.models is private to mapserver.store"),
+        ({"mapserver/atlas.py": "def f():\n    from sqlalchemy import select\n"},
+         "only mapserver.store may import sqlalchemy"),
+        ({"mapserver/report.py": "from mapserver import pipeline\n", "mapserver/pipeline.py": ""},
+         "mapserver.report imports mapserver.pipeline: mapserver.report may not import mapserver.pipeline"),
+    ],
+)
+def test_a_forbidden_import_is_found(tmp_path: Path, sources: dict[str, str], expected: str) -> None:
+    found = violations(_tree(tmp_path, sources))
+    assert len(found) == 1 and expected in found[0], found
+
+
+def test_allowed_and_relative_imports_pass(tmp_path: Path) -> None:
+    root = _tree(tmp_path, {
+        "mapserver/store/maps.py": "from . import models\nfrom .models import Map\nimport sqlalchemy\n",
+        "mapserver/store/models.py": "from mapserver.errors import StoreError\n",
+        "mapserver/errors.py": "",
+        "mapserver/atlas.py": "from mapserver.store import maps\nfrom core import Params\n",
+        "mapserver/api/routes/a.py": "from ..deps import x\nfrom mapserver import atlas\n",
+        "mapserver/api/deps.py": "",
+    })  # fmt: skip
+    assert violations(root) == []
+    edges = {e.imported for p in files(root) for e in imports_of(p, root)}
+    assert {"mapserver.store.models", "mapserver.api.deps", "mapserver.atlas"} <= edges

@@ -33,10 +33,9 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
-from mapserver.store import Database
+from mapserver.store import Database, utcnow
 from mapserver.store.db import sqlite_database_file
 from mapserver.store.jobs import job_uploads
-from mapserver.store.models import utcnow
 
 logger = logging.getLogger(__name__)
 

@@ -42,11 +42,9 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-from sqlalchemy import Connection
-
 from mapserver.api.worker import JobInterrupted, LeaseLost, execute_job
 from mapserver.errors import MapServerError
-from mapserver.store import Database
+from mapserver.store import Connection, Database
 from mapserver.store.jobs import (
     JobRecord,
     claim_next_job_excluding,

@@ -18,11 +18,10 @@ from collections.abc import Iterator
 from prometheus_client import CollectorRegistry, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.registry import Collector
-from sqlalchemy import func, select
 
-from mapserver.store import Database
-from mapserver.store.jobs import count_jobs
-from mapserver.store.models import MERGE_STATUSES, Job, MergeEvent
+from mapserver.store import MERGE_STATUSES, Database
+from mapserver.store.jobs import count_jobs, done_job_runs
+from mapserver.store.merge_events import count_merge_events
 
 DURATION_BUCKETS = (0.5, 1, 2, 5, 10, 30, 60, 120, 300, 600, 1800, 3600)
 RECENT_JOBS = 50
@@ -43,12 +42,8 @@ class StoreCollector(Collector):
         """Yield the metric families (one read transaction)."""
         with self.db.read() as conn:
             counts = count_jobs(conn=conn)
-            done = conn.execute(
-                select(Job.started_at, Job.finished_at, Job.options)
-                .where(Job.status == "done", Job.started_at.is_not(None), Job.finished_at.is_not(None))
-                .order_by(Job.finished_at, Job.id)
-            ).all()
-            merges = dict(conn.execute(select(MergeEvent.status, func.count()).group_by(MergeEvent.status)).all())
+            done = done_job_runs(conn=conn)
+            merges = count_merge_events(conn=conn)
         jobs = GaugeMetricFamily("mapserver_jobs", "jobs by status", labels=["status"])
         for status, n in counts.items():
             jobs.add_metric([status], n)

@@ -2,7 +2,7 @@
 
 :class:`ViewCache` keeps, per map and keyed by the map's version (as :mod:`mapserver.api.graphs` does),
 the experience poses, session and template of every experience and every link's ends, kind and
-``active`` flag (``True`` everywhere when the store has no such column). :func:`decimate` answers a
+``active`` flag (a NULL flag reads as ``True``). :func:`decimate` answers a
 viewport query: the experiences inside a bounding box, thinned to at most ``max_nodes`` by keeping one
 experience per (grid cell, session) — the lowest id — on a square grid over the box, and the links
 between the kept representatives of different cells (one per cell pair and kind). Everything is
@@ -19,13 +19,11 @@ from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import Connection, select
 
 from mapserver.errors import InputError
-from mapserver.store import Database, get_map
-from mapserver.store.bulk import fetch_tuples
-from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Session
-from mapserver.store.queries import map_version
+from mapserver.store import LINK_KIND_NAMES, Connection, Database, get_map
+from mapserver.store.queries import map_version, view_experiences, view_links
+from mapserver.store.sessions import session_names
 
 View = Literal["xy", "xz"]
 MAX_NODES = 50_000
@@ -54,33 +52,18 @@ class ViewGraph:
         return self.poses[:, [0, 2]] if view == "xz" else self.poses[:, :2]
 
 
-def _active_column() -> Any:
-    """Return the links' ``active`` column when the store has one (another branch may add it), else None."""
-    return getattr(Link, "active", None)
-
-
 def load_view_graph(*, conn: Connection, map_id: int, version: int) -> ViewGraph:
     """Read a map's experiences and links (no templates, no engine state) into a :class:`ViewGraph`."""
-    rows = fetch_tuples(
-        conn,
-        select(Experience.x, Experience.y, Experience.z, Experience.yaw, Experience.session_id,
-               Experience.template, Experience.stamp)
-        .where(Experience.map_id == map_id)
-        .order_by(Experience.local_id),
-    )  # fmt: skip
+    rows = view_experiences(conn=conn, map_id=map_id)
     exp = np.array(rows, dtype=np.float64).reshape(-1, 7)
     session_ids = exp[:, 4].astype(np.int64)
     uniq, codes = np.unique(session_ids, return_inverse=True)
-    names = dict(conn.execute(select(Session.id, Session.name).where(Session.id.in_(uniq.tolist()))).all())
-    active = _active_column()
-    columns = [Link.from_id, Link.to_id, Link.dt, Link.distance, Link.kind]
-    if active is not None:
-        columns.append(active)
-    links = conn.execute(select(*columns).where(Link.map_id == map_id).order_by(Link.seq)).all()
+    names = session_names(conn=conn, session_ids=uniq.tolist())
+    links = view_links(conn=conn, map_id=map_id)
     kinds = {name: code for code, name in enumerate(LINK_KIND_NAMES)}
     arr = np.array([r[:4] for r in links], dtype=np.float64).reshape(-1, 4)
     kind = np.array([kinds.get(r[4], 0) for r in links], dtype=np.int64)
-    on = np.array([r[5] is None or bool(r[5]) for r in links] if active is not None else [True] * len(links), bool)
+    on = np.array([r[5] is None or bool(r[5]) for r in links], dtype=bool)
     return ViewGraph(
         map_id=map_id, version=version, poses=np.ascontiguousarray(exp[:, :4]), session=codes.astype(np.int64),
         template=exp[:, 5].astype(np.int64), stamp=exp[:, 6].copy(),

@@ -6,8 +6,7 @@ import argparse
 import sys
 
 from mapserver.cli._output import emit_json, info
-from mapserver.store import DEFAULT_DB_URL, open_database
-from mapserver.store.models import TOKEN_SCOPES, utcnow
+from mapserver.store import DEFAULT_DB_URL, TOKEN_SCOPES, open_database, utcnow
 from mapserver.store.tokens import create_token, list_tokens, parse_duration, revoke_token
 
 

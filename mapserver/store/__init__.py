@@ -7,12 +7,14 @@ Public surface::
         save_map(db, name="lab", params=params, snapshot=engine.snapshot(), sessions=[NewSession(...)])
         content = load_map(db, name="lab")                          # params, snapshot, meta
 
-Repository functions take keyword arguments only, the first being ``conn`` (a connection inside
-``Database.write()`` or ``Database.read()``), so that callers compose them in one transaction.
+Repository functions take keyword arguments only, the first being ``conn`` (a :data:`Connection` inside
+``Database.write()`` or ``Database.read()``), so that callers compose them in one transaction. Every SQL
+statement lives in this package: callers type their transaction handle as ``mapserver.store.Connection``
+and use the constants below, never ``sqlalchemy`` or ``mapserver.store.models`` (``tests/test_layers.py``).
 Design notes: docs/architecture.md, section "Store".
 """
 
-from mapserver.store.db import DEFAULT_DB_URL, Database, create_db_engine, open_database
+from mapserver.store.db import DEFAULT_DB_URL, Connection, Database, create_db_engine, open_database
 from mapserver.store.errors import (
     CorruptStateError,
     MapExistsError,
@@ -35,12 +37,17 @@ from mapserver.store.maps import (
     lock_atlas,
 )
 from mapserver.store.migrate import HEAD_REVISION, current_revision, downgrade, ensure_schema, upgrade
+from mapserver.store.models import LINK_KIND_NAMES, MERGE_STATUSES, TOKEN_SCOPES, utcnow
 from mapserver.store.sessions import NewSession, SessionRecord, find_session, get_session, sessions_of_map
 from mapserver.store.state import MapContent, MapMeta, WriteResult, read_map_state, write_map_state
 
 __all__ = [
     "DEFAULT_DB_URL",
     "HEAD_REVISION",
+    "LINK_KIND_NAMES",
+    "MERGE_STATUSES",
+    "TOKEN_SCOPES",
+    "Connection",
     "CorruptStateError",
     "Database",
     "MapContent",
@@ -75,5 +82,6 @@ __all__ = [
     "save_map",
     "sessions_of_map",
     "upgrade",
+    "utcnow",
     "write_map_state",
 ]

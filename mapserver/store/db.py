@@ -9,6 +9,9 @@
 * :meth:`Database.read` — a consistent snapshot: a deferred SQLite transaction (WAL readers see the
   state as of their first read, never a half-committed write) or a REPEATABLE READ PostgreSQL one.
 
+Both yield a :data:`Connection`, the transaction handle every repository function takes as ``conn``
+(SQLAlchemy's ``Connection``; code outside the store names it ``mapserver.store.Connection``).
+
 Driver errors leave as :class:`~mapserver.errors.StoreError` (a lock that outlasted the busy timeout,
 a lost connection) or :class:`~mapserver.errors.ConflictError` (a constraint a concurrent writer won).
 """
@@ -24,7 +27,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Connection, Engine, create_engine, event
+from sqlalchemy import Connection as Connection
+from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, IntegrityError
 

@@ -17,7 +17,7 @@ from typing import Any
 from sqlalchemy import ColumnElement, Connection, func, insert, or_, select, text, update
 
 from mapserver.errors import NotFoundError
-from mapserver.store.models import JOB_STATUSES, Job, utcnow
+from mapserver.store.models import JOB_STATUSES, Job, Session, utcnow
 
 
 @dataclass(frozen=True, slots=True)
@@ -339,3 +339,22 @@ def count_jobs(*, conn: Connection) -> dict[str, int]:
     counts = dict.fromkeys(JOB_STATUSES, 0)
     counts.update({str(status): int(n) for status, n in rows})
     return counts
+
+
+def last_done_upload(*, conn: Connection, session_name: str) -> str | None:
+    """Return the upload path of the newest done job that stored session ``session_name`` (None: none, or no path)."""
+    row = conn.execute(
+        select(Job.upload_path).join(Session, Session.id == Job.session_id)
+        .where(Session.name == session_name, Job.status == "done").order_by(Job.id.desc())
+    ).first()  # fmt: skip
+    return None if row is None or not row[0] else str(row[0])
+
+
+def done_job_runs(*, conn: Connection) -> list[tuple[datetime, datetime, dict[str, Any] | None]]:
+    """Return ``(started_at, finished_at, options)`` of every done job with both times, by finish time then id."""
+    rows = conn.execute(
+        select(Job.started_at, Job.finished_at, Job.options)
+        .where(Job.status == "done", Job.started_at.is_not(None), Job.finished_at.is_not(None))
+        .order_by(Job.finished_at, Job.id)
+    ).all()
+    return [(r[0], r[1], r[2]) for r in rows]

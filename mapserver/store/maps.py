@@ -1,11 +1,11 @@
-"""Maps: create, find, list with counts, claim for writing (optimistic version check), drop."""
+"""Maps: create, find, list (with counts, or with parameters), claim for writing (optimistic version check), drop."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, NamedTuple
 
 from sqlalchemy import Connection, func, insert, select, update
 
@@ -70,6 +70,15 @@ class MapSummary:
             "health": self.health,
             "merges": dict(self.merges) if self.merges is not None else _no_merges(),
         }
+
+
+class MapParams(NamedTuple):
+    """A map's id, name, stored parameters (as stored: not checked) and version."""
+
+    id: int
+    name: str
+    params: Any
+    version: int
 
 
 _COLUMNS = (Map.id, Map.name, Map.version, Map.params, Map.created_at, Map.updated_at)
@@ -197,6 +206,18 @@ def list_maps(*, conn: Connection) -> list[MapSummary]:
                    merges.get(int(r[0]), _no_merges()))
         for r in rows
     ]  # fmt: skip
+
+
+def list_map_params(*, conn: Connection) -> list[MapParams]:
+    """Return every map's id, name, parameters and version, by id (no counts, no state)."""
+    rows = conn.execute(select(Map.id, Map.name, Map.params, Map.version).order_by(Map.id)).all()
+    return [MapParams(r[0], r[1], r[2], r[3]) for r in rows]
+
+
+def map_names(*, conn: Connection, map_ids: Collection[int]) -> dict[int, str]:
+    """Return ``{id: name}`` of the maps among ``map_ids`` (ids that name no map are left out)."""
+    rows = conn.execute(select(Map.id, Map.name).where(Map.id.in_(map_ids))).all()
+    return {int(r[0]): str(r[1]) for r in rows}
 
 
 def _no_merges() -> dict[str, int]:

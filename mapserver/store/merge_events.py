@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Connection, insert, select, update
+from sqlalchemy import Connection, func, insert, select, update
 
 from mapserver.errors import NotFoundError, StoreError
 from mapserver.store.models import MERGE_STATUSES, MapArchive, MergeEvent, MergeEventSession, utcnow
@@ -129,6 +129,12 @@ def get_merge_event(*, conn: Connection, event_id: int) -> MergeEventRecord:
 def list_merge_events(*, conn: Connection, map_id: int | None = None) -> list[MergeEventRecord]:
     """Return the merge events (of one map when ``map_id`` is given), oldest first."""
     return _events(conn, None if map_id is None else MergeEvent.map_id == map_id)
+
+
+def count_merge_events(*, conn: Connection) -> dict[str, int]:
+    """Return ``{status: number of merge events}`` for the statuses that have any."""
+    rows = conn.execute(select(MergeEvent.status, func.count()).group_by(MergeEvent.status)).all()
+    return {str(r[0]): int(r[1]) for r in rows}
 
 
 def set_merge_status(*, conn: Connection, event_id: int, status: str) -> None:

@@ -1,4 +1,4 @@
-"""Read-only queries for the API (issue 6) that need no full map state: paged experiences, the graph."""
+"""Read-only queries that need no full map state: paged experiences, the graph, the viewer's rows, counts."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from sqlalchemy import Connection, bindparam, case, func, select
 
 from mapserver.errors import InputError
 from mapserver.store.bulk import fetch_tuples
-from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Map, Session
+from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Map, MapState, Session
 
 MAX_PAGE = 10_000
 _MAP_VERSION = select(Map.id, Map.version).where(Map.name == bindparam("name"))  # built once: a cached statement
@@ -95,3 +95,38 @@ def map_version(*, conn: Connection, name: str) -> tuple[int, int] | None:
     """Return ``(map id, version)`` of map ``name``, None when there is none: one indexed lookup, no JSON."""
     row = conn.execute(_MAP_VERSION, {"name": name}).first()
     return None if row is None else (int(row[0]), int(row[1]))
+
+
+def view_experiences(*, conn: Connection, map_id: int) -> list[tuple[Any, ...]]:
+    """Return ``(x, y, z, yaw, session id, template, stamp)`` of a map's experiences, by id (the web viewer)."""
+    return fetch_tuples(
+        conn,
+        select(Experience.x, Experience.y, Experience.z, Experience.yaw, Experience.session_id,
+               Experience.template, Experience.stamp)
+        .where(Experience.map_id == map_id)
+        .order_by(Experience.local_id),
+    )  # fmt: skip
+
+
+def view_links(*, conn: Connection, map_id: int) -> list[tuple[Any, ...]]:
+    """Return ``(from, to, dt, distance, kind name, active)`` of a map's links, in link order (the web viewer)."""
+    rows = conn.execute(
+        select(Link.from_id, Link.to_id, Link.dt, Link.distance, Link.kind, Link.active)
+        .where(Link.map_id == map_id)
+        .order_by(Link.seq)
+    ).all()
+    return [tuple(r) for r in rows]
+
+
+def map_state_counts(*, conn: Connection, map_id: int) -> tuple[int, int, int] | None:
+    """Return ``(templates, experiences, links)`` of a map's stored state, None when it has no state row."""
+    row = conn.execute(
+        select(MapState.n_templates, MapState.n_experiences, MapState.n_links).where(MapState.map_id == map_id)
+    ).first()
+    return None if row is None else (int(row[0]), int(row[1]), int(row[2]))
+
+
+def count_links(*, conn: Connection, map_id: int, kind: str) -> int:
+    """Return the number of a map's links of one kind (``odometry``, ``loop``, ``merge`` or ``manual``)."""
+    counted = select(func.count()).select_from(Link).where(Link.map_id == map_id, Link.kind == kind)
+    return int(conn.execute(counted).scalar_one())

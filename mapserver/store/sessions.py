@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -172,6 +172,18 @@ def get_sessions(*, conn: Connection, session_ids: list[int]) -> list[SessionRec
         msg = f"no session with id(s) {missing!r}"
         raise NotFoundError(msg)
     return [by_id[i] for i in session_ids]
+
+
+def find_session_map(*, conn: Connection, name: str) -> tuple[str, int | None] | None:
+    """Return ``(name, map id)`` of the session called ``name`` (map id None: it belongs to no map), or None."""
+    row = conn.execute(select(Session.name, Session.map_id).where(Session.name == name)).first()
+    return None if row is None else (str(row[0]), None if row[1] is None else int(row[1]))
+
+
+def session_names(*, conn: Connection, session_ids: Collection[int]) -> dict[int, str]:
+    """Return ``{id: name}`` of the sessions among ``session_ids`` (ids that name no session are left out)."""
+    rows = conn.execute(select(Session.id, Session.name).where(Session.id.in_(session_ids))).all()
+    return {int(r[0]): str(r[1]) for r in rows}
 
 
 def unique_session_name(*, conn: Connection, wanted: str) -> str:

@@ -16,9 +16,8 @@ from mapserver.api.schemas import ErrorPublic
 from mapserver.api.services import Services
 from mapserver.api.viewdata import MAX_NODES, ViewCache, ViewGraph, decimate, nearest, parse_bbox
 from mapserver.errors import NotFoundError
-from mapserver.store import get_map
+from mapserver.store import LINK_KIND_NAMES, get_map
 from mapserver.store.evidence import get_evidence
-from mapserver.store.models import LINK_KIND_NAMES
 
 router = APIRouter(prefix="/v1/maps", tags=["viewer"])
 MAX_COORDINATE = 1e12  # metres: a query point beyond is refused (422), as is NaN or ±inf

@@ -6,12 +6,11 @@ import contextlib
 from typing import Annotated
 
 from fastapi import APIRouter, Path
-from sqlalchemy import Connection
 
 from mapserver.api.deps import ReadAccess, ServicesDep
 from mapserver.api.schemas import ErrorPublic, JobPublic
 from mapserver.errors import NotFoundError
-from mapserver.store import get_map_by_id, get_session
+from mapserver.store import Connection, get_map_by_id, get_session
 from mapserver.store.jobs import JobRecord, get_job
 from mapserver.store.sessions import SessionRecord
 

@@ -5,16 +5,15 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query
-from sqlalchemy import Connection, select, tuple_
 from starlette.concurrency import run_in_threadpool
 
 from mapserver.api.deps import ReadAccess, ServicesDep, WriteAccess
 from mapserver.api.routes.maps import AUTH_ERRORS, MAX_ID
 from mapserver.api.schemas import ErrorPublic
 from mapserver.api.services import Services
-from mapserver.store import get_map
+from mapserver.store import Connection, get_map
+from mapserver.store.identities import PlacedExperience, experiences_at, template_users
 from mapserver.store.merge_events import MergeEventRecord, get_merge_event, list_merge_events
-from mapserver.store.models import Experience, Map, Session, Template
 from mapserver.store.sessions import get_sessions
 from mapserver.undo import redo_merge, unmerge
 
@@ -26,39 +25,17 @@ EventId = Annotated[int, Path(ge=1, le=MAX_ID, description="merge event id")]
 
 def _experiences_at(conn: Connection, uids: list[tuple[int, int]]) -> dict[tuple[int, int], list[dict[str, Any]]]:
     """Return, per stable experience identity (session, index), where it lives now: map, id, session, pose."""
-    if not uids:
-        return {}
-    rows = conn.execute(
-        select(Experience.session_id, Experience.origin_index, Map.name, Experience.local_id, Session.name,
-               Experience.x, Experience.y, Experience.z)
-        .join(Map, Map.id == Experience.map_id).join(Session, Session.id == Experience.session_id)
-        .where(tuple_(Experience.session_id, Experience.origin_index).in_(uids))
-    ).all()  # fmt: skip
-    return {(int(r[0]), int(r[1])): [_node(r[2:])] for r in rows}
+    return {uid: [_node(p)] for uid, p in experiences_at(conn=conn, uids=uids).items()}
 
 
-def _node(row: Any) -> dict[str, Any]:
-    return {"map": row[0], "id": int(row[1]), "session": row[2], "x": row[3], "y": row[4], "z": row[5]}
+def _node(placed: PlacedExperience) -> dict[str, Any]:
+    return {"map": placed.map, "id": placed.id, "session": placed.session, "x": placed.x, "y": placed.y,
+            "z": placed.z}  # fmt: skip
 
 
 def _template_users(conn: Connection, uids: list[tuple[int, int]]) -> dict[tuple[int, int], list[dict[str, Any]]]:
     """Return, per stable template identity, the experiences (any session) that use that template now."""
-    if not uids:
-        return {}
-    found = conn.execute(
-        select(Template.session_id, Template.origin_index, Template.map_id, Template.local_id)
-        .where(tuple_(Template.session_id, Template.origin_index).in_(uids), Template.map_id.is_not(None))
-    ).all()  # fmt: skip
-    out: dict[tuple[int, int], list[dict[str, Any]]] = {}
-    for sid, index, map_id, local in found:
-        rows = conn.execute(
-            select(Map.name, Experience.local_id, Session.name, Experience.x, Experience.y, Experience.z)
-            .join(Map, Map.id == Experience.map_id).join(Session, Session.id == Experience.session_id)
-            .where(Experience.map_id == map_id, Experience.template == local)
-            .order_by(Experience.local_id)
-        ).all()  # fmt: skip
-        out[(int(sid), int(index))] = [_node(r) for r in rows]
-    return out
+    return {uid: [_node(p) for p in placed] for uid, placed in template_users(conn=conn, uids=uids).items()}
 
 
 def _groups(conn: Connection, pairs: list[dict[str, Any]], what: str) -> list[dict[str, Any]]:
