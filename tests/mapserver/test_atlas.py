@@ -128,7 +128,7 @@ def test_unmerge_restores_the_maps_exactly_and_redo_reproduces_the_merge(
     assert code == 1 and err.strip().splitlines()[-1] == f"ERROR: merge event {entry['event']} is undone already"
 
     assert cli_json("merge", "--db", db_url, "--redo", str(entry["event"])) == {
-        "merged": True, "event": entry["event"], "map": "session1"}  # fmt: skip
+        "merged": True, "event": entry["event"], "map": "session1", "settled": True}  # fmt: skip
     again = pipeline.process_into_store(tour / "session2.bag", PARAMS, db_url=db_url)  # continues after the merge
     assert again.merges == [] and again.frames == merged.frames
     # the same map as the original run (rows re-created after the merge frame get fresh identities)
@@ -179,7 +179,7 @@ def test_offline_merge_refuses_without_a_match_and_undoes_and_redoes_exactly(
     assert cli_code("merge", "--db", db_url, "--map", "nowhere", "--into", "session1")[0] == 2
 
     done = cli_json("merge", "--db", db_url, "--map", "session2", "--into", "session1")
-    assert done == {"merged": True, "event": 1, "map": "session1"}
+    assert done == {"merged": True, "event": 1, "map": "session1", "settled": True}
     maps = cli_json("maps", "--db", db_url)["maps"]
     assert [(m["name"], m["sessions"]) for m in maps] == [("session1", 2)]
     assert maps[0]["templates"] < a["lv_means"].size + b["lv_means"].size  # matched templates not duplicated
