@@ -22,6 +22,9 @@ moves is treated as twist (both give zero motion).
 
 Each streaming call (:meth:`MissionLog.frames`, :meth:`MissionLog.ground_truth`) opens its own readers,
 so several streams of one log may be consumed interleaved (rosbags readers share file positions).
+:meth:`MissionLog.frames_ahead` runs :meth:`MissionLog.frames` in a worker (a forked process, or a thread)
+that reads and decodes ahead of the caller into a bounded queue: the same frames in the same order, and the
+same errors at the same point of the stream (:class:`ReadAhead`).
 Memory is bounded regardless of log size: messages are streamed, never loaded all at once; per topic a
 stamp index of 8 bytes per message is kept, re-sequencing holds at most
 :data:`~mapserver.ingest.ordering.REORDER_LIMIT` messages, and the odometry buffer holds only the
@@ -30,7 +33,15 @@ messages between two frames.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import multiprocessing
+import os
+import pickle
+import queue
+import signal
+import threading
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import ExitStack
 from pathlib import Path
@@ -60,6 +71,13 @@ from mapserver.ingest.topics import TopicInfo, TopicMapping, map_topics
 
 LOG_SUFFIXES = (".bag", ".db3", ".mcap")
 _HASH_CHUNK = 1 << 20
+READ_AHEAD = 64
+"""Frames a :class:`ReadAhead` worker reads and decodes before the caller takes them (bounded memory)."""
+_BATCH = 16
+"""Frames per message from the worker; its first message carries one frame, so the first is not held back."""
+_POLL_S = 0.1
+"""How often a blocked worker or caller checks that the other side is still there."""
+Worker = Literal["auto", "process", "thread"]
 
 
 class _Newest:
@@ -351,6 +369,12 @@ class MissionLog:
                     extra = None if sonar is None else sonar.at(stamp)
                     yield Frame(stamp_ns=stamp, image=decode_image(msg, topic), motion=motion, sonar=extra)
 
+    def frames_ahead(
+        self, start: int = 0, stop: int | None = None, *, depth: int = READ_AHEAD, worker: Worker = "auto"
+    ) -> ReadAhead:
+        """Return :meth:`frames` read and decoded ahead by a worker (:class:`ReadAhead`; use it in a ``with`` block)."""
+        return ReadAhead(self, start, stop, depth=depth, worker=worker)
+
     def ground_truth(self) -> Iterator[PoseSample]:
         """Yield the ground-truth poses in stamp order (nothing when the log has no ground-truth topic).
 
@@ -381,6 +405,154 @@ class MissionLog:
                 qz=float(pose.orientation.z),
                 qw=float(pose.orientation.w),
             )
+
+
+# -- reading ahead -------------------------------------------------------------------------------------
+
+
+
+class ReadAhead:
+    """A log's frames ``[start, stop)``, read and decoded ahead of the caller by a worker, in stamp order.
+
+    The worker opens its own readers on the log and runs :meth:`MissionLog.frames` into a bounded queue
+    (``depth`` frames at most in flight); iterating yields the same frames in the same order. An exception in
+    the worker (an :class:`IngestError` for a corrupt message or an undecodable image) is raised when the
+    caller reaches that point of the stream, as :meth:`MissionLog.frames` raises it there. Leaving the
+    ``with`` block (the end of the frames, a ``break``, an exception, KeyboardInterrupt) stops the worker and
+    waits for it.
+
+    ``worker``: ``process`` reads in a forked child (it starts with the caller's modules loaded and runs in
+    parallel with the caller's computation; the child ignores SIGINT: the caller's interrupt stops it);
+    ``thread`` in a thread (decoding releases the GIL, parsing does not); ``auto`` takes ``process`` where
+    fork exists and the caller is not a daemonic process (a celery worker's, which may not have children).
+    """
+
+    def __init__(
+        self, log: MissionLog, start: int = 0, stop: int | None = None, *, depth: int = READ_AHEAD,
+        worker: Worker = "auto",
+    ) -> None:  # fmt: skip
+        log._require_open()
+        self.path = log.path
+        self.worker = _worker_kind(worker)
+        job = (log.path, log.topics, log.mapping, log._odometry_mode, start, stop)
+        slots = max(1, -(-depth // _BATCH))
+        if self.worker == "process":
+            context = multiprocessing.get_context("fork")
+            self._channel: Any = context.Queue(maxsize=slots)
+            self._stop: Any = context.Event()
+            self._runner: Any = context.Process(
+                target=_produce, args=(job, self._channel, self._stop, os.getpid()), daemon=True
+            )
+        else:
+            self._channel = queue.Queue(maxsize=slots)
+            self._stop = threading.Event()
+            self._runner = threading.Thread(target=_produce, args=(job, self._channel, self._stop, None), daemon=True)
+        self._runner.start()
+
+    def __enter__(self) -> ReadAhead:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[Frame]:
+        while True:
+            kind, payload = self._take()
+            if kind == "frames":
+                yield from payload
+            elif kind == "end":
+                return
+            else:
+                raise payload
+
+    def _take(self) -> tuple[str, Any]:
+        """Return the worker's next message; raise IngestError when it ended without one."""
+        while True:
+            try:
+                return self._channel.get(timeout=_POLL_S)  # type: ignore[no-any-return]
+            except queue.Empty:
+                if self._runner.is_alive():
+                    continue
+            try:  # it may have sent its last message just before it ended
+                return self._channel.get(timeout=_POLL_S)  # type: ignore[no-any-return]
+            except queue.Empty:
+                code = getattr(self._runner, "exitcode", None)
+                msg = f"the frame reader of {str(self.path)!r} stopped without an answer (exit code {code})"
+                raise IngestError(msg) from None
+
+    def close(self) -> None:
+        """Stop the worker and wait for it (idempotent)."""
+        self._stop.set()
+        deadline = time.monotonic() + 5.0
+        while self._runner.is_alive() and time.monotonic() < deadline:
+            with contextlib.suppress(queue.Empty):  # a full queue would block a worker that is sending
+                while True:
+                    self._channel.get_nowait()
+            self._runner.join(timeout=_POLL_S)
+        if self.worker == "process":
+            if self._runner.is_alive():
+                self._runner.terminate()
+                self._runner.join()
+            self._channel.close()
+
+
+def _worker_kind(worker: Worker) -> Literal["process", "thread"]:
+    if worker != "auto":
+        return worker
+    can_fork = "fork" in multiprocessing.get_all_start_methods()
+    return "process" if can_fork and not multiprocessing.current_process().daemon else "thread"
+
+
+def _produce(job: tuple[Any, ...], channel: Any, stop: Any, parent: int | None) -> None:
+    """Worker body: send the frames of ``job`` in batches, then ``("end", None)``, or ``("error", exception)``.
+
+    The frames read before an error are sent before it, so the caller sees the stream up to the failure.
+    """
+    if parent is not None:  # a forked child: the caller handles Ctrl-C and stops it
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    path, topics, mapping, mode, start, stop_at = job
+    chunk: list[Frame] = []
+    try:
+        log = MissionLog(path, _new_reader(path), topics, mapping, mode)
+        try:
+            size = 1
+            for frame in log.frames(start, stop_at):
+                chunk.append(frame)
+                if len(chunk) >= size:
+                    if not _send(channel, ("frames", chunk), stop, parent):
+                        return
+                    chunk, size = [], _BATCH
+        finally:
+            log.close()
+        if _send(channel, ("frames", chunk), stop, parent):
+            _send(channel, ("end", None), stop, parent)
+    except BaseException as err:  # every failure goes to the caller, which raises it
+        if _send(channel, ("frames", chunk), stop, parent):
+            _send(channel, ("error", _portable(err, path) if parent is not None else err), stop, parent)
+
+
+def _send(channel: Any, item: tuple[str, Any], stop: Any, parent: int | None) -> bool:
+    """Put ``item`` on the bounded channel; return False when the caller stopped the worker (or is gone)."""
+    while not stop.is_set() and (parent is None or os.getppid() == parent):
+        try:
+            channel.put(item, timeout=_POLL_S)
+            return True
+        except queue.Full:
+            continue
+    if hasattr(channel, "cancel_join_thread"):  # do not wait at exit to flush what nobody will read
+        channel.cancel_join_thread()
+    return False
+
+
+def _portable(err: BaseException, path: Path) -> BaseException:
+    """Return ``err`` when it survives pickling (to reach the parent), else an IngestError that names it."""
+    try:
+        pickle.loads(pickle.dumps(err))
+    except Exception:  # any unpicklable exception is replaced
+        return IngestError(f"reading {str(path)!r} failed: {type(err).__name__}: {_describe(err)}")
+    return err
 
 
 def _topic_infos(reader: AnyReader) -> list[TopicInfo]:
