@@ -28,6 +28,7 @@ three such masks.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -59,8 +60,10 @@ def kernel(name: str) -> Callable[..., Any]:
 
 
 _ORDER = (
-    "_rows", "_occupancy", "_widen", "_pass_outer", "_pass_heading", "_spread", "_combine",
-    "attractor", "_translate", "_corner_loss", "_shift_outer", "_shift_heading", "path_integrate", "peak",
+    "_rows", "_occupancy", "_widen", "_segments", "_add_scaled", "_pass_outer", "_pass_heading", "_spread",
+    "_combine", "_restart",
+    "attractor", "_layer_shift", "_translate", "_corner_loss", "_shift_outer", "_shift_heading", "path_integrate",
+    "peak", "on_odo",
 )  # fmt: skip
 
 
@@ -71,7 +74,7 @@ def _compiled() -> dict[str, Callable[..., Any]]:
     module = globals()
     for name in _ORDER:  # callees first: a kernel calls the compiled versions of those above it
         module[name] = njit(cache=True, nogil=True)(module[name])
-    return {name: module[name] for name in ("attractor", "path_integrate", "peak", "_occupancy")}
+    return {name: module[name] for name in ("attractor", "path_integrate", "peak", "on_odo", "_occupancy")}
 
 
 # ----------------------------------------------------------------------------------------------- helpers
@@ -123,14 +126,36 @@ def _widen(mask: np.ndarray, dim: int, offsets: np.ndarray, count: int) -> None:
                 mask[(i + offsets[k]) % dim] = True
 
 
+def _segments(mask: np.ndarray, count: int, out: np.ndarray) -> int:
+    """Write the runs of True in ``mask[:count]`` as [start, end) rows of ``out``; return how many."""
+    n = 0
+    t = 0
+    while t < count:
+        if mask[t]:
+            out[n, 0] = t
+            while t < count and mask[t]:
+                t += 1
+            out[n, 1] = t
+            n += 1
+        else:
+            t += 1
+    return n
+
+
+def _add_scaled(out: np.ndarray, w: float, seen: np.ndarray) -> None:
+    """``out[t] += w·seen[t]`` for every t (one tap of a spread on one contiguous run)."""
+    for t in range(out.size):
+        out[t] += w * seen[t]
+
+
 def _pass_outer(
     src: np.ndarray, dst: np.ndarray, axis: int, dims: np.ndarray, rows: np.ndarray, n_rows: int,
-    source: np.ndarray, theta: np.ndarray, offsets: np.ndarray, weights: np.ndarray, count: int,
+    source: np.ndarray, segs: np.ndarray, n_segs: int, offsets: np.ndarray, weights: np.ndarray, count: int,
 ) -> None:  # fmt: skip
-    """Spread along outer axis ``axis`` (x, y or z): ``dst[i] = Σ_k w_k·src[i − o_k]`` on ``rows``, θ in ``theta``.
+    """Spread along outer axis ``axis`` (x, y or z): ``dst[i] = Σ_k w_k·src[i − o_k]`` on ``rows``, θ in ``segs``.
 
     ``source`` is the axis's mask of ``src``: taps from other slices read zeros and are skipped. Every written
-    row is 0 off the θ layers ``theta`` (the only ones ``src`` holds).
+    row is 0 off the θ runs ``segs`` (the only layers ``src`` holds).
     """
     ny, nz = dims[1], dims[2]
     dim = dims[axis]
@@ -145,33 +170,41 @@ def _pass_outer(
             if source[j]:
                 seen = src[r + (j - c) * stride]
                 w = weights[k]
-                for t in theta:
-                    out[t] += w * seen[t]
+                for s in range(n_segs):
+                    _add_scaled(out[segs[s, 0] : segs[s, 1]], w, seen[segs[s, 0] : segs[s, 1]])
 
 
 def _pass_heading(
-    src: np.ndarray, dst: np.ndarray, rows: np.ndarray, n_rows: int, theta: np.ndarray, index: np.ndarray,
-    weights: np.ndarray,
+    src: np.ndarray, dst: np.ndarray, rows: np.ndarray, n_rows: int, segs: np.ndarray, n_segs: int,
+    signed: np.ndarray, weights: np.ndarray,
 ) -> None:  # fmt: skip
-    """Spread along θ on ``rows``: ``dst[r, t] = Σ_k w_k·src[r, index[k, t]]`` for t in ``theta``, 0 elsewhere.
+    """Spread along θ on ``rows``: ``dst[r, t] = Σ_k w_k·src[r, (t − o_k) mod n_θ]`` for t in ``segs``, 0 elsewhere.
 
-    ``index[k, t] = (t − o_k) mod n_θ``.
+    ``signed`` holds the offsets o_k in (−n_θ/2, n_θ/2]; each row is read through a copy padded by wrapping, so
+    every tap is a contiguous run.
     """
+    nt = src.shape[1]
+    pad = 0
+    for k in range(weights.size):
+        pad = max(pad, abs(signed[k]))
+    ext = np.empty(nt + 2 * pad)
     for n in range(n_rows):
         r = rows[n]
         seen = src[r]
+        for i in range(nt + 2 * pad):
+            ext[i] = seen[(i - pad) % nt]
         out = dst[r]
         out[:] = 0.0
-        for t in theta:
-            acc = 0.0
-            for k in range(weights.size):
-                acc += weights[k] * seen[index[k, t]]
-            out[t] = acc
+        for k in range(weights.size):
+            w = weights[k]
+            base = pad - signed[k]
+            for s in range(n_segs):
+                _add_scaled(out[segs[s, 0] : segs[s, 1]], w, ext[base + segs[s, 0] : base + segs[s, 1]])
 
 
 def _spread(
     pool: np.ndarray, src: int, scratch: np.ndarray, dims: np.ndarray, region: np.ndarray, widen: bool,
-    rows: np.ndarray, offsets: np.ndarray, weights: np.ndarray, counts: np.ndarray, index: np.ndarray,
+    rows: np.ndarray, offsets: np.ndarray, weights: np.ndarray, counts: np.ndarray, signed: np.ndarray,
 ) -> int:  # fmt: skip
     """Spread ``pool[src]`` along x, y, [z] then θ by one separable kernel; return the result's slot.
 
@@ -179,6 +212,9 @@ def _spread(
     ``widen``, else the source's own (the result is then needed there only). The passes alternate between
     ``scratch[0]`` and ``scratch[1]``; the θ pass writes ``scratch[2]``.
     """
+    nt = pool.shape[2]
+    segs = np.empty((nt, 2), np.int64)
+    n_segs = _segments(region[3], nt, segs)
     flip = 0
     for axis in range(3):
         if counts[axis] == 0:
@@ -187,16 +223,15 @@ def _spread(
         if widen:
             _widen(region[axis], dims[axis], offsets[axis], counts[axis])
         n_rows = _rows(region, dims, rows)
-        theta = np.flatnonzero(region[3, : pool.shape[2]])
         dst = scratch[flip]
-        _pass_outer(pool[src], pool[dst], axis, dims, rows, n_rows, source, theta, offsets[axis], weights[axis],
-                    counts[axis])
+        _pass_outer(pool[src], pool[dst], axis, dims, rows, n_rows, source, segs, n_segs, offsets[axis],
+                    weights[axis], counts[axis])
         src, flip = dst, 1 - flip
     if widen:
-        _widen(region[3], pool.shape[2], offsets[3], counts[3])
+        _widen(region[3], nt, offsets[3], counts[3])
     n_rows = _rows(region, dims, rows)
-    theta = np.flatnonzero(region[3, : pool.shape[2]])
-    _pass_heading(pool[src], pool[scratch[2]], rows, n_rows, theta, index, weights[3, : counts[3]])
+    n_segs = _segments(region[3], nt, segs)
+    _pass_heading(pool[src], pool[scratch[2]], rows, n_rows, segs, n_segs, signed, weights[3, : counts[3]])
     return scratch[2]
 
 
@@ -240,16 +275,18 @@ def _combine(
 
 def attractor(
     pool: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
-    e_offsets: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray, e_index: np.ndarray,
-    i_offsets: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, i_index: np.ndarray, inhibition: float,
+    e_offsets: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray, e_signed: np.ndarray,
+    i_offsets: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, i_signed: np.ndarray, inhibition: float,
+    best: np.ndarray,
 ) -> tuple[int, float]:  # fmt: skip
     """One attractor step of ``pool[source]`` (Menezes et al. Eq. 3); return (the result's slot, the pre-scale sum).
 
-    Excitation E, inhibition I of E, then ``max(E − I − φ, 0)`` normalised to sum 1 when the sum is positive.
-    I is computed where E may be non-zero only (elsewhere ``0 − I − φ ≤ 0`` as I ≥ 0), or wherever it reaches
-    when a cell is negative (``openratslam_compat``'s translation can leave some). ``masks`` (4, 4, width) is
-    scratch; on return ``masks[0]`` holds the result's slices. ``pool`` has ≥ 5 slots; every slot but
-    ``source`` is overwritten.
+    Excitation E, inhibition I of E, then ``max(E − I − φ, 0)`` normalised to sum 1 when the sum is positive;
+    otherwise (everything inhibited) one cell at the decoded centre ``best`` (truncated) holds 1. I is computed
+    where E may be non-zero only (elsewhere ``0 − I − φ ≤ 0`` as I ≥ 0), or wherever it reaches when a cell is
+    negative (``openratslam_compat``'s translation can leave some). ``masks`` (4, 4, width) is scratch; on
+    return ``masks[0]`` holds the result's slices. ``pool`` has ≥ 5 slots; every slot but ``source`` is
+    overwritten.
     """
     free = np.empty(4, np.int64)
     n = 0
@@ -259,31 +296,58 @@ def attractor(
             n += 1
     region = masks[1]
     negative = _occupancy(pool[source], dims, region)
-    excited = _spread(pool, source, free[:3], dims, region, True, rows, e_offsets, e_weights, e_counts, e_index)
+    excited = _spread(pool, source, free[:3], dims, region, True, rows, e_offsets, e_weights, e_counts, e_signed)
     masks[2, :, :] = region  # E's slices
     scratch = np.array([free[0], free[1], free[3]])
-    inhibited = _spread(pool, excited, scratch, dims, region, negative, rows, i_offsets, i_weights, i_counts, i_index)
+    inhibited = _spread(pool, excited, scratch, dims, region, negative, rows, i_offsets, i_weights, i_counts,
+                        i_signed)
     n_rows = _rows(region, dims, rows)
     theta = np.flatnonzero(region[3, : pool.shape[2]])
     out = free[0]
-    total = _combine(pool[excited], pool[inhibited], pool[out], dims, masks[2], rows, n_rows, theta, inhibition,
+    cells = pool[out]
+    total = _combine(pool[excited], pool[inhibited], cells, dims, masks[2], rows, n_rows, theta, inhibition,
                      masks[0])
     if total > 0.0:
-        cells = pool[out]
         for m in range(n_rows):
             r = rows[m]
             for t in theta:
                 cells[r, t] = cells[r, t] / total
+    else:
+        _restart(cells, dims, masks[0], best)
     return out, total
 
 
-def _translate(
-    src: np.ndarray, dst: np.ndarray, dims: np.ndarray, masks: np.ndarray, moves: np.ndarray, moved: np.ndarray
-) -> None:
-    """Move every heading layer within its (x, y) plane: bilinear weights, x first then y (wrapping).
+def _restart(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, best: np.ndarray) -> None:
+    """Set ``cells`` to one cell of 1 at ``best`` truncated to integers (x, y, [z,] θ), ``masks`` to its slices."""
+    cells[:, :] = 0.0
+    masks[:, :] = False
+    nt = cells.shape[1]
+    at = np.empty(4, np.int64)
+    for a in range(best.size):
+        d = dims[a] if a < best.size - 1 else nt
+        at[a if a < best.size - 1 else 3] = int(best[a]) % d
+    if best.size == 3:
+        at[2] = 0
+    cells[(at[0] * dims[1] + at[1]) * dims[2] + at[2], at[3]] = 1.0
+    for a in range(4):
+        masks[a, at[a]] = True
 
-    ``moves[t]`` = (whole_x, keep_x, frac_x, whole_y, keep_y, frac_y) of layer t; ``masks`` are ``src``'s slices,
-    ``moved`` receives ``dst``'s (rows written).
+
+def _layer_shift(shift: float, one_cell: bool) -> tuple[int, float, float]:
+    """Return (whole, keep, frac) of a move by ``shift`` cells: ⌊s⌋ (0 or −1 with ``one_cell``), 1 − frac, s − whole."""
+    whole = (0.0 if shift >= 0.0 else -1.0) if one_cell else float(math.floor(shift))
+    frac = shift - whole
+    return int(whole), 1.0 - frac, frac
+
+
+def _translate(
+    src: np.ndarray, dst: np.ndarray, dims: np.ndarray, masks: np.ndarray, v: float, cos: np.ndarray,
+    sin: np.ndarray, one_cell: bool, moved: np.ndarray,
+) -> None:  # fmt: skip
+    """Move every heading layer t by ``v`` cells along (cos_t, sin_t) within its (x, y) plane: x then y, wrapping.
+
+    Cell i receives ``keep·P[i − whole] + frac·P[i − whole − 1]`` along each axis (:func:`_layer_shift`).
+    ``masks`` are ``src``'s slices, ``moved`` receives ``dst``'s (rows written).
     """
     dst[:, :] = 0.0
     moved[:, :] = False
@@ -291,8 +355,8 @@ def _translate(
     for t in range(dst.shape[1]):
         if not masks[3, t]:
             continue
-        wx, kx, fx = int(moves[t, 0]), moves[t, 1], moves[t, 2]
-        wy, ky, fy = int(moves[t, 3]), moves[t, 4], moves[t, 5]
+        wx, kx, fx = _layer_shift(v * cos[t], one_cell)
+        wy, ky, fy = _layer_shift(v * sin[t], one_cell)
         moved[3, t] = True
         for x in range(nx):
             x1, x2 = (x - wx) % nx, (x - wx - 1) % nx
@@ -366,14 +430,15 @@ def _shift_heading(
 
 def path_integrate(
     pool: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray, known: bool,
-    moves: np.ndarray, translate: bool, corners: np.ndarray, z_shift: np.ndarray, th_shift: np.ndarray,
+    v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool, corners: np.ndarray, z_shift: np.ndarray,
+    th_shift: np.ndarray,
 ) -> int:  # fmt: skip
-    """Translate, then shift z, then θ, ``pool[source]``; return the result's slot (``source`` when nothing moves).
+    """Translate by ``v`` cells (when ≠ 0), then shift z, then θ, ``pool[source]``; return the result's slot.
 
-    ``known``: ``masks[0]`` already holds the source's slices (else they are scanned). ``moves``: per layer
-    (see :func:`_translate`), applied when ``translate``; ``corners`` (rows per layer, see :func:`_corner_loss`)
-    when it has rows. ``z_shift`` and ``th_shift`` = (apply, whole, keep, frac). On return ``masks[0]`` holds
-    slices that cover the result's.
+    ``known``: ``masks[0]`` already holds the source's slices (else they are scanned). ``corners`` (rows per
+    layer, see :func:`_corner_loss`) applies when it has rows. ``z_shift`` and ``th_shift`` = (apply, whole,
+    keep, frac). The result's slot is ``source`` when nothing moves. On return ``masks[0]`` holds slices that
+    cover the result's.
     """
     if not known:
         _occupancy(pool[source], dims, masks[0])
@@ -382,8 +447,8 @@ def path_integrate(
     spare = 2 if source != 2 else 1
     if free == spare:
         spare = 3
-    if translate:
-        _translate(pool[slot], pool[free], dims, masks[0], moves, masks[1])
+    if v != 0.0:
+        _translate(pool[slot], pool[free], dims, masks[0], v, cos, sin, one_cell, masks[1])
         if corners.shape[0] > 0:
             _corner_loss(pool[slot], pool[free], masks[0], corners)
         masks[0, :, :] = masks[1]
@@ -397,6 +462,20 @@ def path_integrate(
         masks[0, 3, :] = True
         slot = free
     return slot
+
+
+def on_odo(
+    pool: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
+    e_offsets: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray, e_signed: np.ndarray,
+    i_offsets: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, i_signed: np.ndarray, inhibition: float,
+    best: np.ndarray, v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool, corners: np.ndarray,
+    z_shift: np.ndarray, th_shift: np.ndarray, x_first: bool,
+) -> tuple[int, np.ndarray]:  # fmt: skip
+    """:func:`attractor`, :func:`path_integrate` and :func:`peak` in one call; return (the result's slot, its peak)."""
+    slot, _ = attractor(pool, source, dims, masks, rows, e_offsets, e_weights, e_counts, e_signed, i_offsets,
+                        i_weights, i_counts, i_signed, inhibition, best)
+    slot = path_integrate(pool, slot, dims, masks, rows, True, v, cos, sin, one_cell, corners, z_shift, th_shift)
+    return slot, peak(pool[slot], dims, masks[0], x_first)
 
 
 def peak(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, x_first: bool) -> np.ndarray:

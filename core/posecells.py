@@ -65,23 +65,28 @@ never pay it. The results are the same on either path."""
 
 Taps = tuple[np.ndarray, np.ndarray]
 """One separable factor of a kernel along one axis: (offsets o_k ascending, weights w_k)."""
+_NO_SHIFT = np.zeros(4)
+_NO_CORNERS = np.zeros((0, 5))
 
 
 @dataclass(frozen=True, slots=True)
 class Move:
     """One frame's path integration, as both paths apply it (:meth:`PoseCellNetwork.motion`).
 
-    ``moves[t]`` = (whole_x, keep_x, frac_x, whole_y, keep_y, frac_y) of heading layer t: layer t's plane moves
-    x then y, cell i receiving ``keep·P[i − whole] + frac·P[i − whole − 1]``. ``corners`` (n_θ, 5) is
-    OpenRatSLAM's per-layer translation loss (``openratslam_compat``; else no rows). ``z`` and ``th`` =
-    (apply, whole, keep, frac) of the z and θ shifts.
+    Heading layer t's plane moves ``v`` cells along (cos θ_t, sin θ_t), x then y (:func:`layer_moves`);
+    ``one_cell``: OpenRatSLAM's four-neighbour weights whatever the size of the move (``openratslam_compat``).
+    ``corners`` (n_θ, 5) is OpenRatSLAM's per-layer translation loss (``openratslam_compat``; else no rows).
+    ``z`` and ``th`` = (apply, whole, keep, frac) of the z and θ shifts.
     """
 
-    translate: bool
-    moves: np.ndarray
+    v: float
+    one_cell: bool
     corners: np.ndarray
     z: np.ndarray
     th: np.ndarray
+
+
+_STILL = Move(0.0, False, _NO_CORNERS, _NO_SHIFT, _NO_SHIFT)
 
 
 class PoseCellNetwork:
@@ -136,7 +141,7 @@ class PoseCellNetwork:
     def _compiled(self) -> _Buffers:
         """Return the compiled path's buffers (made on first use)."""
         if self._buffers is None:
-            self._buffers = _Buffers(self.shape, self._excite, self._inhibit)
+            self._buffers = _Buffers(self.shape, self._excite, self._inhibit, self._layer_cos, self._layer_sin)
         return self._buffers
 
     # ------------------------------------------------------------- dynamics
@@ -161,18 +166,14 @@ class PoseCellNetwork:
         if not total > 0.0:
             self._restart(cells)
 
-    def _attractor_compiled(self) -> int:
-        """Run the attractor step on the compiled path; return the slot of the result (its slices in masks[0])."""
+    def _attractor_compiled(self) -> None:
+        """Run the attractor step on the compiled path (the restart included)."""
         b = self._compiled()
-        source = b.slot_of(self.activity)
-        out, total = kernels.kernel("attractor")(
-            b.pool, source, b.dims, b.masks, b.rows, *b.excite, *b.inhibit, self.params.pc_global_inhib
-        )
+        out, _ = kernels.kernel("attractor")(
+            b.pool, b.slot_of(self.activity), b.dims, b.masks, b.rows, *b.excite, *b.inhibit,
+            self.params.pc_global_inhib, self.best,
+        )  # fmt: skip
         self.activity = b.views[out]
-        if not total > 0.0:
-            self._restart(self.activity)
-            kernels.kernel("_occupancy")(b.pool[out], b.dims, b.masks[0])
-        return int(out)
 
     def _restart(self, cells: np.ndarray) -> None:
         """Everything was inhibited (OpenRatSLAM asserts): restart from one cell at the decoded packet centre."""
@@ -194,15 +195,12 @@ class PoseCellNetwork:
         if v == 0.0 and dyaw_rad == 0.0 and not moved_z:
             return None
         one_cell = p.openratslam_compat
-        whole_x, frac_x = _shift_weights(v * self._layer_cos, one_cell)
-        whole_y, frac_y = _shift_weights(v * self._layer_sin, one_cell)
-        moves = np.stack([whole_x, 1.0 - frac_x, frac_x, whole_y, 1.0 - frac_y, frac_y], axis=1)
-        corners = np.zeros((0, 5))
+        corners = _NO_CORNERS
         if one_cell and v != 0.0 and self.rank == 3:
             corners = _openratslam_corners(self.shape[0], self.shape[-1], v)
-        z = _axis_shift(dz_m / p.pc_cell_z_size) if moved_z else np.zeros(4)
-        th = _axis_shift(dyaw_rad / (2.0 * math.pi / self.shape[-1])) if dyaw_rad != 0.0 else np.zeros(4)
-        return Move(v != 0.0, moves, corners, z, th)
+        z = _axis_shift(dz_m / p.pc_cell_z_size) if moved_z else _NO_SHIFT
+        th = _axis_shift(dyaw_rad / (2.0 * math.pi / self.shape[-1])) if dyaw_rad != 0.0 else _NO_SHIFT
+        return Move(v, one_cell, corners, z, th)
 
     def path_integrate(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> None:
         """Shift the packet by odometry (OpenRatSLAM ``path_integration``; PoseidonSLAM Eq. 4.17).
@@ -220,17 +218,14 @@ class PoseCellNetwork:
         move = self.motion(forward_m, dyaw_rad, dz_m)
         if move is None:
             return
-        if kernels.enabled():
-            b = self._compiled()
-            self._path_compiled(b, b.slot_of(self.activity), move, known=False)
-        else:
-            self.activity = path_reference(self.activity, move, self.params.openratslam_compat)
-
-    def _path_compiled(self, b: _Buffers, source: int, move: Move, *, known: bool) -> None:
-        """Run path integration on the compiled path from ``source`` (``known``: its slices are in masks[0])."""
+        if not kernels.enabled():
+            self.activity = path_reference(self.activity, move, self._layer_cos, self._layer_sin)
+            return
+        b = self._compiled()
         out = kernels.kernel("path_integrate")(
-            b.pool, source, b.dims, b.masks, b.rows, known, move.moves, move.translate, move.corners, move.z, move.th
-        )
+            b.pool, b.slot_of(self.activity), b.dims, b.masks, b.rows, False, move.v, b.cos, b.sin, move.one_cell,
+            move.corners, move.z, move.th,
+        )  # fmt: skip
         self.activity = b.views[out]
 
     def decode(self) -> np.ndarray:
@@ -317,7 +312,7 @@ class PoseCellNetwork:
     def on_odo(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> np.ndarray:
         """Run one OpenRatSLAM ``on_odo`` update and return the decoded packet centre.
 
-        The attractor step, path integration (:meth:`motion`) and the peak search run in one pass on the
+        The attractor step, path integration (:meth:`motion`) and the peak search run in one call on the
         compiled path once its kernels are loaded (this network loads them at its ``COMPILED_AFTER``-th update).
         """
         self.updates += 1
@@ -328,11 +323,14 @@ class PoseCellNetwork:
             self.path_integrate(forward_m, dyaw_rad, dz_m)
             return self.decode()
         b = self._compiled()
-        slot = self._attractor_compiled()
-        move = self.motion(forward_m, dyaw_rad, dz_m)
-        if move is not None:
-            self._path_compiled(b, slot, move, known=True)
-        return self._decode_at(b.peak(b.rows_view(self.activity), self.params.openratslam_compat))
+        move = self.motion(forward_m, dyaw_rad, dz_m) or _STILL
+        slot, peak = kernels.kernel("on_odo")(
+            b.pool, b.slot_of(self.activity), b.dims, b.masks, b.rows, *b.excite, *b.inhibit,
+            self.params.pc_global_inhib, self.best, move.v, b.cos, b.sin, move.one_cell, move.corners, move.z,
+            move.th, self.params.openratslam_compat,
+        )  # fmt: skip
+        self.activity = b.views[slot]
+        return self._decode_at(b.lattice_peak(peak))
 
     def inject(self, coords: np.ndarray, energy: float) -> None:
         """Add ``energy`` to the cell at ``coords`` truncated to integers (OpenRatSLAM ``inject``)."""
@@ -469,8 +467,11 @@ class _Buffers:
 
     SLOTS = 5
 
-    def __init__(self, shape: tuple[int, ...], excite: list[Taps], inhibit: list[Taps]) -> None:
+    def __init__(
+        self, shape: tuple[int, ...], excite: list[Taps], inhibit: list[Taps], cos: np.ndarray, sin: np.ndarray
+    ) -> None:
         self.shape = shape
+        self.cos, self.sin = np.ascontiguousarray(cos), np.ascontiguousarray(sin)
         th_dim = shape[-1]
         dims = (shape[0], shape[1], shape[2] if len(shape) == 4 else 1)
         self.dims = np.asarray(dims, dtype=np.int64)
@@ -495,7 +496,11 @@ class _Buffers:
 
     def peak(self, cells: np.ndarray, openratslam_order: bool) -> list[int]:
         """Return the first maximum's cell of ``cells`` (its slices in masks[0]) in the lattice's axes."""
-        x, y, z, t = (int(v) for v in kernels.kernel("peak")(cells, self.dims, self.masks[0], openratslam_order))
+        return self.lattice_peak(kernels.kernel("peak")(cells, self.dims, self.masks[0], openratslam_order))
+
+    def lattice_peak(self, peak: np.ndarray) -> list[int]:
+        """Return a kernel's (x, y, z, θ) cell in the lattice's axes (no z on the 3-DoF lattice)."""
+        x, y, z, t = peak.tolist()
         return [x, y, z, t] if len(self.shape) == 4 else [x, y, t]
 
 
@@ -507,10 +512,10 @@ def _taps(matrix: np.ndarray) -> Taps:
 
 
 def _tap_arrays(taps: list[Taps], th_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Return one kernel's taps as the compiled path takes them: (offsets, weights, counts, θ gather table).
+    """Return one kernel's taps as the compiled path takes them: (offsets, weights, counts, signed θ offsets).
 
-    Offsets and weights are (4, K) with rows x, y, z, θ (a 3-DoF lattice has no z taps), counts (4,), and the
-    table ``index[k, t] = (t − o_k) mod n_θ``.
+    Offsets and weights are (4, K) with rows x, y, z, θ (a 3-DoF lattice has no z taps), counts (4,), and the θ
+    offsets again in (−n_θ/2, n_θ/2], in the same order.
     """
     axes = [taps[0], taps[1], taps[2] if len(taps) == 4 else (np.zeros(0, np.int64), np.zeros(0)), taps[-1]]
     width = max(offsets.size for offsets, _ in axes)
@@ -520,9 +525,9 @@ def _tap_arrays(taps: list[Taps], th_dim: int) -> tuple[np.ndarray, np.ndarray, 
         offsets[row, : o.size] = o
         weights[row, : w.size] = w
     counts = np.asarray([o.size for o, _ in axes], dtype=np.int64)
-    heading = axes[3][0]
-    index = (np.arange(th_dim)[None, :] - heading[:, None]) % th_dim
-    return offsets, weights, counts, index.astype(np.int64)
+    heading = axes[3][0].astype(np.int64)
+    signed = np.where(heading > th_dim // 2, heading - th_dim, heading)
+    return offsets, weights, counts, signed
 
 
 def spread_reference(cells: np.ndarray, taps: list[Taps]) -> np.ndarray:
@@ -553,25 +558,40 @@ def attractor_reference(
     return out, total
 
 
-def path_reference(activity: np.ndarray, move: Move, openratslam_compat: bool) -> np.ndarray:
+def path_reference(activity: np.ndarray, move: Move, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
     """Return ``activity`` moved by one frame's path integration (the reference path; see :class:`Move`)."""
     cells = np.moveaxis(np.asarray(activity, dtype=np.float64), -1, 0).copy()  # heading first: (θ, x, y, [z])
     th_dim = cells.shape[0]
-    if move.translate:
+    if move.v != 0.0:
         layers = np.flatnonzero(cells.reshape(th_dim, -1).any(axis=1))
         before = cells[layers]
-        cells[layers] = _translate_layers(before, move.moves[layers])
-        if openratslam_compat and move.corners.shape[0]:
-            for plane, k in zip(before, layers.tolist(), strict=True):
-                a, w_a, b, w_b, to = move.corners[k]
-                lost = plane.flat[int(a)] * w_a + plane.flat[int(b)] * w_b
-                if lost != 0.0:
-                    cells[k].flat[int(to)] -= lost
+        cells[layers] = _translate_layers(before, layer_moves(move.v, cos, sin, move.one_cell)[layers])
+        if move.corners.shape[0]:
+            _lose_corners(cells, before, layers, move.corners)
     if move.z[0] != 0.0:
         cells = _shift_axis(cells, int(move.z[1]), float(move.z[2]), float(move.z[3]), 3)
     if move.th[0] != 0.0:
         cells = _shift_axis(cells, int(move.th[1]), float(move.th[2]), float(move.th[3]), 0)
     return np.ascontiguousarray(np.moveaxis(cells, 0, -1))
+
+
+def _lose_corners(cells: np.ndarray, before: np.ndarray, layers: np.ndarray, corners: np.ndarray) -> None:
+    """Subtract OpenRatSLAM's translation loss of each moved layer (:func:`_openratslam_corners`), heading first."""
+    for plane, k in zip(before, layers.tolist(), strict=True):
+        a, w_a, b, w_b, to = corners[k]
+        lost = plane.flat[int(a)] * w_a + plane.flat[int(b)] * w_b
+        if lost != 0.0:
+            cells[k].flat[int(to)] -= lost
+
+
+def layer_moves(v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool) -> np.ndarray:
+    """Return (n_θ, 6) per heading layer: (whole_x, keep_x, frac_x, whole_y, keep_y, frac_y) of a move by ``v`` cells.
+
+    Layer t moves ``v·cos_t`` cells along x and ``v·sin_t`` along y (:func:`_shift_weights`; keep = 1 − frac).
+    """
+    whole_x, frac_x = _shift_weights(v * cos, one_cell)
+    whole_y, frac_y = _shift_weights(v * sin, one_cell)
+    return np.stack([whole_x, 1.0 - frac_x, frac_x, whole_y, 1.0 - frac_y, frac_y], axis=1)
 
 
 def _translate_layers(layers: np.ndarray, moves: np.ndarray) -> np.ndarray:

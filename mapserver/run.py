@@ -3,6 +3,10 @@
 :func:`run_engine` feeds a log's frames to an engine (the per-frame hook is where the pipeline books a
 live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.pipeline`
 re-exports both.
+
+Importing this module loads the log reader but not the engine (scipy and the rest load on first use):
+:func:`process_log` opens the log and starts reading ahead first, so the reader's child process reads while
+the engine's libraries load.
 """
 
 from __future__ import annotations
@@ -14,19 +18,18 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from threadpoolctl import threadpool_limits
 
-from core import ConfigError, Engine, ImageError, Params, StepResult
-from core._posecell_kernel import load_compiled as load_posecell_kernels
-from core.engine import view_cells_class
-from core.localview import load_compiled
-from core.posecells import COMPILED_AFTER
+from core.config import ConfigError, Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import Frame, MissionLog, open_log
 from mapserver.reckoning import DeadReckoning
+
+if TYPE_CHECKING:
+    from core.engine import Engine, StepResult
 
 logger = logging.getLogger(__name__)
 
@@ -70,6 +73,13 @@ class ProcessResult:
         }
 
 
+def view_cells_class(params: Params) -> type:
+    """Return the view module of ``params``, loading its libraries (:func:`core.engine.view_cells_class`)."""
+    from core.engine import view_cells_class as view_module
+
+    return view_module(params)
+
+
 def load_frontend(params: Params, frames: int | None = None) -> None:
     """Load what a run of ``frames`` frames will use before its clock starts (torch; the compiled kernels).
 
@@ -81,6 +91,10 @@ def load_frontend(params: Params, frames: int | None = None) -> None:
     ``COMPILED_AFTER`` loads no kernel: a short log (one frame: a start-up of well under a second) would not repay
     numba's import; if its matcher meets a large comparison it loads the kernel then (the answers are the same).
     """
+    from core._posecell_kernel import load_compiled as load_posecell_kernels
+    from core.localview import load_compiled
+    from core.posecells import COMPILED_AFTER
+
     view_cells_class(params)
     if frames is not None and frames < COMPILED_AFTER:
         return
@@ -99,7 +113,7 @@ class EngineRun:
     info: dict[str, Any]
 
 
-StepHook = Callable[[Any, StepResult], "Engine | None"]
+StepHook = Callable[[Any, "StepResult"], "Engine | None"]
 """``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
 
 
@@ -130,6 +144,8 @@ def run_engine(
     engine steps, in the same order; ``frames``, when given, are the log's frames from ``start`` on, already
     being read by the caller (who started its reader earlier to overlap more).
     """
+    from core.localview import ImageError
+
     # The engine's matrices are small: multi-threaded BLAS only adds contention (2-5x slower on a busy machine).
     with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
         opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
@@ -169,6 +185,16 @@ def _check_modalities(opened: MissionLog, params: Params) -> None:
         raise InputError(msg)
 
 
+def _new_engine(params: Params) -> Engine:
+    """Return a new session's engine (origin 0); an invalid front-end setting is an InputError."""
+    from core.engine import Engine
+
+    try:
+        return Engine(params, origin=0)
+    except ConfigError as err:
+        raise InputError(str(err)) from err
+
+
 def process_log(
     log_path: str | Path,
     params: Params,
@@ -179,24 +205,24 @@ def process_log(
 ) -> ProcessResult:
     """Run the engine over one log without a database; optionally write the map JSON to ``out``.
 
-    The log's frames are read ahead from the moment it is open, while the kernels load (:func:`load_frontend`).
+    The log's frames are read ahead from the moment it is open, while the engine's libraries and the kernels
+    load (:func:`load_frontend`); the lvc engine is made then (it raises nothing), sdr-htm's before the log opens.
 
     Raises:
         InputError: the log cannot be read (``IngestError``) or the parameters are invalid.
     """
-    try:
-        engine = Engine(params, origin=0)
-    except ConfigError as err:
-        raise InputError(str(err)) from err
     name = Path(log_path).name.split(".")[0] or "map"
     frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
 
     def record(frame: Any, result: StepResult) -> None:
         frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
 
+    engine = _new_engine(params) if params.frontend != "lvc" else None  # torch's front-end checks its settings first
     with open_log(log_path, topics) as opened:
         _check_modalities(opened, params)
         with opened.frames_ahead() as frames:
+            if engine is None:
+                engine = _new_engine(params)
             load_frontend(params, opened.count_frames())
             started = time.perf_counter()
             run = run_engine(engine, opened, progress=progress, on_step=record, frames=frames)

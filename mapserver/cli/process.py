@@ -1,18 +1,17 @@
-"""``mapserver process LOG``: run the SLAM engine over one mission log."""
+"""``mapserver process LOG``: run the SLAM engine over one mission log.
+
+Registering the command loads only the parameter presets; the engine, the log reader and the store load when
+the command runs (``mapserver process --help`` answers without them).
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from core import ConfigError
-from core.config import PRESETS
-from mapserver import pipeline
+from core.config import PRESETS, ConfigError
 from mapserver.cli._output import emit_json, info
-from mapserver.cli._progress import progress_bar
 from mapserver.errors import InputError
-from mapserver.ingest.topics import parse_topics_arg
-from mapserver.params import resolve_params, with_frontend, with_settings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -60,6 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def run(args: argparse.Namespace) -> int:
     """Process the log and report the summary."""
+    from mapserver.cli._progress import progress_bar
+    from mapserver.ingest.topics import parse_topics_arg
+    from mapserver.params import resolve_params, with_frontend, with_settings
+
     log = Path(args.log)
     if not log.exists():
         msg = f"log not found: {str(log)!r}"
@@ -83,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     update, close = progress_bar(f"processing {log.name}")
     try:
         if args.db:
+            from mapserver import pipeline
+
             result = pipeline.process_into_store(
                 log,
                 params,
@@ -103,7 +108,9 @@ def run(args: argparse.Namespace) -> int:
             if args.confirm is not None or args.merge_no_shift:
                 msg = "--confirm and --merge-no-shift need --db (merging is into stored maps)"
                 raise InputError(msg)
-            result = pipeline.process_log(log, params, topics=topics, out=args.out, progress=update)
+            from mapserver.run import process_log
+
+            result = process_log(log, params, topics=topics, out=args.out, progress=update)
     finally:
         close()
     summary = result.summary()

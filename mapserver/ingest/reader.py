@@ -36,13 +36,11 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import multiprocessing
-import os
 import pickle
 import queue
 import signal
 import threading
-import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
@@ -76,7 +74,7 @@ READ_AHEAD = 64
 _BATCH = 16
 """Frames per message from the worker; its first message carries one frame, so the first is not held back."""
 _POLL_S = 0.1
-"""How often a blocked worker or caller checks that the other side is still there."""
+"""How often a blocked thread worker, or its caller, checks that the other side is still there."""
 Worker = Literal["auto", "process", "thread"]
 
 
@@ -414,17 +412,20 @@ class MissionLog:
 class ReadAhead:
     """A log's frames ``[start, stop)``, read and decoded ahead of the caller by a worker, in stamp order.
 
-    The worker opens its own readers on the log and runs :meth:`MissionLog.frames` into a bounded queue
-    (``depth`` frames at most in flight); iterating yields the same frames in the same order. An exception in
-    the worker (an :class:`IngestError` for a corrupt message or an undecodable image) is raised when the
-    caller reaches that point of the stream, as :meth:`MissionLog.frames` raises it there. Leaving the
-    ``with`` block (the end of the frames, a ``break``, an exception, KeyboardInterrupt) stops the worker and
-    waits for it.
+    The worker opens its own readers on the log and runs :meth:`MissionLog.frames`, sending the frames in
+    batches over a bounded channel (about ``depth`` frames in flight); iterating yields the same frames in the
+    same order. An exception in the worker (an :class:`IngestError` for a corrupt message or an undecodable
+    image) is raised when the caller reaches that point of the stream, as :meth:`MissionLog.frames` raises it
+    there. Leaving the ``with`` block (the end of the frames, a ``break``, an exception, KeyboardInterrupt)
+    stops the worker and waits for it.
 
     ``worker``: ``process`` reads in a forked child (it starts with the caller's modules loaded and runs in
-    parallel with the caller's computation; the child ignores SIGINT: the caller's interrupt stops it);
-    ``thread`` in a thread (decoding releases the GIL, parsing does not); ``auto`` takes ``process`` where
-    fork exists and the caller is not a daemonic process (a celery worker's, which may not have children).
+    parallel with the caller's computation) that writes to a pipe the caller alone reads: when either side
+    ends, the other sees the pipe close (a child that dies is an IngestError, never a hang; a caller that stops
+    reading ends the child). The child ignores SIGINT: the caller's interrupt stops it. ``thread`` reads in a
+    thread into a queue (decoding releases the GIL, parsing does not). ``auto`` takes ``process`` where fork
+    exists, the caller is not a daemonic process (a celery worker's, which may not have children) and the
+    range has at least ``depth`` frames (a short log is read in a thread: no fork to pay).
     """
 
     def __init__(
@@ -433,21 +434,23 @@ class ReadAhead:
     ) -> None:  # fmt: skip
         log._require_open()
         self.path = log.path
-        self.worker = _worker_kind(worker)
-        job = (log.path, log.topics, log.mapping, log._odometry_mode, start, stop)
-        slots = max(1, -(-depth // _BATCH))
+        end = log.count_frames() if stop is None else min(stop, log.count_frames())
+        self.worker = _worker_kind(worker, end - start >= depth)
+        batch = max(1, min(_BATCH, depth // 2))
+        job = (log.path, log.topics, log.mapping, log._odometry_mode, start, stop, batch)
+        self._stop = threading.Event()
         if self.worker == "process":
             context = multiprocessing.get_context("fork")
-            self._channel: Any = context.Queue(maxsize=slots)
-            self._stop: Any = context.Event()
-            self._runner: Any = context.Process(
-                target=_produce, args=(job, self._channel, self._stop, os.getpid()), daemon=True
-            )
+            self._receive, send = context.Pipe(duplex=False)
+            _widen_pipe(send)
+            self._runner: Any = context.Process(target=_produce_in_child, args=(job, send, self._receive), daemon=True)
+            self._runner.start()
+            send.close()  # the child holds the only writing end: its exit closes the pipe
         else:
-            self._channel = queue.Queue(maxsize=slots)
-            self._stop = threading.Event()
-            self._runner = threading.Thread(target=_produce, args=(job, self._channel, self._stop, None), daemon=True)
-        self._runner.start()
+            self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=max(1, depth // batch))
+            sender = _QueueSender(self._queue, self._stop)
+            self._runner = threading.Thread(target=_produce, args=(job, sender.send), daemon=True)
+            self._runner.start()
 
     def __enter__(self) -> ReadAhead:
         return self
@@ -469,50 +472,89 @@ class ReadAhead:
 
     def _take(self) -> tuple[str, Any]:
         """Return the worker's next message; raise IngestError when it ended without one."""
-        while True:
+        if self.worker == "process":
             try:
-                return self._channel.get(timeout=_POLL_S)  # type: ignore[no-any-return]
-            except queue.Empty:
-                if self._runner.is_alive():
-                    continue
-            try:  # it may have sent its last message just before it ended
-                return self._channel.get(timeout=_POLL_S)  # type: ignore[no-any-return]
-            except queue.Empty:
-                code = getattr(self._runner, "exitcode", None)
-                msg = f"the frame reader of {str(self.path)!r} stopped without an answer (exit code {code})"
-                raise IngestError(msg) from None
+                return self._receive.recv()  # type: ignore[no-any-return]
+            except EOFError:
+                self._runner.join(timeout=1.0)
+        else:
+            while self._runner.is_alive() or not self._queue.empty():
+                with contextlib.suppress(queue.Empty):
+                    return self._queue.get(timeout=_POLL_S)
+        code = getattr(self._runner, "exitcode", None)
+        msg = f"the frame reader of {str(self.path)!r} stopped without an answer (exit code {code})"
+        raise IngestError(msg)
 
     def close(self) -> None:
         """Stop the worker and wait for it (idempotent)."""
         self._stop.set()
-        deadline = time.monotonic() + 5.0
-        while self._runner.is_alive() and time.monotonic() < deadline:
-            with contextlib.suppress(queue.Empty):  # a full queue would block a worker that is sending
-                while True:
-                    self._channel.get_nowait()
-            self._runner.join(timeout=_POLL_S)
         if self.worker == "process":
+            self._receive.close()  # a child blocked writing gets a broken pipe and ends
+            self._runner.join(timeout=5.0)
             if self._runner.is_alive():
                 self._runner.terminate()
                 self._runner.join()
-            self._channel.close()
+        else:
+            while self._runner.is_alive():  # it ends at its next send, or when its current frame is read
+                with contextlib.suppress(queue.Empty):
+                    self._queue.get_nowait()
+                self._runner.join(timeout=_POLL_S)
 
 
-def _worker_kind(worker: Worker) -> Literal["process", "thread"]:
+class _QueueSender:
+    """The thread worker's side of its queue: a blocking put that gives up once the caller stopped."""
+
+    def __init__(self, channel: queue.Queue[tuple[str, Any]], stop: threading.Event) -> None:
+        self.channel, self.stop = channel, stop
+
+    def send(self, item: tuple[str, Any]) -> bool:
+        """Put ``item``; return False (not sent) once the caller stopped the worker."""
+        while not self.stop.is_set():
+            with contextlib.suppress(queue.Full):
+                self.channel.put(item, timeout=_POLL_S)
+                return True
+        return False
+
+
+def _worker_kind(worker: Worker, long_range: bool = True) -> Literal["process", "thread"]:
     if worker != "auto":
         return worker
     can_fork = "fork" in multiprocessing.get_all_start_methods()
-    return "process" if can_fork and not multiprocessing.current_process().daemon else "thread"
+    return "process" if long_range and can_fork and not multiprocessing.current_process().daemon else "thread"
 
 
-def _produce(job: tuple[Any, ...], channel: Any, stop: Any, parent: int | None) -> None:
-    """Worker body: send the frames of ``job`` in batches, then ``("end", None)``, or ``("error", exception)``.
+def _widen_pipe(connection: Any) -> None:
+    """Let the pipe hold ~1 MiB (Linux; elsewhere its default) so the child can run further ahead."""
+    with contextlib.suppress(ImportError, AttributeError, OSError):
+        import fcntl
 
-    The frames read before an error are sent before it, so the caller sees the stream up to the failure.
+        fcntl.fcntl(connection.fileno(), fcntl.F_SETPIPE_SZ, 1 << 20)
+
+
+def _produce_in_child(job: tuple[Any, ...], send: Any, receive: Any) -> None:
+    """The forked child's body: :func:`_produce` into the pipe, SIGINT ignored, its copy of the reading end closed."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller handles Ctrl-C and stops it
+    receive.close()  # so that the caller's close is the pipe's last reader: a write then fails
+
+    def deliver(item: tuple[str, Any]) -> bool:
+        if item[0] == "error":
+            item = ("error", _portable(item[1], job[0]))
+        try:
+            send.send(item)
+        except OSError:  # the caller closed its end (stopped, or gone)
+            return False
+        return True
+
+    _produce(job, deliver)
+
+
+def _produce(job: tuple[Any, ...], deliver: Callable[[tuple[str, Any]], bool]) -> None:
+    """Worker body: deliver the frames of ``job`` in batches, then ``("end", None)``, or ``("error", exception)``.
+
+    The frames read before an error are delivered before it, so the caller sees the stream up to the failure.
+    ``deliver`` returns False once the caller stopped the worker.
     """
-    if parent is not None:  # a forked child: the caller handles Ctrl-C and stops it
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-    path, topics, mapping, mode, start, stop_at = job
+    path, topics, mapping, mode, start, stop_at, batch = job
     chunk: list[Frame] = []
     try:
         log = MissionLog(path, _new_reader(path), topics, mapping, mode)
@@ -521,29 +563,16 @@ def _produce(job: tuple[Any, ...], channel: Any, stop: Any, parent: int | None) 
             for frame in log.frames(start, stop_at):
                 chunk.append(frame)
                 if len(chunk) >= size:
-                    if not _send(channel, ("frames", chunk), stop, parent):
+                    if not deliver(("frames", chunk)):
                         return
-                    chunk, size = [], _BATCH
+                    chunk, size = [], batch
         finally:
             log.close()
-        if _send(channel, ("frames", chunk), stop, parent):
-            _send(channel, ("end", None), stop, parent)
+        if deliver(("frames", chunk)):
+            deliver(("end", None))
     except BaseException as err:  # every failure goes to the caller, which raises it
-        if _send(channel, ("frames", chunk), stop, parent):
-            _send(channel, ("error", _portable(err, path) if parent is not None else err), stop, parent)
-
-
-def _send(channel: Any, item: tuple[str, Any], stop: Any, parent: int | None) -> bool:
-    """Put ``item`` on the bounded channel; return False when the caller stopped the worker (or is gone)."""
-    while not stop.is_set() and (parent is None or os.getppid() == parent):
-        try:
-            channel.put(item, timeout=_POLL_S)
-            return True
-        except queue.Full:
-            continue
-    if hasattr(channel, "cancel_join_thread"):  # do not wait at exit to flush what nobody will read
-        channel.cancel_join_thread()
-    return False
+        if deliver(("frames", chunk)):
+            deliver(("error", err))
 
 
 def _portable(err: BaseException, path: Path) -> BaseException:
