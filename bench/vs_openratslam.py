@@ -4,7 +4,7 @@ Usage (from the repository root; needs a local copy of davidmball/ratslam and Bo
 bench/differential/cxx.py)::
 
     PYTHONPATH=$PWD .venv/bin/python bench/vs_openratslam.py --ratslam /tmp/ratslam \
-        [--logs matching,panoramic,light] [--runs 3] [--laps 8] [--work DIR]
+        [--logs matching,panoramic,light] [--runs 3] [--laps 8] [--work DIR] [--baseline CHECKOUT] [--set K=V]
 
 Every log is the simulator's ``loop`` scenario (``--laps`` laps, seed 0); they differ in what dominates a frame:
 
@@ -24,8 +24,11 @@ start-up, bag reading, decoding, SLAM and writing the map. OpenRatSLAM's is the 
 frames decoded beforehand. Each run times both, one after the other, so that the machine's state is the same
 for both; the ratio is (mapserver frames/s) / (OpenRatSLAM frames/s). The share of frames whose view matched
 an existing template is printed for both engines, and the SHA-256 of the map's experience poses for every
-run (a run-to-run check, and the evidence that a change left the map alone). Timings on a shared machine are
-noisy: compare runs made side by side.
+run (a run-to-run check, and the evidence that a change left the map alone). ``--baseline CHECKOUT`` times a
+second checkout's ``mapserver process`` (another commit, e.g. ``git worktree add /tmp/base main``) in every run
+too, for a before/after in the same runs; ``--set KEY=VALUE,...`` passes engine parameters to mapserver alone
+(a diagnostic: OpenRatSLAM has no such keys). Timings on a shared machine are noisy: compare runs made side by
+side.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -52,6 +56,7 @@ from mapserver.ingest.simulator.render import Camera
 from mapserver.ingest.simulator.scenarios import GROUND_CAMERA
 from mapserver.ingest.writer import ImageEncoding, write_log
 
+REPO = Path(__file__).resolve().parents[1]
 PARAMS = Params().replace(
     template_x_size=60, template_y_size=20, vt_match_threshold=0.08, vt_patch_normalise=2, vt_shift_match=5,
     vt_step_match=1,
@@ -119,12 +124,14 @@ def export_frames(log: Path, out: Path) -> int:
     return writer.count
 
 
-def time_process(log: Path, ini: Path, out: Path) -> float:
-    """Wall-clock seconds of ``mapserver process`` as a fresh process (start-up included)."""
+def time_process(log: Path, ini: Path, out: Path, checkout: Path = REPO, settings: str | None = None) -> float:
+    """Wall-clock seconds of ``mapserver process`` of ``checkout`` as a fresh process (start-up included)."""
     code = "import sys; from mapserver.cli import entry; sys.argv[0] = 'mapserver'; sys.exit(entry())"
     cmd = [sys.executable, "-c", code, "process", str(log), "--config", str(ini), "--out", str(out)]
+    cmd += ["--set", settings] if settings else []
+    env = {**os.environ, "PYTHONPATH": str(checkout)}
     started = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=checkout, env=env)
     seconds = time.perf_counter() - started
     if done.returncode != 0:
         msg = f"mapserver process failed ({done.returncode}): {done.stderr[-2000:]}"
@@ -154,26 +161,31 @@ def map_facts(path: Path) -> tuple[float, str, int]:
     return matched, digest, int(doc["templates"])
 
 
-def bench_log(spec: LogSpec, args: argparse.Namespace, binary: Path, work: Path) -> list[float]:
-    """Time both engines ``args.runs`` times side by side on one log; print every run; return the ratios."""
+def bench_log(spec: LogSpec, args: argparse.Namespace, binary: Path, work: Path) -> dict[str, list[float]]:
+    """Time the engines ``args.runs`` times side by side on one log; print every run; return the ratios.
+
+    Every run times OpenRatSLAM, then this checkout's ``mapserver process`` (and the baseline's, when given).
+    """
     log = make_log(work, spec, args.laps)
     ini = work / f"{spec.name}.ini"
     write_ini(spec.params, ini)
     frames = export_frames(log, work / f"{spec.name}_frames.bin")
     print(f"\n== {spec.name}: {log.name}, {frames} frames, {spec.what}")
-    ratios = []
+    checkouts = {"mapserver": REPO} | ({"baseline": args.baseline} if args.baseline else {})
+    ratios: dict[str, list[float]] = {name: [] for name in checkouts}
     for run in range(1, args.runs + 1):
         cxx = run_driver(binary, ini, work / f"{spec.name}_frames.bin", work / f"cxx_{spec.name}")
-        seconds = time_process(log, ini, work / f"map_{spec.name}.json")
-        ours = frames / seconds
-        matched, digest, templates = map_facts(work / f"map_{spec.name}.json")
-        ratios.append(ours / cxx.frames_per_s)
-        print(
-            f"run {run}: OpenRatSLAM {cxx.frames_per_s:7.0f} frames/s ({frames / cxx.frames_per_s:6.2f} s) | "
-            f"mapserver process {ours:7.0f} frames/s ({seconds:6.2f} s) | ratio {ratios[-1]:.2f}x | "
-            f"matched {matched:.1%} (C++ {matched_share_cxx(cxx):.1%}), {templates} templates, poses {digest}"
-        )
-    print(f"{spec.name}: ratio mapserver / OpenRatSLAM, median of {args.runs}: {statistics.median(ratios):.2f}x")
+        line = f"run {run}: OpenRatSLAM {cxx.frames_per_s:6.0f} frames/s ({frames / cxx.frames_per_s:6.2f} s)"
+        for name, checkout in checkouts.items():
+            out = work / f"map_{spec.name}_{name}.json"
+            seconds = time_process(log, ini, out, checkout, args.set)
+            ratios[name].append(frames / seconds / cxx.frames_per_s)
+            matched, digest, templates = map_facts(out)
+            rate = frames / seconds
+            line += f" | {name} {rate:6.0f} frames/s ({seconds:6.2f} s) {ratios[name][-1]:.2f}x poses {digest}"
+        print(line + f" | matched {matched:.1%} (C++ {matched_share_cxx(cxx):.1%}), {templates} templates")
+    for name, values in ratios.items():
+        print(f"{spec.name}: {name} / OpenRatSLAM, median of {args.runs}: {statistics.median(values):.2f}x")
     return ratios
 
 
@@ -185,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=int, default=3, help="side-by-side runs per log")
     parser.add_argument("--laps", type=float, default=8.0)
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
+    parser.add_argument("--baseline", type=Path, default=None, help="another checkout to time in the same runs")
+    parser.add_argument("--set", default=None, metavar="KEY=VALUE,...", help="engine parameters for mapserver alone")
     args = parser.parse_args(argv)
     names = [n.strip() for n in args.logs.split(",") if n.strip()]
     unknown = [n for n in names if n not in LOGS]
@@ -200,8 +214,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 1
     print("\nratios (mapserver process end to end / OpenRatSLAM SLAM loop), run by run:")
-    for name, ratios in summary.items():
-        print(f"  {name:10s} " + "  ".join(f"{r:.2f}x" for r in ratios) + f"   median {statistics.median(ratios):.2f}x")
+    for log_name, by_checkout in summary.items():
+        for name, ratios in by_checkout.items():
+            runs = "  ".join(f"{r:.2f}x" for r in ratios)
+            print(f"  {log_name:10s} {name:10s} {runs}   median {statistics.median(ratios):.2f}x")
     return 0
 
 

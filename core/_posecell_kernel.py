@@ -46,7 +46,7 @@ def load_compiled() -> None:
     """Import numba and load (compiling on first use on this machine) the kernels; the pose cells then use them.
 
     The results do not depend on which path runs (see the module docstring), so a network may switch at any
-    frame: :class:`core.posecells.PoseCellNetwork` switches after ``COMPILED_AFTER`` updates, and
+    frame: :class:`core.posecells.PoseCellNetwork` switches after ``COMPILED_AFTER`` cell updates, and
     ``mapserver process`` loads the kernels before its clock starts when the log is long.
     """
     global _use_compiled
@@ -60,8 +60,8 @@ def kernel(name: str) -> Callable[..., Any]:
 
 
 _ORDER = (
-    "_rows", "_occupancy", "_widen", "_segments", "_add_scaled", "_pass_outer", "_pass_heading", "_spread",
-    "_combine", "_restart",
+    "_rows", "_occupancy", "_clear", "_widen", "_window", "_lattice_order", "_add_scaled", "_pass_first",
+    "_spread_block", "_block_window", "_gather", "_combine", "_restart",
     "attractor", "_layer_shift", "_translate", "_corner_loss", "_shift_outer", "_shift_heading", "path_integrate",
     "peak", "on_odo",
 )  # fmt: skip
@@ -95,8 +95,11 @@ def _rows(region: np.ndarray, dims: np.ndarray, out: np.ndarray) -> int:
     return count
 
 
-def _occupancy(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray) -> bool:
-    """Set ``masks`` to the slices of every axis that hold a non-zero cell (exactly); return whether one is < 0."""
+def _occupancy(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, dirty: np.ndarray) -> bool:
+    """Set ``masks`` to the slices of every axis that hold a non-zero cell (exactly); return whether one is < 0.
+
+    The rows holding one are marked in ``dirty`` (whatever wrote them).
+    """
     masks[:, :] = False
     ny, nz = dims[1], dims[2]
     nt = cells.shape[1]
@@ -114,7 +117,16 @@ def _occupancy(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray) -> bool:
             masks[0, row // (ny * nz)] = True
             masks[1, (row // nz) % ny] = True
             masks[2, row % nz] = True
+            dirty[row] = True
     return negative
+
+
+def _clear(cells: np.ndarray, dirty: np.ndarray) -> None:
+    """Zero the rows of ``cells`` marked in ``dirty`` (every other row is 0 already) and unmark them."""
+    for row in range(cells.shape[0]):
+        if dirty[row]:
+            cells[row, :] = 0.0
+            dirty[row] = False
 
 
 def _widen(mask: np.ndarray, dim: int, offsets: np.ndarray, count: int) -> None:
@@ -126,20 +138,35 @@ def _widen(mask: np.ndarray, dim: int, offsets: np.ndarray, count: int) -> None:
                 mask[(i + offsets[k]) % dim] = True
 
 
-def _segments(mask: np.ndarray, count: int, out: np.ndarray) -> int:
-    """Write the runs of True in ``mask[:count]`` as [start, end) rows of ``out``; return how many."""
-    n = 0
-    t = 0
-    while t < count:
-        if mask[t]:
-            out[n, 0] = t
-            while t < count and mask[t]:
-                t += 1
-            out[n, 1] = t
-            n += 1
+def _window(mask: np.ndarray, dim: int, out: np.ndarray) -> None:
+    """Set ``out`` to (start, length) of the shortest cyclic run of slices that covers ``mask``'s.
+
+    The whole axis (no empty slice) is (0, dim); an empty mask (0, 0).
+    """
+    gap = 0
+    gap_end = 0
+    run = 0
+    for i in range(2 * dim):
+        if mask[i % dim]:
+            run = 0
         else:
-            t += 1
-    return n
+            run += 1
+            if gap < run <= dim:
+                gap, gap_end = run, i + 1
+    out[0] = 0 if gap in (0, dim) else gap_end % dim
+    out[1] = dim - gap
+
+
+def _lattice_order(start: int, length: int, dim: int) -> np.ndarray:
+    """Return the window's block indices in the order of their lattice slices, ascending."""
+    order = np.empty(length, np.int64)
+    n = 0
+    for x in range(dim):
+        i = (x - start) % dim
+        if i < length:
+            order[n] = i
+            n += 1
+    return order
 
 
 def _add_scaled(out: np.ndarray, w: float, seen: np.ndarray) -> None:
@@ -148,125 +175,113 @@ def _add_scaled(out: np.ndarray, w: float, seen: np.ndarray) -> None:
         out[t] += w * seen[t]
 
 
-def _pass_outer(
-    src: np.ndarray, dst: np.ndarray, axis: int, dims: np.ndarray, rows: np.ndarray, n_rows: int,
-    source: np.ndarray, segs: np.ndarray, n_segs: int, offsets: np.ndarray, weights: np.ndarray, count: int,
-) -> None:  # fmt: skip
-    """Spread along outer axis ``axis`` (x, y or z): ``dst[i] = Σ_k w_k·src[i − o_k]`` on ``rows``, θ in ``segs``.
+def _pass_first(src: np.ndarray, dst: np.ndarray, signed: np.ndarray, weights: np.ndarray, cyclic: bool) -> None:
+    """Spread along the first axis of (L, B) arrays: ``dst[i] = Σ_k w_k·src[i − o_k]``, taps in order.
 
-    ``source`` is the axis's mask of ``src``: taps from other slices read zeros and are skipped. Every written
-    row is 0 off the θ runs ``segs`` (the only layers ``src`` holds).
+    Sources outside [0, L) are zeros (skipped) unless ``cyclic`` (the window is the whole axis: they wrap).
     """
-    ny, nz = dims[1], dims[2]
-    dim = dims[axis]
-    stride = ny * nz if axis == 0 else (nz if axis == 1 else 1)
-    for n in range(n_rows):
-        r = rows[n]
-        c = r // (ny * nz) if axis == 0 else ((r // nz) % ny if axis == 1 else r % nz)
-        out = dst[r]
-        out[:] = 0.0
-        for k in range(count):
-            j = (c - offsets[k]) % dim
-            if source[j]:
-                seen = src[r + (j - c) * stride]
-                w = weights[k]
-                for s in range(n_segs):
-                    _add_scaled(out[segs[s, 0] : segs[s, 1]], w, seen[segs[s, 0] : segs[s, 1]])
-
-
-def _pass_heading(
-    src: np.ndarray, dst: np.ndarray, rows: np.ndarray, n_rows: int, segs: np.ndarray, n_segs: int,
-    signed: np.ndarray, weights: np.ndarray,
-) -> None:  # fmt: skip
-    """Spread along θ on ``rows``: ``dst[r, t] = Σ_k w_k·src[r, (t − o_k) mod n_θ]`` for t in ``segs``, 0 elsewhere.
-
-    ``signed`` holds the offsets o_k in (−n_θ/2, n_θ/2]; each row is read through a copy padded by wrapping, so
-    every tap is a contiguous run.
-    """
-    nt = src.shape[1]
-    pad = 0
+    length, width = src.shape
+    flat_out = dst.reshape(length * width)
+    flat_in = src.reshape(length * width)
+    flat_out[:] = 0.0
     for k in range(weights.size):
-        pad = max(pad, abs(signed[k]))
-    ext = np.empty(nt + 2 * pad)
-    for n in range(n_rows):
-        r = rows[n]
-        seen = src[r]
-        for i in range(nt + 2 * pad):
-            ext[i] = seen[(i - pad) % nt]
-        out = dst[r]
-        out[:] = 0.0
-        for k in range(weights.size):
-            w = weights[k]
-            base = pad - signed[k]
-            for s in range(n_segs):
-                _add_scaled(out[segs[s, 0] : segs[s, 1]], w, ext[base + segs[s, 0] : base + segs[s, 1]])
+        o, w = signed[k], weights[k]
+        lo, hi = max(0, o), min(length, length + o)
+        if lo < hi:
+            _add_scaled(flat_out[lo * width : hi * width], w, flat_in[(lo - o) * width : (hi - o) * width])
+        if cyclic and o > 0:
+            _add_scaled(flat_out[: o * width], w, flat_in[(length - o) * width :])
+        elif cyclic and o < 0:
+            _add_scaled(flat_out[(length + o) * width :], w, flat_in[: -o * width])
 
 
-def _spread(
-    pool: np.ndarray, src: int, scratch: np.ndarray, dims: np.ndarray, region: np.ndarray, widen: bool,
-    rows: np.ndarray, offsets: np.ndarray, weights: np.ndarray, counts: np.ndarray, signed: np.ndarray,
-) -> int:  # fmt: skip
-    """Spread ``pool[src]`` along x, y, [z] then θ by one separable kernel; return the result's slot.
-
-    ``region`` holds the source's slices on entry and the result's on return: the slices the taps reach when
-    ``widen``, else the source's own (the result is then needed there only). The passes alternate between
-    ``scratch[0]`` and ``scratch[1]``; the θ pass writes ``scratch[2]``.
-    """
-    nt = pool.shape[2]
-    segs = np.empty((nt, 2), np.int64)
-    n_segs = _segments(region[3], nt, segs)
-    flip = 0
+def _spread_block(
+    block: np.ndarray, lengths: np.ndarray, cyclic: np.ndarray, signed: np.ndarray, weights: np.ndarray,
+    counts: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """Return one separable kernel applied to ``block`` (a window, (L_x, L_y, L_z, L_θ)) along x, y, [z] then θ."""
+    lx, ly, lz, lt = block.shape
+    src = block
     for axis in range(3):
         if counts[axis] == 0:
             continue
-        source = region[axis].copy()
-        if widen:
-            _widen(region[axis], dims[axis], offsets[axis], counts[axis])
-        n_rows = _rows(region, dims, rows)
-        dst = scratch[flip]
-        _pass_outer(pool[src], pool[dst], axis, dims, rows, n_rows, source, segs, n_segs, offsets[axis],
-                    weights[axis], counts[axis])
-        src, flip = dst, 1 - flip
-    if widen:
-        _widen(region[3], nt, offsets[3], counts[3])
-    n_rows = _rows(region, dims, rows)
-    n_segs = _segments(region[3], nt, segs)
-    _pass_heading(pool[src], pool[scratch[2]], rows, n_rows, segs, n_segs, signed, weights[3, : counts[3]])
-    return scratch[2]
+        outer = 1 if axis == 0 else (lx if axis == 1 else lx * ly)
+        inner = (ly * lz * lt) if axis == 0 else (lz * lt if axis == 1 else lt)
+        dst = np.empty_like(src)
+        s3 = src.reshape((outer, lengths[axis], inner))
+        d3 = dst.reshape((outer, lengths[axis], inner))
+        for a in range(outer):
+            _pass_first(s3[a], d3[a], signed[axis, : counts[axis]], weights[axis, : counts[axis]], cyclic[axis])
+        src = dst
+    heading = np.ascontiguousarray(src.reshape((lx * ly * lz, lt)).T)  # θ first: every tap one run
+    turned = np.empty_like(heading)
+    _pass_first(heading, turned, signed[3, : counts[3]], weights[3, : counts[3]], cyclic[3])
+    return np.ascontiguousarray(turned.T).reshape((lx, ly, lz, lt))
+
+
+def _block_window(
+    masks: np.ndarray, dims: np.ndarray, signed: np.ndarray, counts: np.ndarray, windows: np.ndarray
+) -> None:
+    """Set ``windows`` (4, 2) to the (start, length) of x, y, z, θ covering ``masks`` widened by the taps ``signed``."""
+    for axis in range(4):
+        if counts[axis] > 0:
+            _widen(masks[axis], dims[axis], signed[axis], counts[axis])
+        _window(masks[axis], dims[axis], windows[axis])
+
+
+def _gather(cells: np.ndarray, dims: np.ndarray, windows: np.ndarray) -> np.ndarray:
+    """Return the window of ``cells`` as a (L_x, L_y, L_z, L_θ) block."""
+    ny, nz, nt = dims[1], dims[2], dims[3]
+    block = np.empty((windows[0, 1], windows[1, 1], windows[2, 1], windows[3, 1]))
+    thetas = (windows[3, 0] + np.arange(windows[3, 1])) % nt
+    for i in range(windows[0, 1]):
+        x = (windows[0, 0] + i) % dims[0]
+        for j in range(windows[1, 1]):
+            y = (windows[1, 0] + j) % ny
+            for m in range(windows[2, 1]):
+                row = cells[(x * ny + y) * nz + (windows[2, 0] + m) % nz]
+                out = block[i, j, m]
+                for q in range(thetas.size):
+                    out[q] = row[thetas[q]]
+    return block
 
 
 def _combine(
-    excited: np.ndarray, inhibited: np.ndarray, out: np.ndarray, dims: np.ndarray, spread: np.ndarray,
-    rows: np.ndarray, n_rows: int, theta: np.ndarray, inhibition: float, masks: np.ndarray,
+    excited: np.ndarray, inhibited: np.ndarray, out: np.ndarray, dirty: np.ndarray, dims: np.ndarray,
+    windows: np.ndarray, inhibition: float, masks: np.ndarray,
 ) -> float:  # fmt: skip
-    """Write ``max(E − I − φ, 0)`` on ``rows`` and θ ``theta``, 0 elsewhere; return the sum in C order.
+    """Write ``max(E − I − φ, 0)`` of the window into ``out`` (0 elsewhere); return the sum in lattice C order.
 
-    E is 0 off ``spread``'s rows. Off ``rows`` and ``theta`` E = 0 and I ≥ 0 (the caller's choice), so the
-    value there is 0 too. ``masks`` receives the result's slices.
+    Off the window E = 0 and I ≥ 0 (the caller's window), so the value there is 0 too. ``masks`` receives the
+    result's slices, ``dirty`` (``out``'s non-zero rows) the rows written.
     """
-    out[:, :] = 0.0
+    _clear(out, dirty)
     masks[:, :] = False
-    ny, nz = dims[1], dims[2]
+    ny, nz, nt = dims[1], dims[2], dims[3]
+    thetas = _lattice_order(windows[3, 0], windows[3, 1], nt)
     total = 0.0
-    for n in range(n_rows):
-        r = rows[n]
-        x, y, z = r // (ny * nz), (r // nz) % ny, r % nz
-        inside = spread[0, x] and spread[1, y] and spread[2, z]
-        hit = False
-        for t in theta:
-            value = (excited[r, t] if inside else 0.0) - inhibited[r, t]
-            value = value - inhibition
-            if value < 0.0:
-                value = 0.0
-            out[r, t] = value
-            total += value
-            if value != 0.0:
-                masks[3, t] = True
-                hit = True
-        if hit:
-            masks[0, x] = True
-            masks[1, y] = True
-            masks[2, z] = True
+    for i in _lattice_order(windows[0, 0], windows[0, 1], dims[0]):
+        x = (windows[0, 0] + i) % dims[0]
+        for j in _lattice_order(windows[1, 0], windows[1, 1], ny):
+            y = (windows[1, 0] + j) % ny
+            for m in _lattice_order(windows[2, 0], windows[2, 1], nz):
+                z = (windows[2, 0] + m) % nz
+                e, inh, cells = excited[i, j, m], inhibited[i, j, m], out[(x * ny + y) * nz + z]
+                hit = False
+                for q in thetas:
+                    value = e[q] - inh[q]
+                    value = value - inhibition
+                    if value < 0.0:
+                        value = 0.0
+                    t = (windows[3, 0] + q) % nt
+                    cells[t] = value
+                    total += value
+                    if value != 0.0:
+                        masks[3, t] = True
+                        hit = True
+                if hit:
+                    masks[0, x] = masks[1, y] = masks[2, z] = True
+                    dirty[(x * ny + y) * nz + z] = True
     return total
 
 
@@ -274,52 +289,49 @@ def _combine(
 
 
 def attractor(
-    pool: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
-    e_offsets: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray, e_signed: np.ndarray,
-    i_offsets: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, i_signed: np.ndarray, inhibition: float,
-    best: np.ndarray,
+    pool: np.ndarray, dirty: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray,
+    e_signed: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray,
+    i_signed: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, inhibition: float, best: np.ndarray,
 ) -> tuple[int, float]:  # fmt: skip
     """One attractor step of ``pool[source]`` (Menezes et al. Eq. 3); return (the result's slot, the pre-scale sum).
 
     Excitation E, inhibition I of E, then ``max(E − I − φ, 0)`` normalised to sum 1 when the sum is positive;
-    otherwise (everything inhibited) one cell at the decoded centre ``best`` (truncated) holds 1. I is computed
-    where E may be non-zero only (elsewhere ``0 − I − φ ≤ 0`` as I ≥ 0), or wherever it reaches when a cell is
-    negative (``openratslam_compat``'s translation can leave some). ``masks`` (4, 4, width) is scratch; on
-    return ``masks[0]`` holds the result's slices. ``pool`` has ≥ 5 slots; every slot but ``source`` is
-    overwritten.
+    otherwise (everything inhibited) one cell at the decoded centre ``best`` (truncated) holds 1. The work is
+    done on a dense window of the lattice: per axis the shortest cyclic run of slices covering the active ones
+    widened by the excitation's reach (and by the inhibition's when a cell is negative, as
+    ``openratslam_compat``'s translation can leave: I then matters beyond E). ``masks`` (4, 4, width) is
+    scratch; on return ``masks[0]`` holds the result's slices. Slot ``source`` is kept; another is written.
+    ``dirty[slot]`` marks the rows of each slot that may be non-zero (a slot's other rows are 0).
     """
-    free = np.empty(4, np.int64)
-    n = 0
-    for slot in range(pool.shape[0]):
-        if slot != source and n < 4:
-            free[n] = slot
-            n += 1
     region = masks[1]
-    negative = _occupancy(pool[source], dims, region)
-    excited = _spread(pool, source, free[:3], dims, region, True, rows, e_offsets, e_weights, e_counts, e_signed)
-    masks[2, :, :] = region  # E's slices
-    scratch = np.array([free[0], free[1], free[3]])
-    inhibited = _spread(pool, excited, scratch, dims, region, negative, rows, i_offsets, i_weights, i_counts,
-                        i_signed)
-    n_rows = _rows(region, dims, rows)
-    theta = np.flatnonzero(region[3, : pool.shape[2]])
-    out = free[0]
+    negative = _occupancy(pool[source], dims, region, dirty[source])
+    windows = np.zeros((4, 2), np.int64)
+    sizes = np.array([dims[0], dims[1], dims[2], pool.shape[2]])  # x, y, z, θ
+    _block_window(region, sizes, e_signed, e_counts, windows)
+    if negative:
+        _block_window(region, sizes, i_signed, i_counts, windows)
+    if inhibition < 0.0:  # never (the parameters forbid it): every cell would be positive
+        windows[:, 0] = 0
+        windows[:, 1] = sizes
+    cyclic = windows[:, 1] == sizes
+    block = _gather(pool[source], sizes, windows)
+    excited = _spread_block(block, windows[:, 1], cyclic, e_signed, e_weights, e_counts)
+    inhibited = _spread_block(excited, windows[:, 1], cyclic, i_signed, i_weights, i_counts)
+    out = 0 if source != 0 else 1
     cells = pool[out]
-    total = _combine(pool[excited], pool[inhibited], cells, dims, masks[2], rows, n_rows, theta, inhibition,
-                     masks[0])
+    total = _combine(excited, inhibited, cells, dirty[out], sizes, windows, inhibition, masks[0])
     if total > 0.0:
-        for m in range(n_rows):
-            r = rows[m]
-            for t in theta:
-                cells[r, t] = cells[r, t] / total
+        for row in range(cells.shape[0]):
+            if dirty[out, row]:  # every other row is 0 and stays 0
+                cells[row] /= total
     else:
-        _restart(cells, dims, masks[0], best)
+        _restart(cells, dirty[out], dims, masks[0], best)
     return out, total
 
 
-def _restart(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, best: np.ndarray) -> None:
+def _restart(cells: np.ndarray, dirty: np.ndarray, dims: np.ndarray, masks: np.ndarray, best: np.ndarray) -> None:
     """Set ``cells`` to one cell of 1 at ``best`` truncated to integers (x, y, [z,] θ), ``masks`` to its slices."""
-    cells[:, :] = 0.0
+    _clear(cells, dirty)
     masks[:, :] = False
     nt = cells.shape[1]
     at = np.empty(4, np.int64)
@@ -328,7 +340,9 @@ def _restart(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, best: np.nd
         at[a if a < best.size - 1 else 3] = int(best[a]) % d
     if best.size == 3:
         at[2] = 0
-    cells[(at[0] * dims[1] + at[1]) * dims[2] + at[2], at[3]] = 1.0
+    row = (at[0] * dims[1] + at[1]) * dims[2] + at[2]
+    cells[row, at[3]] = 1.0
+    dirty[row] = True
     for a in range(4):
         masks[a, at[a]] = True
 
@@ -341,15 +355,16 @@ def _layer_shift(shift: float, one_cell: bool) -> tuple[int, float, float]:
 
 
 def _translate(
-    src: np.ndarray, dst: np.ndarray, dims: np.ndarray, masks: np.ndarray, v: float, cos: np.ndarray,
-    sin: np.ndarray, one_cell: bool, moved: np.ndarray,
+    src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, dims: np.ndarray, masks: np.ndarray, v: float,
+    cos: np.ndarray, sin: np.ndarray, one_cell: bool, moved: np.ndarray,
 ) -> None:  # fmt: skip
     """Move every heading layer t by ``v`` cells along (cos_t, sin_t) within its (x, y) plane: x then y, wrapping.
 
     Cell i receives ``keep·P[i − whole] + frac·P[i − whole − 1]`` along each axis (:func:`_layer_shift`).
-    ``masks`` are ``src``'s slices, ``moved`` receives ``dst``'s (rows written).
+    ``masks`` are ``src``'s slices, ``moved`` receives ``dst``'s (rows written), ``dirty`` (``dst``'s non-zero
+    rows) the rows written.
     """
-    dst[:, :] = 0.0
+    _clear(dst, dirty)
     moved[:, :] = False
     nx, ny, nz = dims[0], dims[1], dims[2]
     for t in range(dst.shape[1]):
@@ -373,10 +388,11 @@ def _translate(
                         a = kx * src[(x1 * ny + y1) * nz + z, t] + fx * src[(x2 * ny + y1) * nz + z, t]
                         b = kx * src[(x1 * ny + y2) * nz + z, t] + fx * src[(x2 * ny + y2) * nz + z, t]
                         dst[(x * ny + y) * nz + z, t] = ky * a + fy * b
+                        dirty[(x * ny + y) * nz + z] = True
     moved[2, :] = masks[2]
 
 
-def _corner_loss(src: np.ndarray, dst: np.ndarray, masks: np.ndarray, corners: np.ndarray) -> None:
+def _corner_loss(src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, masks: np.ndarray, corners: np.ndarray) -> None:
     """OpenRatSLAM's translation loss (``openratslam_compat``): ``dst[to] −= src[a]·w_a + src[b]·w_b`` per layer.
 
     ``corners[t]`` = (row a, w_a, row b, w_b, row to) of layer t (3-DoF lattice).
@@ -386,13 +402,15 @@ def _corner_loss(src: np.ndarray, dst: np.ndarray, masks: np.ndarray, corners: n
             lost = src[int(corners[t, 0]), t] * corners[t, 1] + src[int(corners[t, 2]), t] * corners[t, 3]
             if lost != 0.0:
                 dst[int(corners[t, 4]), t] -= lost
+                dirty[int(corners[t, 4])] = True
 
 
 def _shift_outer(
-    src: np.ndarray, dst: np.ndarray, dims: np.ndarray, masks: np.ndarray, whole: int, keep: float, frac: float
-) -> None:
+    src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, dims: np.ndarray, masks: np.ndarray, whole: int,
+    keep: float, frac: float,
+) -> None:  # fmt: skip
     """Shift along z: ``dst[z] = src[z − whole]·keep + src[z − whole − 1]·frac`` (wrapping) on ``masks``' x, y rows."""
-    dst[:, :] = 0.0
+    _clear(dst, dirty)
     ny, nz = dims[1], dims[2]
     for x in range(dims[0]):
         if not masks[0, x]:
@@ -401,6 +419,7 @@ def _shift_outer(
             if not masks[1, y]:
                 continue
             base = (x * ny + y) * nz
+            dirty[base : base + nz] = True
             for z in range(nz):
                 a = src[base + (z - whole) % nz]
                 if frac == 0.0:
@@ -413,13 +432,15 @@ def _shift_outer(
 
 
 def _shift_heading(
-    src: np.ndarray, dst: np.ndarray, rows: np.ndarray, n_rows: int, whole: int, keep: float, frac: float
-) -> None:
+    src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, rows: np.ndarray, n_rows: int, whole: int, keep: float,
+    frac: float,
+) -> None:  # fmt: skip
     """Shift along θ on ``rows``: ``dst[t] = src[t − whole]·keep + src[t − whole − 1]·frac`` (wrapping)."""
-    dst[:, :] = 0.0
+    _clear(dst, dirty)
     nt = dst.shape[1]
     for n in range(n_rows):
         r = rows[n]
+        dirty[r] = True
         for t in range(nt):
             a = src[r, (t - whole) % nt]
             if frac == 0.0:
@@ -429,7 +450,8 @@ def _shift_heading(
 
 
 def path_integrate(
-    pool: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray, known: bool,
+    pool: np.ndarray, dirty: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
+    known: bool,
     v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool, corners: np.ndarray, z_shift: np.ndarray,
     th_shift: np.ndarray,
 ) -> int:  # fmt: skip
@@ -441,40 +463,42 @@ def path_integrate(
     cover the result's.
     """
     if not known:
-        _occupancy(pool[source], dims, masks[0])
+        _occupancy(pool[source], dims, masks[0], dirty[source])
     slot = source
     free = 0 if source != 0 else 1
     spare = 2 if source != 2 else 1
     if free == spare:
         spare = 3
     if v != 0.0:
-        _translate(pool[slot], pool[free], dims, masks[0], v, cos, sin, one_cell, masks[1])
+        _translate(pool[slot], pool[free], dirty[free], dims, masks[0], v, cos, sin, one_cell, masks[1])
         if corners.shape[0] > 0:
-            _corner_loss(pool[slot], pool[free], masks[0], corners)
+            _corner_loss(pool[slot], pool[free], dirty[free], masks[0], corners)
         masks[0, :, :] = masks[1]
         slot, free = free, (spare if slot == source else slot)
     if z_shift[0] != 0.0:
-        _shift_outer(pool[slot], pool[free], dims, masks[0], int(z_shift[1]), z_shift[2], z_shift[3])
+        _shift_outer(pool[slot], pool[free], dirty[free], dims, masks[0], int(z_shift[1]), z_shift[2], z_shift[3])
         slot, free = free, (spare if slot == source else slot)
     if th_shift[0] != 0.0:
         n_rows = _rows(masks[0], dims, rows)
-        _shift_heading(pool[slot], pool[free], rows, n_rows, int(th_shift[1]), th_shift[2], th_shift[3])
+        _shift_heading(pool[slot], pool[free], dirty[free], rows, n_rows, int(th_shift[1]), th_shift[2],
+                       th_shift[3])
         masks[0, 3, :] = True
         slot = free
     return slot
 
 
 def on_odo(
-    pool: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
-    e_offsets: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray, e_signed: np.ndarray,
-    i_offsets: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, i_signed: np.ndarray, inhibition: float,
+    pool: np.ndarray, dirty: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
+    e_signed: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray,
+    i_signed: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, inhibition: float,
     best: np.ndarray, v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool, corners: np.ndarray,
     z_shift: np.ndarray, th_shift: np.ndarray, x_first: bool,
 ) -> tuple[int, np.ndarray]:  # fmt: skip
     """:func:`attractor`, :func:`path_integrate` and :func:`peak` in one call; return (the result's slot, its peak)."""
-    slot, _ = attractor(pool, source, dims, masks, rows, e_offsets, e_weights, e_counts, e_signed, i_offsets,
-                        i_weights, i_counts, i_signed, inhibition, best)
-    slot = path_integrate(pool, slot, dims, masks, rows, True, v, cos, sin, one_cell, corners, z_shift, th_shift)
+    slot, _ = attractor(pool, dirty, source, dims, masks, e_signed, e_weights, e_counts, i_signed, i_weights,
+                        i_counts, inhibition, best)
+    slot = path_integrate(pool, dirty, slot, dims, masks, rows, True, v, cos, sin, one_cell, corners, z_shift,
+                          th_shift)
     return slot, peak(pool[slot], dims, masks[0], x_first)
 
 
@@ -483,19 +507,22 @@ def peak(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, x_first: bool) 
 
     Only the slices in ``masks`` are visited (every other cell is 0); an all-zero lattice gives (0, 0, 0, 0).
     """
-    nx, ny, nz = dims[0], dims[1], dims[2]
+    ny, nz = dims[1], dims[2]
+    xs = np.flatnonzero(masks[0, : dims[0]])
+    ys = np.flatnonzero(masks[1, :ny])
+    zs = np.flatnonzero(masks[2, :nz])
+    outer, inner = (xs, zs) if x_first else (zs, xs)
     best = np.zeros(4, np.int64)
     top = 0.0
     for t in range(cells.shape[1]):
         if not masks[3, t]:
             continue
-        for a in range(nz if not x_first else nx):
-            for b in range(ny):
-                for c in range(nx if not x_first else nz):
-                    x, z = (c, a) if not x_first else (a, c)
-                    if masks[0, x] and masks[1, b] and masks[2, z]:
-                        value = cells[(x * ny + b) * nz + z, t]
-                        if value > top:
-                            top = value
-                            best[0], best[1], best[2], best[3] = x, b, z, t
+        for a in outer:
+            for y in ys:
+                for c in inner:
+                    x, z = (a, c) if x_first else (c, a)
+                    value = cells[(x * ny + y) * nz + z, t]
+                    if value > top:
+                        top = value
+                        best[0], best[1], best[2], best[3] = x, y, z, t
     return best

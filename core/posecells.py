@@ -14,7 +14,8 @@ Array layout is ``activity[x, y, (z,) th]``. Coordinates are in cells.
 Two paths compute ``on_odo`` with the same arithmetic, cell by cell, so they agree to the last bit: whole-lattice
 numpy operations (the reference), and compiled loops over the slices that hold activity
 (:mod:`core._posecell_kernel`, numba). A network takes the compiled path once the kernels are loaded: after
-``COMPILED_AFTER`` updates, or before the first when ``mapserver process`` loads them for a long log.
+``COMPILED_AFTER`` cell updates (updates × lattice cells: the reference's cost), or before the first when
+``mapserver process`` loads them for a long log.
 
 Checked against OpenRatSLAM's code: update order, circulant excite/inhibit with
 σ = ``pc_w_*_var``, global inhibition floored at 0, normalisation, per-layer
@@ -58,10 +59,16 @@ from core.lattice import circulant_kernel, wrapped_distance
 if TYPE_CHECKING:
     from core.config import Params
 
-COMPILED_AFTER = 200
-"""``on_odo`` updates after which a network loads the compiled kernels. numba's import and the cached machine
-code take ~0.5 s, which the kernels repay within a few hundred updates; short runs (tests, one-frame logs)
-never pay it. The results are the same on either path."""
+COMPILED_AFTER = 3_000_000
+"""Cell updates (``on_odo`` updates × lattice cells) after which a network loads the compiled kernels. numba's
+import and the cached machine code take ~0.5 s, which the kernels repay within about this much reference work
+(~200 updates of the 21×21×36 lattice, ~15 of the 80×80×35 one); short runs (tests, one-frame logs) never pay
+it. The results are the same on either path."""
+
+
+def worth_compiling(shape: tuple[int, ...], updates: int) -> bool:
+    """Return whether ``updates`` updates of a lattice of ``shape`` reach ``COMPILED_AFTER`` cell updates."""
+    return updates * math.prod(shape) >= COMPILED_AFTER
 
 Taps = tuple[np.ndarray, np.ndarray]
 """One separable factor of a kernel along one axis: (offsets o_k ascending, weights w_k)."""
@@ -91,6 +98,9 @@ _STILL = Move(0.0, False, _NO_CORNERS, _NO_SHIFT, _NO_SHIFT)
 
 class PoseCellNetwork:
     """Pose-cell activity, its dynamics and the view-template links.
+
+    ``activity`` may be written in place or replaced between updates. On the compiled path it is one of the
+    network's reused buffers after an update: an array it held before must not be written to.
 
     Args:
         params: engine parameters (``pc_*``, ``vt_active_decay``, ``vt_min_inject_age``).
@@ -170,7 +180,7 @@ class PoseCellNetwork:
         """Run the attractor step on the compiled path (the restart included)."""
         b = self._compiled()
         out, _ = kernels.kernel("attractor")(
-            b.pool, b.slot_of(self.activity), b.dims, b.masks, b.rows, *b.excite, *b.inhibit,
+            b.pool, b.dirty, b.slot_of(self.activity), b.dims, b.masks, *b.excite, *b.inhibit,
             self.params.pc_global_inhib, self.best,
         )  # fmt: skip
         self.activity = b.views[out]
@@ -223,8 +233,8 @@ class PoseCellNetwork:
             return
         b = self._compiled()
         out = kernels.kernel("path_integrate")(
-            b.pool, b.slot_of(self.activity), b.dims, b.masks, b.rows, False, move.v, b.cos, b.sin, move.one_cell,
-            move.corners, move.z, move.th,
+            b.pool, b.dirty, b.slot_of(self.activity), b.dims, b.masks, b.rows, False, move.v, b.cos, b.sin,
+            move.one_cell, move.corners, move.z, move.th,
         )  # fmt: skip
         self.activity = b.views[out]
 
@@ -239,7 +249,7 @@ class PoseCellNetwork:
         if kernels.enabled():
             b = self._compiled()
             cells = b.rows_view(self.activity)
-            kernels.kernel("_occupancy")(cells, b.dims, b.masks[0])
+            kernels.kernel("_occupancy")(cells, b.dims, b.masks[0], np.zeros(cells.shape[0], dtype=np.bool_))
             return self._decode_at(b.peak(cells, self.params.openratslam_compat))
         return self._decode_at(self._peak_reference())
 
@@ -313,10 +323,11 @@ class PoseCellNetwork:
         """Run one OpenRatSLAM ``on_odo`` update and return the decoded packet centre.
 
         The attractor step, path integration (:meth:`motion`) and the peak search run in one call on the
-        compiled path once its kernels are loaded (this network loads them at its ``COMPILED_AFTER``-th update).
+        compiled path once its kernels are loaded (this network loads them when its updates reach
+        ``COMPILED_AFTER`` cell updates).
         """
         self.updates += 1
-        if self.updates >= COMPILED_AFTER and not kernels.enabled():
+        if not kernels.enabled() and worth_compiling(self.shape, self.updates):
             kernels.load_compiled()
         if not kernels.enabled():
             self.step_attractor()
@@ -325,7 +336,7 @@ class PoseCellNetwork:
         b = self._compiled()
         move = self.motion(forward_m, dyaw_rad, dz_m) or _STILL
         slot, peak = kernels.kernel("on_odo")(
-            b.pool, b.slot_of(self.activity), b.dims, b.masks, b.rows, *b.excite, *b.inhibit,
+            b.pool, b.dirty, b.slot_of(self.activity), b.dims, b.masks, b.rows, *b.excite, *b.inhibit,
             self.params.pc_global_inhib, self.best, move.v, b.cos, b.sin, move.one_cell, move.corners, move.z,
             move.th, self.params.openratslam_compat,
         )  # fmt: skip
@@ -459,13 +470,13 @@ class PoseCellNetwork:
 
 
 class _Buffers:
-    """The compiled path's memory: five lattice-sized slots (rows × n_θ), slice masks, the taps as arrays.
+    """The compiled path's memory: three lattice-sized slots (rows × n_θ), slice masks, the taps as arrays.
 
     The activity is one of the slots after every compiled step; each step writes others (see
     :func:`core._posecell_kernel.attractor`), so a slot that is not the current activity holds nothing of use.
     """
 
-    SLOTS = 5
+    SLOTS = 3
 
     def __init__(
         self, shape: tuple[int, ...], excite: list[Taps], inhibit: list[Taps], cos: np.ndarray, sin: np.ndarray
@@ -476,18 +487,25 @@ class _Buffers:
         dims = (shape[0], shape[1], shape[2] if len(shape) == 4 else 1)
         self.dims = np.asarray(dims, dtype=np.int64)
         self.pool = np.zeros((self.SLOTS, math.prod(dims), th_dim), dtype=np.float64)
+        self.dirty = np.zeros((self.SLOTS, math.prod(dims)), dtype=np.bool_)
+        """Per slot, the rows that may hold a non-zero (every other row is 0)."""
         self.views = [slot.reshape(shape) for slot in self.pool]
         self.masks = np.zeros((4, 4, max(*dims, th_dim)), dtype=np.bool_)
         self.rows = np.zeros(math.prod(dims), dtype=np.int64)
-        self.excite = _tap_arrays(excite, th_dim)
-        self.inhibit = _tap_arrays(inhibit, th_dim)
+        self.excite = _tap_arrays(excite, shape)
+        self.inhibit = _tap_arrays(inhibit, shape)
 
     def slot_of(self, activity: np.ndarray) -> int:
-        """Return the slot holding ``activity``, copying it into slot 0 when it is held elsewhere."""
+        """Return the slot holding ``activity``, copying it into slot 0 when it is held elsewhere.
+
+        An activity held elsewhere was set from outside (a restore, a test), which may have written into the
+        slots too: every row of every slot is then taken as possibly non-zero.
+        """
         for slot, view in enumerate(self.views):
             if activity is view:
                 return slot
         np.copyto(self.views[0], activity)
+        self.dirty[...] = True
         return 0
 
     def rows_view(self, activity: np.ndarray) -> np.ndarray:
@@ -511,23 +529,23 @@ def _taps(matrix: np.ndarray) -> Taps:
     return offsets, column[offsets]
 
 
-def _tap_arrays(taps: list[Taps], th_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Return one kernel's taps as the compiled path takes them: (offsets, weights, counts, signed θ offsets).
+def _tap_arrays(taps: list[Taps], shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return one kernel's taps as the compiled path takes them: (signed offsets, weights, counts).
 
-    Offsets and weights are (4, K) with rows x, y, z, θ (a 3-DoF lattice has no z taps), counts (4,), and the θ
-    offsets again in (−n_θ/2, n_θ/2], in the same order.
+    Offsets and weights are (4, K) with rows x, y, z, θ (a 3-DoF lattice has no z taps), in the taps' order;
+    each offset o_k (mod n) is written in (−n/2, n/2]. counts (4,) says how many of a row are taps.
     """
+    dims = [shape[0], shape[1], shape[2] if len(shape) == 4 else 1, shape[-1]]
     axes = [taps[0], taps[1], taps[2] if len(taps) == 4 else (np.zeros(0, np.int64), np.zeros(0)), taps[-1]]
     width = max(offsets.size for offsets, _ in axes)
-    offsets = np.zeros((4, width), dtype=np.int64)
+    signed = np.zeros((4, width), dtype=np.int64)
     weights = np.zeros((4, width), dtype=np.float64)
-    for row, (o, w) in enumerate(axes):
-        offsets[row, : o.size] = o
+    for row, ((o, w), dim) in enumerate(zip(axes, dims, strict=True)):
+        o = o.astype(np.int64)
+        signed[row, : o.size] = np.where(o > dim // 2, o - dim, o)
         weights[row, : w.size] = w
     counts = np.asarray([o.size for o, _ in axes], dtype=np.int64)
-    heading = axes[3][0].astype(np.int64)
-    signed = np.where(heading > th_dim // 2, heading - th_dim, heading)
-    return offsets, weights, counts, signed
+    return signed, weights, counts
 
 
 def spread_reference(cells: np.ndarray, taps: list[Taps]) -> np.ndarray:

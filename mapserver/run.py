@@ -83,20 +83,21 @@ def view_cells_class(params: Params) -> type:
 def load_frontend(params: Params, frames: int | None = None) -> None:
     """Load what a run of ``frames`` frames will use before its clock starts (torch; the compiled kernels).
 
-    ``sdr-htm`` runs on torch, ``lvc`` on the template matcher's compiled kernel; the pose cells on theirs after
-    ``COMPILED_AFTER`` updates. The other libraries load when the program starts; these load on first use: torch
-    ~2 s here, which counted in ``seconds`` made a 306-frame ``cave3d`` session of ``process --db`` read 70
+    ``sdr-htm`` runs on torch, ``lvc`` on the template matcher's compiled kernel; the pose cells on theirs
+    (``core.posecells.COMPILED_AFTER``). The other libraries load when the program starts; these load on first use:
+    torch ~2 s here, which counted in ``seconds`` made a 306-frame ``cave3d`` session of ``process --db`` read 70
     frames/s (97–109 with the libraries loaded first), and numba with the kernels' cached machine code ~0.45 s
-    (a 266-frame ``twin-overlap`` session: ~15 % of its seconds). ``frames`` (None: unknown) below
-    ``COMPILED_AFTER`` loads no kernel: a short log (one frame: a start-up of well under a second) would not repay
-    numba's import; if its matcher meets a large comparison it loads the kernel then (the answers are the same).
+    (a 266-frame ``twin-overlap`` session: ~15 % of its seconds). A log of ``frames`` frames (None: unknown) too
+    short to repay numba's import (:func:`core.posecells.worth_compiling`: one frame, a start-up of well under a
+    second) loads no kernel; if its matcher meets a large comparison it loads the kernel then (the answers are the
+    same).
     """
     from core._posecell_kernel import load_compiled as load_posecell_kernels
     from core.localview import load_compiled
-    from core.posecells import COMPILED_AFTER
+    from core.posecells import worth_compiling
 
     view_cells_class(params)
-    if frames is not None and frames < COMPILED_AFTER:
+    if frames is not None and not worth_compiling(params.lattice_shape, frames):
         return
     if params.frontend == "lvc":
         load_compiled()

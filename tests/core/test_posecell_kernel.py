@@ -192,13 +192,13 @@ def test_a_fully_inhibited_network_restarts_at_the_decoded_centre_on_both_paths(
 
 
 def test_a_network_switches_to_the_kernels_mid_run_without_changing_a_bit(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Loading the kernels at the COMPILED_AFTER-th update: the run equals one on the reference path throughout."""
+    """Loading the kernels after COMPILED_AFTER cell updates: the run equals one on the reference path throughout."""
     params = Params().replace(**LATTICES["3dof"])
     rng = np.random.default_rng(11)
     frames = [(float(rng.uniform(0.0, 0.4)), float(rng.uniform(-0.2, 0.2))) for _ in range(40)]
     links = [(int(rng.integers(0, 6)), float(rng.uniform(-0.3, 0.3))) for _ in range(40)]
     runs = []
-    for after in (10**9, 15):
+    for after in (10**12, 15 * math.prod(params.lattice_shape)):  # never, and at the 15th update
         monkeypatch.setattr(posecells, "COMPILED_AFTER", after)
         monkeypatch.setattr(kernels, "_use_compiled", False)
         net = PoseCellNetwork(params.replace(vt_min_inject_age=0))
@@ -206,7 +206,31 @@ def test_a_network_switches_to_the_kernels_mid_run_without_changing_a_bit(monkey
         for (forward, dyaw), (template, rad) in zip(frames, links, strict=True):
             net.on_view_template(template, rad, 6, created=template >= len(net._links_of_template))
             centres.append(net.on_odo(forward, dyaw).copy())
-        assert kernels.enabled() == (after == 15)
+        assert kernels.enabled() == (after < 10**12)
         runs.append((np.array(centres), net.activity.copy()))
     assert np.array_equal(runs[0][0], runs[1][0])
     assert np.array_equal(runs[0][1], runs[1][1])
+
+
+def test_writes_into_the_activity_between_updates_are_seen(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled path keeps the lattice in reused slots; cells written from outside (an injection, a test that
+    clears the lattice in place, an activity replaced after an in-place write) count like any others."""
+    params = Params().replace(**LATTICES["3dof"])
+    rng = np.random.default_rng(5)
+    nets = {flag: PoseCellNetwork(params) for flag in (False, True)}
+    writes = [
+        lambda net: net.inject(np.array([3.0, 17.0, 30.0]), 0.4),
+        lambda net: (net.activity.fill(0.0), net.activity.__setitem__((19, 2, 5), 1.0)),
+        lambda net: (net.activity.fill(0.5), setattr(net, "activity", _activity(net, np.random.default_rng(9), False))),
+    ]
+    for index, write in enumerate(writes * 3):
+        for _ in range(1 + index % 2):  # the writes fall on every slot in turn
+            forward, dyaw = (float(v) for v in rng.uniform(-1.0, 1.0, 2))
+            centres = []
+            for flag, net in nets.items():
+                _on_path(flag, monkeypatch)
+                centres.append(net.on_odo(forward, dyaw))
+            assert np.array_equal(centres[0], centres[1])
+            assert np.array_equal(nets[False].activity, nets[True].activity)
+        for net in nets.values():
+            write(net)
