@@ -422,6 +422,8 @@ class PoseCellNetwork:
         """
         best = self.best.copy()
         best[-1] = (best[-1] - self.vt_delta_th) % self.shape[-1]
+        if np.ndim(coords) == 1:  # one cell (every frame): the same operations on Python floats
+            return np.float64(_wrapped_norm(best.tolist(), np.asarray(coords, dtype=np.float64).tolist(), self.shape))
         return wrapped_distance(best, coords, self.dims)
 
     # ------------------------------------------------------------- snapshot
@@ -667,6 +669,20 @@ def _openratslam_rot90(dim: int, rot: int) -> np.ndarray:
     return np.asarray(grid, dtype=np.int64)
 
 
+
+
+def _wrapped_norm(a: list[float], b: list[float], dims: tuple[int, ...]) -> float:
+    """Return :func:`core.lattice.wrapped_distance` of two cells to the last bit (its operations, in its order).
+
+    Per axis ``d = |a − b| mod n`` (exact, as numpy's mod of a non-negative number), ``min(d, n − d)``; the
+    squares summed from the first axis on, as numpy sums a short axis; then the square root.
+    """
+    total = 0.0
+    for x, y, dim in zip(a, b, dims, strict=True):
+        d = math.fmod(abs(x - y), dim)
+        d = min(d, dim - d)
+        total += d * d
+    return math.sqrt(total)
 
 
 def _openratslam_corners(dim: int, th_dim: int, v: float) -> np.ndarray:

@@ -326,3 +326,24 @@ def test_a_template_seen_for_hundreds_of_frames_saturates_without_overflow() -> 
     saturated = net.activity.copy()
     net.on_view_template(0, 0.0, 1, created=False)
     np.testing.assert_array_equal(net.activity, saturated)  # nothing more is injected
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=ONE_PATH)
+@given(
+    four_dof=st.booleans(),
+    seed=st.integers(0, 10_000),
+    offset=st.floats(-40.0, 40.0),
+)
+def test_distance_to_one_cell_equals_the_batched_distance_to_the_last_bit(
+    four_dof: bool, seed: int, offset: float
+) -> None:
+    """``delta_to`` of one cell (every frame's question) is the row of the batched answer, bit for bit."""
+    net = _net(pc_dim_xy=15, pc_dim_z=15, pc_dim_th=8) if four_dof else _net(pc_dim_xy=21, pc_dim_th=36)
+    rng = np.random.default_rng(seed)
+    net.best = rng.uniform(0.0, 1.0, net.rank) * net.dims
+    net.vt_delta_th = offset
+    cells = rng.uniform(-1.0, 2.0, (5, net.rank)) * net.dims
+    cells[0] = net.best  # the packet's own cell (0 but for the heading offset)
+    batched = net.delta_to(cells)
+    for row, expected in zip(cells, batched, strict=True):
+        assert net.delta_to(row) == expected
