@@ -52,3 +52,19 @@ def test_only_a_long_log_loads_the_compiled_kernels(tmp_path: Path, frames: int,
     loaded = _modules_after("process", str(log), "--preset", "irat", "--out", str(tmp_path / "map.json"))
     assert ("numba" in loaded) == numba
     assert {"core.engine", "rosbags", "scipy"} <= loaded  # the run itself
+
+
+def test_the_progress_bar_shows_only_once_a_command_has_run_a_while(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mapserver.cli import _progress
+
+    update, close = _progress.progress_bar("quick")
+    update(1, 1)  # done at once: no bar (and no tqdm to load)
+    close()
+    assert "quick" not in capsys.readouterr().err
+    monkeypatch.setattr(_progress, "SHOW_AFTER_S", 0.0)
+    update, close = _progress.progress_bar("slow")
+    update(10, 20)
+    close()
+    assert "slow" in capsys.readouterr().err
