@@ -1,9 +1,11 @@
 """The compiled pose-cell update: attractor step, path integration and peak search, cell by cell.
 
 :mod:`core.posecells` computes each frame's ``on_odo`` with whole-lattice numpy operations (its reference
-path). These functions compute the same numbers with loops that visit only the slices holding activity, as
-OpenRatSLAM visits only active cells, compiled by numba (``cache=True``: compiled once per machine, then
-loaded from ``__pycache__``; ``nogil``: a reader thread runs meanwhile).
+path). These functions compute the same numbers where the packet is, as OpenRatSLAM visits only active cells:
+the attractor step on a dense window of the lattice (per axis the shortest cyclic run of slices that covers the
+active ones widened by the kernels' reach), path integration and the peak search on the occupied slices. They
+are compiled by numba (``cache=True``: compiled once per machine, then loaded from ``__pycache__``; ``nogil``:
+a reader thread runs meanwhile).
 
 Arithmetic: every cell is computed by the same sequence of IEEE operations as the reference path, so the
 two agree to the last bit (tests/core/test_posecell_kernel.py checks it on random packets):
@@ -20,9 +22,10 @@ two agree to the last bit (tests/core/test_posecell_kernel.py checks it on rando
 No fused multiply-adds: numba does not contract ``a·b + c`` without ``fastmath`` (the default here).
 
 Layout: the lattice ``(x, y, [z,] θ)`` is passed as a 2-D C-contiguous ``(rows, n_θ)`` view, row
-``(x·n_y + y)·n_z + z`` (``n_z = 1`` on the 3-DoF lattice, whose z pass is skipped). ``masks[a, i]`` (a = 0, 1,
-2 for x, y, z; 3 for θ) says whether slice i of axis a may hold activity; a set of rows is the product of
-three such masks.
+``(x·n_y + y)·n_z + z`` (``n_z = 1`` on the 3-DoF lattice, whose z pass is skipped), one of the network's
+reused slots ``pool[slot]``; ``dirty[slot, row]`` marks the rows of a slot that may be non-zero, so a slot is
+cleared by zeroing those rows alone. ``masks[a, i]`` (a = 0, 1, 2 for x, y, z; 3 for θ) says whether slice i
+of axis a may hold activity; a set of rows is the product of three such masks.
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
-from core.config import PRESETS, ConfigError
+from core.config import PRESETS, ConfigError, Params
 from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
 
@@ -61,24 +62,12 @@ def run(args: argparse.Namespace) -> int:
     """Process the log and report the summary."""
     from mapserver.cli._progress import progress_bar
     from mapserver.ingest.topics import parse_topics_arg
-    from mapserver.params import resolve_params, with_frontend, with_settings
 
     log = Path(args.log)
     if not log.exists():
         msg = f"log not found: {str(log)!r}"
         raise InputError(msg)
-    params = with_settings(resolve_params(args.preset, args.config, log), ",".join(args.settings or []))
-    params = with_frontend(params, args.backbone, args.weights)
-    overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    if overrides:
-        if not args.db:
-            msg = "--merge-evidence and --merge-probation need --db (merging is into stored maps)"
-            raise InputError(msg)
-        try:
-            params = params.replace(**overrides)
-        except ConfigError as err:
-            raise InputError(str(err)) from err
+    params = _params(args, log)
     topics = parse_topics_arg(args.topics) if args.topics else None
     if args.map_name and not args.db:
         msg = "--map needs --db"
@@ -113,7 +102,31 @@ def run(args: argparse.Namespace) -> int:
             result = process_log(log, params, topics=topics, out=args.out, progress=update)
     finally:
         close()
-    summary = result.summary()
+    _report(result.summary(), args.json)
+    return 0
+
+
+def _params(args: argparse.Namespace, log: Path) -> Params:
+    """Return the run's parameters: preset or config, ``--set``, the front-end options, the merge overrides."""
+    from mapserver.params import resolve_params, with_frontend, with_settings
+
+    params = with_settings(resolve_params(args.preset, args.config, log), ",".join(args.settings or []))
+    params = with_frontend(params, args.backbone, args.weights)
+    overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if overrides:
+        if not args.db:
+            msg = "--merge-evidence and --merge-probation need --db (merging is into stored maps)"
+            raise InputError(msg)
+        try:
+            params = params.replace(**overrides)
+        except ConfigError as err:
+            raise InputError(str(err)) from err
+    return params
+
+
+def _report(summary: dict[str, Any], as_json: bool) -> None:
+    """Print the summary line (and the merges) on stderr; the JSON summary on stdout with ``--json``."""
     info(
         f"{summary['frames']} frames → {summary['templates']} templates, {summary['experiences']} experiences, "
         f"{summary['links']} links, {summary['loop_closures']} loop closures, {len(summary['merges'])} merges "
@@ -124,6 +137,5 @@ def run(args: argparse.Namespace) -> int:
             f"merged into map {merge['into']!r} at frame {merge['frame']} (event {merge['event']}, "
             f"{merge['confirmations']} confirmations, {merge['matched_templates']} templates matched)"
         )
-    if args.json:
+    if as_json:
         emit_json(summary)
-    return 0
