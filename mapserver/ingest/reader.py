@@ -424,8 +424,9 @@ class ReadAhead:
     ends, the other sees the pipe close (a child that dies is an IngestError, never a hang; a caller that stops
     reading ends the child). The child ignores SIGINT: the caller's interrupt stops it. ``thread`` reads in a
     thread into a queue (decoding releases the GIL, parsing does not). ``auto`` takes ``process`` where fork
-    exists, the caller is not a daemonic process (a celery worker's, which may not have children) and the
-    range has at least ``depth`` frames (a short log is read in a thread: no fork to pay).
+    exists, the caller runs no other thread and is not a daemonic process (a celery worker's, which may not
+    have children), and the range has at least ``depth`` frames (a short log is read in a thread: no fork to
+    pay).
     """
 
     def __init__(
@@ -517,9 +518,15 @@ class _QueueSender:
 
 
 def _worker_kind(worker: Worker, long_range: bool = True) -> Literal["process", "thread"]:
+    """Return the worker ``auto`` stands for: a forked process where that is safe and pays, else a thread.
+
+    Fork copies the calling thread alone, so a process is forked only from a single-threaded caller (the
+    CLI; not a server's worker threads, whose locks the child would inherit held), never from a daemonic
+    process (a celery worker's may not have children), and only for a range long enough to repay the fork.
+    """
     if worker != "auto":
         return worker
-    can_fork = "fork" in multiprocessing.get_all_start_methods()
+    can_fork = "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
     return "process" if long_range and can_fork and not multiprocessing.current_process().daemon else "thread"
 
 

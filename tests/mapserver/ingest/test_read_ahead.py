@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -107,13 +108,23 @@ def test_a_reader_process_that_dies_is_an_ingest_error(log_path: Path) -> None:
                 pass
 
 
-def test_a_daemonic_process_reads_in_a_thread(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A celery worker's process may not have children: ``auto`` takes a thread there, a process elsewhere."""
+def test_a_daemonic_or_threaded_caller_reads_in_a_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A celery worker's process may not have children, and a fork copies one thread of a threaded server:
+    ``auto`` takes a thread there (and for a short range), a process in a single-threaded caller."""
 
     class Daemonic:
         daemon = True
 
     assert reader_module._worker_kind("auto") == "process"
+    assert reader_module._worker_kind("auto", long_range=False) == "thread"
+    idle = threading.Event()
+    other = threading.Thread(target=idle.wait)
+    other.start()
+    try:
+        assert reader_module._worker_kind("auto") == "thread"
+    finally:
+        idle.set()
+        other.join()
     monkeypatch.setattr(reader_module.multiprocessing, "current_process", lambda: Daemonic())
     assert reader_module._worker_kind("auto") == "thread"
     assert reader_module._worker_kind("process") == "process"
