@@ -11,6 +11,12 @@ the RatSLAM notation of Menezes et al. (2023) §2.1–2.2, generalised to the 4-
 
 Array layout is ``activity[x, y, (z,) th]``. Coordinates are in cells.
 
+Two paths compute ``on_odo`` with the same arithmetic, cell by cell, so they agree to the last bit: whole-lattice
+numpy operations (the reference), and compiled loops over the slices that hold activity
+(:mod:`core._posecell_kernel`, numba). A network takes the compiled path once the kernels are loaded: after
+``COMPILED_AFTER`` cell updates (updates × lattice cells: the reference's cost), or before the first when
+``mapserver process`` loads them for a long log.
+
 Checked against OpenRatSLAM's code: update order, circulant excite/inhibit with
 σ = ``pc_w_*_var``, global inhibition floored at 0, normalisation, per-layer
 translation (layer k heads k·2π/n_θ) then the θ shift with floor/ceil weights,
@@ -31,20 +37,24 @@ Deliberate deviations:
   (OpenRatSLAM would count cells twice); a fully inhibited network restarts at
   the last decoded centre (OpenRatSLAM asserts).
 
-With ``openratslam_compat`` the first two follow OpenRatSLAM's code: a translation
-of s cells (any size) keeps weight 1 − |s| in place and moves |s| one cell, and
-while fewer than ``vt_min_inject_age`` templates exist every known one injects.
+``openratslam_parts`` (and ``openratslam_compat``, every part) runs each as OpenRatSLAM's code:
+``translation`` — a translation of s cells (any size) keeps weight 1 − |s| in place and moves |s| one
+cell, losing what wraps into each layer's rotated corner; ``injection`` — while fewer than
+``vt_min_inject_age`` templates exist every known one injects; ``decode`` — ``find_best``'s scan
+order, sums and rounding.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core import _posecell_kernel as kernels
 from core._buffers import GrowBuffer
 from core.config import Departure
 from core.lattice import circulant_kernel, wrapped_distance
@@ -52,11 +62,48 @@ from core.lattice import circulant_kernel, wrapped_distance
 if TYPE_CHECKING:
     from core.config import Params
 
-SPARSE_FRACTION = 8  # attractor steps on the active block when it spans at most 1/8 of the lattice
+COMPILED_AFTER = 3_000_000
+"""Cell updates (``on_odo`` updates × lattice cells) after which a network loads the compiled kernels. numba's
+import and the cached machine code take ~0.5 s, which the kernels repay within about this much reference work
+(~200 updates of the 21×21×36 lattice, ~15 of the 80×80×35 one); short runs (tests, one-frame logs) never pay
+it. The results are the same on either path."""
+
+
+def worth_compiling(shape: tuple[int, ...], updates: int) -> bool:
+    """Return whether ``updates`` updates of a lattice of ``shape`` reach ``COMPILED_AFTER`` cell updates."""
+    return updates * math.prod(shape) >= COMPILED_AFTER
+
+Taps = tuple[np.ndarray, np.ndarray]
+"""One separable factor of a kernel along one axis: (offsets o_k ascending, weights w_k)."""
+_NO_SHIFT = np.zeros(4)
+_NO_CORNERS = np.zeros((0, 5))
+
+
+@dataclass(frozen=True, slots=True)
+class Move:
+    """One frame's path integration, as both paths apply it (:meth:`PoseCellNetwork.motion`).
+
+    Heading layer t's plane moves ``v`` cells along (cos θ_t, sin θ_t), x then y (:func:`layer_moves`);
+    ``one_cell``: OpenRatSLAM's four-neighbour weights whatever the size of the move (part ``translation``).
+    ``corners`` (n_θ, 5) is OpenRatSLAM's per-layer translation loss (part ``translation``; else no rows).
+    ``z`` and ``th`` = (apply, whole, keep, frac) of the z and θ shifts.
+    """
+
+    v: float
+    one_cell: bool
+    corners: np.ndarray
+    z: np.ndarray
+    th: np.ndarray
+
+
+_STILL = Move(0.0, False, _NO_CORNERS, _NO_SHIFT, _NO_SHIFT)
 
 
 class PoseCellNetwork:
     """Pose-cell activity, its dynamics and the view-template links.
+
+    ``activity`` may be written in place or replaced between updates. On the compiled path it is one of the
+    network's reused buffers after an update: an array it held before must not be written to.
 
     Args:
         params: engine parameters (``pc_*``, ``vt_active_decay``, ``vt_min_inject_age``).
@@ -74,26 +121,22 @@ class PoseCellNetwork:
         self.current_vt = -1
         self.prev_vt = -1
         self.vt_delta_th = 0.0
+        self.updates = 0
+        """``on_odo`` updates run by this network (not part of the state: a restored network counts from 0)."""
         self._links_template = GrowBuffer((), np.int64)
         self._links_coords = GrowBuffer((self.rank,), np.float64)
         self._links_strength = GrowBuffer((), np.float64)
         self._links_decay = GrowBuffer((), np.float64)
         self._links_of_template: list[list[int]] = []
         self._build_operators()
+        self._buffers: _Buffers | None = None
 
     # ------------------------------------------------------------------ setup
     def _build_operators(self) -> None:
         p = self.params
-        # Excitation then inhibition, each a separable wrapped Gaussian: one circulant matrix per axis.
-        self._excite = [circulant_kernel(d, p.pc_w_e_dim, p.pc_w_e_var) for d in self.shape]
-        self._inhibit = [circulant_kernel(d, p.pc_w_i_dim, p.pc_w_i_var) for d in self.shape]
-        # each kernel's reach: the offsets (mod d) it spreads a cell to — column 0 of the circulant
-        self._excite_reach = [np.flatnonzero(m[:, 0]) for m in self._excite]
-        self._inhibit_reach = [np.flatnonzero(m[:, 0]) for m in self._inhibit]
-        # can a packet block ever be small enough? (even one active cell reaches both kernels' widths)
-        widths = zip(self.shape, self._excite_reach, self._inhibit_reach, strict=True)
-        smallest = math.prod(min(d, e.size + i.size - 1) for d, e, i in widths)
-        self._blocks = SPARSE_FRACTION * smallest <= math.prod(self.shape)
+        # Excitation then inhibition, each a separable wrapped Gaussian: one circulant factor per axis (its taps).
+        self._excite = [_taps(circulant_kernel(d, p.pc_w_e_dim, p.pc_w_e_var)) for d in self.shape]
+        self._inhibit = [_taps(circulant_kernel(d, p.pc_w_i_dim, p.pc_w_i_var)) for d in self.shape]
         th_dim = self.shape[-1]
         angles = np.arange(th_dim, dtype=np.float64) * (2.0 * math.pi / th_dim)
         # exact zeros on the axis-aligned layers, so integer moves stay integer
@@ -107,15 +150,12 @@ class PoseCellNetwork:
         self._window_offsets = [np.arange(-min(radius, (d - 1) // 2), min(radius, (d - 1) // 2) + 1)
                                 for d in self.shape]
         self._marginal_axes = [tuple(a for a in range(self.rank) if a != axis) for axis in range(self.rank)]
-        # Scratch arrays reused every frame: large lattices (the 4-DoF one is 216 kB) would otherwise pay
-        # for fresh pages on every temporary. ``activity`` is always a separate array or one of the pool.
-        heading_first = (th_dim, *self.shape[:-1])
-        self._pool = [np.empty(self.shape, dtype=np.float64) for _ in range(5)]
-        self._pool_th = [np.empty(heading_first, dtype=np.float64) for _ in range(3)]
 
-    def _scratch(self, count: int) -> list[np.ndarray]:
-        """Return ``count`` pool arrays that are not the current activity."""
-        return [buf for buf in self._pool if buf is not self.activity][:count]
+    def _compiled(self) -> _Buffers:
+        """Return the compiled path's buffers (made on first use)."""
+        if self._buffers is None:
+            self._buffers = _Buffers(self.shape, self._excite, self._inhibit, self._layer_cos, self._layer_sin)
+        return self._buffers
 
     # ------------------------------------------------------------- dynamics
     def step_attractor(self) -> None:
@@ -125,129 +165,81 @@ class PoseCellNetwork:
         normalised to total activity 1. Excitation spreads every cell through the
         ``pc_w_e_dim``-cube Gaussian (σ = ``pc_w_e_var``), wrapping across every face;
         inhibition subtracts the ``pc_w_i_dim``-cube spread of the excited activity.
-        Both cubes are separable, so each is applied as one small circulant matrix
-        product per axis (equal to OpenRatSLAM's cell-by-cell spread up to rounding).
+        Both cubes are separable, so each is applied as one wrapped 1-D spread per axis
+        (x, y, [z,] θ in turn; equal to OpenRatSLAM's cell-by-cell spread up to rounding).
+        Like OpenRatSLAM, which visits only active cells, the compiled path computes only
+        the slices the spreads reach from the active ones; every other cell ends at
+        max(0 − φ, 0) = 0, as on the reference path.
+        """
+        if kernels.enabled():
+            self._attractor_compiled()
+            return
+        cells, total = attractor_reference(self.activity, self._excite, self._inhibit, self.params.pc_global_inhib)
+        self.activity = cells
+        if not total > 0.0:
+            self._restart(cells)
 
-        Like OpenRatSLAM, which visits only active cells, the work follows the
-        packet: when the active cells' slices, widened by the two kernels' reach,
-        span at most ``1/SPARSE_FRACTION`` of the lattice, only that block is
-        computed — every cell outside it gets no excitation or inhibition and
-        ends at max(0 − φ, 0) = 0, exactly as in the full computation.
+    def _attractor_compiled(self) -> None:
+        """Run the attractor step on the compiled path (the restart included)."""
+        b = self._compiled()
+        out, _ = kernels.kernel("attractor")(
+            b.pool, b.dirty, b.slot_of(self.activity), b.dims, b.masks, *b.excite, *b.inhibit,
+            self.params.pc_global_inhib, self.best,
+        )  # fmt: skip
+        self.activity = b.views[out]
+
+    def _restart(self, cells: np.ndarray) -> None:
+        """Everything was inhibited (OpenRatSLAM asserts): restart from one cell at the decoded packet centre."""
+        cells[...] = 0.0
+        cells[tuple(int(b) % d for b, d in zip(self.best, self.shape, strict=True))] = 1.0
+
+    def motion(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> Move | None:
+        """Return the path integration of one frame's odometry, or None when nothing moves.
+
+        Heading layer θ_k = k·2π/n_θ moves ``forward/pc_cell_x_size`` cells along (cos θ_k, sin θ_k): ``s`` cells
+        along an axis split between the shifts ⌊s⌋ (weight 1 − frac) and ⌊s⌋ + 1 (weight frac); with
+        part ``translation`` between 0 and ±1 (OpenRatSLAM's four-neighbour weights, 1 − |s| and |s|, whatever
+        |s|). z moves ``dz/pc_cell_z_size`` cells and θ ``dyaw/(2π/n_θ)`` cells, each split between its floor and
+        ceiling shifts.
         """
         p = self.params
-        region = self._active_region()
-        if region is None:
-            w0, w1, w2, w3 = self._scratch(4)
-            excited = _separable(self.activity, self._excite, w0, w1)
-            inhibited = _separable(excited, self._inhibit, w2, w3)
-            cells = np.subtract(excited, inhibited, out=excited)
-            total = _inhibit_globally_and_normalise(cells, p.pc_global_inhib)
-        else:
-            source, spread, reach = region
-            block = self.activity[np.ix_(*source)]
-            excite = [m[np.ix_(o, i)] for m, o, i in zip(self._excite, spread, source, strict=True)]
-            excited = _apply_axes(block, excite)  # on the spread slices
-            inhibit = [m[np.ix_(o, i)] for m, o, i in zip(self._inhibit, reach, spread, strict=True)]
-            local = np.negative(_apply_axes(excited, inhibit))  # on the reach slices (⊇ spread)
-            inside = [np.searchsorted(r, s) for r, s in zip(reach, spread, strict=True)]
-            local[np.ix_(*inside)] += excited
-            total = _inhibit_globally_and_normalise(local, p.pc_global_inhib)
-            cells = self._scratch(1)[0]
-            cells.fill(0.0)
-            cells[np.ix_(*reach)] = local
-        if not total > 0.0:  # everything inhibited (OpenRatSLAM asserts): restart from the decoded packet centre
-            cells[...] = 0.0
-            cells[tuple(int(b) % d for b, d in zip(self.best, self.shape, strict=True))] = 1.0
-        self.activity = cells
-
-    def _active_region(self) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] | None:
-        """Return per-axis sorted cell indices (active, after excitation, after inhibition), or None.
-
-        ``active``: the slices holding activity; ``spread``: those the excitation
-        kernel reaches from them; ``reach``: those the inhibition kernel reaches from
-        ``spread`` (always ⊇ ``spread``). None when the block is too large to pay off
-        (more than 1/``SPARSE_FRACTION`` of the cells) or nothing is active.
-        """
-        if not self._blocks:
+        v = forward_m / p.pc_cell_x_size
+        moved_z = self.rank == 4 and dz_m != 0.0
+        if v == 0.0 and dyaw_rad == 0.0 and not moved_z:
             return None
-        active = _occupied(self.activity, range(self.rank))
-        if active[0].size == 0:
-            return None
-        spread = [_reach(a, off, d) for a, off, d in zip(active, self._excite_reach, self.shape, strict=True)]
-        reach = [
-            np.union1d(_reach(s, off, d), s) for s, off, d in zip(spread, self._inhibit_reach, self.shape, strict=True)
-        ]
-        if SPARSE_FRACTION * math.prod(r.size for r in reach) > self.activity.size:
-            return None
-        return active, spread, reach
+        one_cell = p.follows_openratslam(Departure.TRANSLATION)
+        corners = _NO_CORNERS
+        if one_cell and v != 0.0 and self.rank == 3:
+            corners = _openratslam_corners(self.shape[0], self.shape[-1], v)
+        z = _axis_shift(dz_m / p.pc_cell_z_size) if moved_z else _NO_SHIFT
+        th = _axis_shift(dyaw_rad / (2.0 * math.pi / self.shape[-1])) if dyaw_rad != 0.0 else _NO_SHIFT
+        return Move(v, one_cell, corners, z, th)
 
     def path_integrate(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> None:
-        """Shift the packet by odometry (OpenRatSLAM ``path_integration``).
+        """Shift the packet by odometry (OpenRatSLAM ``path_integration``; PoseidonSLAM Eq. 4.17).
 
         Each heading layer θ_k = k·2π/n_θ is translated by ``forward/pc_cell_x_size``
         cells along (cos θ_k, sin θ_k) with bilinear weights: x then y, each split
-        between the two nearest integer shifts. For moves under one cell these are
-        OpenRatSLAM's four-neighbour weights (sw, se, nw, ne); larger moves, which
+        between the two nearest integer shifts (:meth:`motion`). For moves under one cell
+        these are OpenRatSLAM's four-neighbour weights (sw, se, nw, ne); larger moves, which
         OpenRatSLAM does not support (its weights turn negative), stay exact here.
         A negative forward motion moves against the layer heading (OpenRatSLAM adds π).
         Then z is shifted by ``dz/pc_cell_z_size`` cells and θ by ``dyaw/(2π/n_θ)``
         cells, each with linear weights between the floor and ceiling shifts (as
         OpenRatSLAM's θ shift). Every shift wraps across the lattice faces.
         """
-        p = self.params
-        v = forward_m / p.pc_cell_x_size
-        moved_z = self.rank == 4 and dz_m != 0.0
-        if v == 0.0 and dyaw_rad == 0.0 and not moved_z:
+        move = self.motion(forward_m, dyaw_rad, dz_m)
+        if move is None:
             return
-        th_dim = self.shape[-1]
-        # Work heading-first, (θ, x, y, [z]): per-layer shifts become batched matrix products.
-        a, b, c = self._pool_th
-        np.copyto(a, np.moveaxis(self.activity, -1, 0))
-        if v != 0.0:
-            dim_x, dim_y = self.shape[0], self.shape[1]
-            # Only heading layers holding activity move anything (a packet spans a few of them): the
-            # others stay zero, and each layer's product is computed exactly as in a full batch.
-            layers = np.flatnonzero(a.reshape(th_dim, -1).any(axis=1))
-            one_cell = p.follows_openratslam(Departure.TRANSLATION)
-            before = a[layers].copy() if one_cell else None
-            shift_x = _shift_matrices(v * self._layer_cos[layers], dim_x, one_cell)  # (L, X, X)
-            shift_y = _shift_matrices(v * self._layer_sin[layers], dim_y, one_cell)  # (L, Y, Y)
-            moving = a[layers]
-            compact = self._blocks
-            if compact:
-                rows, cols = _occupied(moving, (1, 2))
-                compact = SPARSE_FRACTION * rows.size * cols.size <= dim_x * dim_y
-            if compact:
-                # a compact packet: move only its rows and columns, to the rows and columns they reach
-                shift_x = shift_x[:, :, rows]
-                shift_y = shift_y[:, :, cols]
-                to_rows = np.flatnonzero(shift_x.any(axis=(0, 2)))
-                to_cols = np.flatnonzero(shift_y.any(axis=(0, 2)))
-                shift_x = shift_x[:, to_rows]
-                shift_y = shift_y[:, to_cols]
-                moving = moving[:, rows][:, :, cols]
-                a[layers] = 0.0
-                target = np.ix_(layers, to_rows, to_cols)
-            else:
-                target = (layers,)
-            count, span_x, span_y = moving.shape[:3]
-            if self.rank == 3:
-                moved = np.matmul(np.matmul(shift_x, moving), shift_y.transpose(0, 2, 1))
-            else:
-                moved = np.matmul(shift_x, moving.reshape(count, span_x, -1)).reshape(
-                    count, shift_x.shape[1], span_y, -1
-                )
-                moved = np.matmul(shift_y[:, None], moved)
-            a[target] = moved
-            if before is not None:
-                _openratslam_corner_loss(a, before, layers, v)
-        if moved_z:
-            a, b = _shift_axis(a, dz_m / p.pc_cell_z_size, 3, b, c), a
-        if dyaw_rad != 0.0:
-            a, b = _shift_axis(a, dyaw_rad / (2.0 * math.pi / th_dim), 0, b, c), a
-        out = self._scratch(1)[0]
-        np.copyto(out, np.moveaxis(a, 0, -1))
-        self.activity = out
+        if not kernels.enabled():
+            self.activity = path_reference(self.activity, move, self._layer_cos, self._layer_sin)
+            return
+        b = self._compiled()
+        out = kernels.kernel("path_integrate")(
+            b.pool, b.dirty, b.slot_of(self.activity), b.dims, b.masks, b.rows, False, move.v, b.cos, b.sin,
+            move.one_cell, move.corners, move.z, move.th,
+        )  # fmt: skip
+        self.activity = b.views[out]
 
     def decode(self) -> np.ndarray:
         """Return the packet centre by population vector around the peak (OpenRatSLAM ``find_best``).
@@ -257,11 +249,30 @@ class PoseCellNetwork:
         short for it, so no cell counts twice) is summed per axis and each axis
         decoded as the circular mean ``atan2(Σ s·sin, Σ s·cos)·n/(2π)`` in [0, n).
         """
+        if kernels.enabled():
+            b = self._compiled()
+            cells = b.rows_view(self.activity)
+            kernels.kernel("_occupancy")(cells, b.dims, b.masks[0], np.zeros(cells.shape[0], dtype=np.bool_))
+            return self._decode_at(b.peak(cells, self.params.follows_openratslam(Departure.DECODE)))
+        return self._decode_at(self._peak_reference())
+
+    def _peak_reference(self) -> list[int]:
+        """Return the first maximum's cell: θ outermost, then (z,) y, x; OpenRatSLAM's (``decode``): θ, x, y, (z)."""
         if self.params.follows_openratslam(Departure.DECODE):
-            return self._decode_openratslam()
+            scan = (self.rank - 1, *range(self.rank - 1))
+        else:
+            scan = tuple(range(self.rank))[::-1]
+        flat = int(np.argmax(self.activity.transpose(scan)))
+        peak = [0] * self.rank
+        for axis, index in zip(scan, np.unravel_index(flat, [self.shape[a] for a in scan]), strict=True):
+            peak[axis] = int(index)
+        return peak
+
+    def _decode_at(self, peak: list[int]) -> np.ndarray:
+        """Decode the packet centre around ``peak`` (see :meth:`decode`)."""
+        if self.params.follows_openratslam(Departure.DECODE):
+            return self._decode_openratslam(peak)
         cells = self.activity
-        flat = int(np.argmax(cells.T))  # reversed axes: (θ, [z,] y, x) scan order
-        peak = np.unravel_index(flat, self.shape[::-1])[::-1]
         windows = [(int(c) + off) % d for c, off, d in zip(peak, self._window_offsets, self.shape, strict=True)]
         box = cells[np.ix_(*windows)]
         best = np.empty(self.rank, dtype=np.float64)
@@ -279,8 +290,8 @@ class PoseCellNetwork:
         self.best = best
         return best
 
-    def _decode_openratslam(self) -> np.ndarray:
-        """``find_best`` as OpenRatSLAM's code computes it, to the last bit where it can (``openratslam_compat``).
+    def _decode_openratslam(self, peak: list[int]) -> np.ndarray:
+        """``find_best`` as OpenRatSLAM's code computes it, to the last bit where it can (part ``decode``).
 
         OpenRatSLAM's lattice is ours transposed in x and y (its heading-0 layer moves along its second
         axis), so its scan order is (θ, x, y) in ours. Its per-axis sums add cells in its loop order,
@@ -290,10 +301,6 @@ class PoseCellNetwork:
         """
         cells = self.activity
         scan = (self.rank - 1, *range(self.rank - 1))
-        flat = int(np.argmax(cells.transpose(scan)))
-        peak = [0] * self.rank
-        for axis, index in zip(scan, np.unravel_index(flat, [self.shape[a] for a in scan]), strict=True):
-            peak[axis] = int(index)
         windows = [(c + off) % d for c, off, d in zip(peak, self._window_offsets, self.shape, strict=True)]
         box = cells[np.ix_(*windows)]
         best = np.empty(self.rank, dtype=np.float64)
@@ -316,10 +323,28 @@ class PoseCellNetwork:
         return best
 
     def on_odo(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> np.ndarray:
-        """Run one OpenRatSLAM ``on_odo`` update and return the decoded packet centre."""
-        self.step_attractor()
-        self.path_integrate(forward_m, dyaw_rad, dz_m)
-        return self.decode()
+        """Run one OpenRatSLAM ``on_odo`` update and return the decoded packet centre.
+
+        The attractor step, path integration (:meth:`motion`) and the peak search run in one call on the
+        compiled path once its kernels are loaded (this network loads them when its updates reach
+        ``COMPILED_AFTER`` cell updates).
+        """
+        self.updates += 1
+        if not kernels.enabled() and worth_compiling(self.shape, self.updates):
+            kernels.load_compiled()
+        if not kernels.enabled():
+            self.step_attractor()
+            self.path_integrate(forward_m, dyaw_rad, dz_m)
+            return self.decode()
+        b = self._compiled()
+        move = self.motion(forward_m, dyaw_rad, dz_m) or _STILL
+        slot, peak = kernels.kernel("on_odo")(
+            b.pool, b.dirty, b.slot_of(self.activity), b.dims, b.masks, b.rows, *b.excite, *b.inhibit,
+            self.params.pc_global_inhib, self.best, move.v, b.cos, b.sin, move.one_cell, move.corners, move.z,
+            move.th, self.params.follows_openratslam(Departure.DECODE),
+        )  # fmt: skip
+        self.activity = b.views[slot]
+        return self._decode_at(b.lattice_peak(peak))
 
     def inject(self, coords: np.ndarray, energy: float) -> None:
         """Add ``energy`` to the cell at ``coords`` truncated to integers (OpenRatSLAM ``inject``)."""
@@ -400,6 +425,8 @@ class PoseCellNetwork:
         """
         best = self.best.copy()
         best[-1] = (best[-1] - self.vt_delta_th) % self.shape[-1]
+        if np.ndim(coords) == 1:  # one cell (every frame): the same operations on Python floats
+            return np.float64(_wrapped_norm(best.tolist(), np.asarray(coords, dtype=np.float64).tolist(), self.shape))
         return wrapped_distance(best, coords, self.dims)
 
     # ------------------------------------------------------------- snapshot
@@ -445,74 +472,181 @@ class PoseCellNetwork:
         return net
 
 
-def _inhibit_globally_and_normalise(cells: np.ndarray, inhibition: float) -> float:
-    """Subtract global inhibition φ, clip at 0 and scale to total 1, in place (Eq. 3); return the pre-scale total."""
-    cells -= inhibition
-    np.maximum(cells, 0.0, out=cells)
-    total = float(cells.sum())
+
+
+class _Buffers:
+    """The compiled path's memory: three lattice-sized slots (rows × n_θ), slice masks, the taps as arrays.
+
+    The activity is one of the slots after every compiled step; each step writes others (see
+    :func:`core._posecell_kernel.attractor`), so a slot that is not the current activity holds nothing of use.
+    """
+
+    SLOTS = 3
+
+    def __init__(
+        self, shape: tuple[int, ...], excite: list[Taps], inhibit: list[Taps], cos: np.ndarray, sin: np.ndarray
+    ) -> None:
+        self.shape = shape
+        self.cos, self.sin = np.ascontiguousarray(cos), np.ascontiguousarray(sin)
+        th_dim = shape[-1]
+        dims = (shape[0], shape[1], shape[2] if len(shape) == 4 else 1)
+        self.dims = np.asarray(dims, dtype=np.int64)
+        self.pool = np.zeros((self.SLOTS, math.prod(dims), th_dim), dtype=np.float64)
+        self.dirty = np.zeros((self.SLOTS, math.prod(dims)), dtype=np.bool_)
+        """Per slot, the rows that may hold a non-zero (every other row is 0)."""
+        self.views = [slot.reshape(shape) for slot in self.pool]
+        self.masks = np.zeros((4, 4, max(*dims, th_dim)), dtype=np.bool_)
+        self.rows = np.zeros(math.prod(dims), dtype=np.int64)
+        self.excite = _tap_arrays(excite, shape)
+        self.inhibit = _tap_arrays(inhibit, shape)
+
+    def slot_of(self, activity: np.ndarray) -> int:
+        """Return the slot holding ``activity``, copying it into slot 0 when it is held elsewhere.
+
+        An activity held elsewhere was set from outside (a restore, a test), which may have written into the
+        slots too: every row of every slot is then taken as possibly non-zero.
+        """
+        for slot, view in enumerate(self.views):
+            if activity is view:
+                return slot
+        np.copyto(self.views[0], activity)
+        self.dirty[...] = True
+        return 0
+
+    def rows_view(self, activity: np.ndarray) -> np.ndarray:
+        """Return ``activity`` as the kernels' (rows, n_θ) array (a view when it is C-contiguous)."""
+        return np.ascontiguousarray(activity, dtype=np.float64).reshape(self.pool.shape[1:])
+
+    def peak(self, cells: np.ndarray, openratslam_order: bool) -> list[int]:
+        """Return the first maximum's cell of ``cells`` (its slices in masks[0]) in the lattice's axes."""
+        return self.lattice_peak(kernels.kernel("peak")(cells, self.dims, self.masks[0], openratslam_order))
+
+    def lattice_peak(self, peak: np.ndarray) -> list[int]:
+        """Return a kernel's (x, y, z, θ) cell in the lattice's axes (no z on the 3-DoF lattice)."""
+        x, y, z, t = peak.tolist()
+        return [x, y, z, t] if len(self.shape) == 4 else [x, y, t]
+
+
+def _taps(matrix: np.ndarray) -> Taps:
+    """Return the taps of a circulant matrix ``C[i, j] = k[(i − j) mod d]``: the offsets o with k[o] ≠ 0, and k[o]."""
+    column = matrix[:, 0]
+    offsets = np.flatnonzero(column)
+    return offsets, column[offsets]
+
+
+def _tap_arrays(taps: list[Taps], shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return one kernel's taps as the compiled path takes them: (signed offsets, weights, counts).
+
+    Offsets and weights are (4, K) with rows x, y, z, θ (a 3-DoF lattice has no z taps), in the taps' order;
+    each offset o_k (mod n) is written in (−n/2, n/2]. counts (4,) says how many of a row are taps.
+    """
+    dims = [shape[0], shape[1], shape[2] if len(shape) == 4 else 1, shape[-1]]
+    axes = [taps[0], taps[1], taps[2] if len(taps) == 4 else (np.zeros(0, np.int64), np.zeros(0)), taps[-1]]
+    width = max(offsets.size for offsets, _ in axes)
+    signed = np.zeros((4, width), dtype=np.int64)
+    weights = np.zeros((4, width), dtype=np.float64)
+    for row, ((o, w), dim) in enumerate(zip(axes, dims, strict=True)):
+        o = o.astype(np.int64)
+        signed[row, : o.size] = np.where(o > dim // 2, o - dim, o)
+        weights[row, : w.size] = w
+    counts = np.asarray([o.size for o, _ in axes], dtype=np.int64)
+    return signed, weights, counts
+
+
+def spread_reference(cells: np.ndarray, taps: list[Taps]) -> np.ndarray:
+    """Apply a separable wrapped kernel: along each axis in turn, ``Σ_k w_k·roll(cells, o_k)`` in tap order."""
+    for axis, (offsets, weights) in enumerate(taps):
+        acc = np.zeros_like(cells)
+        for o, w in zip(offsets.tolist(), weights.tolist(), strict=True):
+            acc += w * np.roll(cells, o, axis=axis)
+        cells = acc
+    return cells
+
+
+def attractor_reference(
+    cells: np.ndarray, excite: list[Taps], inhibit: list[Taps], inhibition: float
+) -> tuple[np.ndarray, float]:
+    """Return the attractor step of ``cells`` and its pre-scale total (Menezes et al. Eq. 3; the reference path).
+
+    ``max(E − I − φ, 0)`` with E the excitatory spread and I the inhibitory spread of E, scaled to sum 1 when
+    the total is positive. The total adds the cells in C order, one after another (the compiled path's order).
+    """
+    excited = spread_reference(np.asarray(cells, dtype=np.float64), excite)
+    out = excited - spread_reference(excited, inhibit)
+    out -= inhibition
+    np.maximum(out, 0.0, out=out)
+    total = float(np.add.accumulate(out.ravel())[-1])
     if total > 0.0:
-        cells /= total
-    return total
+        out /= total
+    return out, total
 
 
-def _occupied(cells: np.ndarray, axes: Iterable[int]) -> list[np.ndarray]:
-    """Return, for each axis in ``axes``, the sorted indices of the slices of ``cells`` holding a non-zero."""
-    nonzero = cells != 0.0
-    return [np.flatnonzero(nonzero.any(axis=tuple(i for i in range(cells.ndim) if i != a))) for a in axes]
+def path_reference(activity: np.ndarray, move: Move, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+    """Return ``activity`` moved by one frame's path integration (the reference path; see :class:`Move`)."""
+    cells = np.moveaxis(np.asarray(activity, dtype=np.float64), -1, 0).copy()  # heading first: (θ, x, y, [z])
+    th_dim = cells.shape[0]
+    if move.v != 0.0:
+        layers = np.flatnonzero(cells.reshape(th_dim, -1).any(axis=1))
+        before = cells[layers]
+        cells[layers] = _translate_layers(before, layer_moves(move.v, cos, sin, move.one_cell)[layers])
+        if move.corners.shape[0]:
+            _lose_corners(cells, before, layers, move.corners)
+    if move.z[0] != 0.0:
+        cells = _shift_axis(cells, int(move.z[1]), float(move.z[2]), float(move.z[3]), 3)
+    if move.th[0] != 0.0:
+        cells = _shift_axis(cells, int(move.th[1]), float(move.th[2]), float(move.th[3]), 0)
+    return np.ascontiguousarray(np.moveaxis(cells, 0, -1))
 
 
-def _reach(indices: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndarray:
-    """Return the sorted distinct ``(i + o) mod dim`` for i in ``indices`` and o in ``offsets``."""
-    return np.unique((indices[:, None] + offsets[None, :]) % dim)
+def _lose_corners(cells: np.ndarray, before: np.ndarray, layers: np.ndarray, corners: np.ndarray) -> None:
+    """Subtract OpenRatSLAM's translation loss of each moved layer (:func:`_openratslam_corners`), heading first."""
+    for plane, k in zip(before, layers.tolist(), strict=True):
+        a, w_a, b, w_b, to = corners[k]
+        lost = plane.flat[int(a)] * w_a + plane.flat[int(b)] * w_b
+        if lost != 0.0:
+            cells[k].flat[int(to)] -= lost
 
 
-def _apply_axes(block: np.ndarray, matrices: list[np.ndarray]) -> np.ndarray:
-    """Apply ``matrices[a]`` (out_a × in_a) along every axis a of ``block`` in turn; return the new block."""
-    out = block
-    for axis, matrix in enumerate(matrices):
-        out = np.moveaxis(np.tensordot(matrix, out, axes=([1], [axis])), 0, axis)
+def layer_moves(v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool) -> np.ndarray:
+    """Return (n_θ, 6) per heading layer: (whole_x, keep_x, frac_x, whole_y, keep_y, frac_y) of a move by ``v`` cells.
+
+    Layer t moves ``v·cos_t`` cells along x and ``v·sin_t`` along y (:func:`_shift_weights`; keep = 1 − frac).
+    """
+    whole_x, frac_x = _shift_weights(v * cos, one_cell)
+    whole_y, frac_y = _shift_weights(v * sin, one_cell)
+    return np.stack([whole_x, 1.0 - frac_x, frac_x, whole_y, 1.0 - frac_y, frac_y], axis=1)
+
+
+def _translate_layers(layers: np.ndarray, moves: np.ndarray) -> np.ndarray:
+    """Move each (x, y, [z]) plane of ``layers`` x then y: ``keep·P[i − whole] + frac·P[i − whole − 1]`` per axis."""
+    out = layers
+    for axis, (whole, keep, frac) in ((1, moves[:, 0:3].T), (2, moves[:, 3:6].T)):
+        dim = out.shape[axis]
+        near = (np.arange(dim)[None, :] - whole.astype(np.int64)[:, None]) % dim
+        shape = [near.shape[0], 1, 1] + [1] * (out.ndim - 3)
+        shape[axis] = dim
+        first = np.take_along_axis(out, near.reshape(shape), axis=axis)
+        second = np.take_along_axis(out, ((near - 1) % dim).reshape(shape), axis=axis)
+        weight = (slice(None),) + (None,) * (out.ndim - 1)
+        out = keep[weight] * first + frac[weight] * second
     return out
 
 
-def _separable(cells: np.ndarray, matrices: list[np.ndarray], even: np.ndarray, odd: np.ndarray) -> np.ndarray:
-    """Apply one (d, d) matrix along every axis of ``cells`` in turn (a separable wrapped convolution).
+def _shift_weights(shifts: np.ndarray, one_cell: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Return (whole, frac) of moves of ``shifts`` cells: cell i goes to ``i + whole`` (1 − frac) and ``i + whole + 1``.
 
-    The passes write alternately into ``even`` and ``odd`` (same shape as ``cells``);
-    the one holding the result is returned.
+    ``whole = ⌊s⌋``; with ``one_cell`` (OpenRatSLAM's four-neighbour weights, the same for |s| ≤ 1) ``whole`` is
+    0 or −1 whatever the size of ``s``, so cell i keeps ``1 − |s|`` and sends ``|s|`` one cell.
     """
-    shape = cells.shape
-    last = len(shape) - 1
-    src = cells
-    for axis, matrix in enumerate(matrices):
-        dst = even if axis % 2 == 0 else odd
-        if axis == last:
-            np.matmul(src.reshape(-1, shape[axis]), matrix.T, out=dst.reshape(-1, shape[axis]))
-        else:
-            lead = math.prod(shape[:axis])
-            np.matmul(matrix, src.reshape(lead, shape[axis], -1), out=dst.reshape(lead, shape[axis], -1))
-        src = dst
-    return src
-
-
-def _shift_matrices(shifts: np.ndarray, dim: int, one_cell: bool = False) -> np.ndarray:
-    """Return (n, dim, dim) matrices moving a wrapped axis by ``shifts[k]`` cells with linear weights.
-
-    Matrix k sends cell i to ``i + ⌊s_k⌋`` with weight ``1 − frac(s_k)`` and to
-    ``i + ⌊s_k⌋ + 1`` with weight ``frac(s_k)``, modulo ``dim``. With ``one_cell``
-    (OpenRatSLAM's four-neighbour weights, the same for |s| ≤ 1) cell i keeps
-    ``1 − |s_k|`` and sends ``|s_k|`` to ``i ± 1``, whatever the size of ``s_k``.
-    """
-    n = shifts.shape[0]
     whole = np.where(shifts >= 0.0, 0.0, -1.0) if one_cell else np.floor(shifts)
-    frac = shifts - whole
-    columns = np.arange(dim)
-    base = (np.arange(n) * (dim * dim))[:, None] + columns[None, :]
-    rows0 = (columns[None, :] + whole.astype(np.int64)[:, None]) % dim
-    rows1 = (rows0 + 1) % dim
-    matrices = np.zeros(n * dim * dim, dtype=np.float64)
-    matrices[base + rows0 * dim] = (1.0 - frac)[:, None]
-    matrices[base + rows1 * dim] = frac[:, None]
-    return matrices.reshape(n, dim, dim)
+    return whole, shifts - whole
+
+
+def _axis_shift(shift: float) -> np.ndarray:
+    """Return (1, whole, keep, frac) of a shift along z or θ by ``shift`` cells: floor and ceiling, linear weights."""
+    whole = math.floor(shift)
+    frac = shift - whole
+    return np.asarray([1.0, whole, 1.0 - frac, frac])
 
 
 @functools.lru_cache(maxsize=64)
@@ -538,58 +672,56 @@ def _openratslam_rot90(dim: int, rot: int) -> np.ndarray:
     return np.asarray(grid, dtype=np.int64)
 
 
-def _openratslam_corner_loss(cells: np.ndarray, before: np.ndarray, layers: np.ndarray, v: float) -> None:
-    """Remove what OpenRatSLAM's translation loses at each layer's rotated corner (``openratslam_compat``).
+
+
+def _wrapped_norm(a: list[float], b: list[float], dims: tuple[int, ...]) -> float:
+    """Return :func:`core.lattice.wrapped_distance` of two cells to the last bit (its operations, in its order).
+
+    Per axis ``d = |a − b| mod n`` (exact, as numpy's mod of a non-negative number), ``min(d, n − d)``; the
+    squares summed from the first axis on, as numpy sums a short axis; then the square root.
+    """
+    total = 0.0
+    for x, y, dim in zip(a, b, dims, strict=True):
+        d = math.fmod(abs(x - y), dim)
+        d = min(d, dim - d)
+        total += d * d
+    return math.sqrt(total)
+
+
+def _openratslam_corners(dim: int, th_dim: int, v: float) -> np.ndarray:
+    """Return per heading layer what OpenRatSLAM's translation loses at its rotated corner (part ``translation``).
 
     OpenRatSLAM rotates layer k by ⌊2·dir/π⌋ quarter turns (dir = k·2π/n_θ, + π when moving backwards),
     moves it by at most one cell towards +i and +j on a plane padded by one cell, then wraps the padding
     back — but its two wrap-back loops start at index 1, so what leaves rotated cell (0, n−1) along +i
     (weight ``v·sin·(1 − v·cos)``) and rotated cell (n−1, 0) along +j (weight ``v·cos·(1 − v·sin)``) never
-    reaches rotated cell (0, 0). ``cells`` is heading-first (θ, x, y), our x being its j; ``before`` holds
-    the moved layers before the move.
+    reaches rotated cell (0, 0). Row k = (cell a, its weight, cell b, its weight, cell losing it): flat indices
+    into layer k's (x, y) plane before the move (a, b) and after it (the loser); our x is its j.
     """
-    dim = cells.shape[1]
-    th_dim = cells.shape[0]
     speed = abs(v)
     extra = math.pi if v < 0 else 0.0
-    for plane, k in zip(before, layers.tolist(), strict=True):
+    corners = np.zeros((th_dim, 5))
+    for k in range(th_dim):
         direction = k * (2.0 * math.pi / th_dim) + extra
         quarter = math.floor(direction * 2 / math.pi)
         dir90 = direction - quarter * math.pi / 2
         along_i = speed * math.sin(dir90) * (1.0 - speed * math.cos(dir90))
         along_j = speed * math.cos(dir90) * (1.0 - speed * math.sin(dir90))
         where = _openratslam_rot90(dim, int(quarter) % 4)
-        lost = plane.flat[where[0, dim - 1]] * along_i + plane.flat[where[dim - 1, 0]] * along_j
-        if lost != 0.0:
-            cells[k].flat[where[0, 0]] -= lost
+        corners[k] = (where[0, dim - 1], along_i, where[dim - 1, 0], along_j, where[0, 0])
+    return corners
 
 
-def _roll_into(src: np.ndarray, shift: int, axis: int, out: np.ndarray) -> np.ndarray:
-    """Write ``np.roll(src, shift, axis)`` into ``out`` without a temporary."""
-    n = src.shape[axis]
-    k = shift % n
-    lead = (slice(None),) * axis
-    if k == 0:
-        np.copyto(out, src)
-    else:
-        out[(*lead, slice(k, None))] = src[(*lead, slice(0, n - k))]
-        out[(*lead, slice(0, k))] = src[(*lead, slice(n - k, None))]
-    return out
+def _shift_axis(cells: np.ndarray, whole: int, keep: float, frac: float, axis: int) -> np.ndarray:
+    """Return ``cells`` shifted along ``axis`` (wrapping): ``P[k − whole]·keep + P[k − whole − 1]·frac``.
 
-
-def _shift_axis(cells: np.ndarray, shift: float, axis: int, out: np.ndarray, spare: np.ndarray) -> np.ndarray:
-    """Shift ``cells`` along ``axis`` by a fractional number of cells, wrapping, with linear weights.
-
-    The result is written into ``out`` (``spare`` is scratch); both differ from ``cells``.
-    OpenRatSLAM's θ shift: ``(1 − w)·P[k − ⌊s⌋] + w·P[k − ⌊s⌋ − 1]`` with w = frac(s).
+    OpenRatSLAM's θ shift with ``whole = ⌊s⌋``, ``frac = s − ⌊s⌋``, ``keep = 1 − frac``.
     """
-    whole = math.floor(shift)
-    frac = shift - whole
-    _roll_into(cells, whole, axis, out)
+    out = np.roll(cells, whole, axis=axis)
     if frac == 0.0:
         return out
-    _roll_into(cells, whole + 1, axis, spare)
-    out *= 1.0 - frac
+    spare = np.roll(cells, whole + 1, axis=axis)
+    out *= keep
     spare *= frac
     out += spare
     return out

@@ -3,6 +3,10 @@
 :func:`run_engine` feeds a log's frames to an engine (the per-frame hook is where the pipeline books a
 live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.pipeline`
 re-exports both.
+
+Importing this module loads the log reader but not the engine (scipy and the rest load on first use):
+:func:`process_log` opens the log and starts reading ahead first, so the reader's child process reads while
+the engine's libraries load.
 """
 
 from __future__ import annotations
@@ -11,21 +15,22 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from threadpoolctl import threadpool_limits
 
-from core import ConfigError, Engine, ImageError, Params, StepResult
-from core.engine import view_cells_class
-from core.localview import load_compiled
+from core.config import ConfigError, Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
-from mapserver.ingest import MissionLog, open_log
+from mapserver.ingest import Frame, MissionLog, open_log
 from mapserver.ingest.frames import IngestReport
 from mapserver.reckoning import DeadReckoning
+
+if TYPE_CHECKING:
+    from core.engine import Engine, StepResult
 
 logger = logging.getLogger(__name__)
 
@@ -72,17 +77,35 @@ class ProcessResult:
         }
 
 
-def load_frontend(params: Params) -> None:
-    """Load what ``params``' view module runs on before a run's clock starts (torch; the matcher's kernel).
+def view_cells_class(params: Params) -> type:
+    """Return the view module of ``params``, loading its libraries (:func:`core.engine.view_cells_class`)."""
+    from core.engine import view_cells_class as view_module
 
-    ``sdr-htm`` runs on torch, ``lvc`` on the template matcher's compiled kernel. The other libraries load when
-    the program starts; these load on first use: torch ~2 s here, which counted in ``seconds`` made a 306-frame
-    ``cave3d`` session of ``process --db`` read 70 frames/s (97–109 with the libraries loaded first), and numba
-    with the matcher's cached machine code ~0.45 s (a 266-frame ``twin-overlap`` session: ~15 % of its seconds).
+    return view_module(params)
+
+
+def load_frontend(params: Params, frames: int | None = None) -> None:
+    """Load what a run of ``frames`` frames will use before its clock starts (torch; the compiled kernels).
+
+    ``sdr-htm`` runs on torch, ``lvc`` on the template matcher's compiled kernel; the pose cells on theirs
+    (``core.posecells.COMPILED_AFTER``). The other libraries load when the program starts; these load on first use:
+    torch ~2 s here, which counted in ``seconds`` made a 306-frame ``cave3d`` session of ``process --db`` read 70
+    frames/s (97–109 with the libraries loaded first), and numba with the kernels' cached machine code ~0.45 s
+    (a 266-frame ``twin-overlap`` session: ~15 % of its seconds). A log of ``frames`` frames (None: unknown) too
+    short to repay numba's import (:func:`core.posecells.worth_compiling`: one frame, a start-up of well under a
+    second) loads no kernel; if its matcher meets a large comparison it loads the kernel then (the answers are the
+    same).
     """
+    from core._posecell_kernel import load_compiled as load_posecell_kernels
+    from core.localview import load_compiled
+    from core.posecells import worth_compiling
+
     view_cells_class(params)
+    if frames is not None and not worth_compiling(params.lattice_shape, frames):
+        return
     if params.frontend == "lvc":
         load_compiled()
+    load_posecell_kernels()
 
 
 @dataclass
@@ -95,7 +118,7 @@ class EngineRun:
     info: dict[str, Any]
 
 
-StepHook = Callable[[Any, StepResult], "Engine | None"]
+StepHook = Callable[[Any, "StepResult"], "Engine | None"]
 """``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
 
 
@@ -109,6 +132,7 @@ def run_engine(
     progress: ProgressCallback | None = None,
     on_step: StepHook | None = None,
     overrun: Callable[[], bool] | None = None,
+    frames: Iterable[Frame] | None = None,
 ) -> EngineRun:
     """Feed frames ``[start, stop)`` of a log through ``engine`` and return the run.
 
@@ -120,19 +144,24 @@ def run_engine(
     most once, whoever asks first). ``on_step(frame, result)`` is called after every frame (the
     merger and the evidence collector hook in here); when it returns an engine, the next frames go
     to that one (an online merge replaced the map the session maps in).
+
+    The frames are read and decoded ahead by a worker (:class:`~mapserver.ingest.reader.ReadAhead`) while the
+    engine steps, in the same order; ``frames``, when given, are the log's frames from ``start`` on, already
+    being read by the caller (who started its reader earlier to overlap more).
     """
+    from core.localview import ImageError
+
     # The engine's matrices are small: multi-threaded BLAS only adds contention (2-5x slower on a busy machine).
     with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
         opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
-        if opened.mapping.sonar is not None and engine.params.frontend != "sdr-htm":
-            msg = (f"{opened.path}: a sonar topic ({opened.mapping.sonar}) is a modality of the sdr-htm front-end "
-                   f"only: use the preset poseidon or neoslam, or leave sonar= out of the topics")
-            raise InputError(msg)
+        _check_modalities(opened, engine.params)
         total = opened.count_frames()
         end = total if stop is None else min(stop, total)
+        if frames is None:
+            frames = stack.enter_context(opened.frames_ahead(start, total if overrun is not None else end))
         reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
         count = 0
-        for frame in opened.frames(start, total if overrun is not None else end):
+        for frame in frames:
             if start + count >= end and (overrun is None or not overrun()):
                 break
             stamp = frame.stamp_ns * 1e-9
@@ -149,9 +178,28 @@ def run_engine(
             count += 1
             if progress is not None:
                 progress(count, max(end - start, count))
+        report = getattr(frames, "report", None)  # a reader ahead counted in its own copy of the log
         info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total,
-                "dropped": opened.report}  # fmt: skip
+                "dropped": opened.report if report is None else report}  # fmt: skip
     return EngineRun(engine, count, reckoning, info)
+
+
+def _check_modalities(opened: MissionLog, params: Params) -> None:
+    """Raise InputError when the log maps a sonar topic and the front-end has no sonar modality."""
+    if opened.mapping.sonar is not None and params.frontend != "sdr-htm":
+        msg = (f"{opened.path}: a sonar topic ({opened.mapping.sonar}) is a modality of the sdr-htm front-end "
+               f"only: use the preset poseidon or neoslam, or leave sonar= out of the topics")
+        raise InputError(msg)
+
+
+def _new_engine(params: Params) -> Engine:
+    """Return a new session's engine (origin 0); an invalid front-end setting is an InputError."""
+    from core.engine import Engine
+
+    try:
+        return Engine(params, origin=0)
+    except ConfigError as err:
+        raise InputError(str(err)) from err
 
 
 def process_log(
@@ -164,24 +212,29 @@ def process_log(
 ) -> ProcessResult:
     """Run the engine over one log without a database; optionally write the map JSON to ``out``.
 
+    The log's frames are read ahead from the moment it is open, while the engine's libraries and the kernels
+    load (:func:`load_frontend`); the lvc engine is made then (it raises nothing), sdr-htm's before the log opens.
+
     Raises:
         InputError: the log cannot be read (``IngestError``) or the parameters are invalid.
     """
-    load_frontend(params)
-    started = time.perf_counter()
     name = Path(log_path).name.split(".")[0] or "map"
-    try:
-        engine = Engine(params, origin=0)
-    except ConfigError as err:
-        raise InputError(str(err)) from err
     frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
 
     def record(frame: Any, result: StepResult) -> None:
         frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
 
-    run = run_engine(engine, log_path, topics=topics, progress=progress, on_step=record)
-    frames, reckoning, info = run.frames, run.reckoning, run.info
-    if frames == 0:
+    engine = _new_engine(params) if params.frontend != "lvc" else None  # torch's front-end checks its settings first
+    with open_log(log_path, topics) as opened:
+        _check_modalities(opened, params)
+        with opened.frames_ahead() as frames:
+            if engine is None:
+                engine = _new_engine(params)
+            load_frontend(params, opened.count_frames())
+            started = time.perf_counter()
+            run = run_engine(engine, opened, progress=progress, on_step=record, frames=frames)
+    frames_run, reckoning, info = run.frames, run.reckoning, run.info
+    if frames_run == 0:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
     engine.settle()
@@ -189,7 +242,7 @@ def process_log(
     document = map_json(
         params=params.to_dict(),
         snapshot=snapshot,
-        sessions=[SessionInfo(name=name, log_sha256=info["sha256"], frames=frames)],
+        sessions=[SessionInfo(name=name, log_sha256=info["sha256"], frames=frames_run)],
         session_name_by_origin={0: name},
         odometry=reckoning.array(),
         frames=frame_rows,
@@ -198,7 +251,7 @@ def process_log(
         write_map_json(out, document)
     src = snapshot["em_link_from"]
     return ProcessResult(
-        frames=frames,
+        frames=frames_run,
         templates=engine.template_count,
         experiences=engine.experience_count,
         links=int(src.shape[0]),
@@ -207,6 +260,6 @@ def process_log(
         seconds=time.perf_counter() - started,
         engine=engine,
         document=document,
-        frames_run=frames,
+        frames_run=frames_run,
         dropped=info["dropped"],
     )

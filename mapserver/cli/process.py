@@ -1,19 +1,18 @@
-"""``mapserver process LOG``: run the SLAM engine over one mission log."""
+"""``mapserver process LOG``: run the SLAM engine over one mission log.
+
+Registering the command loads only the parameter presets; the engine, the log reader and the store load when
+the command runs (``mapserver process --help`` answers without them).
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
-from core import ConfigError
-from core.config import PRESETS
-from mapserver import pipeline
+from core.config import PRESETS, ConfigError, Params
 from mapserver.cli._output import emit_json, info
-from mapserver.cli._progress import progress_bar
 from mapserver.errors import InputError
-from mapserver.ingest.decode import DEFAULT_MAX_IMAGE_PIXELS, PIXELS_ENV, set_max_image_pixels
-from mapserver.ingest.topics import parse_topics_arg
-from mapserver.params import resolve_params, with_frontend, with_settings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -57,8 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
                         "a merge then on probation is verified first: the run stops when its probation ends")
     parser.add_argument(
         "--max-image-pixels", type=int, metavar="N",
-        help=f"refuse a frame of more than N pixels, read from its header before decoding (default: "
-        f"${PIXELS_ENV} or {DEFAULT_MAX_IMAGE_PIXELS})",
+        help="refuse a frame of more than N pixels, read from its header before decoding (default: "
+        "$MAPSERVER_MAX_IMAGE_PIXELS or 33554432)",
     )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line of stdout")
     parser.set_defaults(func=run)
@@ -66,31 +65,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def run(args: argparse.Namespace) -> int:
     """Process the log and report the summary."""
+    from mapserver.cli._progress import progress_bar
+    from mapserver.ingest.topics import parse_topics_arg
+
     log = Path(args.log)
     if not log.exists():
         msg = f"log not found: {str(log)!r}"
         raise InputError(msg)
-    params = with_settings(resolve_params(args.preset, args.config, log), ",".join(args.settings or []))
-    params = with_frontend(params, args.backbone, args.weights)
-    overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    if overrides:
-        if not args.db:
-            msg = "--merge-evidence and --merge-probation need --db (merging is into stored maps)"
-            raise InputError(msg)
-        try:
-            params = params.replace(**overrides)
-        except ConfigError as err:
-            raise InputError(str(err)) from err
+    params = _params(args, log)
     topics = parse_topics_arg(args.topics) if args.topics else None
     if args.map_name and not args.db:
         msg = "--map needs --db"
         raise InputError(msg)
     if args.max_image_pixels is not None:
+        from mapserver.ingest.decode import set_max_image_pixels
+
         set_max_image_pixels(args.max_image_pixels)
     update, close = progress_bar(f"processing {log.name}")
     try:
         if args.db:
+            from mapserver import pipeline
+
             result = pipeline.process_into_store(
                 log,
                 params,
@@ -111,19 +106,39 @@ def run(args: argparse.Namespace) -> int:
             if args.confirm is not None or args.merge_no_shift:
                 msg = "--confirm and --merge-no-shift need --db (merging is into stored maps)"
                 raise InputError(msg)
-            result = pipeline.process_log(log, params, topics=topics, out=args.out, progress=update)
+            from mapserver.run import process_log
+
+            result = process_log(log, params, topics=topics, out=args.out, progress=update)
     finally:
         close()
-    _report(result, as_json=args.json)
-    return 0
-
-
-def _report(result: pipeline.ProcessResult, *, as_json: bool) -> None:
-    """Print the summary on stderr (what reading dropped as a warning first), and as JSON on stdout when asked."""
     warning = None if result.dropped is None else result.dropped.warning()
     if warning is not None:
         info(f"warning: {warning}")
-    summary = result.summary()
+    _report(result.summary(), args.json)
+    return 0
+
+
+def _params(args: argparse.Namespace, log: Path) -> Params:
+    """Return the run's parameters: preset or config, ``--set``, the front-end options, the merge overrides."""
+    from mapserver.params import resolve_params, with_frontend, with_settings
+
+    params = with_settings(resolve_params(args.preset, args.config, log), ",".join(args.settings or []))
+    params = with_frontend(params, args.backbone, args.weights)
+    overrides = {"merge_evidence_m": args.merge_evidence, "merge_probation_m": args.merge_probation}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if overrides:
+        if not args.db:
+            msg = "--merge-evidence and --merge-probation need --db (merging is into stored maps)"
+            raise InputError(msg)
+        try:
+            params = params.replace(**overrides)
+        except ConfigError as err:
+            raise InputError(str(err)) from err
+    return params
+
+
+def _report(summary: dict[str, Any], as_json: bool) -> None:
+    """Print the summary line (and the merges) on stderr; the JSON summary on stdout with ``--json``."""
     info(
         f"{summary['frames']} frames → {summary['templates']} templates, {summary['experiences']} experiences, "
         f"{summary['links']} links, {summary['loop_closures']} loop closures, {len(summary['merges'])} merges "

@@ -22,6 +22,9 @@ moves is treated as twist (both give zero motion).
 
 Each streaming call (:meth:`MissionLog.frames`, :meth:`MissionLog.ground_truth`) opens its own readers,
 so several streams of one log may be consumed interleaved (rosbags readers share file positions).
+:meth:`MissionLog.frames_ahead` runs :meth:`MissionLog.frames` in a worker (a forked process, or a thread)
+that reads and decodes ahead of the caller into a bounded queue: the same frames in the same order, and the
+same errors at the same point of the stream (:class:`ReadAhead`).
 Memory is bounded regardless of log size: messages are streamed, never loaded all at once; per topic a
 stamp index of 8 bytes per message is kept, re-sequencing holds at most
 :data:`~mapserver.ingest.ordering.REORDER_LIMIT` messages, and the odometry buffer holds only the
@@ -30,8 +33,14 @@ messages between two frames.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
-from collections.abc import Iterator, Mapping
+import multiprocessing
+import pickle
+import queue
+import signal
+import threading
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
@@ -62,6 +71,13 @@ from mapserver.ingest.topics import TopicInfo, TopicMapping, map_topics
 
 LOG_SUFFIXES = (".bag", ".db3", ".mcap")
 _HASH_CHUNK = 1 << 20
+READ_AHEAD = 64
+"""Frames a :class:`ReadAhead` worker reads and decodes before the caller takes them (bounded memory)."""
+_BATCH = 16
+"""Frames per message from the worker; its first message carries one frame, so the first is not held back."""
+_POLL_S = 0.1
+"""How often a blocked thread worker, or its caller, checks that the other side is still there."""
+Worker = Literal["auto", "process", "thread"]
 
 
 class _Newest:
@@ -385,6 +401,12 @@ class MissionLog:
                     extra = None if sonar is None else sonar.at(stamp)
                     yield Frame(stamp_ns=stamp, image=decode_image(msg, topic), motion=motion, sonar=extra)
 
+    def frames_ahead(
+        self, start: int = 0, stop: int | None = None, *, depth: int = READ_AHEAD, worker: Worker = "auto"
+    ) -> ReadAhead:
+        """Return :meth:`frames` read and decoded ahead by a worker (:class:`ReadAhead`; use it in a ``with`` block)."""
+        return ReadAhead(self, start, stop, depth=depth, worker=worker)
+
     def ground_truth(self) -> Iterator[PoseSample]:
         """Yield the ground-truth poses in stamp order (nothing when the log has no ground-truth topic).
 
@@ -415,6 +437,198 @@ class MissionLog:
                 qz=float(pose.orientation.z),
                 qw=float(pose.orientation.w),
             )
+
+
+# -- reading ahead -------------------------------------------------------------------------------------
+
+
+
+class ReadAhead:
+    """A log's frames ``[start, stop)``, read and decoded ahead of the caller by a worker, in stamp order.
+
+    :attr:`report` is what the worker's reading dropped (:class:`~mapserver.ingest.frames.IngestReport`), once
+    every frame has been read (None before).
+
+    The worker opens its own readers on the log and runs :meth:`MissionLog.frames`, sending the frames in
+    batches over a bounded channel (about ``depth`` frames in flight); iterating yields the same frames in the
+    same order. An exception in the worker (an :class:`IngestError` for a corrupt message or an undecodable
+    image) is raised when the caller reaches that point of the stream, as :meth:`MissionLog.frames` raises it
+    there. Leaving the ``with`` block (the end of the frames, a ``break``, an exception, KeyboardInterrupt)
+    stops the worker and waits for it.
+
+    ``worker``: ``process`` reads in a forked child (it starts with the caller's modules loaded and runs in
+    parallel with the caller's computation) that writes to a pipe the caller alone reads: when either side
+    ends, the other sees the pipe close (a child that dies is an IngestError, never a hang; a caller that stops
+    reading ends the child). The child ignores SIGINT: the caller's interrupt stops it. ``thread`` reads in a
+    thread into a queue (decoding releases the GIL, parsing does not). ``auto`` takes ``process`` where fork
+    exists, the caller runs no other thread and is not a daemonic process (a celery worker's, which may not
+    have children), and the range has at least ``depth`` frames (a short log is read in a thread: no fork to
+    pay).
+    """
+
+    def __init__(
+        self, log: MissionLog, start: int = 0, stop: int | None = None, *, depth: int = READ_AHEAD,
+        worker: Worker = "auto",
+    ) -> None:  # fmt: skip
+        log._require_open()
+        self.path = log.path
+        end = log.count_frames() if stop is None else min(stop, log.count_frames())
+        self.worker = _worker_kind(worker, end - start >= depth)
+        batch = max(1, min(_BATCH, depth // 2))
+        job = (log.path, log.topics, log.mapping, log._odometry_mode, start, stop, batch)
+        self._stop = threading.Event()
+        self.report: IngestReport | None = None
+        if self.worker == "process":
+            context = multiprocessing.get_context("fork")
+            self._receive, send = context.Pipe(duplex=False)
+            _widen_pipe(send)
+            self._runner: Any = context.Process(target=_produce_in_child, args=(job, send, self._receive), daemon=True)
+            self._runner.start()
+            send.close()  # the child holds the only writing end: its exit closes the pipe
+        else:
+            self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=max(1, depth // batch))
+            sender = _QueueSender(self._queue, self._stop)
+            self._runner = threading.Thread(target=_produce, args=(job, sender.send), daemon=True)
+            self._runner.start()
+
+    def __enter__(self) -> ReadAhead:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[Frame]:
+        while True:
+            kind, payload = self._take()
+            if kind == "frames":
+                yield from payload
+            elif kind == "end":
+                self.report = payload
+                return
+            else:
+                raise payload
+
+    def _take(self) -> tuple[str, Any]:
+        """Return the worker's next message; raise IngestError when it ended without one."""
+        if self.worker == "process":
+            try:
+                return self._receive.recv()  # type: ignore[no-any-return]
+            except EOFError:
+                self._runner.join(timeout=1.0)
+        else:
+            while self._runner.is_alive() or not self._queue.empty():
+                with contextlib.suppress(queue.Empty):
+                    return self._queue.get(timeout=_POLL_S)
+        code = getattr(self._runner, "exitcode", None)
+        msg = f"the frame reader of {str(self.path)!r} stopped without an answer (exit code {code})"
+        raise IngestError(msg)
+
+    def close(self) -> None:
+        """Stop the worker and wait for it (idempotent)."""
+        self._stop.set()
+        if self.worker == "process":
+            self._receive.close()  # a child blocked writing gets a broken pipe and ends
+            self._runner.join(timeout=5.0)
+            if self._runner.is_alive():
+                self._runner.terminate()
+                self._runner.join()
+        else:
+            while self._runner.is_alive():  # it ends at its next send, or when its current frame is read
+                with contextlib.suppress(queue.Empty):
+                    self._queue.get_nowait()
+                self._runner.join(timeout=_POLL_S)
+
+
+class _QueueSender:
+    """The thread worker's side of its queue: a blocking put that gives up once the caller stopped."""
+
+    def __init__(self, channel: queue.Queue[tuple[str, Any]], stop: threading.Event) -> None:
+        self.channel, self.stop = channel, stop
+
+    def send(self, item: tuple[str, Any]) -> bool:
+        """Put ``item``; return False (not sent) once the caller stopped the worker."""
+        while not self.stop.is_set():
+            with contextlib.suppress(queue.Full):
+                self.channel.put(item, timeout=_POLL_S)
+                return True
+        return False
+
+
+def _worker_kind(worker: Worker, long_range: bool = True) -> Literal["process", "thread"]:
+    """Return the worker ``auto`` stands for: a forked process where that is safe and pays, else a thread.
+
+    Fork copies the calling thread alone, so a process is forked only from a single-threaded caller (the
+    CLI; not a server's worker threads, whose locks the child would inherit held), never from a daemonic
+    process (a celery worker's may not have children), and only for a range long enough to repay the fork.
+    """
+    if worker != "auto":
+        return worker
+    can_fork = "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
+    return "process" if long_range and can_fork and not multiprocessing.current_process().daemon else "thread"
+
+
+def _widen_pipe(connection: Any) -> None:
+    """Let the pipe hold ~1 MiB (Linux; elsewhere its default) so the child can run further ahead."""
+    with contextlib.suppress(ImportError, AttributeError, OSError):
+        import fcntl
+
+        fcntl.fcntl(connection.fileno(), fcntl.F_SETPIPE_SZ, 1 << 20)
+
+
+def _produce_in_child(job: tuple[Any, ...], send: Any, receive: Any) -> None:
+    """The forked child's body: :func:`_produce` into the pipe, SIGINT ignored, its copy of the reading end closed."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller handles Ctrl-C and stops it
+    receive.close()  # so that the caller's close is the pipe's last reader: a write then fails
+
+    def deliver(item: tuple[str, Any]) -> bool:
+        if item[0] == "error":
+            item = ("error", _portable(item[1], job[0]))
+        try:
+            send.send(item)
+        except OSError:  # the caller closed its end (stopped, or gone)
+            return False
+        return True
+
+    _produce(job, deliver)
+
+
+def _produce(job: tuple[Any, ...], deliver: Callable[[tuple[str, Any]], bool]) -> None:
+    """Worker body: deliver the frames of ``job`` in batches, then ``("end", None)``, or ``("error", exception)``.
+
+    The frames read before an error are delivered before it, so the caller sees the stream up to the failure.
+    ``deliver`` returns False once the caller stopped the worker.
+    """
+    path, topics, mapping, mode, start, stop_at, batch = job
+    chunk: list[Frame] = []
+    try:
+        log = MissionLog(path, _new_reader(path), topics, mapping, mode)
+        try:
+            size = 1
+            for frame in log.frames(start, stop_at):
+                chunk.append(frame)
+                if len(chunk) >= size:
+                    if not deliver(("frames", chunk)):
+                        return
+                    chunk, size = [], batch
+            report = log.report
+        finally:
+            log.close()
+        if deliver(("frames", chunk)):
+            deliver(("end", report))
+    except BaseException as err:  # every failure goes to the caller, which raises it
+        if deliver(("frames", chunk)):
+            deliver(("error", err))
+
+
+def _portable(err: BaseException, path: Path) -> BaseException:
+    """Return ``err`` when it survives pickling (to reach the parent), else an IngestError that names it."""
+    try:
+        pickle.loads(pickle.dumps(err))
+    except Exception:  # any unpicklable exception is replaced
+        return IngestError(f"reading {str(path)!r} failed: {type(err).__name__}: {_describe(err)}")
+    return err
 
 
 def _topic_infos(reader: AnyReader) -> list[TopicInfo]:
