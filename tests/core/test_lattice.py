@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.config import Params
 from core.lattice import circulant_kernel, gaussian_kernel_1d, wrap_angle, wrap_scalar, wrapped_delta, wrapped_distance
 from core.posecells import PoseCellNetwork
+from tests.core.conftest import departing
 
 angles = st.floats(-1e4, 1e4, allow_nan=False)
 
@@ -78,7 +78,7 @@ def test_circulant_kernel_conserves_mass_and_is_circulant(dim: int, size: int, v
 
 
 def _random_net(seed: int, **changes: object) -> PoseCellNetwork:
-    net = PoseCellNetwork(Params().replace(**changes))
+    net = PoseCellNetwork(departing().replace(**changes))
     net.activity = np.random.default_rng(seed).random(net.shape)
     return net
 

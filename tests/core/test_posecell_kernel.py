@@ -19,9 +19,9 @@ from hypothesis import strategies as st
 
 import core.posecells as posecells
 from core import _posecell_kernel as kernels
-from core.config import Params
 from core.lattice import circulant_kernel
 from core.posecells import PoseCellNetwork
+from tests.core.conftest import departing
 
 LATTICES = {
     "3dof": {"pc_dim_xy": 21, "pc_dim_th": 36, "pc_cell_x_size": 0.25},
@@ -70,7 +70,7 @@ def test_the_compiled_update_equals_the_reference_to_the_last_bit(
     lattice: str, seed: int, dense: bool, moves: list[tuple[float, float, float, bool]],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:  # fmt: skip
-    params = Params().replace(**LATTICES[lattice])
+    params = departing().replace(**LATTICES[lattice])
     reference, compiled = PoseCellNetwork(params), PoseCellNetwork(params)
     start = _activity(reference, np.random.default_rng(seed), dense)
     reference.activity, compiled.activity = start.copy(), start.copy()
@@ -87,7 +87,7 @@ def test_the_compiled_update_equals_the_reference_to_the_last_bit(
 @pytest.mark.parametrize("lattice", sorted(LATTICES))
 def test_each_step_alone_equals_the_reference_to_the_last_bit(lattice: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """step_attractor, path_integrate and decode called one by one (each compiled one scans its input)."""
-    params = Params().replace(**LATTICES[lattice])
+    params = departing().replace(**LATTICES[lattice])
     rng = np.random.default_rng(7)
     for _ in range(10):
         reference, compiled = PoseCellNetwork(params), PoseCellNetwork(params)
@@ -115,7 +115,7 @@ def _circulant_spread(cells: np.ndarray, size: int, var: float) -> np.ndarray:
 
 @pytest.mark.parametrize("lattice", ["3dof", "4dof", "wide"])
 def test_the_compiled_attractor_equals_dense_circulant_products(lattice: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    params = Params().replace(**LATTICES[lattice])
+    params = departing().replace(**LATTICES[lattice])
     net = PoseCellNetwork(params)
     rng = np.random.default_rng(3)
     for dense in (False, True):
@@ -146,7 +146,7 @@ def test_the_compiled_path_integration_equals_shift_matrices(
     seed: int, forward: float, dyaw: float, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Per heading layer k: X_k · P_k · Y_kᵀ (x then y), then the θ shift as one more matrix along θ."""
-    params = Params().replace(pc_dim_xy=13, pc_dim_th=10, pc_cell_x_size=0.5)
+    params = departing().replace(pc_dim_xy=13, pc_dim_th=10, pc_cell_x_size=0.5)
     net = PoseCellNetwork(params)
     cells = np.random.default_rng(seed).random(net.shape)
     net.activity = cells.copy()
@@ -166,7 +166,7 @@ def test_the_compiled_path_integration_equals_shift_matrices(
 def test_the_first_maximum_wins_a_tie_on_both_paths(monkeypatch: pytest.MonkeyPatch) -> None:
     """Equal maxima: θ outermost, then y, x innermost; OpenRatSLAM's order (θ, x, y) with compat."""
     for compat, want in ((False, [8.0, 2.0, 3.0]), (True, [1.0, 5.0, 3.0])):
-        params = Params().replace(pc_dim_xy=21, pc_dim_th=36, openratslam_compat=compat)
+        params = departing().replace(pc_dim_xy=21, pc_dim_th=36, openratslam_compat=compat)
         for flag in (False, True):
             _on_path(flag, monkeypatch)
             net = PoseCellNetwork(params)
@@ -178,7 +178,7 @@ def test_the_first_maximum_wins_a_tie_on_both_paths(monkeypatch: pytest.MonkeyPa
 def test_a_fully_inhibited_network_restarts_at_the_decoded_centre_on_both_paths(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    params = Params().replace(pc_dim_xy=11, pc_dim_th=12, pc_global_inhib=1.0)  # φ above every cell
+    params = departing().replace(pc_dim_xy=11, pc_dim_th=12, pc_global_inhib=1.0)  # φ above every cell
     results = []
     for flag in (False, True):
         _on_path(flag, monkeypatch)
@@ -193,7 +193,7 @@ def test_a_fully_inhibited_network_restarts_at_the_decoded_centre_on_both_paths(
 
 def test_a_network_switches_to_the_kernels_mid_run_without_changing_a_bit(monkeypatch: pytest.MonkeyPatch) -> None:
     """Loading the kernels after COMPILED_AFTER cell updates: the run equals one on the reference path throughout."""
-    params = Params().replace(**LATTICES["3dof"])
+    params = departing().replace(**LATTICES["3dof"])
     rng = np.random.default_rng(11)
     frames = [(float(rng.uniform(0.0, 0.4)), float(rng.uniform(-0.2, 0.2))) for _ in range(40)]
     links = [(int(rng.integers(0, 6)), float(rng.uniform(-0.3, 0.3))) for _ in range(40)]
@@ -215,7 +215,7 @@ def test_a_network_switches_to_the_kernels_mid_run_without_changing_a_bit(monkey
 def test_writes_into_the_activity_between_updates_are_seen(monkeypatch: pytest.MonkeyPatch) -> None:
     """The compiled path keeps the lattice in reused slots; cells written from outside (an injection, a test that
     clears the lattice in place, an activity replaced after an in-place write) count like any others."""
-    params = Params().replace(**LATTICES["3dof"])
+    params = departing().replace(**LATTICES["3dof"])
     rng = np.random.default_rng(5)
     nets = {flag: PoseCellNetwork(params) for flag in (False, True)}
     writes = [

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from core import _posecell_kernel as kernels
-from core.config import Params
 from core.posecells import PoseCellNetwork
+from tests.core.conftest import departing
 
 ONE_PATH = [HealthCheck.function_scoped_fixture]  # the path fixture holds for every example of a test
 
@@ -29,7 +29,7 @@ def path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str
 
 
 def _net(**changes: object) -> PoseCellNetwork:
-    return PoseCellNetwork(Params().replace(**changes))
+    return PoseCellNetwork(departing().replace(**changes))
 
 
 def _single(net: PoseCellNetwork, cell: tuple[int, ...]) -> None:
@@ -119,7 +119,7 @@ def _direct_spread(src: np.ndarray, size: int, var: float) -> np.ndarray:
 
 def test_excite_equals_direct_wrapped_convolution() -> None:
     """The FFT path equals OpenRatSLAM's cell-by-cell spread (independent direct sum)."""
-    p = Params().replace(pc_dim_xy=9, pc_dim_th=10, pc_global_inhib=0.0)
+    p = departing().replace(pc_dim_xy=9, pc_dim_th=10, pc_global_inhib=0.0)
     net = PoseCellNetwork(p)
     rng = np.random.default_rng(1)
     cells = rng.random(net.shape)
@@ -300,7 +300,7 @@ def test_heading_offset_is_kept_until_the_next_injection() -> None:
 
 def test_attractor_step_on_a_packet_across_two_faces_equals_the_direct_convolution() -> None:
     """A compact packet on a large lattice: the attractor step equals the cell-by-cell spread."""
-    p = Params().replace(pc_dim_xy=40, pc_dim_th=36)
+    p = departing().replace(pc_dim_xy=40, pc_dim_th=36)
     net = PoseCellNetwork(p)
     cells = np.zeros(net.shape)
     cells[np.ix_([39, 0, 1], [0, 1, 2], [35, 0, 1])] = np.random.default_rng(2).random((3, 3, 3))  # across 2 faces

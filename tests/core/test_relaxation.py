@@ -27,13 +27,14 @@ from core.relaxation import (
     solve,
     subtree_sums,
 )
+from tests.core.conftest import departing
 from tests.worlds import StripWorld
 
 TOLERANCE = 1e-6
 
 
 def _params(**changes: object) -> Params:
-    return Params().replace(**{"exp_initial_em_deg": 0.0, "exp_loops": 10, **changes})
+    return departing().replace(**{"exp_initial_em_deg": 0.0, "exp_loops": 10, **changes})
 
 
 def _square_laps(params: Params, laps: int = 3, relax_every_frame: bool = True) -> ExperienceMap:

@@ -32,6 +32,7 @@ from core.robust import (
     switch_off_outliers,
     switchable,
 )
+from tests.core.conftest import departing
 
 DRIFT = Drift(0.1, 0.1, 3.0)
 RADIUS = 8.0
@@ -341,7 +342,7 @@ def _lap_map(params: Params) -> ExperienceMap:
 
 
 def test_experience_map_switches_a_false_link_off_and_keeps_it_in_the_snapshot() -> None:
-    params = Params()
+    params = departing()
     em = _lap_map(params)
     em.settle()
     assert em.link_active.all()
@@ -358,7 +359,7 @@ def test_experience_map_switches_a_false_link_off_and_keeps_it_in_the_snapshot()
 
 
 def test_experience_map_without_robust_check_keeps_the_false_link() -> None:
-    params = Params(exp_robust=False)
+    params = departing(exp_robust=False)
     em = _lap_map(params)
     em.settle()
     clean = em.poses.copy()
@@ -373,7 +374,7 @@ def test_the_check_is_deterministic_bit_for_bit() -> None:
     assert np.array_equal(a.active, b.active) and np.array_equal(a.pose, b.pose) and np.array_equal(a.z, b.z)
     maps = []
     for _ in range(2):
-        em = _lap_map(Params())
+        em = _lap_map(departing())
         em.add_link_raw(3, 11, np.array([0.1, 0.0, 0.0, 0.0]), 1.0, 0.1, LinkKind.LOOP)
         em.settle()
         maps.append(em.snapshot())
@@ -435,7 +436,7 @@ def _fold_map(params: Params, false: bool) -> tuple[ExperienceMap, np.ndarray]:
 
 
 def test_a_false_relocalisation_is_unfolded_by_the_robots_own_odometry() -> None:
-    em, truth = _fold_map(Params(), false=True)
+    em, truth = _fold_map(departing(), false=True)
     links = em.link_count
     em.settle()
     src, dst, _, _, _, kind = em.links
@@ -444,18 +445,18 @@ def test_a_false_relocalisation_is_unfolded_by_the_robots_own_odometry() -> None
     assert _ape(truth, em.poses) < 0.1  # the yaw bias of 0.003 rad per step alone
     # the paired must-fail: the same map without its reckoning link keeps the fold (the closure alone goes off)
     state = em.snapshot()
-    folded, _ = _fold_map(Params(), false=True)
+    folded, _ = _fold_map(departing(), false=True)
     bare = folded.snapshot()
     for key in ("em_reckon_from", "em_reckon_to", "em_reckon_link"):
         bare.pop(key)
-    folded = ExperienceMap.restore(Params(), 3, bare)
+    folded = ExperienceMap.restore(departing(), 3, bare)
     folded.settle()
     assert folded.link_count == links and _ape(truth, folded.poses) > 1.5
     assert state["em_link_active"].size == links + 1
 
 
 def test_a_true_relocalisation_keeps_its_closure_and_odometry_and_adds_nothing() -> None:
-    em, truth = _fold_map(Params(), false=False)
+    em, truth = _fold_map(departing(), false=False)
     links = em.link_count
     em.settle()
     assert em.link_active.all() and em.link_count == links
@@ -464,7 +465,7 @@ def test_a_true_relocalisation_keeps_its_closure_and_odometry_and_adds_nothing()
 
 def _closed_lap(sides: int, step: Motion) -> ExperienceMap:
     """A lap of ``sides`` experiences (0..sides−1), one ``step`` apart, closed by a loop link back onto 0 (current)."""
-    em = ExperienceMap(Params(), 3)
+    em = ExperienceMap(departing(), 3)
     em.create_experience(0, np.zeros(3), 0.0, 0)
     for i in range(1, sides):
         em.on_odo(step)
@@ -683,7 +684,7 @@ def _step_back_map(heading_error: float, gap: float = 0.5) -> tuple[ExperienceMa
     the reckoning link 12 → 13 (1 m, the robot's own odometry) says which is right. ``gap``: metres driven
     from the relocalisation to experience 13 (0.5 above).
     """
-    em = ExperienceMap(Params(), 3)
+    em = ExperienceMap(departing(), 3)
     em.create_experience(0, np.zeros(3), 0.0, 0)
     step = Motion(1.0, 0.0, 0.0, 0.002, 1.0)
     for i in range(1, 13):
@@ -779,7 +780,7 @@ def test_last_loop_from_by_hand() -> None:
 
 def _turned_closure_lap(joint: bool) -> float:
     """Settle a 32-gon lap of 1.5 m sides closed onto 0 by a link turned 0.2 rad; return its APE (all links on)."""
-    em = ExperienceMap(Params().replace(exp_relax_joint=joint), 3)
+    em = ExperienceMap(departing().replace(exp_relax_joint=joint), 3)
     em.create_experience(0, np.zeros(3), 0.0, 0)
     step = Motion(1.5, 0.0, 0.0, 2 * math.pi / 32, 1.0)
     for i in range(1, 32):
@@ -829,7 +830,7 @@ def test_the_check_passes_the_switches_as_they_stood_with_the_links_added_since_
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The status quo of a robust check (:func:`core.robust._search`): the previous check's switches, new links off."""
-    em = _lap_map(Params())
+    em = _lap_map(departing())
     em.settle()
     before = em.link_count
     assert em.add_link_raw(3, 11, np.array([0.1, 0.0, 0.0, 0.0]), 1.0, 0.1, LinkKind.LOOP)
@@ -922,7 +923,7 @@ def test_an_odometry_link_a_check_switched_off_stays_switchable_without_its_reck
     seed 7 offline, stop 41) is decided by the check like a loop link: false (3 → 11, 0.1 m claimed) it stays off
     and the map stays clean; true (3 → 5 at its exact relative pose) it comes back on. Not switchable, as
     before, the check had to turn the false one on, and it bent the lap."""
-    em = _lap_map(Params())
+    em = _lap_map(departing())
     em.settle()
     clean = em.poses.copy()
     src, dst = (3, 11) if false else (3, 5)
@@ -1046,7 +1047,7 @@ def _settled(em: ExperienceMap) -> tuple[np.ndarray, ...]:
 @pytest.mark.parametrize("false", [True, False])
 def test_the_low_rank_solve_unfolds_a_relocalisation_as_the_full_solve(false: bool) -> None:
     """Standby reckoning links (a relocalisation's fold) through the low-rank solve: the same map bit for bit."""
-    assert _same_answer(lambda: _settled(_fold_map(Params(), false=false)[0])) > 0
+    assert _same_answer(lambda: _settled(_fold_map(departing(), false=false)[0])) > 0
     assert _same_answer(lambda: _settled(_twice_relocalised_map(first_false=false)[0])) > 0
 
 
