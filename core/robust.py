@@ -258,7 +258,8 @@ class Drift:
             if params.vt_panoramic:
                 view_rad = params.vt_step_match * column / 2.0
             else:
-                view_rad = params.vt_shift_match * math.radians(params.camera_fov_deg) / params.template_x_size / 2.0
+                shift = min(params.vt_shift_match, (params.template_x_size - 1) // 2)  # the matcher's own bound
+                view_rad = shift * math.radians(params.camera_fov_deg) / params.template_x_size / 2.0
         return cls(params.exp_robust_drift, params.exp_robust_yaw_drift, params.exp_robust_threshold, view_m, view_rad)
 
 

@@ -549,3 +549,40 @@ def test_two_anchors_in_one_part_leave_the_low_rank_solve_unused() -> None:
     two = SwitchedRelaxation(pose, src, dst, np.ones((3, 4)), np.array([True, True, False]), parts)
     assert one.usable and one.residuals(np.ones(3, dtype=bool)) is not None
     assert not two.usable and two.residuals(np.ones(3, dtype=bool)) is None
+
+
+def test_the_default_settle_ends_on_the_joint_least_squares_with_view_links_weighed_down() -> None:
+    """``exp_settle_joint`` with ``exp_loop_weight`` 0.3 (the defaults): settle solves RatSLAM's fixed point, then
+    moves the map to Σ w_l²·(‖r_xyz‖² + (h·r_ψ)²) with each loop link's w three tenths of an odometry link's; scipy's
+    trust-region least squares finds the same optimum from the fixed point. Without it (must not) the map stays at
+    RatSLAM's fixed point."""
+    from scipy.optimize import least_squares
+
+    from core.relaxation import length_weights, residuals, solve
+    from core.robust import Drift, link_length
+
+    params = Params(exp_initial_em_deg=0.0, exp_loops=10, exp_robust=False)
+    assert (params.exp_settle_joint, params.exp_loop_weight) == (True, 0.3)
+    em = _square_laps(params)
+    before = em.snapshot()
+    em.settle()
+    src, dst, t, _, distance, kind = (np.asarray(a) for a in em.links)
+    start = before["em_pose"].reshape(-1, 4)
+    anchor = np.zeros(em.count, dtype=bool)
+    anchor[0] = True
+    fixed_point = solve(start, src, dst, t, anchor)
+    weight = length_weights(distance, link_length(distance, kind)) * np.where(kind == int(LinkKind.LOOP), 0.3, 1.0)
+    h = Drift.of(params).heading_weight
+
+    def stacked(free: np.ndarray) -> np.ndarray:
+        pose = np.vstack([fixed_point[:1], free.reshape(-1, 4)])
+        r = residuals(pose, src, dst, t)
+        r[:, 3] *= h
+        return (r * weight[:, None]).reshape(-1)
+
+    reference = least_squares(stacked, fixed_point[1:].reshape(-1), xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+    assert _pose_error(em.poses[1:], reference.reshape(-1, 4)) < 1e-6
+    assert _pose_error(em.poses, fixed_point) > 1e-3  # it moved on from the fixed point
+    plain = ExperienceMap.restore(params.replace(exp_settle_joint=False), 3, before)
+    plain.settle()
+    assert _pose_error(plain.poses, fixed_point) <= TOLERANCE

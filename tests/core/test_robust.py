@@ -1087,3 +1087,39 @@ def test_a_tie_that_rounding_would_order_is_decided_on_the_full_solve() -> None:
     assert np.array_equal(decided.z, problem.exact(state).z)
     # and must not: links whose z stand apart keep the low-rank answer
     assert problem.decided(state, np.array([first, apart]), top=True) is state
+
+
+def _forward_lap(view: bool, error_m: float, false_m: float | None = None) -> ExperienceMap:
+    """Two laps of a 32-gon (0.5 m links, a yaw-rate bias); every 4th experience of lap 2 is closed onto its lap-1
+    twin by a view that accepted the robot ``error_m`` to the side and 0.05 rad turned, alternately left and right
+    (a forward camera's match: ``exp_delta_pc_threshold`` 2 cells of 0.25 m, ±5 columns of 75°/60). ``false_m``
+    adds a look-alike's closure 3 → 19, that far from the truth."""
+    params = departing(template_x_size=60, vt_shift_match=5, camera_fov_deg=75.0, exp_delta_pc_threshold=2.0,
+                       pc_cell_x_size=0.25, exp_robust_view=view, exp_initial_em_deg=0.0)  # fmt: skip
+    em = ExperienceMap(params, 3)
+    em.create_experience(0, np.zeros(3), 0.0, 0)
+    for i in range(1, 65):
+        em.on_odo(Motion(0.5, 0.0, 0.0, 2 * math.pi / 32 + 0.004, 1.0))
+        em.create_experience(i, np.zeros(3), float(i), 0)
+        if i >= 32 and (i - 32) % 4 == 0:
+            side = error_m if (i // 4) % 2 else -error_m
+            em.add_link_raw(i - 32, i, np.array([0.0, side, 0.0, math.copysign(0.05, side)]), 0.0, 0.0,
+                            LinkKind.LOOP)  # fmt: skip
+    if false_m is not None:
+        em.add_link_raw(3, 19, np.array([false_m, 0.0, 0.0, 0.0]), 1.0, false_m, LinkKind.LOOP)
+    em.settle()
+    return em
+
+
+def test_a_view_link_within_its_closure_gate_stays_on_and_a_look_alike_still_goes_off() -> None:
+    """``exp_robust_view``: a forward view's closure 0.5 m aside and 3° turned lies within the gate the pose cells
+    closed it through (2 cells of 0.25 m); counting that in its ``z`` keeps all 9 true closures on (as precise as
+    odometry, 5 of them went off), while a closure 3 m off (a look-alike) goes off either way, and views 0.8 m aside
+    — beyond the gate — still go off."""
+    loops = _forward_lap(True, 0.5).links[5] == int(LinkKind.LOOP)
+    assert int(loops.sum()) == 9
+    assert _forward_lap(True, 0.5).link_active[loops].all()  # must: within the gate, kept
+    assert (~_forward_lap(False, 0.5).link_active[loops]).sum() >= 3  # as precise as odometry they went off
+    with_false = _forward_lap(True, 0.5, false_m=3.0)
+    assert not with_false.link_active[-1] and with_false.link_active[:-1].all()  # must not: the look-alike stays off
+    assert (~_forward_lap(True, 0.8).link_active[loops]).sum() >= 2  # beyond the gate: not every view link is kept
