@@ -316,11 +316,13 @@ class PoseCellNetwork:
             order = [a for a in scan if a != axis]
             marginal = np.ascontiguousarray(box.transpose((*order, axis))).reshape(-1, box.shape[axis]).sum(axis=0)
             dim = self.shape[axis]
+            sines, cosines = _openratslam_lookups(dim)
+            weights = marginal.tolist()
+            cells = windows[axis].tolist()
             s = c = 0.0
-            for k in np.argsort(windows[axis], kind="stable"):  # index order, as its loop over the whole axis
-                angle = (int(windows[axis][k]) + 1) * 2.0 * math.pi / dim
-                s += math.sin(angle) * float(marginal[k])
-                c += math.cos(angle) * float(marginal[k])
+            for k in sorted(range(len(cells)), key=cells.__getitem__):  # index order, as its loop over the axis
+                s += sines[cells[k]] * weights[k]
+                c += cosines[cells[k]] * weights[k]
             value = math.atan2(s, c) * dim / (2.0 * math.pi) - 1.0
             while value < 0.0:
                 value += dim
@@ -696,6 +698,13 @@ def _wrapped_norm(a: list[float], b: list[float], dims: tuple[int, ...]) -> floa
     return math.sqrt(total)
 
 
+@functools.lru_cache(maxsize=16)
+def _openratslam_lookups(dim: int) -> tuple[list[float], list[float]]:
+    """Return OpenRatSLAM's (i+1)-based sine and cosine tables of one axis: ``sin((i + 1)·2π/dim)``, i < dim."""
+    angles = [(i + 1) * 2.0 * math.pi / dim for i in range(dim)]
+    return [math.sin(a) for a in angles], [math.cos(a) for a in angles]
+
+
 def _openratslam_corners(dim: int, th_dim: int, v: float) -> np.ndarray:
     """Return per heading layer what OpenRatSLAM's translation loses at its rotated corner (part ``translation``).
 
@@ -707,17 +716,31 @@ def _openratslam_corners(dim: int, th_dim: int, v: float) -> np.ndarray:
     into layer k's (x, y) plane before the move (a, b) and after it (the loser); our x is its j.
     """
     speed = abs(v)
-    extra = math.pi if v < 0 else 0.0
     corners = np.zeros((th_dim, 5))
+    for k, (sin90, cos90, cells) in enumerate(_corner_layers(dim, th_dim, v < 0)):
+        along_i = speed * sin90 * (1.0 - speed * cos90)
+        along_j = speed * cos90 * (1.0 - speed * sin90)
+        corners[k] = (cells[0], along_i, cells[1], along_j, cells[2])
+    return corners
+
+
+@functools.lru_cache(maxsize=64)
+def _corner_layers(dim: int, th_dim: int, backwards: bool) -> tuple[tuple[float, float, tuple[int, int, int]], ...]:
+    """Return per heading layer (sin, cos of its direction within its quarter turn, its three corner cells).
+
+    What :func:`_openratslam_corners` needs that does not depend on the speed, computed once per lattice and
+    direction of travel (the rotation of an index grid is pure Python).
+    """
+    extra = math.pi if backwards else 0.0
+    layers = []
     for k in range(th_dim):
         direction = k * (2.0 * math.pi / th_dim) + extra
         quarter = math.floor(direction * 2 / math.pi)
         dir90 = direction - quarter * math.pi / 2
-        along_i = speed * math.sin(dir90) * (1.0 - speed * math.cos(dir90))
-        along_j = speed * math.cos(dir90) * (1.0 - speed * math.sin(dir90))
         where = _openratslam_rot90(dim, int(quarter) % 4)
-        corners[k] = (where[0, dim - 1], along_i, where[dim - 1, 0], along_j, where[0, 0])
-    return corners
+        cells = (int(where[0, dim - 1]), int(where[dim - 1, 0]), int(where[0, 0]))
+        layers.append((math.sin(dir90), math.cos(dir90), cells))
+    return tuple(layers)
 
 
 def _shift_axis(cells: np.ndarray, whole: int, keep: float, frac: float, axis: int) -> np.ndarray:
