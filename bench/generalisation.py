@@ -290,7 +290,10 @@ def print_table(summary: dict[str, Any], modes: list[str]) -> None:
 
 
 def parse_variants(items: list[str]) -> dict[str, dict[str, Any]]:
-    """Parse ``NAME:KEY=VALUE,KEY=VALUE`` items into {name: {key: value}} (values typed as the Params field)."""
+    """Parse ``NAME:KEY=VALUE,KEY=VALUE`` items into {name: {key: value}} (values typed as the Params field).
+
+    A list value names its items joined by ``+`` (``openratslam_parts=translation+decode``).
+    """
     fields = {f.name: f.type for f in dataclasses.fields(Params)}
     out: dict[str, dict[str, Any]] = {}
     for item in items:
@@ -300,7 +303,8 @@ def parse_variants(items: list[str]) -> dict[str, dict[str, Any]]:
             key, _, value = pair.partition("=")
             kind = fields[key]
             keys[key] = value.lower() in ("1", "true") if kind in (bool, "bool") else (
-                int(value) if kind in (int, "int") else float(value) if kind in (float, "float") else value)
+                int(value) if kind in (int, "int") else float(value) if kind in (float, "float")
+                else value.replace("+", ","))  # a list value (openratslam_parts) joins its names with +
         out[name] = keys
     return out
 

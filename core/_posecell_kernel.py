@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -70,8 +71,19 @@ _ORDER = (
 )  # fmt: skip
 
 
+_COMPILE_LOCK = threading.Lock()
+"""Held while the kernels are compiled: two jobs of a server may load them at once (each wraps the module's
+functions in place, which must happen once)."""
+
+
 @functools.cache
 def _compiled() -> dict[str, Callable[..., Any]]:
+    with _COMPILE_LOCK:
+        return _compile_once()
+
+
+@functools.cache
+def _compile_once() -> dict[str, Callable[..., Any]]:
     from numba import njit
 
     module = globals()

@@ -37,6 +37,9 @@ class LimitsPublic(BaseModel):
     max_unpacked_ratio: float = Field(description="an archive may unpack to at most this multiple of its own size")
     max_archive_entries: int = Field(description="most entries (files and directories) in one archive")
     max_image_pixels: int = Field(description="most pixels (width × height) of one camera frame")
+    max_trailing_bytes: int = Field(description="most bytes an upload may send after its closing boundary (400)")
+    max_exports: int = Field(description="most map exports at once (503 with Retry-After beyond)")
+    read_timeout_s: float = Field(description="an upload that sends nothing this long is answered 408")
     odometry: OdometryRulesPublic
 
 

@@ -15,7 +15,8 @@ from mapserver.store import DEFAULT_DB_URL
 
 ENV_PREFIX = "MAPSERVER_"
 GIB = 1 << 30
-LIMITS = ("max_upload_bytes", "max_unpacked_bytes", "max_unpacked_ratio", "max_archive_entries", "max_image_pixels")
+LIMITS = ("max_upload_bytes", "max_unpacked_bytes", "max_unpacked_ratio", "max_archive_entries", "max_image_pixels",
+          "max_trailing_bytes", "max_exports", "read_timeout_s")  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,6 +51,8 @@ class Settings:
         max_exports: most map exports (``GET /v1/maps/{name}/export``) running at once; more get 503 with
             ``Retry-After``.
         read_timeout_s: an upload that sends no byte for this long is answered 408 and its connection closed.
+        max_trailing_bytes: most bytes an upload's body may carry after its multipart closing boundary (an
+            epilogue); more is refused (400) without reading the rest.
     """
 
     db_url: str = DEFAULT_DB_URL
@@ -73,6 +76,7 @@ class Settings:
     keep_uploads_days: float = 7.0
     max_exports: int = 4
     read_timeout_s: float = 60.0
+    max_trailing_bytes: int = 1024
 
     def __post_init__(self) -> None:
         checks = {
@@ -91,6 +95,7 @@ class Settings:
             "keep_uploads_days": self.keep_uploads_days >= 0,
             "max_exports": 1 <= self.max_exports <= 1024,
             "read_timeout_s": 0 < self.read_timeout_s <= 86_400,
+            "max_trailing_bytes": self.max_trailing_bytes >= 0,
         }
         for name, ok in checks.items():
             if not ok:
@@ -133,7 +138,8 @@ class Settings:
 
         Variables: ``MAPSERVER_DB``, ``MAPSERVER_UPLOAD_DIR``, ``MAPSERVER_MAX_UPLOAD_BYTES``,
         ``MAPSERVER_MAX_UNPACKED_BYTES``, ``MAPSERVER_MAX_UNPACKED_RATIO``, ``MAPSERVER_MAX_ARCHIVE_ENTRIES``,
-        ``MAPSERVER_MAX_IMAGE_PIXELS``, ``MAPSERVER_WORKERS``, ``MAPSERVER_ALLOW_ANONYMOUS_READS``
+        ``MAPSERVER_MAX_IMAGE_PIXELS``, ``MAPSERVER_MAX_TRAILING_BYTES``, ``MAPSERVER_MAX_EXPORTS``,
+        ``MAPSERVER_READ_TIMEOUT_S``, ``MAPSERVER_WORKERS``, ``MAPSERVER_ALLOW_ANONYMOUS_READS``
         (1/true/yes), ``MAPSERVER_HOST``, ``MAPSERVER_PORT``, ``MAPSERVER_JOBS``, ``MAPSERVER_BROKER``.
 
         Raises:
@@ -144,6 +150,7 @@ class Settings:
         text = {"DB": "db_url", "UPLOAD_DIR": "upload_dir", "HOST": "host", "JOBS": "jobs", "BROKER": "broker_url"}
         numbers = {"MAX_UPLOAD_BYTES": "max_upload_bytes", "MAX_UNPACKED_BYTES": "max_unpacked_bytes",
                    "MAX_ARCHIVE_ENTRIES": "max_archive_entries", "MAX_IMAGE_PIXELS": "max_image_pixels",
+                   "MAX_TRAILING_BYTES": "max_trailing_bytes", "MAX_EXPORTS": "max_exports",
                    "WORKERS": "workers", "PORT": "port"}  # fmt: skip
         for key, field in text.items():
             if (value := env.get(ENV_PREFIX + key)) is not None:
@@ -155,12 +162,13 @@ class Settings:
                 except ValueError as err:
                     msg = f"{ENV_PREFIX}{key} must be an integer, got {value!r}"
                     raise ConfigError(msg) from err
-        if (ratio := env.get(ENV_PREFIX + "MAX_UNPACKED_RATIO")) is not None:
-            try:
-                values["max_unpacked_ratio"] = float(ratio)
-            except ValueError as err:
-                msg = f"{ENV_PREFIX}MAX_UNPACKED_RATIO must be a number, got {ratio!r}"
-                raise ConfigError(msg) from err
+        for key, field in (("MAX_UNPACKED_RATIO", "max_unpacked_ratio"), ("READ_TIMEOUT_S", "read_timeout_s")):
+            if (value := env.get(ENV_PREFIX + key)) is not None:
+                try:
+                    values[field] = float(value)
+                except ValueError as err:
+                    msg = f"{ENV_PREFIX}{key} must be a number, got {value!r}"
+                    raise ConfigError(msg) from err
         if (flag := env.get(ENV_PREFIX + "ALLOW_ANONYMOUS_READS")) is not None:
             values["allow_anonymous_reads"] = flag.strip().lower() in ("1", "true", "yes", "on")
         return cls().with_overrides(**values)

@@ -4,7 +4,7 @@ The request body is never held whole in memory: chunks are parsed as they arrive
 written to a staging file in the upload directory and hashed (SHA-256) on the way, and the upload is
 refused with 413 as soon as it passes the size limit (before reading further when ``Content-Length``
 already says so); a refused or broken upload leaves no file behind. Reading stops at the multipart
-closing boundary: a body that goes on past it by more than ``MAX_TRAILING_BYTES`` is refused (400) without
+closing boundary: a body that goes on past it by more than ``max_trailing_bytes`` is refused (400) without
 reading the rest, and an upload that sends nothing for ``read_timeout_s`` is answered 408.
 """
 
@@ -36,8 +36,6 @@ MAX_FIELD_BYTES = 64 * 1024
 MAX_FIELDS = 16
 MULTIPART_OVERHEAD = 1 << 20
 """Bytes of the request body allowed beyond the file itself (boundaries, headers, small fields)."""
-MAX_TRAILING_BYTES = 1024
-"""Bytes a body may carry after its closing boundary, in later reads (an epilogue, RFC 2046); more is refused."""
 
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
@@ -203,21 +201,24 @@ async def _chunks(request: Request, read_timeout_s: float) -> AsyncIterator[byte
         yield chunk
 
 
-async def _parse(request: Request, parser: MultipartParser, sink: _FormSink, read_timeout_s: float) -> None:
-    """Feed the body to the parser up to its closing boundary; refuse more than a short epilogue after it."""
+async def _parse(
+    request: Request, parser: MultipartParser, sink: _FormSink, read_timeout_s: float, max_trailing: int
+) -> None:
+    """Feed the body to the parser up to its closing boundary; refuse more than ``max_trailing`` bytes after it."""
     trailing = 0
     async for chunk in _chunks(request, read_timeout_s):
         if sink.ended:
             trailing += len(chunk)
-            if trailing > MAX_TRAILING_BYTES:
-                msg = "the body goes on after the multipart closing boundary; send nothing after it"
+            if trailing > max_trailing:
+                msg = (f"the body goes on after the multipart closing boundary for more than {max_trailing} "
+                       "bytes (max_trailing_bytes); send nothing after it")
                 raise InputError(msg)
         elif chunk:
             await run_in_threadpool(parser.write, chunk)
 
 
 async def receive_upload(
-    request: Request, *, staging: Path, max_bytes: int, read_timeout_s: float = 60.0
+    request: Request, *, staging: Path, max_bytes: int, read_timeout_s: float = 60.0, max_trailing_bytes: int = 1024
 ) -> ReceivedUpload:
     """Stream a multipart upload's ``file`` part to ``staging`` (hashing it) and collect its text fields.
 
@@ -226,6 +227,7 @@ async def receive_upload(
         staging: directory for the staged file (created).
         max_bytes: largest accepted file part.
         read_timeout_s: longest wait for the body's next bytes.
+        max_trailing_bytes: most bytes after the closing boundary (an epilogue, RFC 2046).
 
     Returns:
         The staged upload.
@@ -250,7 +252,7 @@ async def receive_upload(
     sink = _FormSink(target, max_bytes)
     parser = MultipartParser(boundary, sink.callbacks())  # type: ignore[arg-type]
     try:
-        await _parse(request, parser, sink, read_timeout_s)
+        await _parse(request, parser, sink, read_timeout_s, max_trailing_bytes)
         parser.finalize()
         if sink.filename is None:
             msg = f"the upload has no {FILE_FIELD!r} part"

@@ -44,6 +44,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument("--lease-seconds", type=float, help=f"workers' job lease (default: {defaults.lease_s})")
     parser.add_argument("--max-exports", type=int,
                         help=f"most map exports at once; more are answered 503 (default: {defaults.max_exports})")
+    parser.add_argument("--max-trailing-bytes", type=int,
+                        help="most bytes an upload may send after its multipart closing boundary "
+                             f"(default: {defaults.max_trailing_bytes})")  # fmt: skip
     parser.add_argument("--read-timeout", type=float, dest="read_timeout",
                         help="seconds an upload may send nothing before it is answered 408 "
                              f"(default: {defaults.read_timeout_s:g})")  # fmt: skip
@@ -68,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         max_archive_entries=args.max_archive_entries, max_image_pixels=args.max_image_pixels,
         jobs=args.jobs, broker_url=args.broker, job_queue=args.queue, lease_s=args.lease_seconds,
         keep_uploads_days=args.keep_uploads_days, max_exports=args.max_exports, read_timeout_s=args.read_timeout,
+        max_trailing_bytes=args.max_trailing_bytes,
     )  # fmt: skip
     with open_database(settings.db_url) as db:  # fail here, with one ERROR line, on a bad or old database
         url = db.display_url()

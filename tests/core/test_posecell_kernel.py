@@ -234,3 +234,30 @@ def test_writes_into_the_activity_between_updates_are_seen(monkeypatch: pytest.M
             assert np.array_equal(nets[False].activity, nets[True].activity)
         for net in nets.values():
             write(net)
+
+
+def test_two_jobs_loading_the_kernels_at_once_compile_them_once() -> None:
+    """A server runs jobs in threads: loading the kernels from several at once must wrap each function once (a
+    second wrapping of a compiled function is numba's TypeError). Run in a fresh interpreter, nothing loaded."""
+    import subprocess
+    import sys
+
+    code = (
+        "import threading\n"
+        "from core import _posecell_kernel as k\n"
+        "gate = threading.Barrier(4)\n"
+        "errors = []\n"
+        "def load():\n"
+        "    gate.wait()\n"
+        "    try:\n"
+        "        k.load_compiled()\n"
+        "    except Exception as err:\n"
+        "        errors.append(repr(err))\n"
+        "threads = [threading.Thread(target=load) for _ in range(4)]\n"
+        "[t.start() for t in threads]\n"
+        "[t.join() for t in threads]\n"
+        "assert not errors, errors\n"
+        "assert k.enabled() and k.kernel('peak') is k.peak\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]

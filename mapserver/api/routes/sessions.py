@@ -75,7 +75,8 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
     staging = settings.uploads / ".incoming"
     try:
         received = await receive_upload(
-            request, staging=staging, max_bytes=settings.max_upload_bytes, read_timeout_s=settings.read_timeout_s
+            request, staging=staging, max_bytes=settings.max_upload_bytes, read_timeout_s=settings.read_timeout_s,
+            max_trailing_bytes=settings.max_trailing_bytes,
         )
     except Exception as err:
         raise_server_fault(err, doing="receiving an upload", where=staging)

@@ -337,7 +337,8 @@ def test_limits_endpoint_lists_every_limit(make_api: Any) -> None:
     body = api.client.get("/v1/limits", headers=api.read).json()
     assert body == {
         "max_upload_bytes": 4 << 30, "max_unpacked_bytes": 8 << 30, "max_unpacked_ratio": 50.0,
-        "max_archive_entries": 1000, "max_image_pixels": 1_000_000,
+        "max_archive_entries": 1000, "max_image_pixels": 1_000_000, "max_trailing_bytes": 1024, "max_exports": 4,
+        "read_timeout_s": 60.0,
         "odometry": {"max_position_m": 1e8, "max_speed_m_s": 1e3, "max_yaw_rate_rad_s": 1e2, "max_bad_fraction": 0.05},
     }  # fmt: skip
 
@@ -395,7 +396,8 @@ def test_limits_come_from_the_environment_and_are_checked() -> None:
                    "MAPSERVER_MAX_ARCHIVE_ENTRIES": "7", "MAPSERVER_MAX_IMAGE_PIXELS": "99"}  # fmt: skip
     settings = Settings.from_env(environment)
     assert settings.limits() == {"max_upload_bytes": 4 << 30, "max_unpacked_bytes": 1000, "max_unpacked_ratio": 2.5,
-                                 "max_archive_entries": 7, "max_image_pixels": 99}  # fmt: skip
+                                 "max_archive_entries": 7, "max_image_pixels": 99, "max_trailing_bytes": 1024,
+                                 "max_exports": 4, "read_timeout_s": 60.0}  # fmt: skip
     for bad in ({"MAPSERVER_MAX_UNPACKED_RATIO": "nan"}, {"MAPSERVER_MAX_UNPACKED_RATIO": "0.5"},
                 {"MAPSERVER_MAX_ARCHIVE_ENTRIES": "0"}, {"MAPSERVER_MAX_IMAGE_PIXELS": "lots"}):  # fmt: skip
         with pytest.raises(ConfigError):
