@@ -56,6 +56,7 @@ bench: install
 	$(BIN)/python bench/core_throughput.py --preset poseidon --templates 1000
 	$(BIN)/python bench/store.py
 	$(BIN)/python bench/api.py
+	$(BIN)/python bench/generalisation.py --small --seeds 1 --families street,campus --jobs 1
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis
