@@ -40,7 +40,6 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 from core._buffers import GrowBuffer
 from core._match_kernel import best_pair, fixed_point_bits, quantise
@@ -116,6 +115,8 @@ def patch_normalise(values: np.ndarray, radius: int, min_std: float, flat: float
     deviation. Cells with σ < ``min_std`` become 0.5, and cells with σ = 0 ``flat``
     (0.5; OpenRatSLAM's 0/0 clamps to 1.0, which ``openratslam_compat`` passes).
     """
+    from scipy.ndimage import uniform_filter  # here: scipy.ndimage's import is 0.25 s that most logs never need
+
     size = 2 * radius + 1
     mean = uniform_filter(values, size=size, mode="nearest")
     mean_sq = uniform_filter(values * values, size=size, mode="nearest")
