@@ -33,9 +33,11 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import directed_hausdorff
+from scipy.spatial.transform import Rotation
 
 from mapserver.errors import InputError
 from mapserver.formats import PathLike, Trajectory, atomic_write_bytes, odometry_trajectory
+from mapserver.rpe import DELTAS_M, RPEResult, reference_at, relative_pose_error, yaw_rotations
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -505,13 +507,22 @@ def evaluate_map(
         ``{"ape_rmse", "odometry_ape_rmse" (None without odometry), "hausdorff", "experiences" (count),
         "aligned" (experiences with ground truth), "ape_mean", "ape_max", "odometry_aligned", "dims",
         "session", "ape_z_rmse", "odometry_ape_z_rmse" (height part of the aligned errors; None for planar
-        maps), "alignment": {"rotation", "translation"}}``, plain Python values.
+        maps), "alignment": {"rotation", "translation"}, "rpe" (:func:`map_rpe` of the experiences: one entry
+        per segment length, 1 m and 10 m), "odometry_rpe" (the same for ``odometry`` when given, which has
+        orientations; None otherwise)}``, plain Python values.
 
     Raises:
         InputError: the map has no experience (of ``session``), or no experience stamp meets the ground truth.
 
     """
     ev = _evaluate(doc, ground_truth, odometry=odometry, max_diff_s=max_diff_s, session=session)
+    exps = _experiences_to_evaluate(doc, ground_truth, session)
+    yaw = np.array([float(e.get("yaw", 0.0)) for e in exps])
+    xyz = np.array([[float(e["x"]), float(e["y"]), float(e["z"])] for e in exps])
+    odometry_rpe = None
+    if odometry is not None and len(odometry):  # a file's odometry has orientations; the map's own has none
+        odo = odometry.sorted()
+        odometry_rpe = map_rpe(ground_truth, odo.stamps_s, odo.positions_xyz, odo_yaw(odo), ev.dims)
     return {
         "ape_rmse": ev.ape.rmse,
         "odometry_ape_rmse": ev.odo_ape.rmse if ev.odo_ape is not None else None,
@@ -526,7 +537,36 @@ def evaluate_map(
         "ape_z_rmse": ev.z_rmse,
         "odometry_ape_z_rmse": ev.odo_z_rmse,
         "alignment": {"rotation": ev.R3.tolist(), "translation": ev.t3.tolist()},
+        "rpe": map_rpe(ground_truth, ev.exp_stamps, xyz, yaw, ev.dims),
+        "odometry_rpe": odometry_rpe,
     }
+
+
+def map_rpe(
+    ground_truth: Trajectory, stamps: FloatArray, xyz: FloatArray, yaw: FloatArray, dims: int
+) -> list[dict[str, float | int | None]]:
+    """Return the RPE (:mod:`mapserver.rpe`) of poses ``xyz``, ``yaw`` at ``stamps`` over 1 m and 10 m of ground truth.
+
+    Only the stamps inside the ground truth's span count. The reference's orientation is reduced to its
+    yaw (a 4-DoF map holds no roll or pitch), and planar maps (``dims`` 2) are compared in xy.
+    """
+    gt = ground_truth.sorted()
+    inside = (stamps >= gt.stamps_s[0]) & (stamps <= gt.stamps_s[-1])
+    if inside.sum() < 2:
+        return [RPEResult(delta, 0, None, None, None, None).as_dict() for delta in DELTAS_M]
+    ref_xyz, ref_rot = reference_at(gt.stamps_s, gt.positions_xyz, gt.quat_xyzw, stamps[inside])
+    ref_yaw = yaw_rotations(ref_rot.as_euler("ZYX")[:, 0])
+    est_xyz = xyz[inside].copy()
+    if dims == 2:
+        ref_xyz[:, 2] = 0.0
+        est_xyz[:, 2] = 0.0
+    est_rot = yaw_rotations(yaw[inside])
+    return [relative_pose_error(ref_xyz, ref_yaw, est_xyz, est_rot, delta).as_dict() for delta in DELTAS_M]
+
+
+def odo_yaw(trajectory: Trajectory) -> FloatArray:
+    """Return the yaw (rad) of each pose of a trajectory (ZYX Euler angles of its quaternions)."""
+    return np.asarray(Rotation.from_quat(trajectory.quat_xyzw).as_euler("ZYX")[:, 0], dtype=np.float64)
 
 
 @dataclass(frozen=True)

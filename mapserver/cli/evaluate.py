@@ -107,6 +107,10 @@ def run(args: argparse.Namespace) -> int:
     )
     info(f"  APE RMSE (odometry):    {_fmt(result['odometry_ape_rmse'])}")
     info(f"  Hausdorff:              {_fmt(result['hausdorff'])}")
+    for entry in result["rpe"]:
+        label = f"RPE per {entry['delta_m']:g} m:"
+        rotation = "n/a" if entry["rot_rmse_deg"] is None else f"{entry['rot_rmse_deg']:.2f} deg"
+        info(f"  {label:<24}{_fmt(entry['trans_rmse'])}  rot {rotation} ({entry['pairs']} segments)")
     if result.get("ape_z_rmse") is not None:
         info(
             f"  z RMSE (experiences):   {_fmt(result['ape_z_rmse'])}  (odometry "

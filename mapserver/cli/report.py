@@ -57,7 +57,10 @@ def run(args: argparse.Namespace) -> int:
     result = write_report(inputs, args.out)
     for session, ev in result["evaluation"].items():
         if "ape_rmse" in ev:
-            info(f"{session}: APE RMSE {ev['ape_rmse']:.3f} m, Hausdorff {ev['hausdorff']:.3f} m")
+            rpe = ", ".join(f"RPE per {r['delta_m']:g} m {r['trans_rmse']:.3f} m" for r in ev["rpe"]
+                            if r["trans_rmse"] is not None)  # fmt: skip
+            info(f"{session}: APE RMSE {ev['ape_rmse']:.3f} m, Hausdorff {ev['hausdorff']:.3f} m"
+                 + (f", {rpe}" if rpe else ""))  # fmt: skip
     info(f"wrote {result['report']} ({len(result['pngs'])} figures)")
     if args.json:
         emit_json(result)
