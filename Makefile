@@ -39,6 +39,7 @@ cluster: install
 
 lint: install
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 # the viewer's browser tests drive the system's headless Chromium (Debian package; never a downloaded build)
 CHROMIUM ?= /usr/bin/chromium
