@@ -334,7 +334,8 @@ class OnlineMerger:
         if frame is None:
             msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
-        code = cast("NeocortexViewCells", lv).last_code  # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
+        # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
+        code = cast("NeocortexViewCells", lv).last_code
         assert code is not None
         if all(r.codes is not None for r in self._readers):
             rows = np.stack([reader.code_row(code) for reader in self._readers])
