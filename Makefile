@@ -60,4 +60,4 @@ bench: install
 	$(BIN)/python bench/generalisation.py --small --seeds 1 --families street,campus --jobs 1
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis
