@@ -39,6 +39,7 @@ cluster: install
 
 lint: install
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 # the viewer's browser tests drive the system's headless Chromium (Debian package; never a downloaded build)
 CHROMIUM ?= /usr/bin/chromium
@@ -59,4 +60,4 @@ bench: install
 	$(BIN)/python bench/generalisation.py --small --seeds 1 --families street,campus --jobs 1
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis

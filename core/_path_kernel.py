@@ -197,7 +197,7 @@ def load() -> None:
 
     The graph's arrays are read-only there (a distinct numba type from writable arrays), the others writable.
     """
-    graph = [np.zeros(2, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones(1)]  # one node, one self-link
+    graph = (np.zeros(2, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones(1))  # one node, one self-link
     for array in graph:
         array.setflags(write=False)
     ends = np.zeros(1, dtype=np.int64)

@@ -23,7 +23,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -39,14 +39,15 @@ from core.visual_odometry import VisualOdometry
 
 if TYPE_CHECKING:
     from core.config import Params
+    from core.neocortex import NeocortexViewCells
 
 
-def view_cells_class(params: Params) -> type[LocalViewCells]:
+def view_cells_class(params: Params) -> type[LocalViewCells] | type[NeocortexViewCells]:
     """Return the view module of ``params.frontend``: LVC templates, or SDR/HTM view cells (torch, lazy import)."""
     if params.frontend == "sdr-htm":
         from core.neocortex import NeocortexViewCells
 
-        return NeocortexViewCells  # type: ignore[return-value]  # same interface (process, count, snapshot)
+        return NeocortexViewCells
     return LocalViewCells
 
 
@@ -84,7 +85,9 @@ class Engine:
             empty one of ``params.frontend``.
     """
 
-    def __init__(self, params: Params, origin: int = 0, *, local_view: LocalViewCells | None = None) -> None:
+    def __init__(
+        self, params: Params, origin: int = 0, *, local_view: LocalViewCells | NeocortexViewCells | None = None
+    ) -> None:
         self.params = params
         self.origin = origin
         self.local_view = view_cells_class(params)(params) if local_view is None else local_view
@@ -129,7 +132,7 @@ class Engine:
         if sonar is None:
             template, relative_rad, created = self.local_view.process(image)
         elif self.params.frontend == "sdr-htm":
-            template, relative_rad, created = self.local_view.process(image, sonar)
+            template, relative_rad, created = cast("NeocortexViewCells", self.local_view).process(image, sonar)
         else:
             msg = "a sonar modality needs the sdr-htm front-end (--preset poseidon or neoslam)"
             raise ValueError(msg)
@@ -153,7 +156,7 @@ class Engine:
             shift_heading = self.params.vt_shift_heading and not self.params.openratslam_compat
             link_rad = -relative_rad if shift_heading else relative_rad
             if self._closure_faces_the_view(target):
-                relative_rad = self.local_view.view_heading(template)
+                relative_rad = cast(LocalViewCells, self.local_view).view_heading(template)  # lvc only
                 link_rad = -relative_rad
             loop_closure = self.map.create_link(self.map.current, target, link_rad, LinkKind.LOOP)
             self.map.set_experience(target, relative_rad)

@@ -324,11 +324,11 @@ class PoseCellNetwork:
             marginal = flat.sum(axis=0)
             sines, cosines = _openratslam_lookups(dim)
             weights = marginal.tolist()
-            cells = windows[axis].tolist()
+            index = windows[axis].tolist()
             s = c = 0.0
-            for k in sorted(range(len(cells)), key=cells.__getitem__):  # index order, as its loop over the axis
-                s += sines[cells[k]] * weights[k]
-                c += cosines[cells[k]] * weights[k]
+            for k in sorted(range(len(index)), key=index.__getitem__):  # index order, as its loop over the axis
+                s += sines[index[k]] * weights[k]
+                c += cosines[index[k]] * weights[k]
             value = math.atan2(s, c) * dim / (2.0 * math.pi) - 1.0
             while value < 0.0:
                 value += dim
@@ -433,7 +433,7 @@ class PoseCellNetwork:
         self.prev_vt = self.current_vt
         self.current_vt = template
 
-    def delta_to(self, coords: np.ndarray) -> np.ndarray:
+    def delta_to(self, coords: np.ndarray) -> np.ndarray | np.float64:
         """Return wrapped lattice distances from the heading-corrected packet centre to ``coords`` (…, D).
 
         OpenRatSLAM ``get_delta_pc``: the current θ is corrected by the view's

@@ -68,7 +68,7 @@ import scipy.sparse as sp
 from scipy.linalg import LinAlgError
 from scipy.linalg.lapack import dpotrf, dpotrs
 from scipy.sparse.csgraph import breadth_first_order, connected_components
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import SuperLU, splu
 
 from core._buffers import GrowBuffer
 
@@ -572,6 +572,7 @@ class LinkComponents:
         self._first, self._second = first[order], second[order].astype(np.int32)
         self._link = np.tile(self.switched, 2)[order]  # the link of each direction
         every = self.labels(np.ones(src.size, dtype=bool))
+        assert every is not None  # every link on, the fixed ones too
         self.parts = int(np.max(every, initial=-1)) + 1  # the whole graph's
         self._known: dict[bytes, bool] = {}  # the last sets tested
 
@@ -682,7 +683,7 @@ class SwitchedRelaxation:
         self._incidence_c = self.incidence_t.astype(np.complex128)
         self.weight = 1.0 / np.maximum(self.length, 1.0)
         self._reference = np.zeros(self.switched[0].size, dtype=bool)
-        self._factor: object | None = None
+        self._factor: SuperLU | None = None
         self._fields = np.zeros((2, nf + 1))
         self._slot = np.full(kr, -1, dtype=np.int64)
         self._columns = np.zeros((0, nf + 1))
@@ -720,7 +721,9 @@ class SwitchedRelaxation:
         np.cos(source, out=turned.real)
         np.sin(source, out=turned.imag)
         planar = self.member @ (turned * self.turned)  # what each run measures in the plane
-        solved = self._factor.solve((self._incidence_c @ (planar * (on * self.weight))).view(np.float64).reshape(-1, 2))
+        assert self._factor is not None  # made by _rebase
+        incidence = np.asarray(self._incidence_c @ (planar * (on * self.weight)))
+        solved = self._factor.solve(incidence.view(np.float64).reshape(-1, 2))
         xy = np.zeros(self.free + 1, dtype=np.complex128)
         xy.real[: self.free] = solved[:, 0]
         xy.imag[: self.free] = solved[:, 1]
@@ -763,6 +766,7 @@ class SwitchedRelaxation:
             which = np.arange(missing.size)
             rhs[self.local_dst[missing], which] = 1.0
             rhs[self.local_src[missing], which] = -1.0
+            assert self._factor is not None  # made by _rebase
             solved = self._factor.solve(np.ascontiguousarray(rhs[: self.free]))
             self._columns[self._filled : need, : self.free] = solved.T
             self._slot[missing] = np.arange(self._filled, need)

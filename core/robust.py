@@ -793,7 +793,7 @@ class _Problem:
         self.solves += 1
         switched = None if self.joint else self._prepared()[1]
         found = None if switched is None else switched.residuals(active)
-        if found is None:
+        if switched is None or found is None:
             return self.exact(_State(active, np.zeros(0), 0.0, self))
         z = np.zeros(self.src.size)
         core = _normalise(*found, self.length, self.drift, self.view[switched.links])
@@ -1020,8 +1020,8 @@ def chain_headings(
     parent = np.arange(n)
     degree = np.bincount(np.concatenate([src, dst]), minlength=n)
     for root in np.flatnonzero(anchor & (degree > 0)).tolist():
-        order, pred = breadth_first_order(which, root, directed=False, return_predecessors=True)
-        parent[order[1:]] = pred[order[1:]]
+        visit, pred = breadth_first_order(which, root, directed=False, return_predecessors=True)
+        parent[visit[1:]] = pred[visit[1:]]
     child = np.flatnonzero(parent != np.arange(n))
     delta = np.zeros(n)
     used = np.asarray(which[parent[child], child]).ravel().astype(np.int64) - 1

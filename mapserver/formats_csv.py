@@ -58,7 +58,7 @@ def links_csv(snapshot: Mapping[str, npt.ArrayLike]) -> str:
         [int(src[k]), int(dst[k]), LINK_KINDS.get(int(kinds[k]), str(kinds[k])), dt[k], dist[k], *tf[k]]
         for k in range(len(src))
     ]
-    header = LINK_COLUMNS
+    header: tuple[str, ...] = LINK_COLUMNS
     if "em_link_active" in snapshot:
         active = np.asarray(snapshot["em_link_active"], dtype=bool).reshape(-1).tolist()
         header = (*LINK_COLUMNS, "active")

@@ -20,6 +20,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,7 @@ from mapserver.store.export import map_document
 from mapserver.store.identities import template_ids_by_identity, template_ids_matching
 from mapserver.store.jobs import last_done_upload
 from mapserver.store.merge_events import MergeEventRecord, list_merge_events
-from mapserver.store.sessions import find_session_map, get_activations, get_reckoning
+from mapserver.store.sessions import SessionRecord, find_session_map, get_activations, get_reckoning
 
 COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 LINK_STYLE = {"odometry": ("#9e9e9e", "-"), "loop": ("#d62728", "-"), "merge": ("#6a1b9a", "--"),
@@ -144,7 +145,8 @@ def gather(
         activations = _activations(conn, record.id, content.meta.sessions)
     default = session or (names[0] if len(names) == 1 else None)
     truth: dict[str, Trajectory] = {}
-    for key, source in [*(ground_truth or {}).items(), *((k, v) for k, v in (logs or {}).items())]:
+    sources: list[tuple[str | None, Trajectory | Path]] = [*(ground_truth or {}).items(), *(logs or {}).items()]
+    for key, source in sources:
         who = key if key is not None else default
         if who is None or who not in names:
             msg = f"ground truth for {key or '(unnamed)'!r}: name one of the map's sessions ({', '.join(names)})"
@@ -152,14 +154,16 @@ def gather(
         found = source if isinstance(source, Trajectory) else log_ground_truth(Path(source))
         if found is not None and who not in truth:
             truth[who] = found
-    for s in [session] if session else names:
-        if s not in truth and (kept := stored_log(db, s)) is not None and (found := log_ground_truth(kept)):
-            truth[s] = found
+    for who in [session] if session else names:
+        if who not in truth and (kept := stored_log(db, who)) is not None and (found := log_ground_truth(kept)):
+            truth[who] = found
     places = _template_places(db, record.id, events)
     return ReportInputs(map_name, session, doc, events, places, truth, odometry, activations)
 
 
-def _activations(conn: Connection, map_id: int, sessions: list[Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _activations(
+    conn: Connection, map_id: int, sessions: Sequence[SessionRecord]
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Return each session's stored per-frame timeline with template identities resolved to this map's ids.
 
     A frame's template is named by its stable identity (origin session, origin index); merges renumber

@@ -159,6 +159,7 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
         t_ids = stored_identities(conn, target, target.snapshot, target.session_ids)
         s_ids = stored_identities(conn, source, source.snapshot, source.session_ids)
         settle = bool(details.get("settle", True))
+        extra: dict[str, np.ndarray]
         if event.mode == "offline":
             engine, record = merge_snapshots(
                 StoredMap(target.map_name, t_params, target.snapshot),

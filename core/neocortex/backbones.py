@@ -71,6 +71,10 @@ class InvertedResidual(nn.Module):
 class ShuffleNetV2(nn.Module):
     """ShuffleNetV2 x1.0 (stage repeats 4, 8, 4; channels 24, 116, 232, 464, 1024)."""
 
+    stage2: nn.Sequential
+    stage3: nn.Sequential
+    stage4: nn.Sequential
+
     def __init__(
         self, repeats: tuple[int, ...] = (4, 8, 4), channels: tuple[int, ...] = (24, 116, 232, 464, 1024)
     ) -> None:
@@ -125,10 +129,10 @@ class AlexNet(nn.Module):
         return self.classifier(torch.flatten(self.avgpool(self.features(x)), 1))
 
 
-ARCHITECTURES = {"shufflenetv2": ShuffleNetV2, "alexnet": AlexNet}
+ARCHITECTURES: dict[str, type[ShuffleNetV2] | type[AlexNet]] = {"shufflenetv2": ShuffleNetV2, "alexnet": AlexNet}
 
 
-def build_backbone(name: str, weights: str | Path, device: torch.device) -> nn.Module:
+def build_backbone(name: str, weights: str | Path, device: torch.device) -> ShuffleNetV2 | AlexNet:
     """Return backbone ``name`` in eval mode on ``device`` with the state dict of file ``weights``.
 
     Accepts a plain state dict or one under ``"state_dict"`` (tensors only; ``weights_only`` loading).

@@ -19,7 +19,7 @@ import torch
 
 from core.config import ConfigError
 from core.localview import LocalViewCells
-from core.neocortex.backbones import build_backbone, preprocess
+from core.neocortex.backbones import AlexNet, ShuffleNetV2, build_backbone, preprocess
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -47,7 +47,7 @@ class Encoder:
     def __init__(self, params: Params, device: torch.device) -> None:
         self.params = params
         self.device = device
-        self.backbone = None
+        self.backbone: ShuffleNetV2 | AlexNet | None = None
         if params.frontend_backbone == "none":
             self._templates = LocalViewCells(params)
             self.dims = params.template_y_size * params.template_x_size

@@ -158,6 +158,7 @@ class NeocortexViewCells:
             return match.index, 0.0, False
         row = np.full((1, self.params.sv_tm_topk), -1, dtype=np.int64)
         row[0, : d.size] = d
+        assert self.last_code is not None  # kept by _keep_code
         self.add_prototypes(row, np.array([d.size]), self.last_code[None, :])
         self.current = self.count - 1
         return self.current, 0.0, True
@@ -199,7 +200,7 @@ class NeocortexViewCells:
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:
         """Return the whole front-end state as plain arrays (keys ``lv_*`` and ``nc_*``)."""
-        state = {
+        state: dict[str, np.ndarray] = {
             "lv_templates": self._prototypes.astype(np.float32)[:, None, :],
             "lv_means": self._sizes.astype(np.float64),
             "lv_sdr": self._codes.copy(),

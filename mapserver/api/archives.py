@@ -129,7 +129,7 @@ class _Budget:
 class _Counted(io.RawIOBase):
     """A readable stream that charges every byte it returns to a :class:`_Budget`."""
 
-    def __init__(self, source: IO[bytes], budget: _Budget) -> None:
+    def __init__(self, source: IO[bytes] | io.BufferedIOBase, budget: _Budget) -> None:
         super().__init__()
         self._source = source
         self._budget = budget
@@ -225,10 +225,10 @@ class _BoundedTarInfo(tarfile.TarInfo):
         if self.type in _EXTENDED_HEADERS and self.size > MAX_TAR_HEADER_BYTES:
             msg = f"archive has an extended tar header of {self.size} bytes (at most {MAX_TAR_HEADER_BYTES} accepted)"
             raise InputError(msg)
-        return super()._proc_member(tarfile)
+        return super()._proc_member(tarfile)  # type: ignore[misc]  # typeshed omits TarInfo's private hooks
 
 
-def _decompressed(archive: Path) -> IO[bytes]:
+def _decompressed(archive: Path) -> IO[bytes] | io.BufferedIOBase:
     """Open ``archive`` as its decompressed byte stream (gzip, bzip2, xz or plain, told by its magic bytes)."""
     with archive.open("rb") as handle:
         magic = handle.read(6)

@@ -11,7 +11,7 @@ from mapserver.store import upgrade as _upgrade
 from mapserver.store.migrate import HEAD_REVISION
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``db`` command and its ``upgrade`` and ``current`` subcommands."""
     parser = subparsers.add_parser("db", help="manage the database schema")
     actions = parser.add_subparsers(dest="db_action", required=True, metavar="ACTION")

@@ -28,7 +28,7 @@ DEMO_MAP = "demo"
 DEMO_LOGS = (("session1", "demo-a.bag"), ("session2", "demo-b.bag"))
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``demo`` command."""
     parser = subparsers.add_parser("demo", help="build a small demo atlas from two simulated missions")
     parser.add_argument("--db", default=DEFAULT_DB_URL, help=f"SQLAlchemy URL (default: {DEFAULT_DB_URL})")

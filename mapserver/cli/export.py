@@ -9,7 +9,7 @@ from mapserver.store import DEFAULT_DB_URL, open_database
 from mapserver.store.export import EXPORT_FORMATS, export_map
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``export`` command."""
     parser = subparsers.add_parser(
         "export", help="write a stored map as map JSON, TUM poses, a PNG plot, a g2o pose graph or CSV tables"

@@ -21,7 +21,7 @@ from mapserver.store.import_msr import FORMAT, import_multisession_ratslam
 FORMATS = (FORMAT, G2O)
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``import`` command."""
     parser = subparsers.add_parser("import", help="store a map saved by another tool, or poses optimised by one")
     parser.add_argument(

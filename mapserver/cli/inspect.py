@@ -39,7 +39,7 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def _row(topic: dict[str, Any]) -> tuple[str, ...]:
+def _row(topic: dict[str, Any]) -> tuple[str, str, str, str, str]:
     span = "-" if topic["first_s"] is None else f"{topic['first_s']:.2f}–{topic['last_s']:.2f}"
     return (topic["name"], topic["type"], str(topic["count"]), f"{topic['rate_hz']:.2f}", span)
 

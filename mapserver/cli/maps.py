@@ -9,7 +9,7 @@ from mapserver.cli._output import emit_json
 from mapserver.store import DEFAULT_DB_URL, list_maps, open_database
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``maps`` command."""
     parser = subparsers.add_parser("maps", help="list the stored maps")
     parser.add_argument("--db", default=DEFAULT_DB_URL, help=f"SQLAlchemy URL (default: {DEFAULT_DB_URL})")

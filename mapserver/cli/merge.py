@@ -13,7 +13,7 @@ from mapserver.errors import InputError
 from mapserver.store import DEFAULT_DB_URL, open_database
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``merge`` command."""
     parser = subparsers.add_parser(
         "merge", help="merge stored map A into stored map B when a confirmed template match exists (or redo a merge)"

@@ -11,7 +11,7 @@ from mapserver.store import DEFAULT_DB_URL, get_map, open_database
 from mapserver.store.queries import load_graph
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``path`` command."""
     parser = subparsers.add_parser("path", help="shortest path between two experiences of a stored map")
     parser.add_argument("--db", default=DEFAULT_DB_URL, help=f"SQLAlchemy URL (default: {DEFAULT_DB_URL})")

@@ -15,7 +15,7 @@ from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``process`` command."""
     parser = subparsers.add_parser("process", help="run the SLAM engine over a mission log")
     parser.add_argument("log", help="ROS 1 .bag, ROS 2 bag directory, .db3 or .mcap")

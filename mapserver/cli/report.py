@@ -10,7 +10,7 @@ from mapserver.errors import InputError
 from mapserver.store import DEFAULT_DB_URL, open_database
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``report`` command."""
     parser = subparsers.add_parser(
         "report",

@@ -14,7 +14,7 @@ from mapserver.cli._output import info
 from mapserver.store import open_database
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``serve`` command."""
     defaults = Settings()
     parser = subparsers.add_parser("serve", help="run the REST API server")

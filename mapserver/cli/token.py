@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from mapserver.cli._output import emit_json, info
 from mapserver.store import DEFAULT_DB_URL, TOKEN_SCOPES, open_database, utcnow
 from mapserver.store.tokens import create_token, list_tokens, parse_duration, revoke_token
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``token`` command and its ``create``, ``list`` and ``revoke`` subcommands."""
     parser = subparsers.add_parser("token", help="manage REST API tokens")
     actions = parser.add_subparsers(dest="token_action", required=True, metavar="ACTION")
@@ -51,7 +52,7 @@ def run_list(args: argparse.Namespace) -> int:
     with open_database(args.db) as db, db.read() as conn:
         records = list_tokens(conn=conn)
     now = utcnow()
-    items = [
+    items: list[dict[str, Any]] = [
         {"id": r.id, "prefix": r.prefix, "scope": r.scope, "label": r.label, "created_at": r.created_at.isoformat(),
          "revoked": r.revoked_at is not None,
          "expires_at": None if r.expires_at is None else r.expires_at.isoformat(),

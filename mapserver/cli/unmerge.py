@@ -9,7 +9,7 @@ from mapserver.cli._output import emit_json, info
 from mapserver.store import DEFAULT_DB_URL, open_database
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``unmerge`` command."""
     parser = subparsers.add_parser("unmerge", help="undo a merge event, restoring the maps as they were before it")
     parser.add_argument("--db", default=DEFAULT_DB_URL, help=f"SQLAlchemy URL (default: {DEFAULT_DB_URL})")

@@ -18,7 +18,7 @@ from mapserver.errors import InputError
 from mapserver.store import open_database
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``uploads`` command and its ``prune`` action."""
     defaults = Settings()
     parser = subparsers.add_parser("uploads", help="manage the server's upload directory")

@@ -13,7 +13,7 @@ from mapserver.errors import ConfigError
 DEFAULT_BROKER = "redis://127.0.0.1:6379/0"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``worker`` command."""
     parser = subparsers.add_parser("worker", help="run a distributed job worker (Celery, PostgreSQL)")
     parser.add_argument("--db", default=os.environ.get("MAPSERVER_DB"),

@@ -137,7 +137,7 @@ def compressed_size(data: bytes | npt.NDArray[np.uint8]) -> tuple[int, int] | No
         return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
     if not head.startswith(b"\xff\xd8"):
         return None
-    view = memoryview(data if isinstance(data, bytes) else np.ascontiguousarray(data)).cast("B")
+    view = memoryview(data if isinstance(data, bytes) else np.ascontiguousarray(data)).cast("B")  # type: ignore[arg-type]  # numpy's stubs: ndarray is a buffer
     pos = 2
     while pos + 4 <= len(view):
         if view[pos] != 0xFF:
@@ -203,7 +203,7 @@ def _decode_compressed(msg: Any, topic: str, limit: int) -> npt.NDArray[np.uint8
         msg_ = f"cannot decode compressed image ({msg.format!r}, {buffer.size} bytes) on {topic}"
         raise IngestError(msg_)
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        image = (image >> 8).astype(np.uint8)  # type: ignore[operator]  # cv2's stubs: a uint16 image shifts
     elif image.dtype != np.uint8:
         msg_ = f"unsupported compressed image depth {image.dtype} on {topic}"
         raise IngestError(msg_)

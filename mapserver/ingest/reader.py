@@ -514,7 +514,7 @@ class ReadAhead:
         """Return the worker's next message; raise IngestError when it ended without one."""
         if self.worker == "process":
             try:
-                return self._receive.recv()  # type: ignore[no-any-return]
+                return self._receive.recv()
             except EOFError:
                 self._runner.join(timeout=1.0)
         else:

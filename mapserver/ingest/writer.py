@@ -83,7 +83,7 @@ class _Messages:
     def __init__(self, typestore: Typestore) -> None:
         self.ts = typestore
         self.types = typestore.types
-        self.has_seq = "seq" in self.types["std_msgs/msg/Header"].__dataclass_fields__
+        self.has_seq = "seq" in self.types["std_msgs/msg/Header"].__dataclass_fields__  # type: ignore[attr-defined]  # rosbags types its message classes as plain types
         self.seq = 0
 
     def header(self, stamp_ns: int, frame_id: str) -> Any:
@@ -213,7 +213,7 @@ def encode_compressed(
     pixels: npt.NDArray[Any], fmt: Literal["jpeg", "png"], jpeg_quality: int = JPEG_QUALITY
 ) -> npt.NDArray[np.uint8]:
     """Encode uint8 grey or RGB pixels as JPEG (``jpeg_quality``, 1–100) or PNG bytes."""
-    image = np.asarray(pixels, dtype=np.uint8)
+    image: npt.NDArray[Any] = np.asarray(pixels, dtype=np.uint8)
     if image.ndim == 3:
         image = cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2BGR)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else []

@@ -173,6 +173,7 @@ class CortexReader:
         d = self.cells.read(image, sonar, code)
         out = np.full(self.width, -1, dtype=np.int64)
         out[: d.size] = d
+        assert self.cells.last_code is not None  # kept by read
         out[self.topk :] = self.cells.last_code
         return out
 

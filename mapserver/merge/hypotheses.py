@@ -480,14 +480,16 @@ class HypothesisSet:
             outcome, seen, faced = *self.places.test(predicted, view, mean, matched), None
         else:
             outcome, seen, faced = self.places.test_faced(predicted, view, mean, matched)
-        if outcome == HIT and self.places.loose and self._held(hypothesis, seen, step):
-            self.reanchor(hypothesis, seen, odometry, once=False)
-            return HELD
         if outcome == HIT:
+            assert seen is not None  # a hit has a place
+            if self.places.loose and self._held(hypothesis, seen, step):
+                self.reanchor(hypothesis, seen, odometry, once=False)
+                return HELD
             if after_merge:
                 hypothesis.post_hit_m += step
             else:
-                hypothesis.record_hit(odometry, faced, step)  # type: ignore[arg-type]  # a hit has a place
+                assert faced is not None  # a hit has a place
+                hypothesis.record_hit(odometry, faced, step)
             self.reanchor(hypothesis, seen, odometry, once=after_merge and not self.places.loose)
         elif outcome == MISS:
             if after_merge:
@@ -552,6 +554,7 @@ class HypothesisSet:
             weight = (last_tested if np.isfinite(last_tested) else track.last[2]) - travelled
             outcome, _, faced = self.places.test_faced(hypothesis.predict(odometry), view, mean)
             if outcome == HIT:
+                assert faced is not None  # a hit has a place
                 hypothesis.record_hit(odometry, faced, weight)
             elif outcome == MISS:
                 hypothesis.miss_m += weight

@@ -202,7 +202,7 @@ def _match_of(
     pose = compose(anchor.odometry, relative(anchor.seen, experience))
     return Match(
         stored_template=anchor.stored_template, stored_experience=anchor.stored_experience,
-        partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),  # type: ignore[arg-type]
+        partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),
         partial_packet=tuple(float(v) for v in anchor.packet), relative_rad=anchor.relative_rad,
         confirmations=len(entries), pairs=pairs,
     )  # fmt: skip

@@ -45,7 +45,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -61,6 +61,10 @@ from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.resume import MergerState
 from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
 from mapserver.merge.verify import LAZY_SHADOW_BYTES, PASSED, REJECTED, Probation, image_bytes
+
+if TYPE_CHECKING:
+    from core.neocortex import NeocortexViewCells
+    from mapserver.merge.cortex import CortexReader
 
 logger = logging.getLogger(__name__)
 
@@ -139,7 +143,7 @@ class _Unread:
 @dataclass(eq=False)
 class _Candidate:
     stored: StoredMap
-    cells: Any  # LocalViewCells, or mapserver.merge.cortex.CortexReader for sdr-htm maps
+    cells: LocalViewCells | CortexReader  # CortexReader for sdr-htm maps
     order: np.ndarray
     starts: np.ndarray
     hypotheses: HypothesisSet
@@ -303,8 +307,9 @@ class OnlineMerger:
         """
         if engine.params.frontend != "sdr-htm":
             cells = LocalViewCells.restore(engine.params, state)
-            if engine.local_view.column_rad > 0:  # the session's camera, for vt_shift_heading
-                cells.column_rad = engine.local_view.column_rad
+            own = cast(LocalViewCells, engine.local_view)  # an lvc session's
+            if own.column_rad > 0:  # the session's camera, for vt_shift_heading
+                cells.column_rad = own.column_rad
             return cells
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm sessions
 
@@ -324,11 +329,14 @@ class OnlineMerger:
         """
         lv = engine.local_view
         if not self._readers or (not self._candidates and self.probation is None):
+            assert lv.last_view is not None  # observe steps no frame without a view
             return lv.last_view, lv.last_mean, None
         if frame is None:
             msg = "sdr-htm merge candidates read the frames: call observe(engine, result, frame)"
             raise ValueError(msg)
-        code = lv.last_code  # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
+        # readers are sdr-htm only: the frame's SDR, as the session's own cortex just encoded it
+        code = cast("NeocortexViewCells", lv).last_code
+        assert code is not None
         if all(r.codes is not None for r in self._readers):
             rows = np.stack([reader.code_row(code) for reader in self._readers])
             if self.probation is not None and not self._candidates:
@@ -497,7 +505,7 @@ class OnlineMerger:
         odometry = np.array([o for o, _ in winner.hits])
         seen = np.array([p for _, p in winner.hits])
         robots = self._robot_pose(engine, odometry)
-        own = cKDTree(poses[:, :3]).query(robots[:, :3])[1]
+        own = np.asarray(cKDTree(poses[:, :3]).query(robots[:, :3])[1])
         place = places.rows_at(seen)
         tie = compose(relative(poses[own], robots), relative(seen, places.poses[place]))
         ties = [(int(a), int(b), tuple(float(v) for v in t)) for a, b, t in zip(own, anchors[place], tie, strict=True)]
@@ -516,27 +524,27 @@ class OnlineMerger:
             pose = compose(pose, relative(anchor.seen, compose(experience, _heading(anchor.relative_rad))))
         match = Match(
             stored_template=anchor.stored_template, stored_experience=anchor.stored_experience,
-            partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),  # type: ignore[arg-type]
+            partial_template=anchor.partial_template, partial_pose=tuple(float(v) for v in pose),
             partial_packet=tuple(float(v) for v in anchor.packet), relative_rad=anchor.relative_rad,
             confirmations=len(winner.support), pairs=winner.pairs(),
             ties=self._ties(engine, winner, candidate) if TIE_HITS and not self._readers else (),
         )  # fmt: skip
         partial = engine.snapshot()
-        reader = candidate.cells if self._readers else None
+        reader = cast("CortexReader", candidate.cells) if self._readers else None
         merged, record = merge_engine(
             candidate.stored, engine, match, shift_lattice=self.shift_lattice,
             partial=partial if reader is None else reader.translated(partial),
             cortex=None if reader is None else reader.cortex(),
         )  # fmt: skip
         rule = candidate.hypotheses.rule
-        evidence = {
+        evidence: dict[str, Any] = {
             "decision": {**winner.evidence(rule), "rival_score_m": round(rival, 3)},
             "rule": {"evidence_m": round(rule.evidence_m, 3), "probation_m": round(rule.probation_m, 3),
                      "reject_m": round(rule.reject_m, 3), "position_tolerance_m": round(rule.position_tolerance, 3),
                      "miss_weight": rule.miss_weight},
             "distance_m": round(self._track.distance, 3),
         }  # fmt: skip
-        if getattr(reader, "codes", None) is not None:  # the code gate this map's observations passed
+        if reader is not None and reader.codes is not None:  # the code gate this map's observations passed
             evidence["rule"]["sdr_min_overlap"] = round(float(reader.min_overlap), 4)
         event = MergeEvent(
             key=candidate.stored.key, engine=merged, record=record, frame=result.frame,

@@ -84,7 +84,7 @@ def merged_template_codes(loaded: State, partial: State, record: MergeRecord) ->
     """
     if "lv_sdr" not in loaded and "lv_sdr" not in partial:
         return {}
-    width = int(np.shape(loaded.get("lv_sdr", partial.get("lv_sdr")))[1])
+    width = int(np.shape(loaded["lv_sdr"] if "lv_sdr" in loaded else partial["lv_sdr"])[1])
     l_codes, p_codes = (template_rows(s, "lv_sdr", int(np.shape(s["lv_means"])[0]), 0, np.uint8, width)
                         for s in (loaded, partial))  # fmt: skip
     kept = np.asarray(record.template_map) >= record.template_offset

@@ -43,12 +43,12 @@ def match_from_dict(data: Mapping[str, Any]) -> Match:
         stored_template=int(data["stored_template"]),
         stored_experience=int(data["stored_experience"]),
         partial_template=int(data["partial_template"]),
-        partial_pose=tuple(float(v) for v in data["partial_pose"]),  # type: ignore[arg-type]
+        partial_pose=tuple(float(v) for v in data["partial_pose"]),
         partial_packet=tuple(float(v) for v in data["partial_packet"]),
         relative_rad=float(data["relative_rad"]),
         confirmations=int(data["confirmations"]),
         pairs=tuple((int(a), int(b)) for a, b in data["pairs"]),
-        ties=tuple((int(a), int(b), tuple(float(v) for v in t)) for a, b, t in data.get("ties", ())),  # type: ignore[misc]
+        ties=tuple((int(a), int(b), tuple(float(v) for v in t)) for a, b, t in data.get("ties", ())),
     )
 
 

@@ -47,12 +47,12 @@ class Match:
     stored_template: int
     stored_experience: int
     partial_template: int
-    partial_pose: tuple[float, float, float, float]
+    partial_pose: tuple[float, ...]  # x, y, z, yaw
     partial_packet: tuple[float, ...]
     relative_rad: float = 0.0
     confirmations: int = 1
     pairs: tuple[tuple[int, int], ...] = ()
-    ties: tuple[tuple[int, int, tuple[float, float, float, float]], ...] = ()
+    ties: tuple[tuple[int, int, tuple[float, ...]], ...] = ()  # (partial, stored, x y z yaw)
 
     @classmethod
     def at_experience(

@@ -83,7 +83,10 @@ class MergerState:
         seen (4), packet (D); ``hits`` (N, 9): hypothesis row, odometry (4), place (4) (``Hypothesis.hits``;
         a state stored before them has none); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
         """
-        rows, support, banned, hits = [], [], [], []
+        rows: list[list[float]] = []
+        support: list[np.ndarray] = []
+        banned: list[list[float]] = []
+        hits: list[list[float]] = []
         for key, (live, bans) in self.hypotheses.items():
             for h in live:
                 rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
@@ -136,7 +139,9 @@ class MergerState:
             grouped.setdefault(int(r[0]), ([], []))[0].append(h)
         for r in np.asarray(arrays["banned"], dtype=np.float64).reshape(-1, 5):
             grouped.setdefault(int(r[0]), ([], []))[1].append(r[1:].copy())
-        hypotheses = {k: (tuple(v[0]), tuple(v[1])) for k, v in sorted(grouped.items())}
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {
+            k: (tuple(v[0]), tuple(v[1])) for k, v in sorted(grouped.items())
+        }
         track = Track(0.0)
         views = np.asarray(arrays["track_views"], dtype=np.float32)
         odometry, distance = np.asarray(arrays["track_odometry"]), np.asarray(arrays["track_distance"])

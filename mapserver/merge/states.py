@@ -472,14 +472,14 @@ def _tie_links(match: Match, exp: _Experiences) -> dict[str, np.ndarray]:
     that goes up and down: merged depths 0.041 m RMSE with the tie's height, 0.018 m for the session alone).
     """
     seen: set[tuple[int, int]] = set()
-    rows: list[tuple[int, int, tuple[float, float, float, float]]] = []
-    for e_p, e_l, transform in match.ties:
+    rows: list[tuple[int, int, tuple[float, ...]]] = []
+    for e_p, e_l, tie in match.ties:
         _check_id(e_p, exp.emap.size, "tied partial experience")
         _check_id(e_l, exp.n_loaded, "tied stored experience")
         if not exp.kept[e_p] or (e_p, e_l) in seen:
             continue
         seen.add((e_p, e_l))
-        rows.append((int(exp.emap[e_p]), e_l, transform))
+        rows.append((int(exp.emap[e_p]), e_l, tie))
     transform = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
     ends = np.array([r[:2] for r in rows], dtype=np.int64).reshape(-1, 2)
     poses = exp.arrays["em_pose"]

@@ -13,7 +13,7 @@ import secrets
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from sqlalchemy import Connection, Executable, Table
+from sqlalchemy import ClauseElement, Connection, Table
 
 
 def bulk_insert(conn: Connection, table: Table, columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
@@ -37,7 +37,7 @@ def bulk_insert(conn: Connection, table: Table, columns: Sequence[str], rows: Se
     conn.execute(table.insert(), [dict(zip(columns, row, strict=True)) for row in rows])
 
 
-def fetch_tuples(conn: Connection, statement: Executable) -> list[tuple[Any, ...]]:
+def fetch_tuples(conn: Connection, statement: ClauseElement) -> list[tuple[Any, ...]]:
     """Run ``statement`` (bound values rendered inline; use it for integers and literals we control only)."""
     compiled = statement.compile(dialect=conn.dialect, compile_kwargs={"literal_binds": True})
     driver_connection: Any = conn.connection.driver_connection
@@ -49,7 +49,7 @@ def fetch_tuples(conn: Connection, statement: Executable) -> list[tuple[Any, ...
         cursor.close()
 
 
-def iter_tuples(conn: Connection, statement: Executable, batch: int) -> Iterator[list[tuple[Any, ...]]]:
+def iter_tuples(conn: Connection, statement: ClauseElement, batch: int) -> Iterator[list[tuple[Any, ...]]]:
     """Run ``statement`` and yield its rows ``batch`` at a time, never holding more than one batch.
 
     PostgreSQL with psycopg 3 reads through a server-side (named) cursor inside the caller's transaction;

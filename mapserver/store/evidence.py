@@ -172,7 +172,7 @@ def save_evidence(*, conn: Connection, session_id: int, items: Sequence[tuple[in
         for index, img in items
     ]
     columns = ("session_id", "origin_index", "frame_stamp", "offset_s", "width", "height", "media_type", "data")
-    bulk_insert(conn, Evidence.__table__, columns, rows)  # type: ignore[arg-type]
+    bulk_insert(conn, Evidence.__table__, columns, rows)
     return len(rows)
 
 

@@ -141,12 +141,18 @@ def render_png(content: MapContent | PlotGraph, *, title: str | None = None) -> 
         if np.any(chosen):
             segments = np.stack([xy[src[chosen]], xy[dst[chosen]]], axis=1)
             ax.add_collection(
-                LineCollection(segments, colors=colour, linestyles=style, linewidths=0.8, label=f"{label} links")
+                LineCollection(
+                    segments,  # type: ignore[arg-type]  # the stubs take a sequence; an (N, 2, 2) array is valid
+                    colors=colour, linestyles=style, linewidths=0.8, label=f"{label} links",
+                )
             )
     if not active.all():  # switched off by robust relaxation: grey, dashed
         segments = np.stack([xy[src[~active]], xy[dst[~active]]], axis=1)
         ax.add_collection(
-            LineCollection(segments, colors="0.75", linestyles="--", linewidths=0.8, label="switched-off links")
+            LineCollection(
+                segments,  # type: ignore[arg-type]  # the stubs take a sequence; an (N, 2, 2) array is valid
+                colors="0.75", linestyles="--", linewidths=0.8, label="switched-off links",
+            )
         )
     cmap = colormaps["tab10"]
     for k, (session_id, session_name) in enumerate(graph.sessions):

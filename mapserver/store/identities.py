@@ -9,7 +9,7 @@ never reuse one).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 from sqlalchemy import Connection, func, select, tuple_
 
@@ -64,7 +64,7 @@ def template_ids_matching(
             Template.origin_index.in_(origin_indices),
         )
     ).all()
-    return [int(r[0]) for r in rows]
+    return [int(cast(int, r[0])) for r in rows]  # a template in a map has its local id
 
 
 def template_ids_by_identity(*, conn: Connection, map_id: int) -> dict[Identity, int]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 from sqlalchemy import Connection, func, insert, select, update
 
@@ -233,7 +233,7 @@ def _merge_counts(conn: Connection) -> dict[int, dict[str, int]]:
     merges: dict[int, dict[str, int]] = {}
     counted = select(MergeEvent.map_id, MergeEvent.status, func.count()).where(MergeEvent.map_id.is_not(None))
     for map_id, status, n in conn.execute(counted.group_by(MergeEvent.map_id, MergeEvent.status)):
-        merges.setdefault(int(map_id), _no_merges())[str(status)] = int(n)
+        merges.setdefault(int(cast(int, map_id)), _no_merges())[str(status)] = int(n)
     applied = select(MergeEvent.map_id, MergeEvent.details).where(
         MergeEvent.map_id.is_not(None), MergeEvent.status == "applied", MergeEvent.mode == "online"
     )

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any
+from typing import Any, cast
 
 from sqlalchemy import Connection, func, insert, select, update
 
@@ -185,10 +185,10 @@ def _events(conn: Connection, where: Any) -> list[MergeEventRecord]:
     ).all():
         sessions[int(event_id)][int(session_id)] = str(role)
     archives: dict[int, list[int]] = {i: [] for i in ids}
-    for archive_id, event_id in conn.execute(
+    for archive_id, owner in conn.execute(
         select(MapArchive.id, MapArchive.event_id).where(MapArchive.event_id.in_(ids)).order_by(MapArchive.id)
     ).all():
-        archives[int(event_id)].append(int(archive_id))
+        archives[int(cast(int, owner))].append(int(archive_id))  # event_id IN ids: never NULL
     return [
         MergeEventRecord(
             id=int(r.id),

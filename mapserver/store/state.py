@@ -42,6 +42,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 from sqlalchemy import Connection, Update, bindparam, case, func, insert, or_, select, update
+from sqlalchemy.orm import InstrumentedAttribute
 
 from core.experience_map import per_experience_array
 from mapserver.errors import StoreError
@@ -505,7 +506,7 @@ def _insert_templates(
         ]
         bulk_insert(
             conn,
-            Template.__table__,  # type: ignore[arg-type]
+            Template.__table__,
             ("session_id", "origin_index", "map_id", "local_id", "height", "width", "mean", "data"),
             rows_out,
         )
@@ -540,7 +541,7 @@ def _insert_pose_cell_links(conn: Connection, map_id: int, snapshot: Mapping[str
         )
     )
     columns = ("map_id", "seq", "template", "pc_x", "pc_y", "pc_z", "pc_th", "strength", "decay")
-    bulk_insert(conn, PoseCellLink.__table__, columns, rows)  # type: ignore[arg-type]
+    bulk_insert(conn, PoseCellLink.__table__, columns, rows)
 
 
 def _insert_experiences(
@@ -583,7 +584,7 @@ def _insert_experiences(
         "map_id", "local_id", "session_id", "origin_index", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw",
         "pc_x", "pc_y", "pc_z", "pc_th", "template", "stamp",
     )  # fmt: skip
-    bulk_insert(conn, Experience.__table__, columns, rows)  # type: ignore[arg-type]
+    bulk_insert(conn, Experience.__table__, columns, rows)
 
 
 def _insert_links(conn: Connection, map_id: int, snapshot: Mapping[str, Any]) -> None:
@@ -610,7 +611,7 @@ def _insert_links(conn: Connection, map_id: int, snapshot: Mapping[str, Any]) ->
         )
     )
     columns = ("map_id", "seq", "from_id", "to_id", "dx", "dy", "dz", "dyaw", "dt", "distance", "kind", "active")
-    bulk_insert(conn, Link.__table__, columns, rows)  # type: ignore[arg-type]
+    bulk_insert(conn, Link.__table__, columns, rows)
 
 
 def _scalar(snapshot: Mapping[str, Any], key: str, default: float) -> float:
@@ -810,7 +811,7 @@ def _check_session_owners(conn: Connection, map_id: int, sessions: np.ndarray) -
         ).first()
         if row is not None:
             msg = (
-                f"session {int(row[0])} has {what} in map id {int(row[1])}; a session's content lives in one map: "
+                f"session {int(row[0])} has {what} in map id {row[1]}; a session's content lives in one map: "
                 "drop or archive that map first"
             )
             raise OwnershipError(msg)
@@ -927,7 +928,9 @@ def _read_templates(
 
 def _read_pose_cell_links(conn: Connection, map_id: int, rank: int, built: dict[str, np.ndarray]) -> None:
     """Read the LVC→pose-cell links into ``built`` (``pc_link_*``; coordinates of the lattice's ``rank``)."""
-    pc_columns = [PoseCellLink.template, PoseCellLink.pc_x, PoseCellLink.pc_y]
+    pc_columns: list[InstrumentedAttribute[float | None]] = [
+        PoseCellLink.template, PoseCellLink.pc_x, PoseCellLink.pc_y
+    ]  # fmt: skip
     if rank == 4:
         pc_columns.append(PoseCellLink.pc_z)
     pc_columns += [PoseCellLink.pc_th, PoseCellLink.strength, PoseCellLink.decay]
@@ -945,7 +948,7 @@ def _read_experiences(
     conn: Connection, map_id: int, rank: int, built: dict[str, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read the experiences into ``built`` (``em_pose`` … ``em_origin``); return their sessions and origin indices."""
-    em_columns = [
+    em_columns: list[InstrumentedAttribute[float | None]] = [
         Experience.session_id, Experience.origin_index, Experience.x, Experience.y, Experience.z, Experience.yaw,
         Experience.pc_x, Experience.pc_y,
     ]  # fmt: skip

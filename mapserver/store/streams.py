@@ -276,7 +276,7 @@ def _odometry(conn: Connection, head: ExportHead) -> np.ndarray | None:
 
 def _check_finite(conn: Connection, head: ExportHead, odometry: np.ndarray | None) -> None:
     """Refuse JSON of a map with an infinite (or NaN) number: JSON cannot carry one."""
-    columns = {
+    columns: dict[type[Experience] | type[Link], tuple[Any, ...]] = {
         Experience: (Experience.x, Experience.y, Experience.z, Experience.yaw, Experience.stamp),
         Link: (Link.dx, Link.dy, Link.dz, Link.dyaw, Link.dt, Link.distance),
     }

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Path
 
@@ -16,7 +16,9 @@ from mapserver.store.sessions import SessionRecord
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
-ERRORS = {401: {"model": ErrorPublic}, 403: {"model": ErrorPublic}, 404: {"model": ErrorPublic}}
+ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorPublic}, 403: {"model": ErrorPublic}, 404: {"model": ErrorPublic}
+}
 MAX_ID = 2**62
 
 
@@ -37,7 +39,7 @@ def job_public(conn: Connection, job: JobRecord) -> JobPublic:
             map_name = get_map_by_id(conn=conn, map_id=map_id).name
     return JobPublic(
         job=job.id,
-        status=job.status,  # type: ignore[arg-type]
+        status=job.status,
         progress=job.progress,
         error=job.error,
         session=None if session is None else session.name,

@@ -142,7 +142,9 @@ async def read_path(
     # map); a load and build of the graph goes to a worker thread
     started = time.perf_counter()
     try:
-        entry = services.graphs.current(name) or await run_in_threadpool(services.graphs.get, name)
+        entry = services.graphs.current(name)
+        if entry is None:
+            entry = await run_in_threadpool(services.graphs.get, name)
         result = entry.path(source, target, weight)
         return Response(_path_json(result), media_type="application/json")
     finally:

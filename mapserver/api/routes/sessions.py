@@ -106,11 +106,12 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
         stored.discard()
     if not duplicate:
         services.jobs.notify()
+    assert job is not None  # a duplicate's, or the one queue_job made
     session = await run_in_threadpool(_session_name, services, job)
     body = UploadAccepted(
         job=job.id,
         session=session,
-        status=job.status,  # type: ignore[arg-type]
+        status=job.status,
         duplicate=duplicate,
         sha256=received.sha256,
         frames=(job.options or {}).get("frames"),

@@ -441,7 +441,7 @@ def _camera_frames(
     """Return the camera frames up to session time ``end_s``: their session times, stamps and lighting gains."""
     period = 1.0 / rates.camera_hz
     n_frames = math.floor((end_s - rates.camera_offset_s) / period) + 1
-    frame_t = rates.camera_offset_s + np.arange(max(n_frames, 0)) * period
+    frame_t = np.asarray(rates.camera_offset_s + np.arange(max(n_frames, 0)) * period, dtype=np.float64)
     frame_stamps = t0_ns + np.rint(frame_t * 1e9).astype(np.int64)
     session_gain = 1.0 + noise.gain * float(rng.normal())
     drift = Smooth(rng, period=(30.0, 120.0))

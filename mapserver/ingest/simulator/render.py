@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -165,7 +166,7 @@ def surface_hits(
     finite = np.isfinite(t_k)
     z_hit = cz + np.where(finite, t_k, 0.0)[None, :, :] * slopes[:, None, None]  # (H, W, k)
     spans = (z_hit >= world.base[surf][None]) & (z_hit <= world.top[surf][None]) & finite[None]
-    covered = spans.any(axis=2)
+    covered = np.asarray(spans.any(axis=2))
     rows_c, cols_c = np.nonzero(covered)
     first = np.argmax(spans[rows_c, cols_c], axis=1)  # nearest surface spanning the ray's height
     s_px = surf[cols_c, first]
@@ -222,7 +223,7 @@ def render(world: World, camera: Camera, x: float, y: float, z: float, yaw: floa
                 level = np.where(up, world.ceiling_albedo * a + camera.fog_level * (1.0 - a), level)
         image[rest] = level[rest]
     if camera.blur_px > 0.0 or (camera.vblur_px or 0.0) > 0.0:
-        wrap = "wrap" if camera.hfov_deg >= 360.0 else "nearest"
+        wrap: Literal["wrap", "nearest"] = "wrap" if camera.hfov_deg >= 360.0 else "nearest"
         if camera.blur_px > 0.0:
             image = gaussian_filter1d(image, camera.blur_px, axis=1, mode=wrap)
         vertical = camera.blur_px if camera.vblur_px is None else camera.vblur_px

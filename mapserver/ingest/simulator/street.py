@@ -85,7 +85,7 @@ DEFAULTS = {
     "light_turn_deg": 0.0, "light_gain": 0.0, "scale_error": 0.025, "yaw_bias": 0.004,
 }  # fmt: skip
 
-DEFINITIONS = (
+DEFINITIONS: tuple[ScenarioDef, ...] = (
     ScenarioDef("street", "laps of a city block between repeated façades, forward camera, JPEG frames", DEFAULTS,
                 build_street),
 )

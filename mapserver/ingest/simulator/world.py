@@ -162,8 +162,8 @@ class WorldBuilder:
 
     def add_wall(
         self,
-        p0: Sequence[float],
-        p1: Sequence[float],
+        p0: Sequence[float] | np.ndarray,
+        p1: Sequence[float] | np.ndarray,
         *,
         top: float,
         base: float | None = None,
