@@ -288,12 +288,12 @@ def landmark_distances(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray
     if m == 0 or count == 0:
         return np.zeros((0, max(m, 1)))
     graph = sp.csr_matrix((data, indices, indptr), shape=(m, m))
-    nearest = dijkstra(graph, directed=True, indices=0)
+    nearest = dijkstra(graph, directed=True, indices=[0])[0]
     rows: list[np.ndarray] = []
     for _ in range(min(count, m)):
         finite = np.isfinite(nearest)
         far = int(np.argmax(~finite)) if not finite.all() else int(np.argmax(nearest))
-        row = dijkstra(graph, directed=True, indices=far)
+        row = dijkstra(graph, directed=True, indices=[far])[0]
         rows.append(row)
         nearest = np.minimum(nearest, row) if rows[1:] else row
     return np.ascontiguousarray(np.vstack(rows))

@@ -363,11 +363,11 @@ def write_report(inputs: ReportInputs, out: Path) -> dict[str, Any]:
     if evaluation:
         for session, ev in evaluation.items():
             keys = ("ape_rmse", "odometry_ape_rmse", "hausdorff", "experiences", "aligned", "ape_max", "error")
-            rows = [(k, _fmt(ev[k])) for k in keys if k in ev]
-            rows += [(f"RPE per {r['delta_m']:g} m (translation, rotation °, segments)",
+            figures = [(k, _fmt(ev[k])) for k in keys if k in ev]
+            figures += [(f"RPE per {r['delta_m']:g} m (translation, rotation °, segments)",
                       f"{_fmt(r['trans_rmse'])}, {_fmt(r['rot_rmse_deg'])}, {r['pairs']}")
                      for r in ev.get("rpe", [])]  # fmt: skip
-            parts.append(f"<h3>{html.escape(session)}</h3>" + _table(rows))
+            parts.append(f"<h3>{html.escape(session)}</h3>" + _table(figures))
     else:
         parts.append("<p>No ground truth: give <code>--ground-truth</code> or <code>--log</code> (a log with a "
                      "ground-truth topic), or process the log through the server, which keeps it.</p>")  # fmt: skip
