@@ -81,9 +81,12 @@ def describe_cause(err: BaseException, *, limit: int = 200) -> str:
 
     A library's own message (``Invalid string length 3951624202 at offset 20.``) is kept, shortened to
     ``limit`` characters, with an exception's argument tuple quoted inside it (``damaged: ('reason',)``) reduced
-    to its text; an assertion, a lookup error's bare key or number, an overflow of Python's integers, a message
-    of one word or one spanning several lines (a message definition, a traceback) becomes ``malformed data``.
+    to its text; undecodable text reads ``malformed text (not UTF-8)``; an assertion, a lookup error's bare key
+    or number, an overflow of Python's integers, a message of one word or one spanning several lines (a message
+    definition, a traceback) becomes ``malformed data``.
     """
+    if isinstance(err, UnicodeDecodeError):
+        return "malformed text (not UTF-8)"
     raw = str(err)
     text = _ARGS_TUPLE.sub(lambda m: m.group(2), " ".join(raw.split()))
     opaque = isinstance(err, _OPAQUE) or "\n" in raw.strip() or len(text.split()) < 2

@@ -309,7 +309,7 @@ def test_damaged_logs_are_processed_whole_or_refused_in_one_line(
 
 def test_library_errors_read_as_their_reason() -> None:
     """A library's argument tuple inside its message is reduced to the text; Python's integer overflow (a damaged
-    length field) is malformed data; a reason of its own is kept."""
+    length field) is malformed data, undecodable text malformed text; a reason of its own is kept."""
     from mapserver.errors import describe_cause
 
     class ReaderError(Exception):
@@ -321,6 +321,8 @@ def test_library_errors_read_as_their_reason() -> None:
         "damaged: Record of type 'CHUNK_INFO' is unexpected."  # fmt: skip
     assert describe_cause(OverflowError("Python int too large to convert to C ssize_t")) == "malformed data"
     assert describe_cause(ReaderError("File end magic is invalid.")) == "File end magic is invalid."
+    undecodable = UnicodeDecodeError("utf-8", b"\xdc", 0, 1, "invalid continuation byte")
+    assert describe_cause(undecodable) == "malformed text (not UTF-8)"
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
