@@ -15,6 +15,9 @@ Usage: python bench/api.py [--experiences 100000] [--clients 8] [--requests 200]
 3. Simulates the ``loop`` scenario, uploads its log with a write token and polls the job until it is
    done: prints the end-to-end seconds (upload + queue + processing + store).
 
+4. The same clients on ``GET /healthz``, a request that does no work: the floor that the framework, the
+   loopback and the clients set under /path's figures (``floor_*``).
+
 Last line: one JSON object with every figure. Target: p99 ≤ 50 ms.
 """
 
@@ -125,9 +128,10 @@ def process_cpu_s(pid: int) -> float:
 
 
 def path_latency(
-    url: str, experiences: int, clients: int, requests: int, headers: dict[str, str] | None = None
+    url: str, experiences: int, clients: int, requests: int, headers: dict[str, str] | None = None,
+    endpoint: str = "/v1/maps/city/path",
 ) -> dict[str, float]:
-    """Return latency percentiles (ms) of /path under ``clients`` concurrent clients."""
+    """Return latency percentiles (ms) of /path (or another GET ``endpoint``) under ``clients`` concurrent clients."""
     rng = np.random.default_rng(1)
     pairs = rng.integers(0, experiences, size=(clients, requests, 2))
     latencies: list[list[float]] = [[] for _ in range(clients)]
@@ -140,11 +144,11 @@ def path_latency(
             barrier.wait()
             for a, b in pairs[k]:
                 start = time.perf_counter()
-                response = http.get("/v1/maps/city/path", params={"from": int(a), "to": int(b)})
+                response = http.get(endpoint, params={"from": int(a), "to": int(b)})
                 latencies[k].append(time.perf_counter() - start)
                 if response.status_code != 200:
                     failures.append(response.text)
-                elif k == 0:
+                elif k == 0 and endpoint.endswith("/path"):
                     lengths.append(len(response.json()["nodes"]))
 
     # the clients' own full collections (this process holds the map builder's objects) would pause every
@@ -164,7 +168,17 @@ def path_latency(
     return {"p50_ms": round(float(np.percentile(ms, 50)), 2), "p90_ms": round(float(np.percentile(ms, 90)), 2),
             "p99_ms": round(float(np.percentile(ms, 99)), 2), "max_ms": round(float(ms.max()), 2),
             "requests": int(ms.size), "throughput_rps": round(ms.size / wall, 1),
-            "mean_path_nodes": round(float(np.mean(lengths)), 1)}  # fmt: skip
+            "mean_path_nodes": round(float(np.mean(lengths)), 1) if lengths else 0.0}  # fmt: skip
+
+
+def server_floor(url: str, pid: int, clients: int, requests: int, headers: dict[str, str] | None) -> dict[str, float]:
+    """Return the same clients' latency and the server's CPU per request on ``GET /healthz``, a request that does
+    no work: the part of /path's figures that the framework, the loopback and the clients take."""
+    cpu = process_cpu_s(pid)
+    floor = path_latency(url, 1, clients, requests, headers, endpoint="/healthz")
+    cpu = process_cpu_s(pid) - cpu
+    return {"floor_p50_ms": floor["p50_ms"], "floor_p99_ms": floor["p99_ms"],
+            "floor_server_cpu_ms_per_request": round(cpu / floor["requests"] * 1e3, 3)}  # fmt: skip
 
 
 def upload_to_done(url: str, db_url: str, folder: Path) -> dict[str, float]:
@@ -232,6 +246,11 @@ def main() -> None:
                   f"{latency['throughput_rps']} req/s, mean path {latency['mean_path_nodes']} nodes; "
                   f"server CPU {latency['server_cpu_ms_per_request']} ms per request); target p99 ≤ 50 ms")  # fmt: skip
             result.update(latency)
+            floor = server_floor(url, process.pid, args.clients, args.requests, headers)
+            print(f"/healthz under {args.clients} clients (the server's and the clients' floor): p50 "
+                  f"{floor['floor_p50_ms']} ms, p99 {floor['floor_p99_ms']} ms, server CPU "
+                  f"{floor['floor_server_cpu_ms_per_request']} ms per request")  # fmt: skip
+            result.update(floor)
             if not args.skip_upload:
                 e2e = upload_to_done(url, db_url, folder)
                 print(f"loop scenario ({e2e['loop_frames']} frames, {e2e['loop_bytes']} bytes): accepted in "

@@ -1,4 +1,4 @@
-"""The compiled search of :mod:`core.contraction`: Dijkstra over a CSR graph that stops at its target.
+"""The compiled search of :mod:`core.contraction`: A* over a CSR graph that stops at its target.
 
 numba compiles the functions below on their first call (``cache=True``: once per machine, then they are
 loaded from ``__pycache__``); :func:`load` makes those calls, and :mod:`core.contraction` makes it when it
@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 _DONE = -2  # pos[node] of a settled node; -1: not reached yet
+_LANDMARK_MARGIN = 1.0 - 1e-9  # a landmark's bound, lowered for the rounding of its distances
 
 
 @njit(cache=True, nogil=True)
@@ -79,15 +80,25 @@ def settle(
     end_nodes: np.ndarray,
     end_costs: np.ndarray,
     bound: float,
+    points: np.ndarray,
+    goal: np.ndarray,
+    scale: float,
+    landmarks: np.ndarray,
+    landmark_goal: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Return (dist, pred) of a Dijkstra over the CSR graph that stops once the target's cost is known.
+    """Return (dist, pred) of an A* search over the CSR graph that stops once the target's cost is known.
 
     The search starts at ``start_nodes`` at ``start_costs`` (``pred`` −1 there unless a cheaper way through
-    another node is found) and settles nodes in increasing distance, ties by node id. Each settled end node
-    ``end_nodes[i]`` lowers the bound to its distance plus ``end_costs[i]``; the search stops when the nearest
-    unsettled node is farther than the bound (``bound`` starts at the caller's best way that avoids the
-    graph, or inf). Every node at a distance ≤ the final bound is settled, so ``dist`` and ``pred`` are those
-    of the full search there (``pred`` up to ties); farther nodes hold upper bounds (inf: not reached).
+    another node is found) and settles nodes in increasing ``dist + h``, ties by node id, where ``h(v)`` is a
+    lower bound of the cost left from ``v`` (A*: Hart, Nilsson and Raphael 1968): the larger of the straight
+    line, ``scale · ‖points[v] − goal‖``, and the landmarks' triangle inequality,
+    ``max_k |landmark_goal[k] − landmarks[k, v]|`` (ALT: Goldberg and Harrelson 2005; ``landmarks[k]`` holds
+    every node's distance from landmark ``k``, ``landmark_goal[k]`` the target's). The caller makes both
+    consistent; ``scale`` 0 and no landmarks make the search Dijkstra's. Each settled
+    end node ``end_nodes[i]`` lowers the bound to its distance plus ``end_costs[i]``; the search stops when the
+    first unsettled node's ``dist + h`` is above the bound (``bound`` starts at the caller's best way that
+    avoids the graph, or inf). With a consistent ``h`` every settled node's ``dist`` is exact and its ``pred``
+    a shortest way there (up to ties); other nodes hold upper bounds (inf: not reached).
     """
     n = indptr.size - 1
     dist = np.full(n, np.inf)
@@ -99,9 +110,11 @@ def settle(
     for i in range(start_nodes.size):
         if start_costs[i] < dist[start_nodes[i]]:
             dist[start_nodes[i]] = start_costs[i]
-            size = _offer(key, node, pos, size, start_nodes[i], start_costs[i])
+            left = _left(points, goal, scale, landmarks, landmark_goal, start_nodes[i])
+            size = _offer(key, node, pos, size, start_nodes[i], start_costs[i] + left)
     while size > 0 and key[0] <= bound:
-        d, u = key[0], node[0]
+        u = node[0]
+        d = dist[u]
         size = _pop(key, node, pos, size)
         for i in range(end_nodes.size):
             if end_nodes[i] == u:
@@ -109,11 +122,30 @@ def settle(
         for k in range(indptr[u], indptr[u + 1]):
             v = indices[k]
             candidate = d + data[k]
-            if candidate < dist[v]:  # never true for a settled node: weights are > 0
+            if candidate < dist[v]:  # never true for a settled node: weights are > 0 and h consistent
                 dist[v] = candidate
                 pred[v] = u
-                size = _offer(key, node, pos, size, v, candidate)
+                left = _left(points, goal, scale, landmarks, landmark_goal, v)
+                size = _offer(key, node, pos, size, v, candidate + left)
     return dist, pred
+
+
+@njit(cache=True, nogil=True)
+def _left(
+    points: np.ndarray, goal: np.ndarray, scale: float, landmarks: np.ndarray, landmark_goal: np.ndarray, v: int
+) -> float:
+    """Return the search's lower bound of the cost from node ``v`` to the goal (see :func:`settle`)."""
+    bound = 0.0
+    if scale != 0.0:
+        dx = points[v, 0] - goal[0]
+        dy = points[v, 1] - goal[1]
+        dz = points[v, 2] - goal[2]
+        bound = scale * np.sqrt(dx * dx + dy * dy + dz * dz)
+    for k in range(landmark_goal.size):
+        here, there = landmarks[k, v], landmark_goal[k]
+        if here < np.inf and there < np.inf:  # a landmark in another component bounds nothing
+            bound = max(bound, abs(there - here) * _LANDMARK_MARGIN)
+    return bound
 
 
 @njit(cache=True, nogil=True)
@@ -169,6 +201,11 @@ def load() -> None:
     for array in graph:
         array.setflags(write=False)
     ends = np.zeros(1, dtype=np.int64)
-    _, pred = settle(*graph, ends, np.zeros(1), ends, np.zeros(1), np.inf)
+    points = np.zeros((1, 3))
+    points.setflags(write=False)
+    landmarks = np.zeros((0, 1))
+    landmarks.setflags(write=False)
+    _, pred = settle(*graph, ends, np.zeros(1), ends, np.zeros(1), np.inf, points, np.zeros(3), 0.0, landmarks,
+                     np.zeros(0))  # fmt: skip
     hops(pred, 0)
     through_chains(ends, ends[:0], ends, ends, ends)

@@ -67,7 +67,7 @@ _ORDER = (
     "_rows", "_occupancy", "_clear", "_widen", "_window", "_lattice_order", "_add_scaled", "_pass_first",
     "_spread_block", "_block_window", "_gather", "_combine", "_restart",
     "attractor", "_layer_shift", "_translate", "_corner_loss", "_shift_outer", "_shift_heading", "path_integrate",
-    "peak", "on_odo",
+    "peak", "on_odo", "openratslam_axis_centre",
 )  # fmt: skip
 
 
@@ -89,7 +89,8 @@ def _compile_once() -> dict[str, Callable[..., Any]]:
     module = globals()
     for name in _ORDER:  # callees first: a kernel calls the compiled versions of those above it
         module[name] = njit(cache=True, nogil=True)(module[name])
-    return {name: module[name] for name in ("attractor", "path_integrate", "peak", "on_odo", "_occupancy")}
+    return {name: module[name] for name in
+            ("attractor", "path_integrate", "peak", "on_odo", "_occupancy", "openratslam_axis_centre")}  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------------- helpers
@@ -541,3 +542,31 @@ def peak(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, x_first: bool) 
                         top = value
                         best[0], best[1], best[2], best[3] = x, y, z, t
     return best
+
+
+def openratslam_axis_centre(flat: np.ndarray, cells: np.ndarray, sines: np.ndarray, cosines: np.ndarray) -> float:
+    """Return one axis of OpenRatSLAM's ``find_best`` centre, as :meth:`core.posecells.PoseCellNetwork` decodes it.
+
+    ``flat`` is the packet's box with that axis last, the others in OpenRatSLAM's loop order, as (rows, n):
+    each column is summed from 0.0 row by row (numpy's sum over axis 0, to the bit); ``cells`` are the axis'
+    lattice indices of the n columns (distinct), visited in increasing index as OpenRatSLAM's loop does,
+    adding ``sines[cell]·weight`` and ``cosines[cell]·weight``; then ``atan2(s, c)·dim/(2π) − 1`` wrapped into
+    [0, dim] by whole turns.
+    """
+    rows, n = flat.shape
+    marginal = np.zeros(n)
+    for m in range(rows):
+        for j in range(n):
+            marginal[j] += flat[m, j]
+    s = 0.0
+    c = 0.0
+    for k in np.argsort(cells):
+        s += sines[cells[k]] * marginal[k]
+        c += cosines[cells[k]] * marginal[k]
+    dim = sines.size
+    value = math.atan2(s, c) * dim / (2.0 * math.pi) - 1.0
+    while value < 0.0:
+        value += dim
+    while value > dim:
+        value -= dim
+    return value

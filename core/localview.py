@@ -40,7 +40,6 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 from core._buffers import GrowBuffer
 from core._match_kernel import best_pair, fixed_point_bits, quantise
@@ -83,14 +82,28 @@ def crop(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np
     return region
 
 
-def block_average(region: np.ndarray, ty: int, tx: int) -> np.ndarray:
-    """Average ``region`` into ty × tx blocks of integer size; leftover rows/columns are dropped."""
+def block_average(region: np.ndarray, ty: int, tx: int, *, integral: bool = False) -> np.ndarray:
+    """Average ``region`` into ty × tx blocks of integer size; leftover rows/columns are dropped.
+
+    With ``integral`` (every value a whole number, as a mono image's grey levels) each block's sum is exact
+    in any order, so it is added up a column and then a row of the block at a time (strided slices, about
+    six times faster than numpy's mean over two axes) with the same result bit for bit; otherwise numpy's mean.
+    """
     h, w = region.shape
     by, bx = h // ty, w // tx
     if by == 0 or bx == 0:
         msg = f"a {w}×{h} crop is smaller than the {tx}×{ty} template"
         raise ImageError(msg)
-    return region[: by * ty, : bx * tx].reshape(ty, by, tx, bx).mean(axis=(1, 3))
+    region = region[: by * ty, : bx * tx]
+    if not integral:
+        return region.reshape(ty, by, tx, bx).mean(axis=(1, 3))
+    columns = region[:, 0::bx].copy()
+    for k in range(1, bx):
+        columns += region[:, k::bx]
+    blocks = columns[0::by].copy()
+    for k in range(1, by):
+        blocks += columns[k::by]
+    return blocks / (by * bx)
 
 
 def patch_normalise(values: np.ndarray, radius: int, min_std: float, flat: float = 0.5) -> np.ndarray:
@@ -102,6 +115,8 @@ def patch_normalise(values: np.ndarray, radius: int, min_std: float, flat: float
     deviation. Cells with σ < ``min_std`` become 0.5, and cells with σ = 0 ``flat``
     (0.5; OpenRatSLAM's 0/0 clamps to 1.0, which ``openratslam_compat`` passes).
     """
+    from scipy.ndimage import uniform_filter  # here: scipy.ndimage's import is 0.25 s that most logs never need
+
     size = 2 * radius + 1
     mean = uniform_filter(values, size=size, mode="nearest")
     mean_sq = uniform_filter(values * values, size=size, mode="nearest")
@@ -215,7 +230,8 @@ class LocalViewCells:
         grey = greyscale(image)
         region = crop(grey, p.image_crop_x_min, p.image_crop_x_max, p.image_crop_y_min, p.image_crop_y_max)
         self._column_rad = math.radians(p.camera_fov_deg) * region.shape[1] / grey.shape[1] / p.template_x_size
-        values = block_average(region, p.template_y_size, p.template_x_size) / 255.0
+        integral = np.ndim(image) == 2 and np.issubdtype(np.asarray(image).dtype, np.integer)
+        values = block_average(region, p.template_y_size, p.template_x_size, integral=integral) / 255.0
         if p.vt_normalisation > 0:
             mean = values.mean()
             if mean > 0:

@@ -1,8 +1,9 @@
 """Shortest paths over the experience graph (OpenRatSLAM ``dijkstra_distance_between_experiences``).
 
 The graph is contracted once (:mod:`core.contraction`: chains of degree-2 experiences between
-junctions), so that a query runs Dijkstra over the junctions only, stopping at the target, and still
-returns an exact shortest path of the whole graph. A built graph is read-only: threads share it.
+junctions), so that a query runs an A* search over the junctions only (bounded below by the straight line
+and by landmark distances), stopping at the target, and still returns an exact shortest path of the whole
+graph. A built graph is read-only: threads share it.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ class ExperienceGraph:
     Δt (time-optimal, as OpenRatSLAM) or its length (metric), at least ``1e-9`` (a zero-length link is
     still an edge). Parallel links keep the cheapest; self-links are ignored, and so is a link whose
     cost is not finite (for that weight). Construction takes a few vectorised csgraph passes
-    (``O(L log L)`` for ``L`` links); a query one Dijkstra over the junctions nearer than the target
+    (``O(L log L)`` for ``L`` links); a query one A* search over the junctions nearer than the target
     (see :mod:`core.contraction`). Queries take no lock and change nothing: any number of threads may run them.
 
     Raises:
@@ -69,7 +70,7 @@ class ExperienceGraph:
             usable = np.isfinite(cost)
             if shared is None or not np.array_equal(shared[0], usable):
                 shared = (usable, Chains.build(n, lo[usable], hi[usable]))
-            self._graphs[name] = ContractedGraph(shared[1], lo[usable], hi[usable], cost[usable])
+            self._graphs[name] = ContractedGraph(shared[1], lo[usable], hi[usable], cost[usable], self.poses)
 
     @property
     def junction_count(self) -> int:
@@ -77,7 +78,7 @@ class ExperienceGraph:
         return int(self._graphs["time"].chains.junctions.size)
 
     def shortest_path(self, source: int, target: int, weight: Weight = "time") -> PathResult | NoPath:
-        """Return the shortest path from ``source`` to ``target`` (Dijkstra over the contracted graph).
+        """Return the shortest path from ``source`` to ``target`` (A* over the contracted graph).
 
         Raises:
             IndexError: an id is not an experience of this graph.

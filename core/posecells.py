@@ -312,10 +312,16 @@ class PoseCellNetwork:
         windows = [(c + off) % d for c, off, d in zip(peak, self._window_offsets, self.shape, strict=True)]
         box = cells[np.ix_(*windows)]
         best = np.empty(self.rank, dtype=np.float64)
+        compiled = kernels.enabled()
         for axis in range(self.rank):
             order = [a for a in scan if a != axis]
-            marginal = np.ascontiguousarray(box.transpose((*order, axis))).reshape(-1, box.shape[axis]).sum(axis=0)
+            flat = np.ascontiguousarray(box.transpose((*order, axis))).reshape(-1, box.shape[axis])
             dim = self.shape[axis]
+            if compiled:
+                sine_table, cosine_table = _openratslam_tables(dim)
+                best[axis] = kernels.kernel("openratslam_axis_centre")(flat, windows[axis], sine_table, cosine_table)
+                continue
+            marginal = flat.sum(axis=0)
             sines, cosines = _openratslam_lookups(dim)
             weights = marginal.tolist()
             cells = windows[axis].tolist()
@@ -703,6 +709,15 @@ def _openratslam_lookups(dim: int) -> tuple[list[float], list[float]]:
     """Return OpenRatSLAM's (i+1)-based sine and cosine tables of one axis: ``sin((i + 1)·2π/dim)``, i < dim."""
     angles = [(i + 1) * 2.0 * math.pi / dim for i in range(dim)]
     return [math.sin(a) for a in angles], [math.cos(a) for a in angles]
+
+
+@functools.lru_cache(maxsize=16)
+def _openratslam_tables(dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return :func:`_openratslam_lookups` as read-only arrays, for the compiled decoding."""
+    sines, cosines = (np.array(table, dtype=np.float64) for table in _openratslam_lookups(dim))
+    sines.setflags(write=False)
+    cosines.setflags(write=False)
+    return sines, cosines
 
 
 def _openratslam_corners(dim: int, th_dim: int, v: float) -> np.ndarray:

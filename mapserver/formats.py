@@ -304,8 +304,41 @@ def _frames_json(frames: Sequence[Sequence[float]]) -> list[list[float | int]]:
     return rows
 
 
+def _process_umask() -> int:
+    """Return the process's umask: read from ``/proc/self/status`` (Linux), else set and restored at once.
+
+    Read once, at import, while nothing else runs: ``os.umask`` changes it for every thread.
+    """
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+FILE_MODE = 0o666 & ~_process_umask()
+"""The mode of every file mapserver writes: what ``open`` would give under the umask (``mkstemp`` gives 0600)."""
+
+
+def _temporary_beside(target: Path) -> tuple[int, str]:
+    """Return (fd, name) of a new temporary file in ``target``'s directory, with the mode of :data:`FILE_MODE`."""
+    directory = target.parent if str(target.parent) else Path(".")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
+    try:
+        os.fchmod(fd, FILE_MODE)
+    except BaseException:
+        os.close(fd)
+        os.unlink(tmp_name)
+        raise
+    return fd, tmp_name
+
+
 def atomic_write_bytes(path: PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically: temporary file in the same directory, fsync, ``os.replace``.
+
+    The file gets the mode a plain ``open`` would give it under the process's umask (:data:`FILE_MODE`).
 
     Args:
         path: destination file; its directory must exist.
@@ -313,8 +346,7 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
 
     """
     target = Path(path)
-    directory = target.parent if str(target.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
+    fd, tmp_name = _temporary_beside(target)
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
@@ -336,8 +368,7 @@ def atomic_write_chunks(path: PathLike, chunks: Iterable[bytes]) -> int:
 
     """
     target = Path(path)
-    directory = target.parent if str(target.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
+    fd, tmp_name = _temporary_beside(target)
     written = 0
     try:
         with os.fdopen(fd, "wb") as handle:

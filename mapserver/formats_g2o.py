@@ -18,7 +18,9 @@ g2o the rotation terms weigh 4 × more relative to translation; the poses' fixed
 graph whose links agree.
 
 A link switched off by relaxation (``em_link_active`` false, when the snapshot has that array) is
-written as a comment line ``# inactive EDGE_...``: g2o and GTSAM skip it, a reader of the file still sees it.
+written as a comment line ``# inactive EDGE_...`` at the end of the file, after ``FIX 0``: g2o skips
+comments, and GTSAM's ``readG2o`` (4.3) stops reading at the first line it does not know, so nothing that
+matters comes after one (tests/mapserver/test_formats_g2o.py reads an export whole with the PyPI package).
 
 Reading (:func:`read_g2o_vertices`): the vertices of a file (SE2 or SE3:QUAT) as poses ``[x, y, z, yaw]``;
 edges, ``FIX`` and comments are skipped. An SE3 vertex's yaw is that of its rotation; its roll and pitch
@@ -83,6 +85,42 @@ def _numbers(values: np.ndarray) -> list[str]:
     return [" ".join(repr(float(v)) for v in row) for row in values.tolist()]
 
 
+def vertex_lines(ids: npt.ArrayLike, pose: np.ndarray, *, planar: bool) -> list[str]:
+    """Return the vertex lines (each ending in a newline) of experiences ``ids`` at poses ``pose`` (n, 4)."""
+    pose = np.asarray(pose, dtype=np.float64).reshape(-1, 4)
+    if planar:
+        values, tag = np.column_stack([pose[:, 0], pose[:, 1], pose[:, 3]]), "VERTEX_SE2"
+    else:
+        half, zeros = 0.5 * pose[:, 3], np.zeros(pose.shape[0])
+        values = np.column_stack([pose[:, :3], zeros, zeros, np.sin(half), np.cos(half)])
+        tag = "VERTEX_SE3:QUAT"
+    ids_list = np.asarray(ids, dtype=np.int64).reshape(-1).tolist()
+    return [f"{tag} {i} {v}\n" for i, v in zip(ids_list, _numbers(values), strict=True)]
+
+
+def edge_lines(
+    src: npt.ArrayLike, dst: npt.ArrayLike, tf: np.ndarray, distance: npt.ArrayLike, *, planar: bool,
+    inactive: bool = False,
+) -> list[str]:  # fmt: skip
+    """Return the edge lines (each ending in a newline) of links ``src`` → ``dst`` with transforms ``tf`` (n, 4).
+
+    ``inactive``: the links are switched off, and each line is written as the comment ``# inactive EDGE_…``.
+    """
+    tf = np.asarray(tf, dtype=np.float64).reshape(-1, 4)
+    if planar:
+        values = np.column_stack([tf[:, 0], tf[:, 1], tf[:, 3], _upper(information_se2(distance))])
+        tag = "EDGE_SE2"
+    else:
+        half, zeros = 0.5 * tf[:, 3], np.zeros(tf.shape[0])
+        values = np.column_stack(
+            [tf[:, :3], zeros, zeros, np.sin(half), np.cos(half), _upper(information_se3(distance))]
+        )
+        tag = "EDGE_SE3:QUAT"
+    prefix = "# inactive " if inactive else ""
+    ends = zip(np.asarray(src).reshape(-1).tolist(), np.asarray(dst).reshape(-1).tolist(), strict=True)
+    return [f"{prefix}{tag} {s} {t} {m}\n" for (s, t), m in zip(ends, _numbers(values), strict=True)]
+
+
 def g2o_text(snapshot: Mapping[str, npt.ArrayLike], *, planar: bool) -> str:
     """Return the g2o file of a map snapshot (``em_pose``, ``em_link_*``; see the module docstring).
 
@@ -96,27 +134,13 @@ def g2o_text(snapshot: Mapping[str, npt.ArrayLike], *, planar: bool) -> str:
     tf = np.asarray(snapshot["em_link_transform"], dtype=np.float64).reshape(-1, 4)
     dist = np.asarray(snapshot["em_link_distance"], dtype=np.float64).reshape(-1)
     active = np.asarray(snapshot.get("em_link_active", np.ones(src.shape[0], dtype=bool)), dtype=bool)
-    ids = np.arange(pose.shape[0])
-    if planar:
-        vertices = _numbers(np.column_stack([pose[:, 0], pose[:, 1], pose[:, 3]]))
-        measurements = _numbers(np.column_stack([tf[:, 0], tf[:, 1], tf[:, 3], _upper(information_se2(dist))]))
-        vertex_tag, edge_tag = "VERTEX_SE2", "EDGE_SE2"
-    else:
-        half_v, half_e = 0.5 * pose[:, 3], 0.5 * tf[:, 3]
-        zeros_v, zeros_e = np.zeros_like(half_v), np.zeros_like(half_e)
-        vertices = _numbers(np.column_stack([pose[:, :3], zeros_v, zeros_v, np.sin(half_v), np.cos(half_v)]))
-        measurements = _numbers(
-            np.column_stack(
-                [tf[:, :3], zeros_e, zeros_e, np.sin(half_e), np.cos(half_e), _upper(information_se3(dist))]
-            )
-        )
-        vertex_tag, edge_tag = "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"
-    lines = [f"{vertex_tag} {i} {v}" for i, v in zip(ids.tolist(), vertices, strict=True)]
-    for s, t, m, on in zip(src.tolist(), dst.tolist(), measurements, active.tolist(), strict=True):
-        lines.append(f"{'' if on else '# inactive '}{edge_tag} {s} {t} {m}")
+    lines = vertex_lines(np.arange(pose.shape[0]), pose, planar=planar)
+    lines += edge_lines(src[active], dst[active], tf[active], dist[active], planar=planar)
     if pose.shape[0]:
-        lines.append("FIX 0")
-    return "\n".join(lines) + "\n"
+        lines.append("FIX 0\n")
+    off = ~active
+    lines += edge_lines(src[off], dst[off], tf[off], dist[off], planar=planar, inactive=True)
+    return "".join(lines) if lines else "\n"
 
 
 @dataclass(frozen=True)

@@ -81,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
         from mapserver.ingest.decode import set_max_image_pixels
 
         set_max_image_pixels(args.max_image_pixels)
+    if not args.out and not args.db:
+        info("warning: nothing will be kept: give --out MAP.json to write the map, or --db URL to store it")
     update, close = progress_bar(f"processing {log.name}")
     try:
         if args.db:

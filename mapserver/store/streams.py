@@ -30,7 +30,7 @@ from sqlalchemy import Connection, func, select
 from mapserver.errors import ConflictError, InputError
 from mapserver.formats import MAP_FORMAT, TUM_HEADER, _plain
 from mapserver.formats_csv import EXPERIENCE_COLUMNS, LINK_COLUMNS
-from mapserver.formats_g2o import _upper, information_se2, information_se3
+from mapserver.formats_g2o import edge_lines, vertex_lines
 from mapserver.store.bulk import iter_tuples
 from mapserver.store.db import Database, small_page_cache
 from mapserver.store.errors import CorruptStateError
@@ -353,33 +353,27 @@ def is_planar(params: Mapping[str, Any]) -> bool:
 
 
 def _g2o(conn: Connection, head: ExportHead, batch: int) -> Iterator[bytes]:
-    """The experience graph as ``formats_g2o.g2o_text`` writes it (SE2 for planar maps, else SE3:QUAT)."""
+    """The experience graph as ``formats_g2o.g2o_text`` writes it (SE2 for planar maps, else SE3:QUAT).
+
+    Vertices, then the active links, ``FIX 0``, and last the switched-off links as comments (a second pass
+    over the links, so that memory stays one batch).
+    """
     planar = is_planar(head.params)
-    vertex_tag, edge_tag = ("VERTEX_SE2", "EDGE_SE2") if planar else ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT")
     any_line = False
     for ids, pose, _templates, _stamps, _origins in _experience_batches(conn, head, batch):
-        if planar:
-            vertices = _numbers(np.column_stack([pose[:, 0], pose[:, 1], pose[:, 3]]))
-        else:
-            half, zeros = 0.5 * pose[:, 3], np.zeros(pose.shape[0])
-            vertices = _numbers(np.column_stack([pose[:, :3], zeros, zeros, np.sin(half), np.cos(half)]))
-        yield "".join(f"{vertex_tag} {i} {v}\n" for i, v in zip(ids.tolist(), vertices, strict=True)).encode("utf-8")
+        yield "".join(vertex_lines(ids, pose, planar=planar)).encode("utf-8")
         any_line = True
-    for src, dst, tf, _dt, distance, _kinds, active in _link_batches(conn, head, batch):
-        if planar:
-            measured = np.column_stack([tf[:, 0], tf[:, 1], tf[:, 3], _upper(information_se2(distance))])
-        else:
-            half, zeros = 0.5 * tf[:, 3], np.zeros(tf.shape[0])
-            measured = np.column_stack(
-                [tf[:, :3], zeros, zeros, np.sin(half), np.cos(half), _upper(information_se3(distance))]
-            )
-        lines = (f"{'' if on else '# inactive '}{edge_tag} {s} {t} {m}\n"
-                 for s, t, m, on in zip(src, dst, _numbers(measured), active, strict=True))  # fmt: skip
-        yield "".join(lines).encode("utf-8")
-        any_line = True
-    if head.experiences:
-        yield b"FIX 0\n"
-    elif not any_line:
+    for inactive in (False, True):
+        if inactive and head.experiences:
+            yield b"FIX 0\n"
+        for src, dst, tf, _dt, distance, _kinds, active in _link_batches(conn, head, batch):
+            chosen = ~np.asarray(active, dtype=bool) if inactive else np.asarray(active, dtype=bool)
+            if chosen.any():
+                lines = edge_lines(np.asarray(src)[chosen], np.asarray(dst)[chosen], tf[chosen], distance[chosen],
+                                   planar=planar, inactive=inactive)  # fmt: skip
+                yield "".join(lines).encode("utf-8")
+                any_line = True
+    if not any_line:
         yield b"\n"
 
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from core.config import Params
@@ -39,6 +39,28 @@ def test_crop_greyscale_block_average() -> None:
     assert template.dtype == np.float32
     assert template == pytest.approx(expected, abs=1e-7)
     assert mean == pytest.approx(125 / 255, abs=1e-7)
+
+
+@given(
+    shape=st.tuples(st.integers(1, 70), st.integers(1, 90)), cells=st.tuples(st.integers(1, 12), st.integers(1, 30)),
+    deep=st.booleans(), seed=st.integers(0, 2**32 - 1),
+)  # fmt: skip
+@settings(max_examples=100, deadline=None)
+def test_block_sums_of_whole_numbers_are_numpys_mean_bit_for_bit(
+    shape: tuple[int, int], cells: tuple[int, int], deep: bool, seed: int
+) -> None:
+    """A mono image's blocks, summed a slice at a time, are numpy's mean over the block axes, to the bit."""
+    from core.localview import block_average
+
+    (h, w), (ty, tx) = shape, cells
+    assume(h >= ty and w >= tx)
+    rng = np.random.default_rng(seed)
+    grey = rng.integers(0, 65536 if deep else 256, size=(h, w)).astype(np.float64)
+    fast = block_average(grey, ty, tx, integral=True)
+    by, bx = h // ty, w // tx
+    expected = grey[: by * ty, : bx * tx].reshape(ty, by, tx, bx).mean(axis=(1, 3))
+    assert fast.tobytes() == expected.tobytes()
+    assert block_average(grey, ty, tx).tobytes() == expected.tobytes()
 
 
 def test_leftover_pixels_past_the_last_block_are_dropped() -> None:

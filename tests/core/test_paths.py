@@ -281,11 +281,21 @@ def csr(n: int, edges: list[tuple[int, int, float]]) -> tuple[np.ndarray, np.nda
     return indptr.astype(np.int64), indices, np.array([e[2] for e in both], dtype=np.float64)
 
 
-def settle(graph: tuple[np.ndarray, ...], starts: dict[int, float], ends: dict[int, float], bound: float = math.inf):
+def settle(
+    graph: tuple[np.ndarray, ...], starts: dict[int, float], ends: dict[int, float], bound: float = math.inf,
+    points: np.ndarray | None = None, goal: np.ndarray | None = None, scale: float = 0.0,
+    landmarks: np.ndarray | None = None, landmark_goal: np.ndarray | None = None,
+):  # fmt: skip
     from core._path_kernel import settle as kernel
 
+    n = graph[0].size - 1
+    points = np.zeros((n, 3)) if points is None else points
+    goal = np.zeros(3) if goal is None else goal
+    landmarks = np.zeros((0, n)) if landmarks is None else landmarks
+    landmark_goal = np.zeros(0) if landmark_goal is None else landmark_goal
     return kernel(*graph, np.array(list(starts), dtype=np.int64), np.array(list(starts.values())),
-                  np.array(list(ends), dtype=np.int64), np.array(list(ends.values())), bound)  # fmt: skip
+                  np.array(list(ends), dtype=np.int64), np.array(list(ends.values())), bound,
+                  points, goal, scale, landmarks, landmark_goal)  # fmt: skip
 
 
 def test_the_search_stops_at_the_target_and_still_reaches_a_far_one() -> None:
@@ -434,3 +444,110 @@ def test_threads_share_one_graph_without_a_lock() -> None:
     for array in (contracted.indptr, contracted.indices, contracted.data, contracted.keys, contracted.via):
         with pytest.raises(ValueError, match="read-only"):
             array[0] = 0
+
+
+# ------------------------------------------------------------------ A*: the straight line as a lower bound
+def street_grid(rows: int, columns: int, cost_per_metre: float) -> ExperienceGraph:
+    """Return a grid of streets 1 m apart: links along rows and columns, cost per metre ``cost_per_metre``."""
+    ids = np.arange(rows * columns).reshape(rows, columns)
+    src = np.concatenate([ids[:, :-1].ravel(), ids[:-1, :].ravel()])
+    dst = np.concatenate([ids[:, 1:].ravel(), ids[1:, :].ravel()])
+    r, c = np.divmod(np.arange(rows * columns), columns)
+    poses = np.column_stack([c, r, np.zeros(r.size), np.zeros(r.size)]).astype(np.float64)
+    cost = np.full(src.size, cost_per_metre)
+    return ExperienceGraph(poses, src, dst, cost, np.ones(src.size))
+
+
+def test_the_bound_is_the_least_cost_per_metre_of_any_link() -> None:
+    from core.contraction import cost_per_metre
+
+    # links of 2 s over 1 m and 3 s over 2 m: 1.5 s a metre is the least; a zero-length link sets no bound
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [3, 0, 0]])
+    lo, hi = np.array([0, 1, 2]), np.array([1, 2, 3])
+    assert cost_per_metre(lo, hi, np.array([2.0, 3.0, 1e-9]), points) == pytest.approx(1.5, rel=1e-5)
+    assert cost_per_metre(lo, hi, np.array([2.0, 3.0, 1e-9]), points) < 1.5  # never above it (rounding)
+    # no positions, a NaN position, or nothing but zero-length links: no bound (the search is Dijkstra's)
+    assert cost_per_metre(lo, hi, np.ones(3), None) == 0.0
+    assert cost_per_metre(lo, hi, np.ones(3), np.where(np.arange(12).reshape(4, 3) == 4, np.nan, points)) == 0.0
+    assert cost_per_metre(lo[2:], hi[2:], np.ones(1), points) == 0.0
+
+
+def test_a_cheap_shortcut_lowers_the_bound_and_is_still_taken() -> None:
+    # a 20 × 20 grid at 1 s a metre, and a closure between opposite corners (27 m apart) that costs 1 s:
+    # from corner to corner the shortcut (1 s) must win over the streets (38 s), which an A* whose bound
+    # ignored it (1 s a metre) would never look at
+    poses = street_grid(20, 20, 1.0).poses
+    ids = np.arange(400).reshape(20, 20)
+    base_src = np.concatenate([ids[:, :-1].ravel(), ids[:-1, :].ravel(), [0]])
+    base_dst = np.concatenate([ids[:, 1:].ravel(), ids[1:, :].ravel(), [399]])
+    cost = np.concatenate([np.ones(base_src.size - 1), [1.0]])
+    with_shortcut = ExperienceGraph(poses, base_src, base_dst, cost, cost)
+    result = with_shortcut.shortest_path(0, 399)
+    assert isinstance(result, PathResult) and result.nodes == [0, 399] and result.cost == 1.0
+    found = with_shortcut.shortest_path(1, 398)  # 1 s to 0, the shortcut, 1 s on: 3 s against 36 s of streets
+    assert isinstance(found, PathResult) and found.cost == pytest.approx(3.0)
+    without = street_grid(20, 20, 1.0).shortest_path(1, 398)
+    assert isinstance(without, PathResult) and without.cost == pytest.approx(36.0)
+
+
+@given(seed=st.integers(0, 2**32 - 1), weight=st.sampled_from(["time", "distance"]))
+@settings(max_examples=60, deadline=None)
+def test_a_star_costs_are_the_full_searchs(seed: int, weight: str) -> None:
+    """On random planar maps (links at 1–3× their straight length, some closures) every cost is scipy's."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(5, 120))
+    points = np.cumsum(rng.normal(size=(n, 2)), axis=0)
+    extra = rng.integers(0, n, size=(n // 5, 2))
+    src = np.concatenate([np.arange(n - 1), extra[:, 0]])
+    dst = np.concatenate([np.arange(1, n), extra[:, 1]])
+    length = np.linalg.norm(points[src] - points[dst], axis=1)
+    cost = length * rng.uniform(1.0, 3.0, src.size) + 1e-3
+    poses = np.column_stack([points, np.zeros((n, 2))])
+    g = ExperienceGraph(poses, src, dst, cost, cost)
+    links = [(a, b, c, c) for a, b, c in zip(src.tolist(), dst.tolist(), cost.tolist(), strict=True)]
+    full = dijkstra(cheapest(n, links, 2), directed=False)
+    for source, target in rng.integers(0, n, size=(10, 2)).tolist():
+        result = g.shortest_path(source, target, weight)  # type: ignore[arg-type]
+        assert isinstance(result, PathResult)
+        assert result.cost == pytest.approx(full[source, target], rel=1e-12, abs=1e-12)
+
+
+def test_a_star_settles_fewer_junctions_than_dijkstra_on_a_grid() -> None:
+    # must happen: on a 60 × 60 street grid at 2 s a metre, a query 40 m along the first street reaches a
+    # fraction of the junctions Dijkstra reaches (a strip along the street against a quarter disc of radius
+    # 40 m); must still: the same cost
+    g = street_grid(60, 60, 2.0)
+    graph = g._graphs["time"]
+    assert graph.scale == pytest.approx(2.0, rel=1e-5)
+    source, target = 0, 40
+    ways = graph._ways(source, target), graph._ways(target, source)
+    args = (
+        {w[0]: w[1] for w in ways[0]}, {w[0]: w[1] for w in ways[1]}, math.inf, graph.junction_points,
+    )
+    graph_arrays = (graph.indptr, graph.indices, graph.data)
+    dijkstra_dist, _ = settle(graph_arrays, *args, np.zeros(3), 0.0)
+    a_star_dist, _ = settle(graph_arrays, *args, graph._goal(target), graph.scale)
+    assert np.isfinite(a_star_dist).sum() * 3 < np.isfinite(dijkstra_dist).sum()
+    result = g.shortest_path(source, target)
+    assert isinstance(result, PathResult) and result.cost == pytest.approx(80.0)
+
+
+def test_landmarks_are_farthest_first_and_every_connected_part_gets_one() -> None:
+    from core.contraction import landmark_distances
+
+    # two lines, 0-1-2-3 (1 s links) and 4-5 (2 s): from node 0 the farthest reached is 3, but 4 and 5 are
+    # not reached at all, so the first landmark is 4 (the lowest id no one reaches); then 0 (farthest from
+    # 4: not reached), then 3 (3 s from 0)
+    graph = csr(6, [(0, 1, 1.0), (1, 2, 1.0), (2, 3, 1.0), (4, 5, 2.0)])
+    rows = landmark_distances(*graph, count=3)
+    assert rows.shape == (3, 6)
+    assert rows[0].tolist() == [math.inf] * 4 + [0.0, 2.0]
+    assert rows[1].tolist() == [0.0, 1.0, 2.0, 3.0, math.inf, math.inf]
+    assert rows[2].tolist() == [3.0, 2.0, 1.0, 0.0, math.inf, math.inf]
+    # queries in both parts still find their paths (a landmark in the other part bounds nothing)
+    g = ExperienceGraph(np.zeros((6, 4)), np.array([0, 1, 2, 4]), np.array([1, 2, 3, 5]), np.array([1.0, 1, 1, 2]),
+                        np.ones(4))  # fmt: skip
+    for (source, target), cost in {(0, 3): 3.0, (5, 4): 2.0}.items():
+        result = g.shortest_path(source, target)
+        assert isinstance(result, PathResult) and result.cost == cost
+    assert isinstance(g.shortest_path(0, 5), NoPath)

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 import core.posecells as posecells
 from core import _posecell_kernel as kernels
+from core.config import Departure, Params
 from core.lattice import circulant_kernel
 from core.posecells import PoseCellNetwork
 from tests.core.conftest import departing
@@ -103,6 +104,22 @@ def test_each_step_alone_equals_the_reference_to_the_last_bit(lattice: str, monk
         expected = reference.decode()
         _on_path(True, monkeypatch)
         assert np.array_equal(compiled.decode(), expected)
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(lattice=st.sampled_from(sorted(LATTICES)), seed=st.integers(0, 100_000), dense=st.booleans())
+def test_the_compiled_openratslam_decoding_equals_the_reference_to_the_last_bit(
+    lattice: str, seed: int, dense: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The default engine decodes as OpenRatSLAM's code (part ``decode``): compiled and Python, the same bits."""
+    params = Params().replace(**LATTICES[lattice])
+    assert params.follows_openratslam(Departure.DECODE)
+    net = PoseCellNetwork(params)
+    net.activity = _activity(net, np.random.default_rng(seed), dense)
+    _on_path(False, monkeypatch)
+    expected = net.decode().copy()
+    _on_path(True, monkeypatch)
+    assert net.decode().tobytes() == expected.tobytes()
 
 
 def _circulant_spread(cells: np.ndarray, size: int, var: float) -> np.ndarray:

@@ -387,3 +387,20 @@ def test_read_tum_refuses_stamps_and_coordinates_beyond_the_bounds(tmp_path: Pat
         assert f"{path}:1: " in str(info.value) and reason in str(info.value)
     path.write_text("1e10 1e8 -1e8 1e8 0 0 0 1\n", encoding="utf-8")
     assert read_tum(path).positions_xyz.tolist() == [[1e8, -1e8, 1e8]]
+
+
+@pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_written_files_take_the_mode_the_umask_gives(tmp_path: Path, umask: int, mode: int) -> None:
+    """Outputs are readable by whom the umask allows (must: 0644 under 022), and no more (must not: 0644 under 077)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, sys; os.umask(int(sys.argv[1], 8)); from mapserver.formats import atomic_write_bytes, "
+        "atomic_write_chunks; atomic_write_bytes(sys.argv[2] + '/a', b'x'); atomic_write_chunks(sys.argv[2] + '/b', "
+        "[b'y'])"
+    )
+    subprocess.run([sys.executable, "-c", script, oct(umask)[2:], str(tmp_path)], check=True)
+    for name in ("a", "b"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == mode
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []

@@ -179,3 +179,31 @@ def test_vertices_read_back_as_written(
         expected[:, 3] = np.arctan2(np.sin(expected[:, 3]), np.cos(expected[:, 3]))
         assert read.max_tilt_rad == 0.0
     assert np.allclose(read.poses, expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_gtsam_reads_every_active_edge_of_an_export_with_switched_off_links(tmp_path: Path, planar: bool) -> None:
+    """GTSAM's ``readG2o`` (PyPI package) stops at the first line it does not know: switched-off links come last.
+
+    A 12-experience chain whose links 2 and 7 are switched off, plus two closures: GTSAM must read all 11
+    vertices' poses and the 11 active edges (must happen), and none of the two switched off (must not).
+    """
+    import gtsam  # a dev dependency (pyproject.toml), installed by `make install`
+    n = 12
+    snap = _graph(n, [k not in (2, 7) for k in range(n - 1)])
+    snap["em_link_from"] = np.concatenate([snap["em_link_from"], [0, 3]])
+    snap["em_link_to"] = np.concatenate([snap["em_link_to"], [9, 11]])
+    for key, extra in (("em_link_transform", np.zeros((2, 4))), ("em_link_distance", np.ones(2)),
+                       ("em_link_active", np.ones(2, dtype=bool))):  # fmt: skip
+        snap[key] = np.concatenate([snap[key], extra])
+    path = tmp_path / "map.g2o"
+    path.write_text(g2o_text(snap, planar=planar))
+    graph, initial = gtsam.readG2o(str(path), not planar)
+    assert initial.size() == n
+    edges = sorted(
+        (min(f.keys()), max(f.keys())) for f in (graph.at(i) for i in range(graph.size())) if len(f.keys()) == 2
+    )
+    expected = sorted({(k, k + 1) for k in range(n - 1)} - {(2, 3), (7, 8)} | {(0, 9), (3, 11)})
+    assert edges == expected
+    text = path.read_text().splitlines()
+    assert text.index("FIX 0") < min(i for i, line in enumerate(text) if line.startswith("# inactive"))
