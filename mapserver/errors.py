@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 
 class MapServerError(Exception):
     """Root of mapserver's errors (CLI exit 1, HTTP 500 unless a subclass says otherwise)."""
@@ -70,18 +72,23 @@ class NoConfirmedMatchError(MergeError):
     exit_code = 2
 
 
-_OPAQUE = (AssertionError, KeyError, IndexError, AttributeError, TypeError)
+_OPAQUE = (AssertionError, KeyError, IndexError, AttributeError, TypeError, OverflowError)
+_ARGS_TUPLE = re.compile(r"""\(\s*(['"])(.*?)\1,?\s*\)""")  # a library's "damaged: ('reason',)"
 
 
 def describe_cause(err: BaseException, *, limit: int = 200) -> str:
     """Return a one-line reason for a library's error, or ``malformed data`` when it would say nothing useful.
 
     A library's own message (``Invalid string length 3951624202 at offset 20.``) is kept, shortened to
-    ``limit`` characters; an assertion, a lookup error's bare key or number, a message of one word or one
-    spanning several lines (a message definition, a traceback) becomes ``malformed data``.
+    ``limit`` characters, with an exception's argument tuple quoted inside it (``damaged: ('reason',)``) reduced
+    to its text; undecodable text reads ``malformed text (not UTF-8)``; an assertion, a lookup error's bare key
+    or number, an overflow of Python's integers, a message of one word or one spanning several lines (a message
+    definition, a traceback) becomes ``malformed data``.
     """
+    if isinstance(err, UnicodeDecodeError):
+        return "malformed text (not UTF-8)"
     raw = str(err)
-    text = " ".join(raw.split())
+    text = _ARGS_TUPLE.sub(lambda m: m.group(2), " ".join(raw.split()))
     opaque = isinstance(err, _OPAQUE) or "\n" in raw.strip() or len(text.split()) < 2
     if opaque or not any(c.isalpha() for c in text):
         return "malformed data"

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from mapserver.bounds import MAX_ANGLE_RAD, MAX_POSITION_M, MAX_TIME_S, value_problem
 from mapserver.errors import InputError, MapServerError
 
 MAP_FORMAT = "mapserver-map/1"
@@ -43,6 +44,11 @@ _TOP_KEYS = ("format", "params", "sessions", "templates", "experiences", "links"
 _EXPERIENCE_KEYS = ("id", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw", "template", "stamp", "session")
 _EXPERIENCE_NUMBERS = ("id", "x", "y", "z", "qx", "qy", "qz", "qw", "yaw", "template", "stamp")
 _LINK_KEYS = ("from", "to", "dt", "distance", "kind")
+_BOUNDS: dict[str, tuple[float, str]] = {
+    "x": (MAX_POSITION_M, "m"), "y": (MAX_POSITION_M, "m"), "z": (MAX_POSITION_M, "m"), "yaw": (MAX_ANGLE_RAD, "rad"),
+    "stamp": (MAX_TIME_S, "s"), "dt": (MAX_TIME_S, "s"), "distance": (MAX_POSITION_M, "m"),
+}  # fmt: skip
+"""Bounds (magnitude, unit) of map JSON numbers (:mod:`mapserver.bounds`); other numbers need only be finite."""
 _SESSION_KEYS = ("name", "log_sha256", "frames")
 
 PathLike = str | os.PathLike[str]
@@ -403,6 +409,15 @@ def _reject_constant(token: str) -> Any:
     raise ValueError(msg)
 
 
+def _finite_float(token: str) -> float:
+    """Parse a JSON number that is written as a float; one beyond the float range (``1e400``) is refused."""
+    value = float(token)
+    if not math.isfinite(value):
+        msg = f"number {token[:40]!r} is beyond the float range"
+        raise ValueError(msg)
+    return value
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
@@ -411,8 +426,9 @@ def read_map_json(path: PathLike) -> dict[str, Any]:
     """Read and validate a map JSON file.
 
     Checks the ``format`` key, the presence of every top-level key of the contract, the keys of every
-    session, experience and link, that experience numbers are numbers, and that link endpoints name
-    experiences of the map.
+    session, experience and link, that experience numbers are numbers, that no number is beyond the float range
+    (``1e400``), that positions, yaws, stamps, link ``dt`` and ``distance`` keep the bounds of
+    :mod:`mapserver.bounds`, and that link endpoints name experiences of the map.
 
     Args:
         path: the map JSON file.
@@ -450,7 +466,7 @@ def _parse_map_file(path: PathLike, name: str) -> Any:
         msg = f"cannot read map file {name!r}: {err.strerror or err}"
         raise InputError(msg) from None
     try:
-        return json.loads(raw.decode("utf-8"), parse_constant=_reject_constant)
+        return json.loads(raw.decode("utf-8"), parse_constant=_reject_constant, parse_float=_finite_float)
     except UnicodeDecodeError as err:
         msg = f"map file {name!r} is not UTF-8: {err.reason} at byte {err.start}"
         raise InputError(msg) from None
@@ -487,20 +503,31 @@ def _check_top_level(name: str, doc: Any) -> None:
         raise InputError(msg)
 
 
+def _check_value(name: str, where: str, value: Any, bound: tuple[float, str] | None) -> None:
+    """Refuse a value that is not a number, not finite, or beyond ``bound`` (magnitude, unit)."""
+    if not _is_number(value):
+        msg = f"map file {name!r}: {where} is not a number: {value!r}"
+        raise InputError(msg)
+    problem = value_problem(float(value), *(bound or (math.inf, "")))
+    if problem is not None:
+        msg = f"map file {name!r}: {where} {problem}".rstrip()
+        raise InputError(msg)
+
+
 def _check_experiences_and_links(name: str, doc: dict[str, Any]) -> None:
-    """Refuse experience fields that are not numbers and link endpoints that name no experience."""
+    """Refuse experience and link numbers that break :data:`_BOUNDS`, and link endpoints naming no experience."""
     ids = set()
     for i, exp in enumerate(doc["experiences"]):
         for key in _EXPERIENCE_NUMBERS:
-            if not _is_number(exp[key]):
-                msg = f"map file {name!r}: experiences[{i}].{key} is not a number: {exp[key]!r}"
-                raise InputError(msg)
+            _check_value(name, f"experiences[{i}].{key}", exp[key], _BOUNDS.get(key))
         ids.add(exp["id"])
     for k, link in enumerate(doc["links"]):
         for key in ("from", "to"):
             if link[key] not in ids:
                 msg = f"map file {name!r}: links[{k}].{key} = {link[key]!r} is not an experience id"
                 raise InputError(msg)
+        for key in ("dt", "distance"):
+            _check_value(name, f"links[{k}].{key}", link[key], _BOUNDS[key])
 
 
 def _check_rows(name: str, doc: dict[str, Any], key: str, columns: tuple[str, ...]) -> None:
@@ -566,6 +593,17 @@ def odometry_trajectory(doc: Mapping[str, Any]) -> Trajectory | None:
 # ----------------------------------------------------------------------------------------------- TUM
 
 
+def _check_tum_bounds(name: str, lineno: int, values: list[float]) -> None:
+    """Refuse a TUM line whose stamp is beyond ``MAX_TIME_S`` or a coordinate beyond ``MAX_POSITION_M``."""
+    fields = (("timestamp", MAX_TIME_S, "s"), ("x", MAX_POSITION_M, "m"), ("y", MAX_POSITION_M, "m"),
+              ("z", MAX_POSITION_M, "m"))  # fmt: skip
+    for (field, bound, unit), value in zip(fields, values, strict=False):
+        problem = value_problem(value, bound, unit)
+        if problem is not None:
+            msg = f"{name}:{lineno}: {field} {problem}"
+            raise InputError(msg)
+
+
 def read_tum(path: PathLike) -> Trajectory:
     """Read a TUM trajectory file (``timestamp x y z qx qy qz qw`` per line).
 
@@ -580,7 +618,8 @@ def read_tum(path: PathLike) -> Trajectory:
 
     Raises:
         InputError: the file is missing or unreadable, a line does not hold exactly 8 finite numbers (the
-            message names the line number), or the file holds no pose.
+            message names the line number), a stamp is beyond ``MAX_TIME_S`` or a coordinate beyond
+            ``MAX_POSITION_M`` (:mod:`mapserver.bounds`), or the file holds no pose.
 
     """
     name = str(path)
@@ -612,6 +651,7 @@ def read_tum(path: PathLike) -> Trajectory:
         if not all(math.isfinite(v) for v in values):
             msg = f"{name}:{lineno}: non-finite value in {stripped!r}"
             raise InputError(msg)
+        _check_tum_bounds(name, lineno, values)
         rows.append(values)
     if not rows:
         msg = f"trajectory file {name!r} holds no pose"

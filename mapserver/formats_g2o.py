@@ -24,7 +24,9 @@ matters comes after one (tests/mapserver/test_formats_g2o.py reads an export who
 
 Reading (:func:`read_g2o_vertices`): the vertices of a file (SE2 or SE3:QUAT) as poses ``[x, y, z, yaw]``;
 edges, ``FIX`` and comments are skipped. An SE3 vertex's yaw is that of its rotation; its roll and pitch
-(which a 4-DoF map cannot hold) are returned so the caller can report them.
+(which a 4-DoF map cannot hold) are returned so the caller can report them. A vertex with a value that is not
+finite, a coordinate beyond ``MAX_POSITION_M`` (1e8 m) or an SE2 angle beyond ``MAX_ANGLE_RAD`` (1e6 rad) is
+refused, naming the line and the field (the bounds of :mod:`mapserver.bounds`).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from mapserver.bounds import MAX_ANGLE_RAD, MAX_POSITION_M, value_problem
 from mapserver.errors import InputError
 
 SIGMA_XY_M = 0.02
@@ -152,11 +155,30 @@ class G2oVertices:
 
 def _yaw_and_tilt(q: np.ndarray) -> tuple[float, float]:
     """Yaw (about z, ZYX convention) and the larger of |roll|, |pitch| of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = (q / np.linalg.norm(q)).tolist()
+    scaled = q / np.max(np.abs(q))  # no overflow in the norm of huge components
+    x, y, z, w = (scaled / np.linalg.norm(scaled)).tolist()
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
     pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
     return yaw, max(abs(roll), abs(pitch))
+
+
+def _check_vertex_bounds(tag: str, values: list[float], where: str) -> None:
+    """Refuse a vertex whose position is beyond ``MAX_POSITION_M`` or whose SE2 angle is beyond ``MAX_ANGLE_RAD``.
+
+    Every value must be finite; a quaternion is only normalised (:func:`_yaw_and_tilt`). The bounds are those of
+    :mod:`mapserver.bounds`; the message names the field.
+    """
+    if not all(math.isfinite(v) for v in values):
+        msg = f"{where}: {tag} holds a non-finite value"
+        raise InputError(msg)
+    names = ("x", "y", "theta") if tag == "VERTEX_SE2" else ("x", "y", "z")
+    for name, value in zip(names, values, strict=False):
+        bound, unit = (MAX_ANGLE_RAD, "rad") if name == "theta" else (MAX_POSITION_M, "m")
+        problem = value_problem(value, bound, unit)
+        if problem is not None:
+            msg = f"{where}: {tag} {name} {problem}"
+            raise InputError(msg)
 
 
 def _vertex(tag: str, fields: list[str], where: str) -> tuple[int, list[float], float]:
@@ -171,13 +193,11 @@ def _vertex(tag: str, fields: list[str], where: str) -> tuple[int, list[float], 
     except ValueError:
         msg = f"{where}: {tag} holds a value that is not a number"
         raise InputError(msg) from None
-    if not all(math.isfinite(v) for v in values):
-        msg = f"{where}: {tag} holds a non-finite value"
-        raise InputError(msg)
+    _check_vertex_bounds(tag, values, where)
     if tag == "VERTEX_SE2":
         return ident, [values[0], values[1], 0.0, values[2]], 0.0
     q = np.asarray(values[3:7])
-    if np.linalg.norm(q) < 1e-9:
+    if np.max(np.abs(q)) < 1e-9 and np.linalg.norm(q) < 1e-9:  # the norm alone may overflow
         msg = f"{where}: {tag} has a zero quaternion"
         raise InputError(msg)
     yaw, tilt = _yaw_and_tilt(q)

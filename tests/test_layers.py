@@ -23,8 +23,9 @@ TOPS = ("core", "mapserver")
 
 # ------------------------------------------------------------------------------------------------- the table
 
-BASE = frozenset({"core", "mapserver", "mapserver.errors"})
-"""What every unit of mapserver may import: the engine, the package's version, the exception family."""
+BASE = frozenset({"core", "mapserver", "mapserver.errors", "mapserver.bounds"})
+"""What every unit of mapserver may import: the engine, the package's version, the exception family, the bounds
+of values from outside."""
 
 SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats_csv",
                     "mapserver.formats_g2o"})  # fmt: skip
@@ -48,6 +49,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     # leaves
     "mapserver": frozenset(),
     "mapserver.errors": frozenset(),
+    "mapserver.bounds": frozenset(),
     "mapserver.names": BASE,
     "mapserver.pairs": BASE,
     "mapserver.formats": BASE,

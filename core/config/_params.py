@@ -6,6 +6,7 @@ import dataclasses
 import difflib
 import enum
 import functools
+import math
 import re
 import typing
 from dataclasses import dataclass
@@ -297,6 +298,7 @@ def _validate(p: Params) -> None:
         msg = f"parameter {key!r} = {getattr(p, key)!r}: {why}"
         raise ConfigError(msg)
 
+    _validate_finite(p, fail)
     for key in ("template_x_size", "template_y_size", "vt_step_match", "pc_dim_z", "exp_loops", "exp_relax_batch"):
         if getattr(p, key) < (0 if key == "exp_loops" else 1):
             fail(key, "must be at least 1" if key != "exp_loops" else "must be ≥ 0")
@@ -350,6 +352,14 @@ def _validate(p: Params) -> None:
 
 FRONTENDS = ("lvc", "sdr-htm")
 BACKBONES = ("none", "shufflenetv2", "alexnet")
+
+
+def _validate_finite(p: Params, fail: typing.Callable[[str, str], None]) -> None:
+    """Refuse a float key that is NaN (it passes every range check) or ±inf (no setting either)."""
+    for field in dataclasses.fields(p):
+        value = getattr(p, field.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            fail(field.name, "must be a finite number")
 
 
 def _validate_frontend(p: Params, fail: typing.Callable[[str, str], None]) -> None:

@@ -18,7 +18,7 @@ class ErrorPublic(BaseModel):
 
 
 class OdometryRulesPublic(BaseModel):
-    """The fixed bounds odometry must keep (``mapserver.ingest.odometry``): beyond them a message is dropped."""
+    """The fixed bounds odometry must keep (``mapserver.bounds``): beyond them a message is dropped."""
 
     max_position_m: float = Field(description="|x|, |y|, |z| of a pose")
     max_speed_m_s: float = Field(description="speed of a twist, and of a frame's motion over its dt")
@@ -27,6 +27,15 @@ class OdometryRulesPublic(BaseModel):
         description="a log is refused when more than this fraction of its odometry messages, or of its frames' "
         "motions, is dropped"
     )
+
+
+class ValueBoundsPublic(BaseModel):
+    """The fixed bounds of imported and queried numbers (``mapserver.bounds``): beyond them the input is refused."""
+
+    max_position_m: float = Field(description="|x|, |y|, |z| of an imported pose, and an imported link's length")
+    max_angle_rad: float = Field(description="|angle| of an imported heading or link turn")
+    max_time_s: float = Field(description="an imported stamp or duration (durations also at least 0)")
+    max_query_coordinate_m: float = Field(description="|value| of a coordinate in a query (nearest point, bbox)")
 
 
 class LimitsPublic(BaseModel):
@@ -41,6 +50,7 @@ class LimitsPublic(BaseModel):
     max_exports: int = Field(description="most map exports at once (503 with Retry-After beyond)")
     read_timeout_s: float = Field(description="an upload that sends nothing this long is answered 408")
     odometry: OdometryRulesPublic
+    values: ValueBoundsPublic
 
 
 class HealthPublic(BaseModel):

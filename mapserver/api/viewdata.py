@@ -20,6 +20,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from mapserver.bounds import MAX_QUERY_COORDINATE_M, value_problem
 from mapserver.errors import InputError
 from mapserver.store import LINK_KIND_NAMES, Connection, Database, get_map
 from mapserver.store.queries import map_version, view_experiences, view_links
@@ -111,17 +112,23 @@ def parse_bbox(text: str | None) -> tuple[float, float, float, float] | None:
     """Parse ``"xmin,ymin,xmax,ymax"`` (None for no box).
 
     Raises:
-        InputError: not four finite numbers with min < max.
+        InputError: not four finite numbers within ±``MAX_QUERY_COORDINATE_M`` (1e12 m) with min < max.
     """
     if text is None or not text.strip():
         return None
+    shown = text if len(text) <= 100 else text[:97] + "..."
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
         values = []
-    finite = len(values) == 4 and all(math.isfinite(v) for v in values)
-    if not finite or values[0] >= values[2] or values[1] >= values[3]:
-        msg = f"bbox must be 'xmin,ymin,xmax,ymax' with xmin < xmax and ymin < ymax, got {text!r}"
+    if len(values) == 4:
+        for name, value in zip(("xmin", "ymin", "xmax", "ymax"), values, strict=True):
+            problem = value_problem(value, MAX_QUERY_COORDINATE_M, "m")
+            if problem is not None:
+                msg = f"bbox {name} {problem}"
+                raise InputError(msg)
+    if len(values) != 4 or values[0] >= values[2] or values[1] >= values[3]:
+        msg = f"bbox must be 'xmin,ymin,xmax,ymax' with xmin < xmax and ymin < ymax, got {shown!r}"
         raise InputError(msg)
     return values[0], values[1], values[2], values[3]
 

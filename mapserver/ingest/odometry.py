@@ -24,7 +24,8 @@ Two ways to turn a stream of states into the motion between two frame stamps ``t
 :class:`OdometryTrack` holds the states between two frames for streaming use; everything else is a pure
 function.
 
-Validation (:class:`OdometryCheck`, on the way from the log to the engine; the bounds are module constants):
+Validation (:class:`OdometryCheck`, on the way from the log to the engine; the bounds are those of
+:mod:`mapserver.bounds`, imported here under the same names):
 
 * an odometry message is **dropped** when a value of its state is not finite (NaN, ±inf), a position
   coordinate is beyond :data:`MAX_POSITION_M` (1e8 m), its speed (the norm of forward, lateral and vertical)
@@ -53,6 +54,7 @@ import numpy as np
 import numpy.typing as npt
 
 from core.motion import Motion
+from mapserver.bounds import MAX_BAD_FRACTION, MAX_POSITION_M, MAX_SPEED_M_S, MAX_YAW_RATE_RAD_S
 from mapserver.errors import IngestError
 from mapserver.ingest.frames import IngestReport
 
@@ -60,10 +62,6 @@ OdometryMode = Literal["twist", "pose"]
 NS = 1e-9
 _SMALL_ANGLE = 1e-4
 POSE_EPSILON = 1e-9  # metres / radians: a pose change above this counts as motion (mode detection)
-MAX_POSITION_M = 1e8  # |x|, |y|, |z| of an odometry pose (the Earth's scale is 1e7 m)
-MAX_SPEED_M_S = 1e3  # speed of an odometry twist, and of a frame's motion over its dt
-MAX_YAW_RATE_RAD_S = 1e2  # yaw rate of an odometry twist (a gyroscope's range is ~35 rad/s)
-MAX_BAD_FRACTION = 0.05  # dropped messages (of the topic's) or dropped frame motions (of the frames) refuse the log
 _SLACK_M = 1e-6  # rounding allowed on a frame's displacement bound
 
 Increment = tuple[float, float, float, float]

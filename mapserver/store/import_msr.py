@@ -42,6 +42,13 @@ What the format lacks, and what the import does about it (also returned as ``not
 * Pose-cell links get strength 1 (OpenRatSLAM links); lattice coordinates are wrapped into the lattice.
 * Every other engine key (VO profiles, gate, accumulators) starts as in a fresh engine; the odometry
   accumulator's facing is the current experience's heading.
+
+Values are checked where they are read, with the bounds of :mod:`mapserver.bounds` (the message names the file,
+the line and the field): every number must be finite; poses (``x_m``, ``y_m``) and link lengths (``d``) within
+``MAX_POSITION_M``, angles (``th_rad``, ``heading_rad``, ``facing_rad``) within ``MAX_ANGLE_RAD``, a link's
+``delta_time_s`` between 0 and ``MAX_TIME_S`` (and the stamps rebuilt from them within it), template values and
+means within ``MAX_TEMPLATE_VALUE``. Lattice coordinates only need to be finite: they are wrapped into the
+lattice.
 """
 
 from __future__ import annotations
@@ -55,6 +62,14 @@ from typing import Any
 import numpy as np
 
 from core import Engine, Params
+from mapserver.bounds import (
+    MAX_ANGLE_RAD,
+    MAX_POSITION_M,
+    MAX_TEMPLATE_VALUE,
+    MAX_TIME_S,
+    first_out_of_bounds,
+    value_problem,
+)
 from mapserver.errors import InputError
 from mapserver.names import check_map_name
 from mapserver.store.db import Database
@@ -71,6 +86,14 @@ FILES = (
     "experiences.txt",
     "links.txt",
 )
+
+
+Bound = tuple[float, str, float | None]
+"""(largest magnitude, unit, smallest value or None) of a field: the bounds of :mod:`mapserver.bounds`."""
+POSITION: Bound = (MAX_POSITION_M, "m", None)
+ANGLE: Bound = (MAX_ANGLE_RAD, "rad", None)
+DURATION: Bound = (MAX_TIME_S, "s", 0.0)
+INTENSITY: Bound = (MAX_TEMPLATE_VALUE, "", None)
 
 
 @dataclass
@@ -114,7 +137,8 @@ class _Lines:
         self.pos += 1
         return self.lines[self.pos - 1]
 
-    def number(self, what: str) -> float:
+    def number(self, what: str, bound: Bound | None = None) -> float:
+        """Return the next line as a finite number, refused beyond ``bound`` (:mod:`mapserver.bounds`)."""
         raw = self.next(what)
         try:
             value = float(raw)
@@ -122,6 +146,10 @@ class _Lines:
             raise self.fail(f"{what} is not a number: {raw!r}") from None
         if not math.isfinite(value):
             raise self.fail(f"{what} is not finite: {raw!r}")
+        if bound is not None:
+            problem = value_problem(value, bound[0], bound[1], minimum=bound[2])
+            if problem is not None:
+                raise self.fail(f"{what} {problem}")
         return value
 
     def integer(self, what: str) -> int:
@@ -130,7 +158,8 @@ class _Lines:
             raise self.fail(f"{what} is not an integer: {value!r}")
         return int(value)
 
-    def numbers(self, what: str) -> np.ndarray:
+    def numbers(self, what: str, bound: Bound | None = None) -> np.ndarray:
+        """Return the next line's finite numbers, each refused beyond ``bound`` (:mod:`mapserver.bounds`)."""
         raw = self.next(what)
         try:
             values = np.array([float(v) for v in raw.split()], dtype=np.float64)
@@ -138,6 +167,10 @@ class _Lines:
             raise self.fail(f"{what} holds a value that is not a number") from None
         if not np.all(np.isfinite(values)):
             raise self.fail(f"{what} holds a non-finite value")
+        if bound is not None:
+            found = first_out_of_bounds(values, bound[0], bound[1], minimum=bound[2])
+            if found is not None:
+                raise self.fail(f"{what}[{found[0]}] {found[1]}")
         return values
 
     def records_end(self) -> bool:
@@ -191,8 +224,8 @@ def _templates(directory: Path, params: Params) -> tuple[np.ndarray, np.ndarray,
         ident = f.integer("template id")
         if ident != len(means):
             raise f.fail(f"template id {ident} where {len(means)} was expected (ids must run 0, 1, 2, ...)")
-        means.append(f.number("template mean"))
-        values = f.numbers("template data")
+        means.append(f.number("template mean", INTENSITY))
+        values = f.numbers("template data", INTENSITY)
         if values.shape[0] != size:
             raise f.fail(f"template {ident} has {values.shape[0]} values, expected {size}")
         data.append(values)
@@ -244,7 +277,7 @@ def _experiences(directory: Path) -> tuple[np.ndarray, np.ndarray, int, int]:
         ident = f.integer("experience id")
         if ident != len(poses):
             raise f.fail(f"experience id {ident} where {len(poses)} was expected (ids must run 0, 1, 2, ...)")
-        poses.append((f.number("x_m"), f.number("y_m"), f.number("th_rad")))
+        poses.append((f.number("x_m", POSITION), f.number("y_m", POSITION), f.number("th_rad", ANGLE)))
         vts.append(f.integer("vt_id"))
         f.numbers("links_from[]")
         f.numbers("links_to[]")
@@ -262,12 +295,12 @@ def _links(directory: Path, n_experiences: int) -> np.ndarray:
         raise InputError(msg)
     rows = []
     while not f.at_end():
-        d = f.number("d")
-        heading = f.number("heading_rad")
-        facing = f.number("facing_rad")
+        d = f.number("d", POSITION)
+        heading = f.number("heading_rad", ANGLE)
+        facing = f.number("facing_rad", ANGLE)
         to_id = f.integer("exp_to_id")
         from_id = f.integer("exp_from_id")
-        dt = f.number("delta_time_s")
+        dt = f.number("delta_time_s", DURATION)
         for ident in (to_id, from_id):
             if not 0 <= ident < n_experiences:
                 raise f.fail(f"link names experience {ident}, but there are {n_experiences} experiences")
@@ -455,6 +488,10 @@ def read_multisession_ratslam(directory: str | Path, params: Params) -> Imported
     snapshot["pc_current_vt"] = np.asarray(save.pc_ids[0], dtype=np.int64)
     snapshot["pc_prev_vt"] = np.asarray(save.pc_ids[1], dtype=np.int64)
     _experience_graph(save, snapshot, dims)
+    late = first_out_of_bounds(snapshot["em_stamp"], MAX_TIME_S, "s")
+    if late is not None:
+        msg = f"{path}/links.txt: the links' delta_time_s add up to a stamp of experience {late[0]} that {late[1]}"
+        raise InputError(msg)
     notes = [
         _place_activity(save, snapshot, shape),
         "experience stamps are rebuilt from the links' delta_time_s (the format stores none)",

@@ -172,6 +172,15 @@ def test_invalid_values_and_aliases() -> None:
     assert params_from_dict({"merge_probation_max_m": "200"}).merge_probation_max_m == 200.0
 
 
+@pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-inf", "1e400"])
+def test_non_finite_values_are_refused_for_every_float_key(value: str) -> None:
+    """NaN passes every range check (each comparison is false), ±inf passes one-sided ones: both are refused."""
+    for key in ("vt_match_threshold", "exp_delta_pc_threshold", "merge_evidence_m", "camera_fov_deg", "min_f1"):
+        with pytest.raises(ConfigError, match=rf"parameter '{key}' = .*: must be a finite number"):
+            params_from_dict({key: value})
+    assert params_from_dict({"vt_match_threshold": "1e300"}).vt_match_threshold == 1e300  # finite: kept
+
+
 def test_missing_and_malformed_files(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read config"):
         load_config(tmp_path / "absent.txt")

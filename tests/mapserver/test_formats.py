@@ -344,6 +344,51 @@ def test_trajectory_shapes() -> None:
     np.testing.assert_array_equal(s.positions_xyz[0], [1, 1, 1])
 
 
+# ------------------------------------------------------------------------------ bounds (issue 61, mapserver.bounds)
+@pytest.mark.parametrize(
+    ("text", "value", "reason"),
+    [
+        ('"x": 0.0', '"x": 1e400', "number '1e400' is beyond the float range"),  # json reads 1e400 as inf
+        ('"x": 0.0', '"x": -1e400', "number '-1e400' is beyond the float range"),
+        ('"x": 0.0', '"x": 1e300', r"experiences\[0\]\.x is 1e\+300, beyond ±1e\+08 m"),
+        ('"z": 0.0', '"z": -100000000.5', r"experiences\[0\]\.z is -100000000\.5, beyond ±1e\+08 m"),
+        ('"yaw": 0.0', '"yaw": 1e7', r"experiences\[0\]\.yaw is 1e\+07, beyond ±1e\+06 rad"),
+        ('"stamp": 10.0', '"stamp": 2e10', r"experiences\[0\]\.stamp is 2e\+10, beyond ±1e\+10 s"),
+        ('"distance": ', '"distance": 1e300, "was": ', r"links\[0\]\.distance is 1e\+300, beyond ±1e\+08 m"),
+    ],
+)
+def test_read_map_json_refuses_numbers_beyond_the_bounds(tmp_path: Path, text: str, value: str, reason: str) -> None:
+    path = tmp_path / "map.json"
+    source = json.dumps(_doc())
+    assert text in source
+    path.write_text(source.replace(text, value, 1), encoding="utf-8")
+    with pytest.raises(InputError, match=reason) as info:
+        read_map_json(path)
+    assert "\n" not in str(info.value)
+
+
+def test_read_map_json_accepts_numbers_at_the_bounds(tmp_path: Path) -> None:
+    doc = _doc()
+    doc["experiences"][0].update(x=1e8, y=-1e8, z=1e8, yaw=-1e6, stamp=1e10)
+    doc["links"][0].update(dt=1e10, distance=1e8)
+    path = tmp_path / "map.json"
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    assert read_map_json(path)["experiences"][0]["x"] == 1e8
+
+
+def test_read_tum_refuses_stamps_and_coordinates_beyond_the_bounds(tmp_path: Path) -> None:
+    path = tmp_path / "gt.tum"
+    for line, reason in (("2e10 0 0 0 0 0 0 1", "timestamp is 2e+10, beyond ±1e+10 s"),
+                         ("1.0 0 1e300 0 0 0 0 1", "y is 1e+300, beyond ±1e+08 m"),
+                         ("1.0 0 0 1e400 0 0 0 1", "non-finite value")):  # fmt: skip
+        path.write_text(f"{line}\n", encoding="utf-8")
+        with pytest.raises(InputError) as info:
+            read_tum(path)
+        assert f"{path}:1: " in str(info.value) and reason in str(info.value)
+    path.write_text("1e10 1e8 -1e8 1e8 0 0 0 1\n", encoding="utf-8")
+    assert read_tum(path).positions_xyz.tolist() == [[1e8, -1e8, 1e8]]
+
+
 @pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
 def test_written_files_take_the_mode_the_umask_gives(tmp_path: Path, umask: int, mode: int) -> None:
     """Outputs are readable by whom the umask allows (must: 0644 under 022), and no more (must not: 0644 under 077)."""

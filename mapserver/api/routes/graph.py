@@ -15,12 +15,13 @@ from mapserver.api.routes.maps import MAP_ERRORS, MAX_ID, MapName
 from mapserver.api.schemas import ErrorPublic
 from mapserver.api.services import Services
 from mapserver.api.viewdata import MAX_NODES, ViewCache, ViewGraph, decimate, nearest, parse_bbox
+from mapserver.bounds import MAX_QUERY_COORDINATE_M
 from mapserver.errors import NotFoundError
 from mapserver.store import LINK_KIND_NAMES, get_map
 from mapserver.store.evidence import get_evidence
 
 router = APIRouter(prefix="/v1/maps", tags=["viewer"])
-MAX_COORDINATE = 1e12  # metres: a query point beyond is refused (422), as is NaN or ±inf
+MAX_COORDINATE = MAX_QUERY_COORDINATE_M  # metres: a query point beyond is refused (422), as is NaN or ±inf
 ViewParam = Annotated[Literal["xy", "xz"], Query(description="drawing plane: xy (top view) or xz (side view)")]
 
 

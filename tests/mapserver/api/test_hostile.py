@@ -316,6 +316,53 @@ def test_float_queries_refuse_nan_and_infinity(api: Api, tmp_path: Path) -> None
         assert api.client.get(f"{base}/path?{query}", headers=api.read).status_code == 422
 
 
+NUMERIC_QUERIES: dict[str, tuple[str, str, list[str]]] = {  # what: (path, good query, bad values)
+    "nearest x": ("/nearest", "x={}&y=0", ["nan", "inf", "-inf", "1e300", "1e13", "NaN", "x", ""]),
+    "nearest y": ("/nearest", "x=0&y={}", ["nan", "-inf", "-1e300", "-1.1e12"]),
+    "graph resolution": ("/graph", "resolution={}", ["nan", "inf", "-1", "1e300", "1e10"]),
+    "graph max_nodes": ("/graph", "max_nodes={}", ["nan", "inf", "0", "1e300", "50001", "1.5"]),
+    "experiences offset": ("/experiences", "offset={}", ["nan", "inf", "-1", "1e300", "99999999999999999999"]),
+    "experiences limit": ("/experiences", "limit={}", ["nan", "inf", "0", "1e300", "10001"]),
+    "path from": ("/path", "from={}&to=1", ["nan", "inf", "-1", "1e300", "0.5"]),
+    "path to": ("/path", "from=0&to={}", ["nan", "-inf", "1e300", "9223372036854775808"]),
+    "node": ("/experiences/{}", "", ["nan", "inf", "-1", "1e300"]),
+}
+BBOXES = ["nan,0,1,1", "0,0,inf,1", "-inf,-inf,inf,inf", "-1e308,-1e308,1e308,1e308", "-1.1e12,0,1,1",
+          "0,0,1e300,1", "1,1,0,0", "0,0,1", "a,b,c,d"]  # fmt: skip
+
+
+def test_every_numeric_query_refuses_nan_infinity_and_absurd_values(api: Api, tmp_path: Path) -> None:
+    """Each number of a REST query: NaN, ±inf, beyond its bound or not a number is a 4xx naming the parameter;
+    the value at the bound is answered."""
+    job = api.wait(api.upload(write_strip_log(tmp_path / "strip.bag"), preset="irat").json()["job"])
+    assert job["status"] == "done"
+    base = f"/v1/maps/{job['map']}"
+    for what, (path, query, bad) in NUMERIC_QUERIES.items():
+        for value in bad:
+            url = f"{base}{path.format(value)}?{query.format(value)}" if "{}" in path else \
+                f"{base}{path}?{query.format(value)}"  # fmt: skip
+            response = api.client.get(url, headers=api.read)
+            assert response.status_code in (404, 422), (what, value, response.text)
+            detail = response.json()["detail"]
+            assert "Error" not in detail and "Traceback" not in detail, (what, value, detail)
+            if response.status_code == 422:
+                assert detail.startswith(("query.", "path.")), (what, value, detail)
+    at_bounds = ["/nearest?x=1e12&y=-1e12", "/graph?resolution=1e9&max_nodes=50000", "/graph?resolution=0",
+                 "/experiences?offset=0&limit=10000", "/path?from=0&to=1", "/experiences/0",
+                 "/graph?bbox=-1e12,-1e12,1e12,1e12"]  # fmt: skip
+    for query in at_bounds:
+        response = api.client.get(base + query, headers=api.read)
+        assert response.status_code == 200, (query, response.text)
+    for bbox in BBOXES:
+        response = api.client.get(f"{base}/graph?bbox={bbox}", headers=api.read)
+        assert response.status_code == 400, (bbox, response.text)
+        assert response.json()["detail"].startswith("bbox "), response.json()
+    for path in ("/v1/jobs/{}", "/v1/merges/{}"):
+        for value in ("nan", "inf", "0", "1e300", "-1"):
+            response = api.client.get(path.format(value), headers=api.read)
+            assert response.status_code == 422, (path, value, response.text)
+
+
 def test_server_errors_carry_no_internal_text(api: Api) -> None:
     secret = "cannot open /srv/private/maps.db: SELECT * FROM maps"
     with mock.patch("mapserver.api.routes.maps.list_maps", side_effect=StoreError(secret)):
@@ -340,6 +387,7 @@ def test_limits_endpoint_lists_every_limit(make_api: Any) -> None:
         "max_archive_entries": 1000, "max_image_pixels": 1_000_000, "max_trailing_bytes": 1024, "max_exports": 4,
         "read_timeout_s": 60.0,
         "odometry": {"max_position_m": 1e8, "max_speed_m_s": 1e3, "max_yaw_rate_rad_s": 1e2, "max_bad_fraction": 0.05},
+        "values": {"max_position_m": 1e8, "max_angle_rad": 1e6, "max_time_s": 1e10, "max_query_coordinate_m": 1e12},
     }  # fmt: skip
 
 

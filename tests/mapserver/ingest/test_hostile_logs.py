@@ -305,3 +305,55 @@ def test_damaged_logs_are_processed_whole_or_refused_in_one_line(
         outcomes[key] = outcomes.get(key, 0) + 1
         log.unlink()
     assert outcomes.get("truncated-refused", 0) == 10, outcomes  # every truncated copy is refused
+
+
+def test_library_errors_read_as_their_reason() -> None:
+    """A library's argument tuple inside its message is reduced to the text; Python's integer overflow (a damaged
+    length field) is malformed data, undecodable text malformed text; a reason of its own is kept."""
+    from mapserver.errors import describe_cause
+
+    class ReaderError(Exception):
+        pass
+
+    assert describe_cause(ReaderError("Bag index looks damaged: ('Header could not be read from file.',)")) == \
+        "Bag index looks damaged: Header could not be read from file."  # fmt: skip
+    assert describe_cause(ReaderError("damaged: (\"Record of type 'CHUNK_INFO' is unexpected.\",)")) == \
+        "damaged: Record of type 'CHUNK_INFO' is unexpected."  # fmt: skip
+    assert describe_cause(OverflowError("Python int too large to convert to C ssize_t")) == "malformed data"
+    assert describe_cause(ReaderError("File end magic is invalid.")) == "File end magic is invalid."
+    undecodable = UnicodeDecodeError("utf-8", b"\xdc", 0, 1, "invalid continuation byte")
+    assert describe_cause(undecodable) == "malformed text (not UTF-8)"
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_cut_tails_and_damaged_headers_are_refused_in_one_clear_line(
+    fmt: str, clean_logs: dict[str, bytes], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The last 1, 64 and 4096 bytes cut (the index, footer or last chunk) and the first bytes inverted: refused,
+    exit 2, one line with no exception's name or argument tuple — or, where the damage hit bytes that carry no
+    message (a SQLite file's unused tail), processed whole; never a shorter map. ROS 1 and MCAP files end with
+    their index or footer: every cut there is refused."""
+    refused = []
+    data = clean_logs[fmt]
+    cases = {f"cut-{n}": data[: len(data) - n] for n in (1, 64, 4096)}
+    for at in (0, 4):
+        flipped = bytearray(data)
+        flipped[at] ^= 0xFF
+        cases[f"header-{at}"] = bytes(flipped)
+    for name, damaged_bytes in cases.items():
+        log = tmp_path / f"{name}.{fmt}"
+        log.write_bytes(damaged_bytes)
+        code, out, err = _run(capsys, "process", str(log), "--preset", "irat", "--json")
+        if code == 0:
+            assert json.loads(out.strip().splitlines()[-1])["frames"] == 62, (name, err)
+            continue
+        assert code == 2 and out == "", (name, err)
+        line = _error_line(err)
+        assert "('" not in line and "Error" not in line.removeprefix("ERROR"), (name, line)
+        refused.append(name)
+    if fmt != "db3":
+        assert refused == list(cases), refused
+    log = tmp_path / f"whole.{fmt}"
+    log.write_bytes(data)
+    code, out, err = _run(capsys, "process", str(log), "--preset", "irat", "--json")
+    assert code == 0 and json.loads(out.strip().splitlines()[-1])["frames"] == 62, err
