@@ -12,6 +12,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from mapserver.run import (  # re-exported: the pipeline is where callers find t
     process_log,
     run_engine,
 )
+from mapserver.store import utcnow
 
 logger = logging.getLogger(__name__)
 
@@ -149,7 +151,7 @@ def process_into_store(
         check_map_name(map_name)
     load_frontend(params)
     started = time.perf_counter()
-    options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice)
+    options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice, utcnow())
     with open_log(log_path, topics) as log, open_database(db_url) as db:
         identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
         for attempt in range(1, STALE_ATTEMPTS + 1):
@@ -175,6 +177,7 @@ class _Options:
     started: float
     confirm: int | None
     shift_lattice: bool
+    started_at: datetime  # wall-clock time the processing began (the new session's ``started_at``)
 
 
 def _process_session(
@@ -394,7 +397,7 @@ def _store_session(
                 seen={c.id: c.version for c in run.candidates},
                 relevance=run.relevance if run.relevance[1] is not None and complete else None,
             )  # fmt: skip
-        session_id = _write_session_row(conn, log_path, params, identity, run)
+        session_id = _write_session_row(conn, log_path, params, identity, run, opts.started_at)
         tags = {NEW_SESSION_ORIGIN: session_id} if run.session is None else {}
         claimed, host_id, session_ids = _claim_host(conn, session_id, run, params)
         extra: dict[str, np.ndarray] = {}
@@ -448,7 +451,8 @@ class _Progress:
 
 
 def _write_session_row(
-    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome
+    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome,
+    started_at: datetime,
 ) -> int:
     """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
     from mapserver.store.sessions import NewSession, create_session, set_activations, update_session
@@ -471,6 +475,7 @@ def _write_session_row(
                 frames_processed=progress.processed, frames_total=progress.total,
                 first_stamp=stamps[0] if stamps else None, last_stamp=stamps[-1] if stamps else None,
                 origin=NEW_SESSION_ORIGIN, reckoning=progress.rows, reckoning_pose=progress.pose,  # type: ignore[arg-type]
+                started_at=started_at,
             ),
         )  # fmt: skip
         session_id = int(created.id)

@@ -57,7 +57,8 @@ ALLOWED: dict[str, frozenset[str]] = {
     "mapserver.formats_g2o": BASE | {"mapserver.formats"},
     "mapserver.params": BASE | {"mapserver.pairs"},
     "mapserver.reckoning": BASE,
-    "mapserver.evaluation": BASE | {"mapserver.formats"},
+    "mapserver.rpe": BASE,
+    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.rpe"},
     # domain packages
     "mapserver.ingest": BASE | SHARED,
     "mapserver.store": BASE | SHARED,

@@ -152,6 +152,9 @@ class SessionPublic(BaseModel):
     last_stamp: float | None
     started_at: datetime
     finished_at: datetime | None
+    frames_per_s: float | None = Field(
+        default=None, description="frames processed per second from started_at to finished_at (null: unfinished)"
+    )
 
 
 class MergeEventPublic(BaseModel):

@@ -40,6 +40,8 @@ class NewSession:
             (``lv_origin`` / ``em_origin``) until it has an id; ``0`` by convention.
         reckoning: optional (N, 4) ``[stamp, x, y, z]`` dead-reckoning positions per frame.
         reckoning_pose: optional final dead-reckoning pose ``[x, y, z, yaw]`` (to continue it).
+        started_at: when processing the log began (UTC; None: now, for a session stored as it starts, or an
+            import).
     """
 
     name: str
@@ -56,6 +58,7 @@ class NewSession:
     origin: int = 0
     reckoning: npt.NDArray[np.float64] | None = field(default=None, compare=False)
     reckoning_pose: tuple[float, float, float, float] | None = None
+    started_at: datetime | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,6 +86,14 @@ class SessionRecord:
     def complete(self) -> bool:
         """Return True when every frame of the log has been processed."""
         return self.status == "complete"
+
+    @property
+    def frames_per_s(self) -> float | None:
+        """Return the frames processed per second of wall-clock time, start to finish (None: not finished)."""
+        if self.finished_at is None:
+            return None
+        seconds = (self.finished_at - self.started_at).total_seconds()
+        return self.frames_processed / seconds if seconds > 0 else None
 
 
 _COLUMNS = (
@@ -236,7 +247,7 @@ def create_session(*, conn: Connection, spec: NewSession) -> SessionRecord:
         "last_stamp": spec.last_stamp,
         "reckoning": _reckoning_blob(spec.reckoning),
         "reckoning_pose": None if spec.reckoning_pose is None else [float(v) for v in spec.reckoning_pose],
-        "started_at": now,
+        "started_at": spec.started_at or now,
         "finished_at": now if spec.status == "complete" else None,
         "updated_at": now,
     }

@@ -78,6 +78,7 @@ def read_map(name: MapName, services: ServicesDep, _token: ReadAccess) -> MapPub
                 name=s.name, log_name=s.log_name, log_sha256=s.log_sha256, source=s.source, status=s.status,
                 frames=s.frames_processed, frames_total=s.frames_total, first_stamp=s.first_stamp,
                 last_stamp=s.last_stamp, started_at=s.started_at, finished_at=s.finished_at,
+                frames_per_s=s.frames_per_s,
             )
             for s in sessions
         ],

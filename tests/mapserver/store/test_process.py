@@ -133,3 +133,18 @@ def test_a_session_stored_before_a_parameter_existed_continues_with_its_default(
     with open_database(db_url) as db, db.write() as conn:
         conn.execute(text("UPDATE sessions SET params = :p"), {"p": json.dumps(stored)})
     assert main(["process", str(loop_log), "--preset", "irat", "--db", db_url]) == 2
+
+
+def test_a_session_keeps_when_its_processing_started_and_finished(loop_log: Path, db_url: str) -> None:
+    """started_at is taken before the first frame (must: before finished_at), finished_at when it is stored."""
+    from mapserver.store import utcnow
+
+    before = utcnow()
+    result = pipeline.process_into_store(loop_log, small_params(), db_url=db_url)
+    after = utcnow()
+    with open_database(db_url) as db:
+        session = load_map(db, name="loop").meta.sessions[0]
+    assert before <= session.started_at < session.finished_at <= after
+    spent = (session.finished_at - session.started_at).total_seconds()
+    assert session.frames_per_s == pytest.approx(result.frames / spent)
+    assert spent >= 0.5 * result.seconds  # the processing itself lies between the two
