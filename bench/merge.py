@@ -9,13 +9,16 @@ odometry chain plus loop closures), and a partial map; then times, on one core, 
 the online driver runs when a merge is confirmed:
 
 * ``merge_states`` on the snapshots (operations i–iv, the whole algorithm);
+* ``merge_engine`` end to end (partial ``snapshot()``, the merge, and the merged engine, which keeps the
+  stored map's templates array itself);
 * ``restore_merged``: ``Engine.restore`` of the merged snapshot (the engine the session
   continues in), relaxation scheduled at the merge links;
-* the first frame's bounded share of relaxation after it (``relax_step``);
-* ``merge_engine`` end to end (partial ``snapshot()`` + ``merge_states`` + ``restore_merged``).
+* the first frame's bounded share of relaxation after it (``relax_step``).
 
-Figures are the best of ``--repeat`` runs (``*_first_s``: the first, cold run); ``peak_rss_mb`` is the
-process's peak resident memory, the synthetic maps included. The last line of stdout is one JSON object:
+The restore is timed last, from one merged snapshot, after the synthetic maps and the partial engine are
+dropped (nothing of the restore needs them). Figures are the best of ``--repeat`` runs (``*_first_s``: the
+first run); ``peak_rss_mb`` is the process's peak resident memory, the synthetic maps included. The last
+line of stdout is one JSON object:
 {"preset", "stored_experiences", "stored_templates", "stored_links", "partial_experiences",
  "merge_states_s", "restore_s", "restore_first_s", "relax_step_s", "merge_engine_s", "merge_engine_first_s",
  "peak_rss_mb", "target_s", "within_target"}.
@@ -38,7 +41,7 @@ import numpy as np
 
 from core import Engine, Params, preset
 from core.se3 import relative
-from mapserver.merge import Match, StoredMap, merge_engine, merge_states, restore_merged
+from mapserver.merge import Match, MergeRecord, StoredMap, merge_engine, merge_states, restore_merged
 from mapserver.merge.lattice import splat
 
 TARGET_S = 1.0
@@ -128,38 +131,14 @@ def best_of(repeat: int, fn: Callable[[], object]) -> tuple[float, float]:
     return min(times), times[0]
 
 
-def time_merged_state(
-    params: Params, loaded: dict[str, np.ndarray], partial: dict[str, np.ndarray], match: Match, repeat: int
-) -> tuple[float, float, float, float]:
-    """Return the seconds of merge_states, restore_merged (best, first) and the first frame's relax_step.
+def time_merges(
+    params: Params, args: argparse.Namespace
+) -> tuple[tuple[float, float, float], tuple[dict[str, np.ndarray], MergeRecord]]:
+    """Build the two maps; return the seconds of merge_states and merge_engine (best, first), and one merged snapshot.
 
-    The merged snapshot and the engines restored from it are dropped on return, before ``merge_engine`` is timed.
+    The synthetic maps, the partial engine and every merged engine are dropped on return: the merged snapshot
+    and its record are all that is left for :func:`time_restore`.
     """
-    state, record = merge_states(loaded, partial, match)
-    t_states = best_of(repeat, lambda: merge_states(loaded, partial, match))[0]
-    t_restore, t_restore_first = best_of(repeat, lambda: restore_merged(params, state, record, origin=2))
-
-    def relax_step() -> float:
-        engine = restore_merged(params, state, record, origin=2)
-        assert engine.experience_count == record.experiences
-        start = time.perf_counter()
-        engine.map.relax_step()
-        return time.perf_counter() - start
-
-    return t_states, t_restore, t_restore_first, min(relax_step() for _ in range(repeat))
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="circle")
-    parser.add_argument("--experiences", type=int, default=100_000)
-    parser.add_argument("--templates", type=int, default=20_000)
-    parser.add_argument("--links", type=int, default=200_000)
-    parser.add_argument("--partial-experiences", type=int, default=10_000)
-    parser.add_argument("--partial-templates", type=int, default=2_000)
-    parser.add_argument("--repeat", type=int, default=3)
-    args = parser.parse_args()
-    params = preset(args.preset)
     loaded = synthetic_state(params, args.experiences, args.templates, args.links, origin=1, seed=1)
     partial_links = max(args.partial_experiences - 1, int(1.5 * args.partial_experiences))
     partial = synthetic_state(
@@ -173,10 +152,40 @@ def main() -> None:
     match = Match.at_experience(partial, last, u, e_u, confirmations=3, pairs=pairs)
     partial_engine = Engine.restore(params, partial, origin=2)
     stored = StoredMap(1, params, loaded)
-
-    times = time_merged_state(params, loaded, partial, match, args.repeat)  # its snapshot and engines are dropped
+    t_states = best_of(args.repeat, lambda: merge_states(loaded, partial, match))[0]
     t_engine, t_engine_first = best_of(args.repeat, lambda: merge_engine(stored, partial_engine, match))
-    t_states, t_restore, t_restore_first, t_relax = times
+    return (t_states, t_engine, t_engine_first), merge_states(loaded, partial, match)
+
+
+def time_restore(
+    params: Params, state: dict[str, np.ndarray], record: MergeRecord, repeat: int
+) -> tuple[float, float, float]:
+    """Return the seconds of restore_merged (best, first) and of the first frame's relax_step after it."""
+    t_restore, t_restore_first = best_of(repeat, lambda: restore_merged(params, state, record, origin=2))
+
+    def relax_step() -> float:
+        engine = restore_merged(params, state, record, origin=2)
+        assert engine.experience_count == record.experiences
+        start = time.perf_counter()
+        engine.map.relax_step()
+        return time.perf_counter() - start
+
+    return t_restore, t_restore_first, min(relax_step() for _ in range(repeat))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="circle")
+    parser.add_argument("--experiences", type=int, default=100_000)
+    parser.add_argument("--templates", type=int, default=20_000)
+    parser.add_argument("--links", type=int, default=200_000)
+    parser.add_argument("--partial-experiences", type=int, default=10_000)
+    parser.add_argument("--partial-templates", type=int, default=2_000)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    params = preset(args.preset)
+    (t_states, t_engine, t_engine_first), (state, record) = time_merges(params, args)
+    t_restore, t_restore_first, t_relax = time_restore(params, state, record, args.repeat)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
     print(
         f"{args.preset}: stored {args.experiences} experiences / {args.templates} templates / {args.links} links, "
@@ -185,7 +194,7 @@ def main() -> None:
     print(f"merge_states    {t_states:.3f} s")
     print(f"restore_merged  {t_restore:.3f} s (first run {t_restore_first:.3f} s)")
     print(f"relax_step      {t_relax:.4f} s (first frame's relaxation, ≤ {params.exp_relax_batch} experiences)")
-    print(f"merge_engine    {t_engine:.3f} s (snapshot + merge_states + restore_merged; "
+    print(f"merge_engine    {t_engine:.3f} s (snapshot + merge + merged engine; "
           f"first run {t_engine_first:.3f} s)")  # fmt: skip
     print(f"peak RSS        {peak_mb:.0f} MB (the whole process, data included)")
     print(

@@ -88,6 +88,7 @@ from core.config import Departure
 from core.lattice import wrap_angle, wrap_scalar
 from core.relaxation import (
     Incidence,
+    PairSet,
     Worklist,
     length_weights,
     member_of,
@@ -149,7 +150,7 @@ class ExperienceMap:
         self._switchable = 0  # loop and merge links
         self._checked = 0  # loop and merge links at the last robust check
         self._stored = 0  # links that stood when the map was restored or last settled (STORED_LINK_HOLD)
-        self._pairs: set[tuple[int, int]] = set()
+        self._pairs = PairSet()  # every link's (source, target)
         self._exps_of_template: list[list[int]] = []
         self._incidence = Incidence()
         self._parent = GrowBuffer((), np.int64)  # union-find over links; a root is its component's anchor
@@ -386,7 +387,7 @@ class ExperienceMap:
         self._kind.append(kind)
         self._active.append(True)
         self._switchable += int(kind in SWITCHABLE_KINDS)
-        self._pairs.add((source, target))
+        self._pairs.add(source, target)
         self._incidence.add_link(source, target, link)
         self._union(source, target)
         self._operator = None
@@ -815,7 +816,7 @@ class ExperienceMap:
         em._checked = int(state.get("em_robust_checked", np.asarray(em._switchable)))
         em._stored = int(state.get("em_stored_links", np.asarray(len(em._kind))))
         src, dst = em._from.view, em._to.view
-        em._pairs = set(zip(src.tolist(), dst.tolist(), strict=True))
+        em._pairs = PairSet(src, dst)
         n = em.count
         em._incidence = Incidence.from_links(n, src, dst)
         em._parent = GrowBuffer.from_array(_component_minimum(n, src, dst), np.int64)

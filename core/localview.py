@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from core._buffers import GrowBuffer
+from core._buffers import GrowBuffer, SharedRows
 from core._match_kernel import best_pair, fixed_point_bits, quantise
 from core._match_kernel import load_compiled as load_compiled  # re-exported: callers load the kernel early
 from core.config import Departure
@@ -134,7 +134,7 @@ class LocalViewCells:
 
     def __init__(self, params: Params) -> None:
         self.params = params
-        self._templates = GrowBuffer((params.template_y_size, params.template_x_size), np.float32)
+        self._templates = SharedRows((params.template_y_size, params.template_x_size), np.float32)
         self._means = GrowBuffer((), np.float64)
         tx = params.template_x_size
         self._span = 2 * tx - 1 if params.vt_panoramic else tx  # panoramic: first tx − 1 columns repeated
@@ -177,7 +177,7 @@ class LocalViewCells:
 
     @property
     def templates(self) -> np.ndarray:
-        """Return the stored templates (N, ty, tx) float32 (view)."""
+        """Return the stored templates (N, ty, tx) float32, read-only: a view of one block, else the blocks joined."""
         return self._templates.view
 
     @property
@@ -185,10 +185,17 @@ class LocalViewCells:
         """Return the template means (N,) (view)."""
         return self._means.view
 
-    def add_templates(self, templates: np.ndarray, means: np.ndarray) -> None:
-        """Append templates with their means and fixed-point copies (new views, merge, restore, benchmarks)."""
+    def add_templates(self, templates: np.ndarray, means: np.ndarray, share: bool = False) -> None:
+        """Append templates with their means and fixed-point copies (new views, merge, restore, benchmarks).
+
+        ``share`` (before any template is made): the float32 templates are kept as given, read-only, not
+        copied (:class:`core._buffers.SharedRows`); the fixed-point copies are the store's own either way.
+        """
         stored = np.asarray(templates, dtype=np.float32)
-        self._templates.extend(stored)
+        if share:
+            self._templates.share(stored)
+        else:
+            self._templates.extend(stored)
         self._means.extend(np.asarray(means, dtype=np.float64))
         peak = float(np.maximum(stored.max(), -stored.min())) if stored.size else 0.0  # max |value|, no copy
         if peak > 1.0:  # values beyond [−1, 1]: fewer fixed-point bits
@@ -369,9 +376,13 @@ class LocalViewCells:
 
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:
-        """Return the template store as plain arrays (keys ``lv_*``)."""
+        """Return the template store as plain arrays (keys ``lv_*``).
+
+        ``lv_templates`` is read-only: the store's own rows when they are one block (templates never change once
+        made, and later ones are kept after them), else the blocks joined in a new array.
+        """
         return {
-            "lv_templates": self._templates.copy(),
+            "lv_templates": self._templates.view,
             "lv_means": self._means.copy(),
             "lv_current": np.asarray(self.current, dtype=np.int64),
             "lv_previous": np.asarray(self.previous, dtype=np.int64),
@@ -380,12 +391,16 @@ class LocalViewCells:
 
     @classmethod
     def restore(cls, params: Params, state: Mapping[str, np.ndarray]) -> LocalViewCells:
-        """Rebuild the store from :meth:`snapshot` arrays, exactly."""
+        """Rebuild the store from :meth:`snapshot` arrays, exactly.
+
+        A float32 ``lv_templates`` array is shared, read-only, not copied: the store's templates are that
+        array, and templates made later are kept after it (:class:`core._buffers.SharedRows`).
+        """
         cells = cls(params)
         templates = np.asarray(state["lv_templates"], dtype=np.float32)
         if templates.size:
             shape = (-1, params.template_y_size, params.template_x_size)
-            cells.add_templates(templates.reshape(shape), state["lv_means"])
+            cells.add_templates(templates.reshape(shape), state["lv_means"], share=True)
         cells.current = int(state["lv_current"])
         cells.previous = int(state["lv_previous"])
         cells.relative_rad = float(state["lv_relative_rad"])

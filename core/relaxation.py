@@ -280,11 +280,41 @@ def _cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return solution
 
 
+class PairSet:
+    """The ordered (source, target) pairs of a map's links, for the check that a link is not added twice.
+
+    The pairs a map is restored with are one sorted int64 array of keys ``source · 2³² + target`` (ids
+    0 ≤ id < 2³¹), those added later a set of keys: a restored map of 200,000 links holds 1.6 MB for them,
+    a set of tuples ~32 MB.
+    """
+
+    def __init__(self, source: np.ndarray | None = None, target: np.ndarray | None = None) -> None:
+        keys = np.zeros(0, dtype=np.int64) if source is None or target is None else self.keys(source, target)
+        self._sorted = np.sort(keys)
+        self._added: set[int] = set()
+
+    @staticmethod
+    def keys(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Return the key of every pair (source[i], target[i])."""
+        return (np.asarray(source, dtype=np.int64) << 32) | np.asarray(target, dtype=np.int64)
+
+    def __contains__(self, pair: tuple[int, int]) -> bool:
+        key = (int(pair[0]) << 32) | int(pair[1])
+        if key in self._added:
+            return True
+        at = int(np.searchsorted(self._sorted, key))
+        return at < self._sorted.size and int(self._sorted[at]) == key
+
+    def add(self, source: int, target: int) -> None:
+        """Record the pair (source, target)."""
+        self._added.add((int(source) << 32) | int(target))
+
+
 class Incidence:
-    """The links touching each experience, as a padded (E, W) table; W doubles when a row fills."""
+    """The links touching each experience, as a padded (E, W) int32 table (−1: none); W doubles when a row fills."""
 
     def __init__(self, capacity: int = 64, width: int = 4) -> None:
-        self._table = np.full((max(capacity, 1), width), -1, dtype=np.int64)
+        self._table = np.full((max(capacity, 1), width), -1, dtype=np.int32)
         self._degree = np.zeros(max(capacity, 1), dtype=np.int64)
         self._n = 0
 
@@ -298,7 +328,7 @@ class Incidence:
         need = self._n + count
         if need > self._table.shape[0]:
             capacity = max(need, 2 * self._table.shape[0])
-            table = np.full((capacity, self._table.shape[1]), -1, dtype=np.int64)
+            table = np.full((capacity, self._table.shape[1]), -1, dtype=np.int32)
             table[: self._n] = self._table[: self._n]
             degree = np.zeros(capacity, dtype=np.int64)
             degree[: self._n] = self._degree[: self._n]
@@ -310,14 +340,14 @@ class Incidence:
         for node in (a, b):
             slot = int(self._degree[node])
             if slot >= self._table.shape[1]:
-                wider = np.full((self._table.shape[0], 2 * self._table.shape[1]), -1, dtype=np.int64)
+                wider = np.full((self._table.shape[0], 2 * self._table.shape[1]), -1, dtype=np.int32)
                 wider[:, : self._table.shape[1]] = self._table
                 self._table = wider
             self._table[node, slot] = link
             self._degree[node] = slot + 1
 
     def gather(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return (links, owner): the links of ``ids`` grouped by experience, and each one's position in ``ids``."""
+        """Return (links, owner): the links (int32) of ``ids`` by experience, and each one's place in ``ids``."""
         width = int(self._degree[ids].max()) if ids.size else 0
         rows = self._table[:, :width][ids]
         mask = rows >= 0
@@ -328,8 +358,8 @@ class Incidence:
     def from_links(cls, n: int, src: np.ndarray, dst: np.ndarray) -> Incidence:
         """Build the table of ``n`` experiences from link endpoints (links listed in id order at each end)."""
         k = src.size
-        ends = np.concatenate([src, dst]).astype(np.int64)
-        links = np.tile(np.arange(k, dtype=np.int64), 2)
+        ends = np.concatenate([src, dst]).astype(np.int64, copy=False)
+        links = np.tile(np.arange(k, dtype=np.int32), 2)
         order = np.lexsort((links, ends))
         ends, links = ends[order], links[order]
         degree = np.bincount(ends, minlength=n).astype(np.int64)

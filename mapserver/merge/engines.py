@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -14,10 +14,11 @@ from mapserver.merge.offline_views import offline_incompatibility
 from mapserver.merge.places import merged_template_codes, merged_template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.snapshot import params_incompatibility
-from mapserver.merge.states import merge_states
+from mapserver.merge.states import merge_states_apart, merged_templates
 
 if TYPE_CHECKING:
     from core import Params
+    from core.localview import LocalViewCells
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,17 +80,46 @@ def _merged_state(
     shift_lattice: bool,
     identify_within: float | None,
     cortex: Mapping[str, np.ndarray] | None,
-) -> tuple[dict[str, np.ndarray], MergeRecord]:
-    """Return the merged snapshot and its record: ``merge_states`` and the view cells' places.
+) -> tuple[dict[str, np.ndarray], MergeRecord, np.ndarray]:
+    """Return the merged snapshot less ``lv_templates``, its record, and the partial's kept templates.
 
-    ``cortex`` (``sdr-htm``): the ``nc_*`` arrays the merged map continues in; the view cells' codes are merged too.
+    ``merge_states_apart`` and the view cells' places; the merged templates are the loaded map's followed by
+    the kept ones (:func:`_restore_sharing`). ``cortex`` (``sdr-htm``): the ``nc_*`` arrays the merged map
+    continues in; the view cells' codes are merged too.
     """
-    state, record = merge_states(loaded, partial, match, shift_lattice=shift_lattice, identify_within=identify_within)
+    state, record, appended = merge_states_apart(
+        loaded, partial, match, shift_lattice=shift_lattice, identify_within=identify_within
+    )
     state.update(merged_template_places(loaded, partial, record))
     if cortex is not None:
         state.update(cortex)
         state.update(merged_template_codes(loaded, partial, record))
-    return state, record
+    return state, record, appended
+
+
+def _restore_sharing(
+    params: Params,
+    loaded: Mapping[str, np.ndarray],
+    state: Mapping[str, np.ndarray],
+    appended: np.ndarray,
+    record: MergeRecord,
+    origin: int,
+) -> Engine:
+    """Return :func:`restore_merged` of a merged snapshot whose templates are ``loaded``'s followed by ``appended``.
+
+    Intensity templates (``lvc``): the engine keeps the loaded map's float32 ``lv_templates`` array and then
+    ``appended`` themselves, read-only (:meth:`core.localview.LocalViewCells.restore` and ``add_templates``
+    share them), so the merge never copies the loaded map's templates; the engine equals the one restored from
+    the joined snapshot. ``sdr-htm`` view cells restore from the joined snapshot.
+    """
+    if params.frontend == "sdr-htm":
+        return restore_merged(params, {"lv_templates": merged_templates(loaded, appended), **state}, record, origin)
+    means = np.asarray(state["lv_means"])
+    n_loaded = means.shape[0] - appended.shape[0]
+    head = {**state, "lv_templates": loaded["lv_templates"], "lv_means": means[:n_loaded]}
+    engine = restore_merged(params, head, record, origin=origin)
+    cast("LocalViewCells", engine.local_view).add_templates(appended, means[n_loaded:], share=True)  # lvc here
+    return engine
 
 
 def stored_links(state: Mapping[str, np.ndarray]) -> int:
@@ -129,9 +159,9 @@ def merge_engine(
         msg = f"cannot merge into map {stored.key!r}: {reason}"
         raise MergeError(msg)
     partial = engine.snapshot() if partial is None else partial
-    state, record = _merged_state(stored.state, partial, match, shift_lattice, identify_within, cortex)
+    state, record, appended = _merged_state(stored.state, partial, match, shift_lattice, identify_within, cortex)
     state["em_stored_links"] = np.asarray(stored_links(stored.state), dtype=np.int64)
-    merged = restore_merged(engine.params, state, record, origin=engine.origin)
+    merged = _restore_sharing(engine.params, stored.state, state, appended, record, engine.origin)
     merged.loop_closures = engine.loop_closures
     return merged, record
 
@@ -168,8 +198,8 @@ def merge_snapshots(
         from mapserver.merge.cortex import translate_offline  # torch only for sdr-htm maps
 
         partial_state, cortex = translate_offline(loaded.params, loaded.state, partial.state)
-    state, record = _merged_state(loaded.state, partial_state, match, shift_lattice, identify_within, cortex)
-    merged = restore_merged(loaded.params, state, record)
+    state, record, appended = _merged_state(loaded.state, partial_state, match, shift_lattice, identify_within, cortex)
+    merged = _restore_sharing(loaded.params, loaded.state, state, appended, record, origin=0)
     _close_loops(merged, int(np.shape(loaded.state["em_pose"])[0]), record.experience_map, closures)
     if settle:
         merged.settle()

@@ -204,16 +204,36 @@ def merge_states(
         MergeError: the snapshots cannot be merged (different lattice or template shapes, a
             documented key missing, an id out of range).
     """
+    rest, record, appended = merge_states_apart(
+        loaded, partial, match, shift_lattice=shift_lattice, identify_within=identify_within
+    )
+    return {"lv_templates": merged_templates(loaded, appended), **rest}, record
+
+
+def merge_states_apart(
+    loaded: State,
+    partial: State,
+    match: Match,
+    *,
+    shift_lattice: bool = True,
+    identify_within: float | None = None,
+) -> tuple[dict[str, np.ndarray], MergeRecord, np.ndarray]:
+    """Return :func:`merge_states`' snapshot less ``lv_templates``, its record, and the partial's kept templates.
+
+    The merged map's templates are the loaded map's ``lv_templates`` followed by the kept ones (float32, in the
+    loaded map's template shape; :func:`merged_templates` joins them): a caller that can hold them apart, as
+    :func:`mapserver.merge.engines.merge_engine` does, never builds a copy of the loaded map's templates.
+    """
     dims = _check_inputs(loaded, partial, match)
-    tmap, kept_t, templates = _merge_templates(loaded, partial, match)
+    tmap, kept_t, appended = _merge_templates(loaded, partial, match)
     f, delta_u = _lattice_transform(loaded, match, dims)
     pc_links = _merge_pose_cell_links(loaded, partial, tmap, kept_t, f if shift_lattice else None, len(dims))
     experiences = _merge_experiences(loaded, partial, match, tmap, f if shift_lattice else None, identify_within)
     links = _merge_links(loaded, partial, match, experiences)
     robot = _robot_state(partial, match, experiences)
-    state = _merged_state(loaded, partial, match, dims, tmap, kept_t, templates, f, delta_u, pc_links,
+    state = _merged_state(loaded, partial, match, dims, tmap, kept_t, f, delta_u, pc_links,
                           experiences, links, robot)  # fmt: skip
-    return state, _merge_record(loaded, match, shift_lattice, tmap, f, experiences, links, state)
+    return state, _merge_record(loaded, match, shift_lattice, tmap, f, experiences, links, state), appended
 
 
 def _four(values: np.ndarray) -> tuple[float, float, float, float]:
@@ -276,18 +296,22 @@ def _check_inputs(loaded: State, partial: State, match: Match) -> tuple[int, ...
 
 
 def _merge_templates(loaded: State, partial: State, match: Match) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Operation (i), Eq. 9: the template id map, which partial templates are kept, the merged templates."""
+    """Operation (i), Eq. 9: the template id map, which partial templates are kept, and the kept templates.
+
+    The kept templates (float32, in the loaded map's template shape) follow the loaded map's in the merged map.
+    """
     n_lt, n_pt = int(np.shape(loaded["lv_means"])[0]), int(np.shape(partial["lv_means"])[0])
     tmap = _template_map(match, n_lt, n_pt)
     kept_t = tmap >= n_lt
     shape = np.shape(loaded["lv_templates"])[1:] if n_lt else np.shape(partial["lv_templates"])[1:]
-    templates = np.concatenate(
-        [
-            np.asarray(loaded["lv_templates"], dtype=np.float32).reshape(-1, *shape),
-            np.asarray(partial["lv_templates"], dtype=np.float32).reshape(-1, *shape)[kept_t],
-        ]
-    )
-    return tmap, kept_t, templates
+    appended = np.asarray(partial["lv_templates"], dtype=np.float32).reshape(-1, *shape)[kept_t]
+    return tmap, kept_t, appended
+
+
+def merged_templates(loaded: State, appended: np.ndarray) -> np.ndarray:
+    """Return the merged map's templates: the loaded map's (float32) followed by ``appended`` (one new array)."""
+    own = np.asarray(loaded["lv_templates"], dtype=np.float32).reshape(-1, *appended.shape[1:])
+    return np.concatenate([own, appended])
 
 
 def _lattice_transform(loaded: State, match: Match, dims: tuple[int, ...]) -> tuple[LatticeTransform, float]:
@@ -575,7 +599,6 @@ def _merged_state(
     dims: tuple[int, ...],
     tmap: np.ndarray,
     kept_t: np.ndarray,
-    templates: np.ndarray,
     f: LatticeTransform,
     delta_u: float,
     pc_links: dict[str, np.ndarray],
@@ -583,7 +606,7 @@ def _merged_state(
     links: _Links,
     robot: tuple[int, int, np.ndarray],
 ) -> dict[str, np.ndarray]:
-    """Assemble the merged snapshot: the merged parts, and the partial's running state in merged ids."""
+    """Assemble the merged snapshot less ``lv_templates``: the merged parts and the partial's running state."""
     best = f.apply(np.asarray(partial["pc_best"], dtype=np.float64))
     lv_current = int(partial["lv_current"])
     pc_current = int(partial["pc_current_vt"])
@@ -593,7 +616,6 @@ def _merged_state(
 
     em_current, em_previous, accum = robot
     return {
-        "lv_templates": templates,
         "lv_means": _cat(loaded, partial, "lv_means", np.float64, kept_t),
         "lv_origin": _cat(loaded, partial, "lv_origin", np.int64, kept_t),
         "lv_current": scalar(lv_current),

@@ -10,6 +10,7 @@ import pytest
 from core.config import Params
 from core.experience_map import ExperienceMap, LinkKind
 from core.motion import Motion
+from core.relaxation import PairSet
 
 
 def _em(**changes: object) -> ExperienceMap:
@@ -63,6 +64,27 @@ def test_duplicate_links_are_not_added_in_either_direction() -> None:
     assert em.create_link(2, 0, 0.0, LinkKind.LOOP) is False
     assert em.create_link(0, 2, 0.0, LinkKind.LOOP) is False
     assert em.link_count == 3
+
+
+def test_a_restored_map_refuses_the_links_it_was_restored_with_and_those_added_since() -> None:
+    """The restored links' pairs are one sorted array, those added later a set: a link is refused in either
+    direction against both (create_link), in its own direction by add_link_raw; ids past 2¹⁶ keep their pairs
+    apart, and the restored pairs take 8 bytes a link."""
+    em = _em()
+    for e in range(4):
+        em.create_experience(e, np.zeros(3), float(e), 0)  # odometry links 0 → 1 → 2 → 3
+        em.on_odo(Motion(1.0, 0.0, 0.0, 0.0, 1.0))
+    back = ExperienceMap.restore(em.params, 3, em.snapshot())
+    assert back._pairs._sorted.nbytes == 8 * 3
+    assert back.create_link(2, 1, 0.0, LinkKind.LOOP) is False  # reverse of a restored link
+    assert back.add_link_raw(1, 2, np.zeros(4), 0.0, 0.0, LinkKind.MERGE) is False
+    assert back.add_link_raw(2, 1, np.zeros(4), 0.0, 0.0, LinkKind.MERGE) is True
+    assert back.create_link(3, 0, 0.0, LinkKind.LOOP) is True
+    assert back.create_link(0, 3, 0.0, LinkKind.LOOP) is False  # reverse of one added since the restore
+    assert back.add_link_raw(3, 0, np.zeros(4), 0.0, 0.0, LinkKind.MERGE) is False
+    assert back.link_count == 5
+    far = PairSet(np.array([1, 2**16]), np.array([2**16, 1]))
+    assert (1, 2**16) in far and (2**16, 1) in far and (1, 1) not in far and (2**16, 2**16) not in far
 
 
 def test_relaxation_closes_a_square_loop_with_known_odometry_error() -> None:

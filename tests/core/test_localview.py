@@ -408,3 +408,38 @@ def test_restoring_a_large_store_holds_one_block_of_temporaries() -> None:
     assert peak < 2 * 32 * 2**20 + 2 * 8 * 2**20 + 4 * 2**20
     assert back._bits == 22
     np.testing.assert_array_equal(back._fixed.view, _fixed_reference(templates, 22, 128))
+
+
+def test_a_restored_store_keeps_the_snapshots_templates_array_and_appends_after_it() -> None:
+    """2,048 templates of 32 × 128 (32 MB in float32): the restored store's templates are the snapshot's array
+    itself, read-only, so the restore's traced peak is the int32 fixed point (32 MB) and one block's temporaries
+    (8 MB each), with no float32 copy (32 MB more). A template made later goes after them: the snapshot's array
+    is left as it was, and the store's snapshot joins both, equal to a store built in one piece."""
+    import tracemalloc
+
+    rng = np.random.default_rng(6)
+    templates = rng.random((2048, 32, 128), dtype=np.float32)
+    before = templates.copy()
+    params = Params().replace(template_x_size=128, template_y_size=32)
+    state = {**LocalViewCells(params).snapshot(), "lv_templates": templates,
+             "lv_means": templates.reshape(2048, -1).mean(axis=1)}  # fmt: skip
+    tracemalloc.start()
+    try:
+        back = LocalViewCells.restore(params, state)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 32 * 2**20 + 2 * 8 * 2**20 + 4 * 2**20
+    assert np.shares_memory(back.templates, templates) and not back.templates.flags.writeable
+    assert np.shares_memory(back.snapshot()["lv_templates"], templates)
+    extra = rng.random((3, 32, 128), dtype=np.float32)
+    back.add_templates(extra, extra.reshape(3, -1).mean(axis=1))
+    np.testing.assert_array_equal(templates, before)
+    whole = LocalViewCells(params)
+    joined = np.concatenate([templates, extra])
+    whole.add_templates(joined, joined.reshape(2051, -1).mean(axis=1))
+    for key, value in whole.snapshot().items():
+        np.testing.assert_array_equal(back.snapshot()[key], value, err_msg=key)
+    np.testing.assert_array_equal(back._fixed.view, whole._fixed.view)
+    with pytest.raises(ValueError, match="before rows are appended"):
+        back.add_templates(extra, extra.reshape(3, -1).mean(axis=1), share=True)

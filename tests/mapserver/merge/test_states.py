@@ -436,3 +436,43 @@ def test_a_match_and_its_ties_round_trip_through_the_event_json() -> None:
     assert match_from_dict(data) == match
     del data["ties"]
     assert match_from_dict(data) == dataclasses.replace(match, ties=())
+
+
+def test_merge_engine_keeps_the_stored_maps_templates_array_without_a_copy() -> None:
+    """A stored map of 1,536 templates of 32 × 128 (24 MB in float32) merged with a running engine: the merged
+    engine's templates are the stored map's array itself (read-only) and then the partial's kept ones, so
+    merge_engine's traced peak is the merged engine's int32 fixed point (2,048 rows reserved, 32 MB), one block's
+    quantising temporaries (8 MB each) and small arrays, not the float32 copies that joining the templates (24 MB)
+    and restoring them (32 MB reserved) made.
+    The templates and the fixed point equal those of the engine restored from merge_states' joined snapshot."""
+    import tracemalloc
+
+    from core.localview import LocalViewCells
+    from mapserver.merge import StoredMap, merge_engine
+
+    ty, tx = 32, 128
+    params = Params().replace(template_x_size=tx, template_y_size=ty, pc_dim_xy=21, pc_dim_th=36, vt_shift_match=1)
+    rng = np.random.default_rng(4)
+    x = np.arange(6.0)
+    poses = np.stack([x, np.zeros(6), np.zeros(6), np.zeros(6)], axis=1)
+    pcs = np.stack([5.0 + x, np.full(6, 10.0), np.zeros(6)], axis=1)
+    loaded = make_state(poses, pcs, DIMS, origin=1, seed=1, n_templates=1536)
+    partial = partial_state(TURN)
+    for state in (loaded, partial):
+        views = rng.random((state["lv_means"].size, ty, tx), dtype=np.float32)
+        state["lv_templates"], state["lv_means"] = views, views.reshape(views.shape[0], -1).mean(axis=1)
+    match = Match.at_experience(partial, 3, stored_template=2, stored_experience=2)
+    engine = Engine.restore(params, partial, origin=2)
+    stored = StoredMap(1, params, loaded)
+    tracemalloc.start()
+    try:
+        merged, record = merge_engine(stored, engine, match)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 32 * 2**20 + 2 * 8 * 2**20 + 4 * 2**20
+    assert np.shares_memory(merged.local_view._templates.blocks[0], loaded["lv_templates"])
+    joined = LocalViewCells.restore(params, merge_states(loaded, partial, match)[0])
+    assert record.templates == merged.template_count == joined.count == 1539
+    np.testing.assert_array_equal(merged.local_view.templates, joined.templates)
+    np.testing.assert_array_equal(merged.local_view._fixed.view, joined._fixed.view)
