@@ -11,6 +11,7 @@ from fastapi.routing import APIRoute
 from starlette.concurrency import run_in_threadpool
 
 from mapserver import __version__
+from mapserver.api.docs import install_docs
 from mapserver.api.errors import install_error_handlers
 from mapserver.api.lifecycle import ServerLock
 from mapserver.api.openapi import install_openapi
@@ -64,6 +65,8 @@ def create_app(settings: Settings | None = None, *, server_lock: ServerLock | No
             set_max_image_pixels(previous_pixels)
 
     app = FastAPI(
+        docs_url=None,  # served by install_docs, from this server's files
+        redoc_url=None,
         title="mapserver",
         version=__version__,
         description=DESCRIPTION,
@@ -77,5 +80,6 @@ def create_app(settings: Settings | None = None, *, server_lock: ServerLock | No
     for module in (health, sessions, jobs, maps, limits):
         app.include_router(module.router)
     install_viewer(app)  # the web viewer at / and its routes (issue 16)
+    install_docs(app)  # /docs and /redoc, from this server's files
     install_openapi(app)  # errors declared as answered: {"detail": str}, 422 included
     return app

@@ -323,3 +323,35 @@ def test_panning_a_100k_map_redraws_under_50_ms(page: Any, live: dict[str, Any],
     print(f"100k-map pan redraws: {figures}")
     assert len(draws) >= 20 and len(draws_zoomed) >= 20
     assert max(draws) < REDRAW_BUDGET_MS and max(draws_zoomed) < REDRAW_BUDGET_MS, figures
+
+
+def test_api_docs_render_with_every_outside_request_blocked(browser: Any, live: dict[str, Any], tmp_path: Path) -> None:
+    """/docs (Swagger UI) and /redoc draw the API's operations from this server's files alone.
+
+    Every request to another host is aborted and counted: must be none; must still: the operations appear.
+    """
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    outside: list[str] = []
+
+    def only_this_server(route: Any) -> None:
+        if route.request.url.startswith(live["url"]):
+            route.continue_()
+        else:
+            outside.append(route.request.url)
+            route.abort()
+
+    context.route("**/*", only_this_server)
+    pg = context.new_page()
+    pg.set_default_timeout(20_000)
+    errors: list[str] = []
+    pg.on("pageerror", lambda err: errors.append(str(err)))
+    try:
+        pg.goto(live["url"] + "/docs")
+        pg.wait_for_selector("#operations-maps-find_path")  # Swagger UI drew the operation
+        pg.screenshot(path=str(tmp_path / "docs.png"))
+        pg.goto(live["url"] + "/redoc")
+        pg.wait_for_selector("text=Return the shortest path between two experiences")  # ReDoc drew its text
+        pg.screenshot(path=str(tmp_path / "redoc.png"))
+    finally:
+        context.close()
+    assert outside == [] and errors == []
