@@ -104,6 +104,14 @@ class JobPublic(BaseModel):
     dropped: DroppedPublic | None = Field(None, description="what reading the log dropped, when it dropped anything")
 
 
+class JobsPublic(BaseModel):
+    """``GET /v1/jobs``: one page of jobs, newest first."""
+
+    jobs: list[JobPublic]
+    total: int = Field(description="jobs matching the filters, on every page")
+    next: int | None = Field(description="the `before` of the next page (null: this is the last)")
+
+
 class MapHealthPublic(BaseModel):
     """A map's health: how well its active links agree (issue 12)."""
 

@@ -333,6 +333,33 @@ def job_uploads(
     return [(int(i), str(status), str(path)) for i, status, path in conn.execute(query).all()]
 
 
+def page_jobs(
+    *, conn: Connection, status: str | None = None, map_id: int | None = None, map_name: str | None = None,
+    before: int | None = None, limit: int = 50,
+) -> tuple[list[JobRecord], int, bool]:  # fmt: skip
+    """Return one page of jobs, newest first, how many match the filters in all, and whether older ones follow.
+
+    Args:
+        conn: the store's connection.
+        status: only jobs of this status.
+        map_id: with ``map_name``: only jobs that stored into that map or asked for that name (either).
+        map_name: see ``map_id`` (a name with no map id: only jobs that asked for it).
+        before: only jobs with a smaller id (the keyset of the next page: the last id of this one).
+        limit: page size.
+    """
+    filters: list[ColumnElement[bool]] = []
+    if status is not None:
+        filters.append(Job.status == status)
+    if map_name is not None:
+        filters.append(or_(Job.map_name == map_name, Job.map_id == map_id) if map_id is not None
+                       else Job.map_name == map_name)  # fmt: skip
+    total = int(conn.execute(select(func.count()).select_from(Job).where(*filters)).scalar_one())
+    if before is not None:
+        filters.append(Job.id < before)
+    rows = conn.execute(select(Job.__table__).where(*filters).order_by(Job.id.desc()).limit(limit + 1)).all()
+    return [_record(row) for row in rows[:limit]], total, len(rows) > limit
+
+
 def count_jobs(*, conn: Connection) -> dict[str, int]:
     """Return the number of jobs per status (every status present, zero when none)."""
     rows = conn.execute(select(Job.status, func.count()).group_by(Job.status)).all()

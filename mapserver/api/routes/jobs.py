@@ -1,17 +1,17 @@
-"""``GET /v1/jobs/{job}``: the state of a processing job."""
+"""``GET /v1/jobs``: the jobs, newest first, a page at a time; ``GET /v1/jobs/{job}``: the state of one."""
 
 from __future__ import annotations
 
 import contextlib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path
+from fastapi import APIRouter, Path, Query
 
 from mapserver.api.deps import ReadAccess, ServicesDep
-from mapserver.api.schemas import ErrorPublic, JobPublic
+from mapserver.api.schemas import ErrorPublic, JobPublic, JobsPublic, JobStatus
 from mapserver.errors import NotFoundError
-from mapserver.store import Connection, get_map_by_id, get_session
-from mapserver.store.jobs import JobRecord, get_job
+from mapserver.store import Connection, get_map, get_map_by_id, get_session
+from mapserver.store.jobs import JobRecord, get_job, page_jobs
 from mapserver.store.sessions import SessionRecord
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -51,6 +51,32 @@ def job_public(conn: Connection, job: JobRecord) -> JobPublic:
         finished_at=job.finished_at,
         dropped=(job.options or {}).get("dropped"),
     )
+
+
+MAX_JOBS_PAGE = 100
+
+
+@router.get("", operation_id="list_jobs", response_model=JobsPublic, responses={**ERRORS, 422: {"model": ErrorPublic}})
+def read_jobs(
+    services: ServicesDep,
+    _token: ReadAccess,
+    status: Annotated[JobStatus | None, Query(description="only jobs of this status")] = None,
+    map: Annotated[
+        str | None, Query(min_length=1, max_length=200, description="only jobs that asked for or stored into this map")
+    ] = None,
+    before: Annotated[int | None, Query(ge=1, le=MAX_ID, description="only jobs older than this id (paging)")] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_JOBS_PAGE, description="page size")] = 50,
+) -> JobsPublic:
+    """Return the jobs, newest first (sent by anyone: the viewer, curl, another server's clients), a page at a time."""
+    with services.db.read() as conn:
+        map_id = None
+        if map is not None:
+            with contextlib.suppress(NotFoundError):
+                map_id = get_map(conn=conn, name=map).id
+        records, total, more = page_jobs(conn=conn, status=status, map_id=map_id, map_name=map, before=before,
+                                         limit=limit)  # fmt: skip
+        jobs = [job_public(conn, record) for record in records]
+    return JobsPublic(jobs=jobs, total=total, next=records[-1].id if more else None)
 
 
 @router.get("/{job}", operation_id="get_job", response_model=JobPublic, responses=ERRORS)

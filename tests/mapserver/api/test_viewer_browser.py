@@ -232,6 +232,18 @@ def test_demo_atlas_maps_node_path_merge_and_upload(page: Any, live: dict[str, A
     page.click("#upload-form button[type=submit]")
     page.wait_for_selector("#jobs-table tr.job-done", timeout=90_000)
     assert "100 %" in page.inner_text("#jobs-table tr.job-done")
+    page.wait_for_function("() => document.querySelector('#banner').textContent.endsWith('done')")  # not "queued"
+    assert page.is_hidden("#upload-hint")  # with a token, no hint that one is needed
+    # a job sent with curl (not from this tab) is listed too, once the jobs view is opened again
+    other = write_strip_log(tmp_path / "other.bag", seed=8)
+    with other.open("rb") as handle:
+        sent = httpx.post(live["url"] + "/v1/sessions", files={"file": ("other.bag", handle)},
+                          data={"preset": "irat", "map": "other"}, headers=bearer(live["token"]),
+                          timeout=60)  # fmt: skip
+    assert sent.status_code == 202, sent.text
+    page.click("#nav-maps")
+    page.click("#nav-jobs")
+    page.wait_for_selector(f"#jobs-table tr[data-job='{sent.json()['job']}']")
     page.screenshot(path=str(tmp_path / "7-jobs.png"))
     page.click("#jobs-table tr.job-done a")
     wait_drawn(page, "strip")  # not V.name right after the click: the old map stays open until the hash changes
@@ -245,6 +257,8 @@ def test_token_rules_apply_to_the_viewer(browser: Any, live: dict[str, Any]) -> 
     pg.wait_for_selector("#banner:not([hidden])")
     assert "401" in pg.inner_text("#banner")
     assert pg.locator("#maps-table tbody tr").count() == 0
+    pg.click("#nav-jobs")
+    assert pg.is_visible("#upload-hint") and "write" in pg.inner_text("#upload-hint")  # without a token: the hint
     context.close()
 
 

@@ -7,7 +7,6 @@
 "use strict";
 
 const TOKEN_KEY = "mapserver-token";
-const JOBS_KEY = "mapserver-jobs";
 const SESSION_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"];
 const LINK_STYLES = {
   odometry: { color: "#9e9e9e", width: 1, dash: [] },
@@ -55,6 +54,7 @@ async function api(path, opts = {}) {
 
 function showToken() {
   $("#token-state").textContent = token() ? "token kept for this browser session" : "no token";
+  $("#upload-hint").hidden = !!token();
 }
 
 /* ------------------------------------------------------------------ routing */
@@ -63,7 +63,7 @@ function route() {
   for (const id of ["maps-view", "map-view", "jobs-view"]) $("#" + id).hidden = true;
   banner("");
   if (hash.startsWith("/map/")) { $("#map-view").hidden = false; openMap(hash.slice(5)); }
-  else if (hash === "/jobs") { $("#jobs-view").hidden = false; renderJobs(); }
+  else if (hash === "/jobs") { $("#jobs-view").hidden = false; pollJobs(); }
   else { $("#maps-view").hidden = false; loadMaps(); }
 }
 
@@ -432,8 +432,8 @@ function selectTab(name) {
 }
 
 /* ------------------------------------------------------------------ uploads and jobs */
-function jobs() { try { return JSON.parse(sessionStorage.getItem(JOBS_KEY) || "[]"); } catch (e) { return []; } }
-function saveJobs(list) { sessionStorage.setItem(JOBS_KEY, JSON.stringify(list)); }
+let jobList = [];  // the newest jobs as GET /v1/jobs lists them: sent from this tab, another one, or curl
+let queuedBanner = null;  // the job whose "queued" banner shows, cleared when it ends
 
 async function upload(e) {
   e.preventDefault();
@@ -446,28 +446,25 @@ async function upload(e) {
   form.append("merge", $("#upload-merge").checked ? "true" : "false");
   try {
     const res = await api("/v1/sessions", { method: "POST", body: form });
-    saveJobs([{ job: res.job, upload: file.name, status: res.status, progress: 0 }, ...jobs().filter((j) => j.job !== res.job)]);
     banner(`job ${res.job} ${res.duplicate ? "(already uploaded)" : "queued"}`, true);
-    renderJobs(); pollJobs();
+    queuedBanner = res.job;
+    pollJobs();
   } catch (err) { banner(err.message); }
 }
 
 let polling = null;
 async function pollJobs() {
   clearTimeout(polling);
-  let open = false;
-  const list = jobs();
-  for (const j of list) {
-    if (j.status === "done" || j.status === "failed") continue;
-    try { Object.assign(j, await api("/v1/jobs/" + j.job)); } catch (err) { j.error = err.message; j.status = "failed"; }
-    open = open || !(j.status === "done" || j.status === "failed");
-  }
-  saveJobs(list); renderJobs();
-  if (open) polling = setTimeout(pollJobs, 400);
+  try { jobList = (await api("/v1/jobs?limit=50")).jobs; } catch (err) { banner(err.message); return; }
+  renderJobs();
+  const ended = jobList.find((j) => j.job === queuedBanner && (j.status === "done" || j.status === "failed"));
+  if (ended) { banner(`job ${ended.job} ${ended.status}`, ended.status === "done"); queuedBanner = null; }
+  const open = jobList.some((j) => j.status === "queued" || j.status === "running");
+  if (open && !$("#jobs-view").hidden) polling = setTimeout(pollJobs, 400);
 }
 
 function renderJobs() {
-  $("#jobs-table tbody").replaceChildren(...jobs().map((j) => el("tr", { "data-job": j.job, class: "job-" + j.status },
+  $("#jobs-table tbody").replaceChildren(...jobList.map((j) => el("tr", { "data-job": j.job, class: "job-" + j.status },
     el("td", {}, j.job), el("td", {}, j.upload || ""), el("td", { class: "status" }, j.status),
     el("td", {}, el("progress", { max: "1", value: String(j.progress || 0) }), ` ${Math.round(100 * (j.progress || 0))} %`),
     el("td", {}, j.session || ""),
@@ -501,7 +498,6 @@ function start() {
   setupCanvas();
   window.addEventListener("hashchange", route);
   route();
-  pollJobs();
 }
 
 window.viewer = { V, draw, fit, showNode, findPath, toScreen, fetchGraph, viewBox };
