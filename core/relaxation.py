@@ -615,6 +615,11 @@ class LinkComponents:
         self._known[key] = found
 
 
+#: links of the 2-core from which :meth:`SwitchedRelaxation.run_sums` takes the compiled loop (the same bits either
+#: way): below it numba's import and the kernel's load (≈ 0.3 s the first time in a process) outweigh what it saves
+COMPILED_FROM = 256
+
+
 class SwitchedRelaxation:
     """The relaxation's fixed point over subsets of one set of links, by low-rank updates of one factorisation.
 
@@ -680,6 +685,10 @@ class SwitchedRelaxation:
         values = np.concatenate([np.ones(kr), -np.ones(kr)])[keep]
         self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kr), 2)[keep])), shape=(nf, kr))
         self._incidence_c = self.incidence_t.astype(np.complex128)
+        self._incidence_csr = _csr_arrays(self.incidence_t)
+        self._member_csr = _csr_arrays(self.member)
+        self._link_terms = (self.offset, self.along, np.ascontiguousarray(self.turned.real),
+                            np.ascontiguousarray(self.turned.imag))  # fmt: skip
         self.weight = 1.0 / np.maximum(self.length, 1.0)
         self._reference = np.zeros(self.switched[0].size, dtype=bool)
         self._factor: object | None = None
@@ -693,7 +702,20 @@ class SwitchedRelaxation:
 
         The heading residuals are wrapped to [−π, π) as :func:`residuals` wraps them. None when ``active`` splits
         a part of the graph (or turns a fixed link off): :func:`solve` then holds the experiences cut off still,
-        which the update does not model.
+        which the update does not model. Each link takes its run's (:meth:`run_residuals`), the heading signed
+        along the link.
+        """
+        found = self.run_residuals(active)
+        if found is None:
+            return None
+        return found[0][self.run], self.sign * found[1][self.run]
+
+    def run_residuals(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return each run's per-link residuals at the fixed point over ``active``: translation norms and headings.
+
+        Every link of a run takes the same residual, 1/m of the run's misclosure: the translation norm, and the
+        heading signed along the run (a link pointing against its run takes its negative). None as
+        :meth:`residuals`.
         """
         if not self.usable or not self.parts.whole(active):
             return None
@@ -714,13 +736,8 @@ class SwitchedRelaxation:
             fields = fields + _times(self.linear[:, runs] * sign, columns)
             fields = fields - _times(_times(fields[:, ld] - fields[:, ls], inverse.T), columns)
         src, dst = self.local_src, self.local_dst
-        miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
-        source = fields[0, src][self.run] + self.offset + self.along * miss[0, self.run]  # each link's source
-        turned = np.empty(source.size, dtype=np.complex128)
-        np.cos(source, out=turned.real)
-        np.sin(source, out=turned.imag)
-        planar = self.member @ (turned * self.turned)  # what each run measures in the plane
-        solved = self._factor.solve((self._incidence_c @ (planar * (on * self.weight))).view(np.float64).reshape(-1, 2))
+        miss, planar, rhs = self.run_sums(fields, on * self.weight)
+        solved = self._factor.solve(rhs)
         xy = np.zeros(self.free + 1, dtype=np.complex128)
         xy.real[: self.free] = solved[:, 0]
         xy.imag[: self.free] = solved[:, 1]
@@ -733,7 +750,34 @@ class SwitchedRelaxation:
         wrap = np.abs(turn) > math.pi
         if wrap.any():
             turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
-        return (distance / self.length)[self.run], self.sign * turn[self.run]
+        return distance / self.length, turn
+
+    def run_sums(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return each run's misclosure (2, R), what it measures in the plane (R,) and the position solve's rhs.
+
+        ``fields``: the headings and heights at the terminals; ``weight``: each run's weight, 0 where it is off.
+        Each link's translation is turned by its source's heading on its run, ``ψ_a + P + (k/m)·e``, and summed
+        per run (``planar``); the right-hand side is ``Bᵀ_A W planar`` (free, 2: real, imaginary). From
+        ``COMPILED_FROM`` links of the 2-core on, by the compiled loop (:mod:`core._switched_kernel`, the same
+        bits as the numpy expressions of :meth:`run_sums_numpy`).
+        """
+        if self.links.size < COMPILED_FROM:
+            return self.run_sums_numpy(fields, weight)
+        from core._switched_kernel import run_sums
+
+        return run_sums(fields, self.linear, (self.local_src, self.local_dst), self._link_terms, self._member_csr,
+                        weight, self._incidence_csr)  # fmt: skip
+
+    def run_sums_numpy(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return :meth:`run_sums` by whole-array numpy passes (the reference of the compiled loop)."""
+        src, dst = self.local_src, self.local_dst
+        miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
+        source = fields[0, src][self.run] + self.offset + self.along * miss[0, self.run]  # each link's source
+        turned = np.empty(source.size, dtype=np.complex128)
+        np.cos(source, out=turned.real)
+        np.sin(source, out=turned.imag)
+        planar = self.member @ (turned * self.turned)  # what each run measures in the plane
+        return miss, planar, (self._incidence_c @ (planar * weight)).view(np.float64).reshape(-1, 2)
 
     def _rebase(self, changed: np.ndarray) -> None:
         """Factorise the normal matrix over the runs with the switched links ``changed`` on: the new reference."""
@@ -768,6 +812,11 @@ class SwitchedRelaxation:
             self._slot[missing] = np.arange(self._filled, need)
             self._filled = need
         return self._columns[self._slot[runs]]
+
+
+def _csr_arrays(matrix: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return a CSR matrix's (indptr, indices, real values), in its stored order (the compiled loop's sums)."""
+    return matrix.indptr, matrix.indices, np.ascontiguousarray(matrix.data.real, dtype=np.float64)
 
 
 def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:

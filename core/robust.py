@@ -715,6 +715,7 @@ class _Problem:
         self._can = np.zeros(0, np.int64)  # the switchable links
         self._core = (np.zeros(0, np.int64), np.zeros(0, bool))  # the 2-core's links, and which may be switched
         self._held = np.zeros(0, np.int64)  # the links with a switch prior
+        self._run_view: np.ndarray | None = None  # per run of the 2-core: view links (None: a run mixes them)
         self._exact: dict[bytes, _State] = {}  # states solved in full, by their switches
 
     def fresh_budget(self) -> None:
@@ -792,17 +793,23 @@ class _Problem:
         """
         self.solves += 1
         switched = None if self.joint else self._prepared()[1]
-        found = None if switched is None else switched.residuals(active)
+        found = None if switched is None else switched.run_residuals(active)
         if found is None:
             return self.exact(_State(active, np.zeros(0), 0.0, self))
         z = np.zeros(self.src.size)
-        core = _normalise(*found, self.length, self.drift, self.view[switched.links])
+        if self._run_view is None:  # a run mixes view links and others: each link its own z
+            runs = None
+            core = _normalise(found[0][switched.run], found[1][switched.run], self.length, self.drift,
+                              self.view[switched.links])  # fmt: skip
+        else:  # every link of a run takes the run's z (hypot is even in the heading's sign)
+            runs = _normalise(*found, self.length, self.drift, self._run_view)
+            core = runs[switched.run]
         z[switched.links] = core
         links, _ = self.standby
         off = ~active[links]
-        if self._at_threshold(core, z[links[off]] * self.standby_scale[off]):
+        if self._at_threshold(core if runs is None else runs, z[links[off]] * self.standby_scale[off]):
             return self.exact(_State(active, z, 0.0, self))
-        return _State(active, z, self._core_cost(active, z, core), self)
+        return _State(active, z, self._core_cost(active, z, core, runs), self)
 
     def _at_threshold(self, core: np.ndarray, own: np.ndarray) -> bool:
         """Return whether a ``z`` lies within rounding of a threshold the search compares it with.
@@ -815,11 +822,14 @@ class _Problem:
         return bool(np.any(np.abs(np.abs(core - 0.75 * c) - 0.25 * c) <= ROUNDING * max(1.0, c))
                     or np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach)))  # fmt: skip
 
-    def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray) -> float:
-        """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual."""
+    def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray, runs: np.ndarray | None = None) -> float:
+        """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual.
+
+        ``runs``: the runs' ``z`` where each link takes its run's (squared per run, the same squares).
+        """
         links, can = self._core
         c2 = self.drift.threshold**2
-        square = core * core
+        square = core * core if runs is None else (runs * runs)[self._prepared()[1].run]
         cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
         cost += c2 * float(np.sum(self.prior[self._held][~active[self._held]]))
         return cost + 2.0 * c2 * self.overreached(active, z)
@@ -885,6 +895,11 @@ class _Problem:
             self._core = switched.links, self.can[switched.links]
             self._held = np.flatnonzero(self.prior)
             self._can = np.flatnonzero(self.can)
+            view = self.view[switched.links]
+            self._run_view = np.zeros(switched.length.size, dtype=bool)
+            self._run_view[switched.run] = view
+            if not np.array_equal(self._run_view[switched.run], view):
+                self._run_view = None
         return self._solver
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:

@@ -541,6 +541,27 @@ def _compare_with_full_solves(graph: tuple[np.ndarray, ...], seed: int, rebase: 
         assert np.abs(turn[~core]).max(initial=0.0) < 1e-8
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.one_of(_random_graph(), _laps_graph()), st.integers(0, 2**31 - 1))
+def test_the_compiled_run_sums_give_numpys_bits(graph: tuple[np.ndarray, ...], seed: int) -> None:
+    """The compiled loop of the low-rank solve (core._switched_kernel) equals its numpy expressions bit for bit."""
+    from core._switched_kernel import run_sums
+
+    pose, src, dst, transform, fixed = graph
+    n = pose.shape[0]
+    rng = np.random.default_rng(seed)
+    switched = SwitchedRelaxation(pose, src, dst, transform, _anchors(n, src, dst), LinkComponents(n, src, dst, fixed))
+    for _ in range(4):
+        fields = np.zeros((2, switched.free + 1))
+        fields[:, : switched.free] = rng.normal(scale=rng.choice([0.01, 1.0, 30.0]), size=(2, switched.free))
+        weight = switched.weight * (rng.random(switched.length.size) < 0.8)
+        expected = switched.run_sums_numpy(fields, weight)
+        found = run_sums(fields, switched.linear, (switched.local_src, switched.local_dst), switched._link_terms,
+                         switched._member_csr, weight, switched._incidence_csr)  # fmt: skip
+        for a, b in zip(found, expected, strict=True):
+            assert a.tobytes() == b.tobytes()
+
+
 def test_two_anchors_in_one_part_leave_the_low_rank_solve_unused() -> None:
     src, dst = np.array([0, 1, 2]), np.array([1, 2, 0])
     pose = np.zeros((3, 4))
