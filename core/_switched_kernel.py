@@ -134,3 +134,84 @@ def _run_sums(
             sum_im += v * y_im + 0.0 * y_re
         rhs[i, 0] = sum_re
         rhs[i, 1] = sum_im
+
+
+def low_rank_fields(
+    fields: np.ndarray, measured: np.ndarray, columns: np.ndarray, ends: tuple[np.ndarray, np.ndarray],
+    inverse: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """Return the headings and heights at the terminals over A from R's (2, free + 1): Woodbury's update.
+
+    ``fields + M·W − ((fields + M·W)[ends] · C⁻ᵀ)·W`` with ``M`` = ``measured`` (2, D), each changed run's measure
+    signed +1 on in A, ``W`` = ``columns`` (D, free + 1) and ``C⁻¹`` = ``inverse`` (D, D); each product summed over
+    D in order from its first term (:func:`core.relaxation._sequential`, the numpy version, gives the same bits).
+    """
+    out = np.empty_like(fields)
+    _kernels()["fields"](fields, measured, columns, ends[0], ends[1], inverse, out, np.empty((2, 2, measured.shape[1])))
+    return out
+
+
+def low_rank_positions(solved: np.ndarray, columns: np.ndarray, ends: tuple[np.ndarray, np.ndarray],
+                       inverse: np.ndarray) -> np.ndarray:  # fmt: skip
+    """Return the positions at the terminals over A (free + 1,) complex from R's solve ``solved`` (free, 2).
+
+    ``xy − (C⁻¹ · xy[ends])·W``, real and imaginary parts apart, each product summed in order as
+    :func:`low_rank_fields`.
+    """
+    out = np.zeros((columns.shape[1], 2))
+    _kernels()["positions"](solved, columns, ends[0], ends[1], inverse, out, np.empty((2, 2, inverse.shape[0])))
+    return out.view(np.complex128).ravel()
+
+
+@functools.cache
+def _kernels() -> dict[str, Callable[..., Any]]:
+    with _COMPILE_LOCK:
+        from numba import njit
+
+        return {"fields": njit(cache=True, nogil=True)(_fields), "positions": njit(cache=True, nogil=True)(_positions)}
+
+
+def _fields(fields: np.ndarray, measured: np.ndarray, columns: np.ndarray, start: np.ndarray, end: np.ndarray,
+            inverse: np.ndarray, out: np.ndarray, scratch: np.ndarray) -> None:  # fmt: skip
+    """Fill ``out`` with :func:`low_rank_fields` (``scratch`` (2, 2, D))."""
+    d, n = columns.shape
+    for i in range(2):
+        for j in range(n):
+            acc = measured[i, 0] * columns[0, j]
+            for k in range(1, d):
+                acc = acc + measured[i, k] * columns[k, j]
+            out[i, j] = fields[i, j] + acc
+        for m in range(d):
+            scratch[0, i, m] = out[i, end[m]] - out[i, start[m]]
+        for m in range(d):
+            acc = scratch[0, i, 0] * inverse[m, 0]
+            for k in range(1, d):
+                acc = acc + scratch[0, i, k] * inverse[m, k]
+            scratch[1, i, m] = acc
+        for j in range(n):
+            acc = scratch[1, i, 0] * columns[0, j]
+            for k in range(1, d):
+                acc = acc + scratch[1, i, k] * columns[k, j]
+            out[i, j] = out[i, j] - acc
+
+
+def _positions(solved: np.ndarray, columns: np.ndarray, start: np.ndarray, end: np.ndarray, inverse: np.ndarray,
+               out: np.ndarray, scratch: np.ndarray) -> None:  # fmt: skip
+    """Fill ``out`` (free + 1, 2; zeros) with :func:`low_rank_positions` (``scratch`` (2, 2, D))."""
+    d, n = columns.shape
+    for j in range(solved.shape[0]):
+        out[j, 0] = solved[j, 0]
+        out[j, 1] = solved[j, 1]
+    for i in range(2):
+        for m in range(d):
+            scratch[0, i, m] = out[end[m], i] - out[start[m], i]
+        for m in range(d):
+            acc = inverse[m, 0] * scratch[0, i, 0]
+            for k in range(1, d):
+                acc = acc + inverse[m, k] * scratch[0, i, k]
+            scratch[1, i, m] = acc
+        for j in range(n):
+            acc = scratch[1, i, 0] * columns[0, j]
+            for k in range(1, d):
+                acc = acc + scratch[1, i, k] * columns[k, j]
+            out[j, i] = out[j, i] - acc

@@ -728,21 +728,18 @@ class SwitchedRelaxation:
         on[self.switched[0]] = changed
         fields = self._fields  # headings and heights at the terminals: L_A⁻¹ Bᵀ_A W m
         runs = self.switched[0][d]
+        update = None
         if d.size:
             columns = self._solved_columns(runs)
-            ls, ld = self.local_src[runs], self.local_dst[runs]
+            ends = self.local_src[runs], self.local_dst[runs]
             sign = np.where(changed[d], 1.0, -1.0)
-            inverse = np.linalg.inv(np.diag(sign) + columns[:, ld].T - columns[:, ls].T)  # the capacitance's
-            fields = fields + _times(self.linear[:, runs] * sign, columns)
-            fields = fields - _times(_times(fields[:, ld] - fields[:, ls], inverse.T), columns)
+            inverse = np.linalg.inv(np.diag(sign) + columns[:, ends[1]].T - columns[:, ends[0]].T)  # the capacitance's
+            update = columns, ends, inverse
+            fields = self.low_rank(fields, self.linear[:, runs] * sign, update)
         src, dst = self.local_src, self.local_dst
         miss, planar, rhs = self.run_sums(fields, on * self.weight)
         solved = self._factor.solve(rhs)
-        xy = np.zeros(self.free + 1, dtype=np.complex128)
-        xy.real[: self.free] = solved[:, 0]
-        xy.imag[: self.free] = solved[:, 1]
-        if d.size:
-            xy -= _times(_times(inverse, xy[ld] - xy[ls]), columns)
+        xy = self.low_rank(solved, None, update)
         distance = np.abs(xy[dst] - xy[src] - planar)
         if not self.flat:
             distance = np.hypot(distance, miss[1])
@@ -751,6 +748,41 @@ class SwitchedRelaxation:
         if wrap.any():
             turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
         return distance / self.length, turn
+
+    def low_rank(
+        self, values: np.ndarray, measured: np.ndarray | None,
+        update: tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray] | None,
+    ) -> np.ndarray:  # fmt: skip
+        """Return R's solution ``values`` moved to A's by the Woodbury identity (class docstring).
+
+        ``update``: ``W_D`` (the changed runs' solved columns), their terminals and the capacitance's inverse;
+        None when A is R. ``measured`` (2, D): the fields' case, ``values`` R's headings and heights (2, free + 1);
+        None: the positions' case, ``values`` R's solve (free, 2), returned complex (free + 1,). Each product is
+        summed over D in order from its first term: by the compiled loops from ``COMPILED_FROM`` links of the
+        2-core on (:mod:`core._switched_kernel`), else by :func:`_sequential` (the same bits).
+        """
+        if measured is None and update is None:
+            xy = np.zeros(self.free + 1, dtype=np.complex128)
+            xy.real[: self.free] = values[:, 0]
+            xy.imag[: self.free] = values[:, 1]
+            return xy
+        if update is None:
+            return values
+        columns, ends, inverse = update
+        if self.links.size >= COMPILED_FROM:
+            from core._switched_kernel import low_rank_fields, low_rank_positions
+
+            if measured is None:
+                return low_rank_positions(values, columns, ends, inverse)
+            return low_rank_fields(values, measured, columns, ends, inverse)
+        if measured is None:
+            xy = np.zeros((self.free + 1, 2))
+            xy[: self.free] = values
+            xy = xy.T
+            xy = xy - _sequential(_sequential(inverse, (xy[:, ends[1]] - xy[:, ends[0]]).T).T, columns)
+            return np.ascontiguousarray(xy.T).view(np.complex128).ravel()
+        values = values + _sequential(measured, columns)
+        return values - _sequential(_sequential(values[:, ends[1]] - values[:, ends[0]], inverse.T), columns)
 
     def run_sums(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return each run's misclosure (2, R), what it measures in the plane (R,) and the position solve's rhs.
@@ -819,16 +851,18 @@ def _csr_arrays(matrix: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return matrix.indptr, matrix.indices, np.ascontiguousarray(matrix.data.real, dtype=np.float64)
 
 
-def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return ``a @ b`` (a vector or matrix times a matrix, or a matrix times a vector) without BLAS.
+def _sequential(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return ``a @ b`` (matrices), each entry summed over the inner index in order from its first term.
 
-    The low-rank update's products are small (tens of columns): BLAS splits them over its threads, which on a
-    busy machine made a scored state ten times slower (measured: 3.3 ms against 0.3 ms per state), and setting
-    its threads process-wide would reach every other thread of a server.
+    The order the compiled loops of :mod:`core._switched_kernel` sum in, so the two give the same bits (einsum's
+    SIMD loops sum in an order of their own, with fused multiply-adds where the CPU has them). No BLAS: the
+    low-rank update's products are small (tens of columns), and BLAS split them over its threads, which on a busy
+    machine made a scored state ten times slower (measured: 3.3 ms against 0.3 ms per state).
     """
-    if b.ndim == 1:
-        return np.einsum("ij,j->i", a, b)
-    return np.einsum("...k,kj->...j", a, b)
+    out = a[:, 0, None] * b[0]
+    for k in range(1, a.shape[1]):
+        out = out + a[:, k, None] * b[k]
+    return out
 
 
 @dataclass(frozen=True, slots=True)
