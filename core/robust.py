@@ -715,6 +715,9 @@ class _Problem:
         self._can = np.zeros(0, np.int64)  # the switchable links
         self._core = (np.zeros(0, np.int64), np.zeros(0, bool))  # the 2-core's links, and which may be switched
         self._held = np.zeros(0, np.int64)  # the links with a switch prior
+        self._held_prior = np.zeros(0)  # and their priors
+        # the 2-core's never-switched links, their runs, and the runs of its switchable ones (:meth:`_core_cost`)
+        self._core_runs = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
         self._run_view: np.ndarray | None = None  # per run of the 2-core: view links (None: a run mixes them)
         self._exact: dict[bytes, _State] = {}  # states solved in full, by their switches
 
@@ -820,7 +823,7 @@ class _Problem:
         c = self.drift.threshold
         reach = 1.0 / self.drift.drift
         return bool(np.any(np.abs(np.abs(core - 0.75 * c) - 0.25 * c) <= ROUNDING * max(1.0, c))
-                    or np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach)))  # fmt: skip
+                    or (own.size and np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach))))  # fmt: skip
 
     def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray, runs: np.ndarray | None = None) -> float:
         """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual.
@@ -829,9 +832,16 @@ class _Problem:
         """
         links, can = self._core
         c2 = self.drift.threshold**2
-        square = core * core if runs is None else (runs * runs)[self._prepared()[1].run]
-        cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
-        cost += c2 * float(np.sum(self.prior[self._held][~active[self._held]]))
+        if runs is None:
+            square = core * core
+            cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
+        else:  # the same squares in the same order, gathered from the runs'
+            fixed_links, fixed_runs, can_runs = self._core_runs
+            square = runs * runs
+            on = active[fixed_links]
+            fixed = square[fixed_runs] if on.all() else square[fixed_runs[on]]
+            cost = float(ODOMETRY_WEIGHT * np.sum(fixed) + np.sum(np.minimum(square[can_runs], c2)))
+        cost += c2 * float(np.sum(self._held_prior[~active[self._held]]))
         return cost + 2.0 * c2 * self.overreached(active, z)
 
     def decided(self, state: _State, links: np.ndarray, top: bool = False) -> _State:
@@ -894,7 +904,10 @@ class _Problem:
             self._solver = (parts, switched, np.flatnonzero(self.gated), began)
             self._core = switched.links, self.can[switched.links]
             self._held = np.flatnonzero(self.prior)
+            self._held_prior = self.prior[self._held]
             self._can = np.flatnonzero(self.can)
+            fixed = np.flatnonzero(~self._core[1])
+            self._core_runs = (switched.links[fixed], switched.run[fixed], switched.run[self._core[1]])
             view = self.view[switched.links]
             self._run_view = np.zeros(switched.length.size, dtype=bool)
             self._run_view[switched.run] = view
