@@ -150,7 +150,9 @@ outside the test hook :func:`false_loop_links`).
 Scoring. Each set of switches the search tries is scored without a factorisation of its own
 (:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
 that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
-exactly), each run of odometry links between two closures as one link. Its residuals agree with the full
+exactly), each run of odometry links between two closures as one link; its per-link step and the update's products
+are compiled loops on large graphs (:mod:`core._switched_kernel`, the same bits as their numpy versions), and each
+run's ``z`` is taken once for its links (:meth:`_Problem.state`). Its residuals agree with the full
 solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z``. Where rounding could make the choice —
 two ``z`` that the search orders within ``ROUNDING`` of each other (links in series through experiences with two
 links carry the same ``z`` exactly, and the full solve's rounding has always ordered them), a ``z`` at a
