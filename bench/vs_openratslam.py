@@ -5,6 +5,7 @@ bench/differential/cxx.py)::
 
     PYTHONPATH=$PWD .venv/bin/python bench/vs_openratslam.py --ratslam /tmp/ratslam \
         [--logs matching,panoramic,light] [--runs 3] [--laps 8] [--work DIR] [--baseline CHECKOUT] [--set K=V]
+    .venv/bin/python bench/vs_openratslam.py --write-only DIR [--logs light,matching] [--laps 8]
 
 Every log is the simulator's ``loop`` scenario (``--laps`` laps, seed 0); they differ in what dominates a frame:
 
@@ -189,10 +190,27 @@ def bench_log(spec: LogSpec, args: argparse.Namespace, binary: Path, work: Path)
     return ratios
 
 
+def write_only(work: Path, names: list[str], laps: float) -> int:
+    """Write each named log and its INI (``NAME.ini``) into ``work``, print their paths; return 0.
+
+    The logs other tools measure on (``bench/robust_share.py mapserver process LOG --config INI``) without
+    OpenRatSLAM's build.
+    """
+    work.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        log = make_log(work, LOGS[name], laps)
+        ini = work / f"{name}.ini"
+        write_ini(LOGS[name].params, ini)
+        print(f"{name}: {log} --config {ini}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Build the logs and the driver, time both engines on every log, print the runs and the ratios."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ratslam", required=True, type=Path, help="local copy of davidmball/ratslam")
+    parser.add_argument("--ratslam", type=Path, default=None, help="local copy of davidmball/ratslam")
+    parser.add_argument("--write-only", type=Path, default=None, metavar="DIR",
+                        help="write the logs and their INI files into DIR and stop (no C++ build, no timing)")
     parser.add_argument("--logs", default=",".join(LOGS), help=f"comma-separated, of {', '.join(LOGS)}")
     parser.add_argument("--runs", type=int, default=3, help="side-by-side runs per log")
     parser.add_argument("--laps", type=float, default=8.0)
@@ -204,6 +222,11 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in names if n not in LOGS]
     if unknown or args.runs < 1:
         print(f"error: unknown logs {unknown} (valid: {', '.join(LOGS)}) or --runs < 1", file=sys.stderr)
+        return 2
+    if args.write_only is not None:
+        return write_only(args.write_only, names, args.laps)
+    if args.ratslam is None:
+        print("error: --ratslam is required unless --write-only", file=sys.stderr)
         return 2
     work = args.work or Path(tempfile.mkdtemp(prefix="vs_openratslam_"))
     work.mkdir(parents=True, exist_ok=True)

@@ -78,6 +78,9 @@ BIAS_TURN_DRIFT = 0.005
 MAX_LINKS = 1000
 #: pairs evaluated at once (bounds the temporaries of :func:`pair_consistency`)
 PAIR_CHUNK = 65536
+#: pairs from which :meth:`TreePaths.distance` finds their common ancestors by the compiled loop (the same integers
+#: either way); below, the numpy passes cost less than loading it
+COMPILED_PAIRS = 4096
 
 
 class TreePaths:
@@ -108,7 +111,23 @@ class TreePaths:
             self.up[k] = self.up[k - 1][self.up[k - 1]]
 
     def distance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Return the path length between ``a[k]`` and ``b[k]`` (inf where no path joins them)."""
+        """Return the path length between ``a[k]`` and ``b[k]`` (inf where no path joins them).
+
+        Through their lowest common ancestor: from ``COMPILED_PAIRS`` pairs on by the compiled loop
+        (:mod:`core._tree_kernel`), below by :meth:`ancestors` (the same integers, so the same lengths).
+        """
+        if a.size >= COMPILED_PAIRS:
+            from core._tree_kernel import lowest_common_ancestors
+
+            lca = lowest_common_ancestors(self.up, self.depth, a, b)
+        else:
+            lca = self.ancestors(a, b)
+        out = self.from_root[a] + self.from_root[b] - 2.0 * self.from_root[lca]
+        joined = (self.component[a] == self.component[b]) & (self.component[a] >= 0)
+        return np.where(joined, out, np.inf)
+
+    def ancestors(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Return the lowest common ancestor of each pair (a[k], b[k]) by binary lifting, every pair at once."""
         a, b = a.copy(), b.copy()
         swap = self.depth[a] < self.depth[b]
         a[swap], b[swap] = b[swap], a[swap]
@@ -121,10 +140,7 @@ class TreePaths:
             differ = self.up[k][x] != self.up[k][y]
             x[differ] = self.up[k][x[differ]]
             y[differ] = self.up[k][y[differ]]
-        lca = np.where(x == y, x, self.up[0][x])
-        out = self.from_root[a] + self.from_root[b] - 2.0 * self.from_root[lca]
-        joined = (self.component[a] == self.component[b]) & (self.component[a] >= 0)
-        return np.where(joined, out, np.inf)
+        return np.where(x == y, x, self.up[0][x])
 
     @cached_property
     def travelled(self) -> np.ndarray:
@@ -263,9 +279,15 @@ def pair_consistency(
     k = src.size
     p, q = np.triu_indices(k, 1)
     out = np.zeros((k, k))
+    ends = np.unique(np.concatenate([src, dst]))  # the experiences the cycles leave from: their inverses, once
+    inverted = np.zeros_like(pose)
+    inverted[ends] = inverse(pose[ends])
+    turn = np.zeros((2, pose.shape[0]))
+    turn[:, ends] = np.cos(inverted[ends, 3]), np.sin(inverted[ends, 3])
+    frames = (inverted, turn, inverse(transform))
     for lo in range(0, p.size, PAIR_CHUNK):  # bounded temporaries: K = 1000 is 0.5 M pairs
         pp, qq = p[lo : lo + PAIR_CHUNK], q[lo : lo + PAIR_CHUNK]
-        z = _pair_z(pose, (src, dst, transform), paths, (length, drift, yaw_drift), pp, qq)
+        z = _pair_z(pose, (src, dst, transform), paths, (length, drift, yaw_drift), pp, qq, frames)
         out[pp, qq] = z
         out[qq, pp] = z
     return out
@@ -278,20 +300,27 @@ def _pair_z(
     scale: tuple[float, float, float],
     p: np.ndarray,
     q: np.ndarray,
+    frames: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> np.ndarray:
     """Return the cycle error ``z`` of link pairs (p[k], q[k]), with q's link taken the way round of shorter paths.
 
     ``links`` is (src, dst, transform) and ``scale`` (link length, drift, yaw drift), as for
-    :func:`pair_consistency`.
+    :func:`pair_consistency`. ``frames``: each experience's inverse pose (on the links' ends) and the cosine and sine
+    of its yaw (2, n), and each link's inverse transform: ``relative(X_i, X_a) = X_i⁻¹ ⊕ X_a`` takes them, per
+    pair the same numbers as computed there.
     """
     src, dst, transform = links
     length, drift, yaw_drift = scale
+    inverted, turn, transform_inv = frames
     best = np.zeros(p.size)
     shortest = np.full(p.size, np.inf)
-    t1_inv = inverse(transform[p])
+    t1_inv = transform_inv[p]
     i, j = src[p], dst[p]
-    for a, b, t2 in ((src[q], dst[q], transform[q]), (dst[q], src[q], inverse(transform[q]))):
-        cycle = compose(compose(compose(relative(pose[i], pose[a]), t2), relative(pose[b], pose[j])), t1_inv)
+    inverse_i, turn_i = inverted[i], (turn[0, i], turn[1, i])
+    for a, b, t2 in ((src[q], dst[q], transform[q]), (dst[q], src[q], transform_inv[q])):
+        start = compose(inverse_i, pose[a], turn_i)  # X_i⁻¹ ⊕ X_a
+        back = compose(inverted[b], pose[j], (turn[0, b], turn[1, b]))  # X_b⁻¹ ⊕ X_j
+        cycle = compose(compose(compose(start, t2), back), t1_inv)
         travelled = paths.distance(i, a) + paths.distance(b, j) + 2.0 * length
         z = np.hypot(np.linalg.norm(cycle[:, :3], axis=1) / (drift * travelled), cycle[:, 3] / (yaw_drift * travelled))
         shorter = travelled < shortest  # the cycle of the shorter paths is the one the odometry constrains most

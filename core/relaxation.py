@@ -646,6 +646,11 @@ class LinkComponents:
         self._known[key] = found
 
 
+#: links of the 2-core from which :meth:`SwitchedRelaxation.run_sums` takes the compiled loop (the same bits either
+#: way): below it numba's import and the kernel's load (≈ 0.3 s the first time in a process) outweigh what it saves
+COMPILED_FROM = 256
+
+
 class SwitchedRelaxation:
     """The relaxation's fixed point over subsets of one set of links, by low-rank updates of one factorisation.
 
@@ -711,6 +716,10 @@ class SwitchedRelaxation:
         values = np.concatenate([np.ones(kr), -np.ones(kr)])[keep]
         self.incidence_t = sp.csr_matrix((values, (rows[keep], np.tile(np.arange(kr), 2)[keep])), shape=(nf, kr))
         self._incidence_c = self.incidence_t.astype(np.complex128)
+        self._incidence_csr = _csr_arrays(self.incidence_t)
+        self._member_csr = _csr_arrays(self.member)
+        self._link_terms = (self.offset, self.along, np.ascontiguousarray(self.turned.real),
+                            np.ascontiguousarray(self.turned.imag))  # fmt: skip
         self.weight = 1.0 / np.maximum(self.length, 1.0)
         self._reference = np.zeros(self.switched[0].size, dtype=bool)
         self._factor: SuperLU | None = None
@@ -724,7 +733,20 @@ class SwitchedRelaxation:
 
         The heading residuals are wrapped to [−π, π) as :func:`residuals` wraps them. None when ``active`` splits
         a part of the graph (or turns a fixed link off): :func:`solve` then holds the experiences cut off still,
-        which the update does not model.
+        which the update does not model. Each link takes its run's (:meth:`run_residuals`), the heading signed
+        along the link.
+        """
+        found = self.run_residuals(active)
+        if found is None:
+            return None
+        return found[0][self.run], self.sign * found[1][self.run]
+
+    def run_residuals(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return each run's per-link residuals at the fixed point over ``active``: translation norms and headings.
+
+        Every link of a run takes the same residual, 1/m of the run's misclosure: the translation norm, and the
+        heading signed along the run (a link pointing against its run takes its negative). None as
+        :meth:`residuals`.
         """
         if not self.usable or not self.parts.whole(active):
             return None
@@ -737,28 +759,19 @@ class SwitchedRelaxation:
         on[self.switched[0]] = changed
         fields = self._fields  # headings and heights at the terminals: L_A⁻¹ Bᵀ_A W m
         runs = self.switched[0][d]
+        update = None
         if d.size:
             columns = self._solved_columns(runs)
-            ls, ld = self.local_src[runs], self.local_dst[runs]
+            ends = self.local_src[runs], self.local_dst[runs]
             sign = np.where(changed[d], 1.0, -1.0)
-            inverse = np.linalg.inv(np.diag(sign) + columns[:, ld].T - columns[:, ls].T)  # the capacitance's
-            fields = fields + _times(self.linear[:, runs] * sign, columns)
-            fields = fields - _times(_times(fields[:, ld] - fields[:, ls], inverse.T), columns)
+            inverse = np.linalg.inv(np.diag(sign) + columns[:, ends[1]].T - columns[:, ends[0]].T)  # the capacitance's
+            update = columns, ends, inverse
+            fields = self.low_rank(fields, self.linear[:, runs] * sign, update)
         src, dst = self.local_src, self.local_dst
-        miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
-        source = fields[0, src][self.run] + self.offset + self.along * miss[0, self.run]  # each link's source
-        turned = np.empty(source.size, dtype=np.complex128)
-        np.cos(source, out=turned.real)
-        np.sin(source, out=turned.imag)
-        planar = self.member @ (turned * self.turned)  # what each run measures in the plane
+        miss, planar, rhs = self.run_sums(fields, on * self.weight)
         assert self._factor is not None  # made by _rebase
-        incidence = np.asarray(self._incidence_c @ (planar * (on * self.weight)))
-        solved = self._factor.solve(incidence.view(np.float64).reshape(-1, 2))
-        xy = np.zeros(self.free + 1, dtype=np.complex128)
-        xy.real[: self.free] = solved[:, 0]
-        xy.imag[: self.free] = solved[:, 1]
-        if d.size:
-            xy -= _times(_times(inverse, xy[ld] - xy[ls]), columns)
+        solved = self._factor.solve(rhs)
+        xy = self.low_rank(solved, None, update)
         distance = np.abs(xy[dst] - xy[src] - planar)
         if not self.flat:
             distance = np.hypot(distance, miss[1])
@@ -766,7 +779,70 @@ class SwitchedRelaxation:
         wrap = np.abs(turn) > math.pi
         if wrap.any():
             turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
-        return (distance / self.length)[self.run], self.sign * turn[self.run]
+        return distance / self.length, turn
+
+    def low_rank(
+        self, values: np.ndarray, measured: np.ndarray | None,
+        update: tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray] | None,
+    ) -> np.ndarray:  # fmt: skip
+        """Return R's solution ``values`` moved to A's by the Woodbury identity (class docstring).
+
+        ``update``: ``W_D`` (the changed runs' solved columns), their terminals and the capacitance's inverse;
+        None when A is R. ``measured`` (2, D): the fields' case, ``values`` R's headings and heights (2, free + 1);
+        None: the positions' case, ``values`` R's solve (free, 2), returned complex (free + 1,). Each product is
+        summed over D in order from its first term: by the compiled loops from ``COMPILED_FROM`` links of the
+        2-core on (:mod:`core._switched_kernel`), else by :func:`_sequential` (the same bits).
+        """
+        if measured is None and update is None:
+            xy = np.zeros(self.free + 1, dtype=np.complex128)
+            xy.real[: self.free] = values[:, 0]
+            xy.imag[: self.free] = values[:, 1]
+            return xy
+        if update is None:
+            return values
+        columns, ends, inverse = update
+        if self.links.size >= COMPILED_FROM:
+            from core._switched_kernel import low_rank_fields, low_rank_positions
+
+            if measured is None:
+                return low_rank_positions(values, columns, ends, inverse)
+            return low_rank_fields(values, measured, columns, ends, inverse)
+        if measured is None:
+            planes = np.zeros((self.free + 1, 2))
+            planes[: self.free] = values
+            across = planes.T
+            across = across - _sequential(_sequential(inverse, (across[:, ends[1]] - across[:, ends[0]]).T).T, columns)
+            return np.ascontiguousarray(across.T).view(np.complex128).ravel()
+        values = values + _sequential(measured, columns)
+        return values - _sequential(_sequential(values[:, ends[1]] - values[:, ends[0]], inverse.T), columns)
+
+    def run_sums(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return each run's misclosure (2, R), what it measures in the plane (R,) and the position solve's rhs.
+
+        ``fields``: the headings and heights at the terminals; ``weight``: each run's weight, 0 where it is off.
+        Each link's translation is turned by its source's heading on its run, ``ψ_a + P + (k/m)·e``, and summed
+        per run (``planar``); the right-hand side is ``Bᵀ_A W planar`` (free, 2: real, imaginary). From
+        ``COMPILED_FROM`` links of the 2-core on, by the compiled loop (:mod:`core._switched_kernel`, the same
+        bits as the numpy expressions of :meth:`run_sums_numpy`).
+        """
+        if self.links.size < COMPILED_FROM:
+            return self.run_sums_numpy(fields, weight)
+        from core._switched_kernel import run_sums
+
+        return run_sums(fields, self.linear, (self.local_src, self.local_dst), self._link_terms, self._member_csr,
+                        weight, self._incidence_csr)  # fmt: skip
+
+    def run_sums_numpy(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return :meth:`run_sums` by whole-array numpy passes (the reference of the compiled loop)."""
+        src, dst = self.local_src, self.local_dst
+        miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
+        source = fields[0, src][self.run] + self.offset + self.along * miss[0, self.run]  # each link's source
+        turned = np.empty(source.size, dtype=np.complex128)
+        np.cos(source, out=turned.real)
+        np.sin(source, out=turned.imag)
+        planar = np.asarray(self.member @ (turned * self.turned))  # what each run measures in the plane
+        rhs = np.asarray(self._incidence_c @ (planar * weight))
+        return miss, planar, rhs.view(np.float64).reshape(-1, 2)
 
     def _rebase(self, changed: np.ndarray) -> None:
         """Factorise the normal matrix over the runs with the switched links ``changed`` on: the new reference."""
@@ -804,16 +880,23 @@ class SwitchedRelaxation:
         return self._columns[self._slot[runs]]
 
 
-def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return ``a @ b`` (a vector or matrix times a matrix, or a matrix times a vector) without BLAS.
+def _csr_arrays(matrix: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return a CSR matrix's (indptr, indices, real values), in its stored order (the compiled loop's sums)."""
+    return matrix.indptr, matrix.indices, np.ascontiguousarray(matrix.data.real, dtype=np.float64)
 
-    The low-rank update's products are small (tens of columns): BLAS splits them over its threads, which on a
-    busy machine made a scored state ten times slower (measured: 3.3 ms against 0.3 ms per state), and setting
-    its threads process-wide would reach every other thread of a server.
+
+def _sequential(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return ``a @ b`` (matrices), each entry summed over the inner index in order from its first term.
+
+    The order the compiled loops of :mod:`core._switched_kernel` sum in, so the two give the same bits (einsum's
+    SIMD loops sum in an order of their own, with fused multiply-adds where the CPU has them). No BLAS: the
+    low-rank update's products are small (tens of columns), and BLAS split them over its threads, which on a busy
+    machine made a scored state ten times slower (measured: 3.3 ms against 0.3 ms per state).
     """
-    if b.ndim == 1:
-        return np.einsum("ij,j->i", a, b)
-    return np.einsum("...k,kj->...j", a, b)
+    out = a[:, 0, None] * b[0]
+    for k in range(1, a.shape[1]):
+        out = out + a[:, k, None] * b[k]
+    return out
 
 
 @dataclass(frozen=True, slots=True)

@@ -150,7 +150,9 @@ outside the test hook :func:`false_loop_links`).
 Scoring. Each set of switches the search tries is scored without a factorisation of its own
 (:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
 that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
-exactly), each run of odometry links between two closures as one link. Its residuals agree with the full
+exactly), each run of odometry links between two closures as one link; its per-link step and the update's products
+are compiled loops on large graphs (:mod:`core._switched_kernel`, the same bits as their numpy versions), and each
+run's ``z`` is taken once for its links (:meth:`_Problem.state`). Its residuals agree with the full
 solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z``. Where rounding could make the choice —
 two ``z`` that the search orders within ``ROUNDING`` of each other (links in series through experiences with two
 links carry the same ``z`` exactly, and the full solve's rounding has always ordered them), a ``z`` at a
@@ -715,6 +717,10 @@ class _Problem:
         self._can = np.zeros(0, np.int64)  # the switchable links
         self._core = (np.zeros(0, np.int64), np.zeros(0, bool))  # the 2-core's links, and which may be switched
         self._held = np.zeros(0, np.int64)  # the links with a switch prior
+        self._held_prior = np.zeros(0)  # and their priors
+        # the 2-core's never-switched links, their runs, and the runs of its switchable ones (:meth:`_core_cost`)
+        self._core_runs = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        self._run_view: np.ndarray | None = None  # per run of the 2-core: view links (None: a run mixes them)
         self._exact: dict[bytes, _State] = {}  # states solved in full, by their switches
 
     def fresh_budget(self) -> None:
@@ -792,17 +798,23 @@ class _Problem:
         """
         self.solves += 1
         switched = None if self.joint else self._prepared()[1]
-        found = None if switched is None else switched.residuals(active)
+        found = None if switched is None else switched.run_residuals(active)
         if switched is None or found is None:
             return self.exact(_State(active, np.zeros(0), 0.0, self))
         z = np.zeros(self.src.size)
-        core = _normalise(*found, self.length, self.drift, self.view[switched.links])
+        if self._run_view is None:  # a run mixes view links and others: each link its own z
+            runs = None
+            core = _normalise(found[0][switched.run], found[1][switched.run], self.length, self.drift,
+                              self.view[switched.links])  # fmt: skip
+        else:  # every link of a run takes the run's z (hypot is even in the heading's sign)
+            runs = _normalise(*found, self.length, self.drift, self._run_view)
+            core = runs[switched.run]
         z[switched.links] = core
         links, _ = self.standby
         off = ~active[links]
-        if self._at_threshold(core, z[links[off]] * self.standby_scale[off]):
+        if self._at_threshold(core if runs is None else runs, z[links[off]] * self.standby_scale[off]):
             return self.exact(_State(active, z, 0.0, self))
-        return _State(active, z, self._core_cost(active, z, core), self)
+        return _State(active, z, self._core_cost(active, z, core, runs), self)
 
     def _at_threshold(self, core: np.ndarray, own: np.ndarray) -> bool:
         """Return whether a ``z`` lies within rounding of a threshold the search compares it with.
@@ -813,15 +825,25 @@ class _Problem:
         c = self.drift.threshold
         reach = 1.0 / self.drift.drift
         return bool(np.any(np.abs(np.abs(core - 0.75 * c) - 0.25 * c) <= ROUNDING * max(1.0, c))
-                    or np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach)))  # fmt: skip
+                    or (own.size and np.any(np.abs(own - reach) <= ROUNDING * max(1.0, reach))))  # fmt: skip
 
-    def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray) -> float:
-        """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual."""
+    def _core_cost(self, active: np.ndarray, z: np.ndarray, core: np.ndarray, runs: np.ndarray | None = None) -> float:
+        """Return :meth:`cost` where only the 2-core's links (``z`` ``core``) have a residual.
+
+        ``runs``: the runs' ``z`` where each link takes its run's (squared per run, the same squares).
+        """
         links, can = self._core
         c2 = self.drift.threshold**2
-        square = core * core
-        cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
-        cost += c2 * float(np.sum(self.prior[self._held][~active[self._held]]))
+        if runs is None:
+            square = core * core
+            cost = float(ODOMETRY_WEIGHT * np.sum(square[~can & active[links]]) + np.sum(np.minimum(square[can], c2)))
+        else:  # the same squares in the same order, gathered from the runs'
+            fixed_links, fixed_runs, can_runs = self._core_runs
+            square = runs * runs
+            on = active[fixed_links]
+            fixed = square[fixed_runs] if on.all() else square[fixed_runs[on]]
+            cost = float(ODOMETRY_WEIGHT * np.sum(fixed) + np.sum(np.minimum(square[can_runs], c2)))
+        cost += c2 * float(np.sum(self._held_prior[~active[self._held]]))
         return cost + 2.0 * c2 * self.overreached(active, z)
 
     def decided(self, state: _State, links: np.ndarray, top: bool = False) -> _State:
@@ -884,7 +906,15 @@ class _Problem:
             self._solver = (parts, switched, np.flatnonzero(self.gated), began)
             self._core = switched.links, self.can[switched.links]
             self._held = np.flatnonzero(self.prior)
+            self._held_prior = self.prior[self._held]
             self._can = np.flatnonzero(self.can)
+            fixed = np.flatnonzero(~self._core[1])
+            self._core_runs = (switched.links[fixed], switched.run[fixed], switched.run[self._core[1]])
+            view = self.view[switched.links]
+            self._run_view = np.zeros(switched.length.size, dtype=bool)
+            self._run_view[switched.run] = view
+            if not np.array_equal(self._run_view[switched.run], view):
+                self._run_view = None
         return self._solver
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:

@@ -34,18 +34,19 @@ def _as_poses(poses: npt.ArrayLike) -> np.ndarray:
     return p
 
 
-def compose(a: npt.ArrayLike, b: npt.ArrayLike) -> np.ndarray:
+def compose(a: npt.ArrayLike, b: npt.ArrayLike, turn: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Return ``a ⊕ b``: the pose ``b`` (expressed in frame ``a``) in the frame ``a`` is expressed in.
 
     Args:
         a: poses (..., 4) x, y, z (m), yaw (rad).
         b: poses (..., 4), broadcast against ``a``.
+        turn: ``(cos, sin)`` of ``a``'s yaws, where the caller has them (the same values: taken, not computed).
 
     Returns:
         (..., 4): translation ``a.xyz + Rz(a.yaw)·b.xyz``, yaw ``wrap(a.yaw + b.yaw)``.
     """
     pa, pb = _as_poses(a), _as_poses(b)
-    c, s = np.cos(pa[..., 3]), np.sin(pa[..., 3])
+    c, s = (np.cos(pa[..., 3]), np.sin(pa[..., 3])) if turn is None else turn
     out = np.empty(np.broadcast_shapes(pa.shape, pb.shape), dtype=np.float64)
     out[..., 0] = pa[..., 0] + c * pb[..., 0] - s * pb[..., 1]
     out[..., 1] = pa[..., 1] + s * pb[..., 0] + c * pb[..., 1]

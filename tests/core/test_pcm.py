@@ -45,6 +45,26 @@ def test_tree_paths_equal_shortest_paths_on_a_random_forest(n: int, seed: int) -
     assert np.allclose(got[np.isfinite(got)], expected[np.isfinite(expected)])
 
 
+@given(st.integers(2, 200), st.integers(0, 10_000))
+@settings(max_examples=30, deadline=None)
+def test_the_compiled_common_ancestors_are_numpys(n: int, seed: int) -> None:
+    """core._tree_kernel lifts each pair on its own: the same ancestors as the numpy passes (a forest of chains and
+    branches, pairs across trees included)."""
+    from core._tree_kernel import lowest_common_ancestors
+
+    rng = np.random.default_rng(seed)
+    child = np.arange(1, n)
+    parent = np.array([rng.integers(max(0, c - 3), c) for c in child])  # deep trees: many lifting levels
+    cut = rng.random(child.size) < 0.05
+    roots = np.zeros(n, dtype=bool)
+    roots[0] = True
+    roots[child[cut]] = True
+    paths = TreePaths(n, parent[~cut], child[~cut], rng.uniform(0.1, 3.0, int((~cut).sum())), roots)
+    a, b = rng.integers(0, n, 500), rng.integers(0, n, 500)
+    joined = paths.component[a] == paths.component[b]
+    assert np.array_equal(lowest_common_ancestors(paths.up, paths.depth, a, b)[joined], paths.ancestors(a, b)[joined])
+
+
 @given(st.integers(2, 40), st.integers(0, 10_000))
 @settings(max_examples=40, deadline=None)
 def test_tree_paths_along_counts_links_walked_against_their_direction_negative(n: int, seed: int) -> None:

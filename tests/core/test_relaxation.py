@@ -20,6 +20,7 @@ from core.config import Params
 from core.experience_map import ExperienceMap, LinkKind
 from core.motion import Motion
 from core.relaxation import (
+    COMPILED_FROM,
     LinkComponents,
     SwitchedRelaxation,
     cycle_links,
@@ -539,6 +540,43 @@ def _compare_with_full_solves(graph: tuple[np.ndarray, ...], seed: int, rebase: 
         assert np.abs(np.remainder(found[1] - turn[core] + math.pi, 2 * math.pi) - math.pi).max(initial=0) < 1e-8
         assert distance[~core] == pytest.approx(0.0, abs=1e-8)  # off the 2-core every link fits exactly
         assert np.abs(turn[~core]).max(initial=0.0) < 1e-8
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.one_of(_random_graph(), _laps_graph()), st.integers(0, 2**31 - 1))
+def test_the_compiled_run_sums_give_numpys_bits(graph: tuple[np.ndarray, ...], seed: int) -> None:
+    """The compiled loops of the low-rank solve (core._switched_kernel) equal their numpy versions bit for bit."""
+    from core._switched_kernel import run_sums
+
+    pose, src, dst, transform, fixed = graph
+    n = pose.shape[0]
+    rng = np.random.default_rng(seed)
+    switched = SwitchedRelaxation(pose, src, dst, transform, _anchors(n, src, dst), LinkComponents(n, src, dst, fixed))
+    for _ in range(4):
+        fields = np.zeros((2, switched.free + 1))
+        fields[:, : switched.free] = rng.normal(scale=rng.choice([0.01, 1.0, 30.0]), size=(2, switched.free))
+        weight = switched.weight * (rng.random(switched.length.size) < 0.8)
+        expected = switched.run_sums_numpy(fields, weight)
+        found = run_sums(fields, switched.linear, (switched.local_src, switched.local_dst), switched._link_terms,
+                         switched._member_csr, weight, switched._incidence_csr)  # fmt: skip
+        for a, b in zip(found, expected, strict=True):
+            assert a.tobytes() == b.tobytes()
+        runs = switched.switched[0][rng.random(switched.switched[0].size) < 0.5]
+        if runs.size == 0:
+            continue
+        columns = rng.normal(size=(runs.size, switched.free + 1))
+        ends = switched.local_src[runs], switched.local_dst[runs]
+        update = columns, ends, rng.normal(size=(runs.size, runs.size))
+        measured = rng.normal(size=(2, runs.size))
+        solved = rng.normal(size=(switched.free, 2))
+        links = switched.links
+        switched.links = np.zeros(0, np.int64)  # the numpy loops (below COMPILED_FROM links)
+        numpy_paths = switched.low_rank(fields, measured, update), switched.low_rank(solved, None, update)
+        switched.links = np.zeros(COMPILED_FROM, np.int64)  # the compiled ones
+        compiled = switched.low_rank(fields, measured, update), switched.low_rank(solved, None, update)
+        switched.links = links
+        for a, b in zip(compiled, numpy_paths, strict=True):
+            assert a.tobytes() == b.tobytes()
 
 
 def test_two_anchors_in_one_part_leave_the_low_rank_solve_unused() -> None:

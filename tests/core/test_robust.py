@@ -982,7 +982,7 @@ def test_the_stored_map_refutes_a_link_between_sessions_that_the_path_between_it
 @contextmanager
 def _low_rank_counted() -> Iterator[list[int]]:
     """Count the states the low-rank solve answers."""
-    low_rank = SwitchedRelaxation.residuals
+    low_rank = SwitchedRelaxation.run_residuals
     used = [0]
 
     def counted(self: SwitchedRelaxation, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -990,23 +990,23 @@ def _low_rank_counted() -> Iterator[list[int]]:
         used[0] += found is not None
         return found
 
-    SwitchedRelaxation.residuals = counted  # type: ignore[method-assign]
+    SwitchedRelaxation.run_residuals = counted  # type: ignore[method-assign]
     try:
         yield used
     finally:
-        SwitchedRelaxation.residuals = low_rank  # type: ignore[method-assign]
+        SwitchedRelaxation.run_residuals = low_rank  # type: ignore[method-assign]
 
 
 def _same_answer(run: Callable[[], tuple[np.ndarray, ...]]) -> int:
     """Assert that ``run`` answers bit for bit the same with every state solved in full; return low-rank states."""
-    low_rank = SwitchedRelaxation.residuals
+    low_rank = SwitchedRelaxation.run_residuals
     with _low_rank_counted() as used:
         fast = run()
-    SwitchedRelaxation.residuals = lambda _self, _active: None  # type: ignore[method-assign,assignment]
+    SwitchedRelaxation.run_residuals = lambda _self, _active: None  # type: ignore[method-assign,assignment]
     try:
         full = run()
     finally:
-        SwitchedRelaxation.residuals = low_rank  # type: ignore[method-assign]
+        SwitchedRelaxation.run_residuals = low_rank  # type: ignore[method-assign]
     assert len(fast) == len(full)
     for a, b in zip(fast, full, strict=True):
         assert np.array_equal(a, b)
