@@ -372,7 +372,8 @@ def _evaluate(
         gt_xyz[:, 2] = 0.0
     gt_plane = Trajectory(gt.stamps_s, gt_xyz, gt.quat_xyzw)
     ape, R3, t3, aligned, z_rmse = _align_experiences(gt_plane, stamps, xyz, dims, max_diff_s)
-    dist = hausdorff(aligned[:, :dims], gt_xyz[:, :dims])
+    covered = covered_by(gt.stamps_s, stamps) if session is not None else np.ones(len(gt), dtype=bool)
+    dist = hausdorff(aligned[:, :dims], gt_xyz[covered][:, :dims])
     links = _link_indices(doc, exp_ids)
     if odometry is None and (session is None or len(doc.get("sessions", [])) <= 1):
         odometry = odometry_trajectory(doc)
@@ -396,6 +397,23 @@ def _evaluate(
         z_rmse=z_rmse,
         odo_z_rmse=odo_z_rmse,
     )
+
+
+def covered_by(gt_stamps: FloatArray, stamps: FloatArray) -> npt.NDArray[np.bool_]:
+    """Return which ground-truth samples a session's own experiences cover in time.
+
+    A sample is covered when one of the experience ``stamps`` lies within twice their median spacing of it
+    (at least 1 s): the stretches where the session made its own experiences. Where it drove through places
+    another session had mapped, it made none, and those stretches are left to that session's figures.
+    """
+    ordered = np.sort(stamps)
+    spacing = float(np.median(np.diff(ordered))) if ordered.size > 1 else 0.0
+    reach = max(2.0 * spacing, 1.0)
+    slot = np.clip(np.searchsorted(ordered, gt_stamps), 1, max(ordered.size - 1, 1))
+    nearest = np.minimum(np.abs(gt_stamps - ordered[slot - 1]), np.abs(ordered[np.minimum(slot, ordered.size - 1)]
+                                                                        - gt_stamps))  # fmt: skip
+    covered = nearest <= reach
+    return covered if covered.any() else np.ones(gt_stamps.size, dtype=bool)
 
 
 def _experiences_to_evaluate(
@@ -489,7 +507,8 @@ def evaluate_map(
     Ground truth is linearly interpolated at every experience stamp inside its time span (stamps up to
     ``max_diff_s`` outside it take the end pose; others are left out of the APE). The experiences are
     aligned rigidly to those positions (Umeyama 1991) and the APE RMSE is taken. The Hausdorff distance
-    (OpenRatSLAM2 Eq. 9) is between *all* aligned experience positions and all ground-truth positions.
+    (OpenRatSLAM2 Eq. 9) is between *all* aligned experience positions and all ground-truth positions; for
+    one ``session`` of the map, the ground truth it covers with experiences of its own (:func:`covered_by`).
     Planar maps (every ``z == 0``) are evaluated in xy.
 
     The odometry baseline comes from ``odometry`` when given, else from the map's ``"odometry"`` extension

@@ -356,6 +356,28 @@ def test_evaluate_map_3d_and_sessions() -> None:
         evaluate_map(doc, gt, session="c")
 
 
+def test_a_sessions_hausdorff_is_against_the_ground_truth_its_own_experiences_cover() -> None:
+    """A merged session made experiences only in its first 8 s (then it drove through another session's
+    places): its Hausdorff distance compares them with the ground truth of those 8 s (must: as exact as its
+    APE), not with the whole drive (must not: the far side of the circle)."""
+    gt = _circle_gt()
+    stamps = np.arange(0.5, 20.0, 1.0)
+    truth = interpolate_poses(gt, stamps)
+    origins = np.where(stamps < 8.0, 1, 0).astype(np.int64)
+    doc = _map_from_positions(stamps, truth, origins, names={0: "first", 1: "merged"})
+    merged = evaluate_map(doc, gt, session="merged")
+    own = truth[origins == 1]
+    window = (gt.stamps_s >= 0.5 - 2.0) & (gt.stamps_s <= 7.5 + 2.0)  # within 2 × the 1 s spacing of its own
+    dist = cdist(own[:, :2], gt.positions_xyz[window, :2])
+    assert merged["hausdorff"] == pytest.approx(max(dist.min(axis=1).max(), dist.min(axis=0).max()), abs=1e-9)
+    whole = cdist(own[:, :2], gt.positions_xyz[:, :2])
+    assert merged["hausdorff"] < 0.5 * max(whole.min(axis=1).max(), whole.min(axis=0).max())
+    # must still: the whole map (no session chosen) is compared with all of the ground truth
+    everything = evaluate_map(doc, gt)
+    full = cdist(truth[:, :2], gt.positions_xyz[:, :2])
+    assert everything["hausdorff"] == pytest.approx(max(full.min(axis=1).max(), full.min(axis=0).max()), abs=1e-9)
+
+
 def test_evaluate_map_disjoint_times_is_input_error() -> None:
     gt = _circle_gt()
     stamps = np.array([100.0, 101.0, 102.0])
