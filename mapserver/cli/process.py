@@ -81,8 +81,6 @@ def run(args: argparse.Namespace) -> int:
         from mapserver.ingest.decode import set_max_image_pixels
 
         set_max_image_pixels(args.max_image_pixels)
-    if not args.out and not args.db:
-        info("warning: nothing will be kept: give --out MAP.json to write the map, or --db URL to store it")
     update, close = progress_bar(f"processing {log.name}")
     try:
         if args.db:
@@ -117,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
     if warning is not None:
         info(f"warning: {warning}")
     _report(result.summary(), args.json)
+    if not args.out and not args.db:
+        info("warning: nothing was kept: give --out MAP.json to write the map, or --db URL to store it")
     return 0
 
 

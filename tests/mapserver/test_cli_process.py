@@ -56,7 +56,7 @@ def test_process_json_summary_and_map_with_frame_record(
     assert created == list(range(doc["templates"]))  # each template created exactly once, in id order
     assert [r[0] for r in rows] == sorted(r[0] for r in rows)
     assert summary["templates"] == doc["templates"] and summary["experiences"] == len(doc["experiences"])
-    assert "nothing will be kept" not in err  # must not: a warning when the map is written
+    assert "nothing was kept" not in err  # must not: a warning when the map is written
 
 
 def test_process_with_nowhere_to_keep_the_map_warns_and_still_summarises(
@@ -64,7 +64,9 @@ def test_process_with_nowhere_to_keep_the_map_warns_and_still_summarises(
 ) -> None:
     code, _, err = _run(capsys, "process", str(small_log), "--preset", "poseidon")
     assert code == 0
-    assert "warning: nothing will be kept: give --out MAP.json to write the map, or --db URL to store it" in err
+    assert err.strip().splitlines()[-1] == (
+        "warning: nothing was kept: give --out MAP.json to write the map, or --db URL to store it"
+    )
     assert "30 frames" in err  # must still: the summary
 
 

@@ -169,7 +169,7 @@ def test_job_of_unknown_id_is_404(api: Api) -> None:
 def test_openapi_and_docs(api: Api) -> None:
     schema = api.client.get("/openapi.json").json()
     ops = {op["operationId"] for path in schema["paths"].values() for op in path.values()}
-    assert ops == {"get_health", "upload_session", "get_job", "list_maps", "get_map", "list_experiences",
+    assert ops == {"get_health", "upload_session", "get_job", "list_jobs", "list_maps", "get_map", "list_experiences",
                    "find_path", "export_map", "get_metrics", "get_graph_view", "get_nearest_experience",
                    "get_experience", "get_experience_evidence", "list_merges", "get_merge", "undo_merge",
                    "redo_merge", "get_limits"}  # fmt: skip
