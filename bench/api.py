@@ -38,7 +38,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from core import Engine, preset
+from core import Engine, LinkKind, preset
 from mapserver.store import NewSession, open_database, save_map
 from mapserver.store.tokens import create_token
 
@@ -84,7 +84,7 @@ def build_map(db_url: str, experiences: int) -> int:
     snap["em_link_transform"] = np.zeros((links.shape[0], 4))
     snap["em_link_dt"] = links[:, 2].copy()
     snap["em_link_distance"] = links[:, 3].copy()
-    snap["em_link_kind"] = np.zeros(links.shape[0], dtype=np.int8)
+    snap["em_link_kind"] = np.full(links.shape[0], LinkKind.ODOMETRY, dtype=np.int8)
     snap["em_current"] = np.asarray(experiences - 1, dtype=np.int64)
     session = NewSession(name="city", log_name="city.bag", log_sha256="c" * 64, topics={"image": "/camera"},
                          params=params.to_dict(), frames_processed=experiences)  # fmt: skip

@@ -40,6 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
 from core import preset
+from core.angles import wrap_angle_exact
 from tests.mapserver.merge.closure_floor import closure_floor_of
 from tests.mapserver.merge.scenario_metrics import cli_json, true_alignment
 
@@ -78,8 +79,7 @@ def _local_error(directory: Path, doc: dict, s1: dict, s2: dict, stamp: float, w
     The transform's error at the map origin (``error_m``) grows with session 2's odometry drift before the
     merge; this says whether the merge put the robot in the right place.
     """
-    from core.se3 import compose, inverse
-    from mapserver.formats import yaw_from_quaternion
+    from core.se3 import compose, inverse, yaw_from_quaternion
 
     final = json.loads((directory / "final.json").read_text())
     near = [e for e in final["experiences"] if e["session"] == s2["name"] and abs(e["stamp"] - stamp) <= window_s]
@@ -110,7 +110,7 @@ def _place_error(
     (``_local_error``), neither counts the stored map's own drift: a merge onto the right place of a drifted map is
     a true merge.
     """
-    from mapserver.formats import yaw_from_quaternion
+    from core.se3 import yaw_from_quaternion
 
     gt1, gt2 = truth
     poses = np.array([[e["x"], e["y"]] for e in stored["experiences"]])
@@ -119,7 +119,7 @@ def _place_error(
     truly = gt2[int(np.argmin(np.abs(gt2[:, 0] - stamp)))]
     turn_true = yaw_from_quaternion(*truly[4:8]) - yaw_from_quaternion(*seen[4:8])
     turn_merge = float(carried[3]) - nearest["yaw"]
-    degrees = abs(math.degrees(math.remainder(turn_merge - turn_true, 2 * math.pi)))
+    degrees = abs(math.degrees(wrap_angle_exact(turn_merge - turn_true)))
     return round(float(np.linalg.norm(seen[1:3] - truly[1:3])), 3), round(degrees, 1)
 
 
@@ -202,7 +202,7 @@ def run_once(
     for merge in result["merges"]:
         t = merge["transform"]
         err_m = float(np.hypot(t["x"] - truth[0], t["y"] - truth[1]))
-        err_deg = abs(math.degrees(math.remainder(t["yaw"] - truth[3], 2 * math.pi)))
+        err_deg = abs(math.degrees(wrap_angle_exact(t["yaw"] - truth[3])))
         false = scenario == "twin" or err_m > tol_m or err_deg > tol_deg
         merges.append({"frame": merge["frame"], "error_m": round(err_m, 2), "error_deg": round(err_deg, 1),
                        "false": false, "status": merge.get("status", "applied"), "stamp": merge["stamp"]})  # fmt: skip

@@ -40,6 +40,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 import numpy as np
 
 from core import Engine, Params, preset
+from core.angles import wrap_angle_below_pi
 from core.se3 import relative
 from mapserver.merge import Match, MergeRecord, StoredMap, merge_engine, merge_states, restore_merged
 from mapserver.merge.lattice import splat
@@ -61,7 +62,7 @@ def synthetic_state(
     yaw = np.cumsum(steps[:, 3])
     pose = np.column_stack(
         [np.cumsum(steps[:, 0] * np.cos(yaw)), np.cumsum(steps[:, 0] * np.sin(yaw)), np.cumsum(steps[:, 2]),
-         np.mod(yaw + np.pi, 2 * np.pi) - np.pi]
+         wrap_angle_below_pi(yaw)]
     )
     exp_template = (np.arange(experiences) * templates) // experiences
     pcs = rng.uniform(0, 1, size=(experiences, rank)) * dims

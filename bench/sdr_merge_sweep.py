@@ -30,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' measuring helpers
 
 from core import Engine, preset
-from mapserver.formats import yaw_from_quaternion
+from core.se3 import yaw_from_quaternion
 from mapserver.ingest.simulator.output import simulate
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core import Engine, preset
+from core import Engine, LinkKind, preset
 from mapserver.store import NewSession, load_map, open_database, save_map
 
 
@@ -60,11 +60,11 @@ def synthetic_snapshot(
     snap["em_link_transform"] = rng.normal(0, 0.3, size=(links, 4))
     snap["em_link_dt"] = rng.random(links)
     snap["em_link_distance"] = rng.random(links)
-    snap["em_link_kind"] = np.concatenate([np.zeros(chain), np.ones(loops)]).astype(np.int8)
+    snap["em_link_kind"] = np.repeat(np.array([LinkKind.ODOMETRY, LinkKind.LOOP], dtype=np.int8), [chain, loops])
     # one entry per experience and per link, as an engine's snapshot has them (the store fits shorter ones to
     # the rows, lever 0 and link on, so an empty engine's (0,) arrays would not come back as they went in)
     snap["em_pc_lever"] = np.where(rng.random(experiences) < 0.1, rng.random(experiences), 0.0)
-    snap["em_link_active"] = (snap["em_link_kind"] == 0) | (rng.random(links) < 0.9)
+    snap["em_link_active"] = (snap["em_link_kind"] == LinkKind.ODOMETRY) | (rng.random(links) < 0.9)
     snap["em_current"] = np.asarray(experiences - 1, dtype=np.int64)
     snap["lv_current"] = np.asarray(templates - 1, dtype=np.int64)
     return params, snap

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-TWO_PI = 2.0 * math.pi
+from core.angles import TWO_PI
 
 
 def clip_rad_180(angle: float) -> float:

@@ -2,26 +2,14 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import numpy.typing as npt
 
+from core.angles import wrap_angle as wrap_angle
+from core.angles import wrap_angle_scalar
 
-def wrap_angle(angle: npt.ArrayLike) -> np.ndarray:
-    """Wrap angles to (-π, π] (OpenRatSLAM ``clip_rad_180``)."""
-    a = np.asarray(angle, dtype=np.float64)
-    wrapped = np.mod(a + math.pi, 2.0 * math.pi) - math.pi
-    return np.where(wrapped == -math.pi, math.pi, wrapped)
-
-
-def wrap_scalar(angle: float) -> float:
-    """Wrap one angle to (-π, π] without numpy overhead."""
-    wrapped = math.fmod(angle + math.pi, 2.0 * math.pi)
-    if wrapped < 0.0:
-        wrapped += 2.0 * math.pi
-    wrapped -= math.pi
-    return math.pi if wrapped == -math.pi else wrapped
+wrap_scalar = wrap_angle_scalar
+"""The name under which ``core.experience_map`` imports :func:`core.angles.wrap_angle_scalar` (with ``wrap_angle``)."""
 
 
 def wrapped_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:

@@ -34,8 +34,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, dijkstra
 
+from core.angles import wrap_angle
 from core.relaxation import sums_to_root
-from core.se3 import compose, inverse, relative, wrap_angle
+from core.se3 import compose, inverse, relative
 
 #: pairs whose cycle closes within this many drift bounds are consistent. Strict on purpose: the clique is a
 #: seed that must hold no wrong link; the TLS swap-in of :func:`core.robust.switch_off_outliers` adds the true

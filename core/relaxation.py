@@ -71,8 +71,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
 from core._buffers import GrowBuffer
-
-TWO_PI = 2.0 * math.pi
+from core.angles import TWO_PI, wrap_angle_below_pi
 
 
 def residuals(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -86,7 +85,7 @@ def residuals(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.
     out[:, 0] -= cos_y * tx - sin_y * ty
     out[:, 1] -= sin_y * tx + cos_y * ty
     out[:, 2] -= transform[:, 2]
-    out[:, 3] = np.remainder(out[:, 3] - transform[:, 3] + math.pi, TWO_PI) - math.pi
+    out[:, 3] = wrap_angle_below_pi(out[:, 3] - transform[:, 3])
     return out
 
 
@@ -179,7 +178,7 @@ def solve(
         axis=1,
     )
     out[free_idx, :3] = solve_field(measured_xyz, out[fixed_idx, :3])
-    out[free_idx, 3] = np.remainder(yaw[free_idx] + math.pi, TWO_PI) - math.pi
+    out[free_idx, 3] = wrap_angle_below_pi(yaw[free_idx])
     return out
 
 
@@ -516,7 +515,7 @@ def refine_jointly(
         out[free] += step.reshape(-1, 4)
         if float(np.max(np.abs(step))) < 1e-9:
             break
-    out[free, 3] = np.remainder(out[free, 3] + math.pi, TWO_PI) - math.pi
+    out[free, 3] = wrap_angle_below_pi(out[free, 3])
     return out
 
 
@@ -778,7 +777,7 @@ class SwitchedRelaxation:
         turn = miss[0] / self.length  # each link of a run takes 1/m of its misclosure
         wrap = np.abs(turn) > math.pi
         if wrap.any():
-            turn[wrap] = np.remainder(turn[wrap] + math.pi, TWO_PI) - math.pi
+            turn[wrap] = wrap_angle_below_pi(turn[wrap])
         return distance / self.length, turn
 
     def low_rank(

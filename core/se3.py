@@ -2,8 +2,12 @@
 
 Experience poses are stored as rows ``(x, y, z, yaw)`` (docs/architecture.md, ``em_pose``).
 A pose is also a transform: ``T_map_body`` maps body coordinates to the map frame.
-Every function broadcasts over leading axes, so whole experience maps are
-transformed at once (no per-experience Python loop).
+The array functions broadcast over leading axes, so whole experience maps are
+transformed at once (no per-experience Python loop); their headings are wrapped to (−π, π].
+The ``*_step`` functions take and return plain floats (``math.cos``/``math.sin``, no numpy
+overhead) for one pose or displacement at a time, and leave the heading unwrapped (their callers
+wrap it as their own data needs). The yaw ↔ quaternion conversions (a rotation by yaw about z
+as ``(qx, qy, qz, qw)``) are here too.
 
 Menezes et al. (2023) Eqs. 13–14 transform the partial map's poses by a 2-D
 rotation about the matched experience plus a translation; written as poses this
@@ -14,16 +18,15 @@ x, y, z, yaw used here).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
+from core.angles import wrap_angle
 
-def wrap_angle(angle: npt.ArrayLike) -> np.ndarray:
-    """Return angles wrapped to (−π, π]."""
-    a = np.asarray(angle, dtype=np.float64)
-    wrapped = np.mod(a + math.pi, 2.0 * math.pi) - math.pi
-    return np.where(wrapped == -math.pi, math.pi, wrapped)
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 
 def _as_poses(poses: npt.ArrayLike) -> np.ndarray:
@@ -110,3 +113,86 @@ def from_matrix(matrix: npt.ArrayLike, atol: float = 1e-9) -> np.ndarray:
         msg = f"matrix is not a rotation about z plus a translation: {m.tolist()!r}"
         raise ValueError(msg)
     return np.array([m[0, 3], m[1, 3], m[2, 3], float(wrap_angle(yaw))])
+
+
+# ------------------------------------------------------------------------------ plain-float steps
+
+
+def compose_step(pose: Sequence[float], step: Sequence[float]) -> tuple[float, float, float, float]:
+    """Return ``pose ⊕ step`` of one pose (x, y, z, yaw) and a displacement in its frame, as plain floats.
+
+    ``(x + c·dx − s·dy, y + s·dx + c·dy, z + dz, yaw + dyaw)`` with ``c, s = cos yaw, sin yaw``; the
+    heading is summed, not wrapped (dead reckoning keeps the turns it has made).
+    """
+    x, y, z, yaw = pose[0], pose[1], pose[2], pose[3]
+    dx, dy, dz, dyaw = step[0], step[1], step[2], step[3]
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (x + c * dx - s * dy, y + s * dx + c * dy, z + dz, yaw + dyaw)
+
+
+def relative_step(start: Sequence[float], end: Sequence[float]) -> tuple[float, float, float, float]:
+    """Return ``start⁻¹ ⊕ end`` of two poses (x, y, z, yaw) as plain floats: ``end`` in ``start``'s frame.
+
+    The map-frame displacement turned by −yaw of ``start``: ``(c·Δx + s·Δy, −s·Δx + c·Δy, Δz, Δyaw)``; the
+    heading difference is not wrapped.
+    """
+    dxw, dyw = end[0] - start[0], end[1] - start[1]
+    c, s = math.cos(start[3]), math.sin(start[3])
+    return (c * dxw + s * dyw, -s * dxw + c * dyw, end[2] - start[2], end[3] - start[3])
+
+
+def turn_step(step: Sequence[float], yaw: float) -> tuple[float, float, float, float]:
+    """Return a displacement (dx, dy, dz, dyaw) turned by ``yaw`` about z, as plain floats.
+
+    ``(c·dx − s·dy, s·dx + c·dy, dz, dyaw + yaw)``: the (x, y) part rotated, dz kept, the heading not wrapped.
+    This is ``(0, 0, 0, yaw) ⊕ step`` without adding the zeros (which would turn a −0.0 into 0.0).
+    """
+    dx, dy = step[0], step[1]
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (c * dx - s * dy, s * dx + c * dy, step[2], step[3] + yaw)
+
+
+# ------------------------------------------------------------------------------ yaw ↔ quaternion
+
+
+def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
+    """Return the unit quaternion ``(qx, qy, qz, qw)`` = ``(0, 0, sin(yaw/2), cos(yaw/2))`` of a rotation about z.
+
+    ``yaw`` is in radians, counter-clockwise about +z; for yaw in (−π, π] ``qw ≥ 0``.
+    """
+    half = 0.5 * float(yaw)
+    return 0.0, 0.0, math.sin(half), math.cos(half)
+
+
+def quaternions_from_yaws(yaw: npt.ArrayLike) -> np.ndarray:
+    """Return the quaternions (..., 4) ``(0, 0, sin(yaw/2), cos(yaw/2))`` of yaws (...) with numpy's sin and cos."""
+    half = 0.5 * np.asarray(yaw, dtype=np.float64)
+    out = np.zeros((*half.shape, 4), dtype=np.float64)
+    out[..., 2] = np.sin(half)
+    out[..., 3] = np.cos(half)
+    return out
+
+
+def yaw_of_unit_quaternion(qx: float, qy: float, qz: float, qw: float) -> float:
+    """Return the yaw (ZYX Euler convention) ``atan2(2(qw·qz + qx·qy), 1 − 2(qy² + qz²))`` of a unit quaternion.
+
+    The result is ``math.atan2``'s, in [−π, π]; the quaternion is taken as given (normalise it first).
+    """
+    return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def yaw_from_quaternion(qx: float, qy: float, qz: float, qw: float) -> float:
+    """Return the yaw (rotation about z, ZYX Euler convention) of a quaternion, in (−π, π].
+
+    The quaternion is normalised first (each component divided by its norm), so any non-zero scaling of a unit
+    quaternion gives the same yaw; then :func:`yaw_of_unit_quaternion`, −π given as π.
+
+    Raises:
+        ValueError: the quaternion's norm is zero or not finite.
+    """
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if norm == 0.0 or not math.isfinite(norm):
+        msg = f"quaternion has no orientation: {(qx, qy, qz, qw)!r}"
+        raise ValueError(msg)
+    yaw = yaw_of_unit_quaternion(qx / norm, qy / norm, qz / norm, qw / norm)
+    return math.pi if yaw == -math.pi else yaw

@@ -29,14 +29,20 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from core import LinkKind
+from core.se3 import quaternions_from_yaws
 from mapserver.bounds import MAX_ANGLE_RAD, MAX_POSITION_M, MAX_TIME_S, value_problem
 from mapserver.errors import InputError, MapServerError
 
 MAP_FORMAT = "mapserver-map/1"
 """Value of the ``format`` key of every map JSON this module writes and accepts."""
 
-LINK_KINDS: dict[int, str] = {0: "odometry", 1: "loop", 2: "merge", 3: "manual"}
-"""``em_link_kind`` code → map JSON link ``kind``."""
+LINK_KIND_NAMES: tuple[str, ...] = tuple(kind.name.lower() for kind in sorted(LinkKind))
+"""Link ``kind`` names (map JSON, CSV, the store's ``links.kind``, the viewer): ``core.LinkKind``'s names in lower
+case, indexed by the kind's code (``em_link_kind``)."""
+
+LINK_KIND_CODES: dict[str, int] = {name: code for code, name in enumerate(LINK_KIND_NAMES)}
+"""Link ``kind`` name → its code: the inverse of :data:`LINK_KIND_NAMES`."""
 
 TUM_HEADER = "# timestamp x y z qx qy qz qw"
 
@@ -103,50 +109,6 @@ class Trajectory:
         if np.array_equal(order, np.arange(len(self))):
             return self
         return Trajectory(self.stamps_s[order], self.positions_xyz[order], self.quat_xyzw[order])
-
-
-# ----------------------------------------------------------------------------------------------- rotations
-
-
-def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
-    """Return the unit quaternion of a rotation by ``yaw`` about the z axis.
-
-    Args:
-        yaw: angle in radians, counter-clockwise about +z.
-
-    Returns:
-        ``(qx, qy, qz, qw)`` = ``(0, 0, sin(yaw/2), cos(yaw/2))``; for yaw in (−π, π] ``qw ≥ 0``.
-
-    """
-    half = 0.5 * float(yaw)
-    return 0.0, 0.0, math.sin(half), math.cos(half)
-
-
-def yaw_from_quaternion(qx: float, qy: float, qz: float, qw: float) -> float:
-    """Yaw (rotation about z, ZYX Euler convention) of a quaternion, in (−π, π].
-
-    The quaternion is normalised first, so any non-zero scaling of a unit quaternion gives the same yaw.
-
-    Args:
-        qx: x component.
-        qy: y component.
-        qz: z component.
-        qw: scalar component.
-
-    Returns:
-        ``atan2(2(qw·qz + qx·qy), 1 − 2(qy² + qz²))`` of the normalised quaternion.
-
-    Raises:
-        ValueError: the quaternion has zero norm.
-
-    """
-    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-    if norm == 0.0 or not math.isfinite(norm):
-        msg = f"quaternion has no orientation: {(qx, qy, qz, qw)!r}"
-        raise ValueError(msg)
-    qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
-    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-    return math.pi if yaw == -math.pi else yaw
 
 
 # ----------------------------------------------------------------------------------------------- map JSON
@@ -232,9 +194,9 @@ def _experiences_json(
     templates = np.asarray(snapshot["em_template"]).reshape(-1).tolist()
     stamps = np.asarray(snapshot["em_stamp"], dtype=np.float64).reshape(-1).tolist()
     origins = np.asarray(snapshot["em_origin"]).reshape(-1).tolist()
-    half = 0.5 * pose[:, 3]
-    qz = np.sin(half).tolist()
-    qw = np.cos(half).tolist()
+    quaternions = quaternions_from_yaws(pose[:, 3])
+    qz = quaternions[:, 2].tolist()
+    qw = quaternions[:, 3].tolist()
     xyz_yaw = pose.tolist()
     return [
         {
@@ -255,6 +217,11 @@ def _experiences_json(
     ]
 
 
+def link_kind_name(code: int) -> str | None:
+    """Return the name of link kind ``code`` (:data:`LINK_KIND_NAMES`), None for a code no kind has."""
+    return LINK_KIND_NAMES[code] if 0 <= code < len(LINK_KIND_NAMES) else None
+
+
 def _links_json(snapshot: Mapping[str, npt.NDArray[Any]]) -> list[dict[str, Any]]:
     """Return the map JSON's ``links``; a link switched off by robust relaxation carries ``"active": false``.
 
@@ -270,7 +237,7 @@ def _links_json(snapshot: Mapping[str, npt.NDArray[Any]]) -> list[dict[str, Any]
     link_off = set(np.flatnonzero(~np.asarray(snapshot.get("em_link_active", np.ones(0, bool)), dtype=bool)).tolist())
     links = []
     for k in range(len(link_from)):
-        kind = LINK_KINDS.get(int(link_kind[k]))
+        kind = link_kind_name(int(link_kind[k]))
         if kind is None:
             msg = f"unknown em_link_kind {link_kind[k]!r} on link {k}"
             raise ValueError(msg)

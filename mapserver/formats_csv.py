@@ -17,7 +17,8 @@ from collections.abc import Mapping
 import numpy as np
 import numpy.typing as npt
 
-from mapserver.formats import LINK_KINDS
+from core.se3 import quaternions_from_yaws
+from mapserver.formats import link_kind_name
 
 EXPERIENCE_COLUMNS = ("id", "session", "template", "stamp", "x", "y", "z", "yaw", "qx", "qy", "qz", "qw")
 LINK_COLUMNS = ("from", "to", "kind", "dt", "distance", "dx", "dy", "dz", "dyaw")
@@ -37,8 +38,8 @@ def experiences_csv(snapshot: Mapping[str, npt.ArrayLike], session_names: Mappin
     templates = np.asarray(snapshot["em_template"]).reshape(-1).tolist()
     stamps = np.asarray(snapshot["em_stamp"], dtype=np.float64).reshape(-1).tolist()
     origins = np.asarray(snapshot["em_origin"]).reshape(-1).tolist()
-    half = 0.5 * pose[:, 3]
-    qz, qw = np.sin(half).tolist(), np.cos(half).tolist()
+    quaternions = quaternions_from_yaws(pose[:, 3])
+    qz, qw = quaternions[:, 2].tolist(), quaternions[:, 3].tolist()
     rows: list[list[object]] = [
         [i, session_names.get(int(origins[i]), ""), int(templates[i]), stamps[i], *p, 0.0, 0.0, qz[i], qw[i]]
         for i, p in enumerate(pose.tolist())
@@ -55,7 +56,7 @@ def links_csv(snapshot: Mapping[str, npt.ArrayLike]) -> str:
     dist = np.asarray(snapshot["em_link_distance"], dtype=np.float64).reshape(-1).tolist()
     tf = np.asarray(snapshot["em_link_transform"], dtype=np.float64).reshape(-1, 4).tolist()
     rows: list[list[object]] = [
-        [int(src[k]), int(dst[k]), LINK_KINDS.get(int(kinds[k]), str(kinds[k])), dt[k], dist[k], *tf[k]]
+        [int(src[k]), int(dst[k]), link_kind_name(int(kinds[k])) or str(kinds[k]), dt[k], dist[k], *tf[k]]
         for k in range(len(src))
     ]
     header: tuple[str, ...] = LINK_COLUMNS

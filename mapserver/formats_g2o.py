@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from core.se3 import quaternions_from_yaws, yaw_of_unit_quaternion
 from mapserver.bounds import MAX_ANGLE_RAD, MAX_POSITION_M, value_problem
 from mapserver.errors import InputError
 
@@ -91,8 +92,7 @@ def vertex_lines(ids: npt.ArrayLike, pose: np.ndarray, *, planar: bool) -> list[
     if planar:
         values, tag = np.column_stack([pose[:, 0], pose[:, 1], pose[:, 3]]), "VERTEX_SE2"
     else:
-        half, zeros = 0.5 * pose[:, 3], np.zeros(pose.shape[0])
-        values = np.column_stack([pose[:, :3], zeros, zeros, np.sin(half), np.cos(half)])
+        values = np.column_stack([pose[:, :3], quaternions_from_yaws(pose[:, 3])])
         tag = "VERTEX_SE3:QUAT"
     ids_list = np.asarray(ids, dtype=np.int64).reshape(-1).tolist()
     return [f"{tag} {i} {v}\n" for i, v in zip(ids_list, _numbers(values), strict=True)]
@@ -111,10 +111,7 @@ def edge_lines(
         values = np.column_stack([tf[:, 0], tf[:, 1], tf[:, 3], _upper(information_se2(distance))])
         tag = "EDGE_SE2"
     else:
-        half, zeros = 0.5 * tf[:, 3], np.zeros(tf.shape[0])
-        values = np.column_stack(
-            [tf[:, :3], zeros, zeros, np.sin(half), np.cos(half), _upper(information_se3(distance))]
-        )
+        values = np.column_stack([tf[:, :3], quaternions_from_yaws(tf[:, 3]), _upper(information_se3(distance))])
         tag = "EDGE_SE3:QUAT"
     prefix = "# inactive " if inactive else ""
     ends = zip(np.asarray(src).reshape(-1).tolist(), np.asarray(dst).reshape(-1).tolist(), strict=True)
@@ -157,7 +154,7 @@ def _yaw_and_tilt(q: np.ndarray) -> tuple[float, float]:
     """Yaw (about z, ZYX convention) and the larger of |roll|, |pitch| of a unit quaternion (x, y, z, w)."""
     scaled = q / np.max(np.abs(q))  # no overflow in the norm of huge components
     x, y, z, w = (scaled / np.linalg.norm(scaled)).tolist()
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    yaw = yaw_of_unit_quaternion(x, y, z, w)
     roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
     pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
     return yaw, max(abs(roll), abs(pitch))

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from core.motion import Motion
+from core.se3 import compose_step
 
 
 class DeadReckoning:
@@ -17,12 +16,8 @@ class DeadReckoning:
         self.rows: list[tuple[float, float, float, float]] = []
 
     def add(self, stamp: float, motion: Motion) -> None:
-        """Compose one body-frame motion and record the position at ``stamp``."""
-        x, y, z, yaw = self.pose
-        c, s = math.cos(yaw), math.sin(yaw)
-        self.pose = np.array(
-            [x + c * motion.dx - s * motion.dy, y + s * motion.dx + c * motion.dy, z + motion.dz, yaw + motion.dyaw]
-        )
+        """Compose one body-frame motion (heading summed, not wrapped) and record the position at ``stamp``."""
+        self.pose = np.array(compose_step(self.pose.tolist(), (motion.dx, motion.dy, motion.dz, motion.dyaw)))
         self.rows.append((stamp, float(self.pose[0]), float(self.pose[1]), float(self.pose[2])))
 
     def array(self) -> np.ndarray:

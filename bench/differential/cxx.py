@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import math
 import struct
 import subprocess
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from core import Params
+from core.angles import wrap_angle_below_pi
 
 HERE = Path(__file__).resolve().parent
 DRIVER = HERE / "driver.cpp"
@@ -166,4 +166,4 @@ def wrapped(delta: np.ndarray, period: float) -> np.ndarray:
 
 def angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Signed smallest angle a − b."""
-    return wrapped(np.asarray(a) - np.asarray(b), 2.0 * math.pi)
+    return wrap_angle_below_pi(np.asarray(a) - np.asarray(b))

@@ -20,8 +20,10 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from core import LinkKind
 from mapserver.bounds import MAX_QUERY_COORDINATE_M, value_problem
 from mapserver.errors import InputError
+from mapserver.formats import LINK_KIND_CODES
 from mapserver.store import LINK_KIND_NAMES, Connection, Database, get_map
 from mapserver.store.queries import map_version, view_experiences, view_links
 from mapserver.store.sessions import session_names
@@ -61,9 +63,8 @@ def load_view_graph(*, conn: Connection, map_id: int, version: int) -> ViewGraph
     uniq, codes = np.unique(session_ids, return_inverse=True)
     names = session_names(conn=conn, session_ids=uniq.tolist())
     links = view_links(conn=conn, map_id=map_id)
-    kinds = {name: code for code, name in enumerate(LINK_KIND_NAMES)}
     arr = np.array([r[:4] for r in links], dtype=np.float64).reshape(-1, 4)
-    kind = np.array([kinds.get(r[4], 0) for r in links], dtype=np.int64)
+    kind = np.array([LINK_KIND_CODES.get(r[4], LinkKind.ODOMETRY) for r in links], dtype=np.int64)
     on = np.array([r[5] is None or bool(r[5]) for r in links], dtype=bool)
     return ViewGraph(
         map_id=map_id, version=version, poses=np.ascontiguousarray(exp[:, :4]), session=codes.astype(np.int64),

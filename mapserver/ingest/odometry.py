@@ -53,7 +53,9 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from core.angles import wrap_angle_exact
 from core.motion import Motion
+from core.se3 import compose_step, relative_step
 from mapserver.bounds import MAX_BAD_FRACTION, MAX_POSITION_M, MAX_SPEED_M_S, MAX_YAW_RATE_RAD_S
 from mapserver.errors import IngestError
 from mapserver.ingest.frames import IngestReport
@@ -101,12 +103,6 @@ class OdometryState:
         return (self.x, self.y, self.z, self.yaw)
 
 
-def wrap_angle(angle: float) -> float:
-    """Wrap an angle to (-π, π]."""
-    wrapped = math.remainder(angle, 2.0 * math.pi)
-    return math.pi if wrapped == -math.pi else wrapped
-
-
 def quaternion_matrix(qx: float, qy: float, qz: float, qw: float) -> npt.NDArray[np.float64]:
     """Return the rotation matrix of a quaternion (normalised; a zero quaternion gives the identity)."""
     norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
@@ -125,16 +121,6 @@ def quaternion_matrix(qx: float, qy: float, qz: float, qw: float) -> npt.NDArray
 def yaw_of_matrix(rotation: npt.NDArray[np.float64]) -> float:
     """Return the heading of the body x axis projected on the horizontal plane."""
     return math.atan2(float(rotation[1, 0]), float(rotation[0, 0]))
-
-
-def yaw_of_quaternion(qx: float, qy: float, qz: float, qw: float) -> float:
-    """Return the heading (yaw) of a quaternion's body x axis."""
-    return yaw_of_matrix(quaternion_matrix(qx, qy, qz, qw))
-
-
-def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
-    """Return ``(qx, qy, qz, qw)`` of a rotation by ``yaw`` about z."""
-    return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
 
 
 def make_state(
@@ -241,7 +227,7 @@ def pose_moved(a: OdometryState, b: OdometryState, epsilon: float = POSE_EPSILON
         abs(a.x - b.x) > epsilon
         or abs(a.y - b.y) > epsilon
         or abs(a.z - b.z) > epsilon
-        or abs(wrap_angle(a.yaw - b.yaw)) > epsilon
+        or abs(wrap_angle_exact(a.yaw - b.yaw)) > epsilon
     )
 
 
@@ -274,14 +260,6 @@ def arc_increment(forward: float, lateral: float, vertical: float, yaw_rate: flo
     return (a * forward - b * lateral, b * forward + a * lateral, vertical * tau, theta)
 
 
-def compose(base: Increment, step: Increment) -> Increment:
-    """Compose two 4-DoF displacements: ``step`` is expressed in the frame at the end of ``base``."""
-    x, y, z, th = base
-    dx, dy, dz, dth = step
-    c, s = math.cos(th), math.sin(th)
-    return (x + c * dx - s * dy, y + s * dx + c * dy, z + dz, th + dth)
-
-
 def integrate_twist(states: Sequence[OdometryState], t0_ns: int, t1_ns: int) -> Motion:
     """Integrate zero-order-hold twist from ``t0_ns`` to ``t1_ns`` (see the module docstring).
 
@@ -307,7 +285,7 @@ def integrate_twist(states: Sequence[OdometryState], t0_ns: int, t1_ns: int) -> 
         if index >= 0:
             st = states[index]
             step = arc_increment(st.forward, st.lateral, st.vertical, st.yaw_rate, (end - start) * NS)
-            total = compose(total, step)
+            total = compose_step(total, step)  # the heading summed, not wrapped
         start = end
         index = nxt if nxt < len(stamps) and stamps[nxt] <= start else index
     return Motion(total[0], total[1], total[2], total[3], (t1_ns - t0_ns) * NS)
@@ -341,7 +319,7 @@ def interpolate_pose(states: Sequence[OdometryState], t_ns: int) -> Pose4:
         a.x + alpha * (b.x - a.x),
         a.y + alpha * (b.y - a.y),
         a.z + alpha * (b.z - a.z),
-        wrap_angle(a.yaw + alpha * wrap_angle(b.yaw - a.yaw)),
+        wrap_angle_exact(a.yaw + alpha * wrap_angle_exact(b.yaw - a.yaw)),
     )
 
 
@@ -357,9 +335,8 @@ def relative_motion(start: Pose4, end: Pose4, dt: float) -> Motion:
         The motion, ``dyaw`` wrapped to (-π, π].
 
     """
-    dxw, dyw = end[0] - start[0], end[1] - start[1]
-    c, s = math.cos(start[3]), math.sin(start[3])
-    return Motion(c * dxw + s * dyw, -s * dxw + c * dyw, end[2] - start[2], wrap_angle(end[3] - start[3]), dt)
+    dx, dy, dz, dyaw = relative_step(start, end)
+    return Motion(dx, dy, dz, wrap_angle_exact(dyaw), dt)
 
 
 def difference_poses(states: Sequence[OdometryState], t0_ns: int, t1_ns: int) -> Motion:

@@ -34,8 +34,8 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
+from core.se3 import quaternion_from_yaw
 from mapserver.ingest.frames import PoseSample
-from mapserver.ingest.odometry import quaternion_from_yaw
 
 LogFormat = Literal["bag", "db3", "mcap"]
 ImageEncoding = Literal["mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8", "jpeg", "png"]

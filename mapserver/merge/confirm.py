@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.se3 import alignment, compose, wrap_angle
+from core.angles import wrap_angle
+from core.se3 import alignment, compose
 
 
 @dataclass(frozen=True, eq=False)

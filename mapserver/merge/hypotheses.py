@@ -39,8 +39,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from core.angles import wrap_angle
 from core.localview import LocalViewCells
-from core.se3 import alignment, compose, relative, wrap_angle
+from core.se3 import alignment, compose, relative
 from mapserver.merge.confirm import Observation
 
 MISS_WEIGHT = 2.0

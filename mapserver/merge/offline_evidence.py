@@ -41,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from core.se3 import alignment, compose, inverse, wrap_angle
+from core.angles import wrap_angle
+from core.se3 import alignment, compose, inverse
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.hypotheses import HIT, MIN_TURN_RAD, MISS, MISS_WEIGHT, EvidenceRule, StoredPlaces

@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core import Engine, StepResult
+from core import Engine, LinkKind, StepResult
 from core.localview import LocalViewCells
 from core.se3 import compose, relative
 from mapserver.merge.confirm import Observation
@@ -158,7 +158,7 @@ def map_spacing(stored: StoredMap) -> float:
     A map without links falls back to the experience threshold in metres.
     """
     kind = np.asarray(stored.state["em_link_kind"])
-    distance = np.asarray(stored.state["em_link_distance"], dtype=np.float64)[kind == 0]
+    distance = np.asarray(stored.state["em_link_distance"], dtype=np.float64)[kind == LinkKind.ODOMETRY]
     distance = distance[distance > 0]
     p = stored.params
     floor = p.exp_delta_pc_threshold * p.pc_cell_x_size

@@ -25,8 +25,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from core.angles import wrap_angle
 from core.engine import template_place_rows, template_place_yaws, template_rows
-from core.se3 import compose, wrap_angle
+from core.se3 import compose
 from mapserver.merge.record import MergeRecord
 
 State = Mapping[str, np.ndarray]

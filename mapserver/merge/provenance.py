@@ -5,13 +5,13 @@ Stored in ``merge_events.details`` and ``merge_events.transform``; a redo rebuil
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 
+from core.se3 import quaternion_from_yaw
 from mapserver.merge.record import Match, MergeRecord
 
 RECORD_ARRAYS = ("template_map", "experience_map", "merge_links")
@@ -55,4 +55,4 @@ def match_from_dict(data: Mapping[str, Any]) -> Match:
 def transform7(record: MergeRecord) -> tuple[float, ...]:
     """Return the merge transform as (tx, ty, tz, qx, qy, qz, qw): the yaw as a quaternion about z."""
     x, y, z, yaw = record.transform
-    return (x, y, z, 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
+    return (x, y, z, *quaternion_from_yaw(yaw))

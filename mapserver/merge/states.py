@@ -34,8 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from core import LinkKind
+from core.angles import wrap_angle
 from core.experience_map import per_experience_array
-from core.se3 import alignment, compose, relative, wrap_angle
+from core.se3 import alignment, compose, relative, turn_step
 from mapserver.errors import MergeError
 from mapserver.merge.lattice import LatticeTransform, signed_delta, splat
 from mapserver.merge.record import Match, MergeRecord
@@ -529,9 +530,8 @@ def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, 
         accum[3] = float(here[3])
         return match.stored_experience, -1, accum
     previous = int(partial["em_previous"])
-    c, s = math.cos(float(exp.T[3])), math.sin(float(exp.T[3]))
-    accum[0], accum[1] = c * accum[0] - s * accum[1], s * accum[0] + c * accum[1]
-    accum[3] = float(wrap_angle(accum[3] + float(exp.T[3])))
+    accum[:4] = turn_step(accum[:4].tolist(), float(exp.T[3]))
+    accum[3] = float(wrap_angle(accum[3]))
     return int(exp.emap[current]), int(exp.emap[previous]) if previous >= 0 else -1, accum
 
 

@@ -20,8 +20,10 @@ from typing import Any, Literal
 import numpy as np
 from sqlalchemy import case, select
 
+from core import LinkKind
+from core.se3 import quaternions_from_yaws
 from mapserver.errors import InputError
-from mapserver.formats import SessionInfo, atomic_write_bytes, atomic_write_chunks, map_json
+from mapserver.formats import LINK_KIND_CODES, SessionInfo, atomic_write_bytes, atomic_write_chunks, map_json
 from mapserver.store.bulk import fetch_tuples
 from mapserver.store.db import Database
 from mapserver.store.maps import get_map
@@ -58,11 +60,7 @@ def tum_rows(snapshot: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     pose = np.asarray(snapshot["em_pose"], dtype=np.float64).reshape(-1, 4)
     stamps = np.asarray(snapshot["em_stamp"], dtype=np.float64).reshape(-1)
     order = np.argsort(stamps, kind="stable")
-    half = 0.5 * pose[order, 3]
-    quats = np.zeros((order.shape[0], 4))
-    quats[:, 2] = np.sin(half)
-    quats[:, 3] = np.cos(half)
-    return stamps[order], pose[order, :3], quats
+    return stamps[order], pose[order, :3], quaternions_from_yaws(pose[order, 3])
 
 
 @dataclass(frozen=True)
@@ -100,7 +98,7 @@ def read_plot_graph(db: Database, *, name: str) -> PlotGraph:
     Raises:
         UnknownMapError: no such map.
     """
-    kind_code = case({kind: code for code, kind in enumerate(LINK_KIND_NAMES)}, value=Link.kind, else_=-1)
+    kind_code = case(LINK_KIND_CODES, value=Link.kind, else_=-1)
     with db.read() as conn:
         record = get_map(conn=conn, name=name)
         experiences = np.array(
@@ -134,10 +132,11 @@ def render_png(content: MapContent | PlotGraph, *, title: str | None = None) -> 
     xy, src, dst, kinds, active = graph.xy, graph.src, graph.dst, graph.kinds, graph.active
     fig = Figure(figsize=(8, 8), dpi=100)
     ax = fig.subplots()
-    styles = {0: ("0.6", "-", "odometry"), 1: ("tab:red", "--", "loop"), 2: ("tab:green", "-", "merge"),
-              3: ("tab:purple", ":", "manual")}  # fmt: skip
-    for code, (colour, style, label) in styles.items():
-        chosen = (kinds == code) & active
+    styles = {LinkKind.ODOMETRY: ("0.6", "-"), LinkKind.LOOP: ("tab:red", "--"), LinkKind.MERGE: ("tab:green", "-"),
+              LinkKind.MANUAL: ("tab:purple", ":")}  # fmt: skip
+    for kind, (colour, style) in styles.items():
+        chosen = (kinds == kind) & active
+        label = LINK_KIND_NAMES[kind]
         if np.any(chosen):
             segments = np.stack([xy[src[chosen]], xy[dst[chosen]]], axis=1)
             ax.add_collection(

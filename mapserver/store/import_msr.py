@@ -61,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from core import Engine, Params
+from core import Engine, LinkKind, Params
 from mapserver.bounds import (
     MAX_ANGLE_RAD,
     MAX_POSITION_M,
@@ -377,20 +377,20 @@ def _ids_or_none(current: int, previous: int, count: int) -> tuple[int, int]:
 def _link_kinds_and_stamps(
     src: np.ndarray, dst: np.ndarray, dt: np.ndarray, n_exp: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Infer link kinds (0 odometry, 1 loop) and experience stamps from the links in file order.
+    """Infer link kinds (``LinkKind.ODOMETRY`` or ``LOOP``) and experience stamps from the links in file order.
 
     A link reaching an experience of a higher id than any earlier link reached created it (odometry), and
     that experience's stamp is its source's stamp + Δt; experience 0 is at 0 s; an experience no link
     created (the first of a merged-in session) takes the stamp of the experience before it.
     """
-    kinds = np.ones(src.shape[0], dtype=np.int8)
+    kinds = np.full(src.shape[0], LinkKind.LOOP, dtype=np.int8)
     stamps = np.full(n_exp, np.nan)
     if n_exp:
         stamps[0] = 0.0
     reached = 0
     for j, (s, t) in enumerate(zip(src.tolist(), dst.tolist(), strict=True)):
         if t > reached:
-            kinds[j] = 0
+            kinds[j] = LinkKind.ODOMETRY
             reached = t
             if not math.isnan(stamps[s]):
                 stamps[t] = stamps[s] + dt[j]

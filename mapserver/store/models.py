@@ -48,6 +48,8 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
+from mapserver.formats import LINK_KIND_NAMES
+
 NAMING_CONVENTION: dict[str, str] = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
     "uq": "uq_%(table_name)s_%(column_0_N_name)s",
@@ -58,9 +60,6 @@ NAMING_CONVENTION: dict[str, str] = {
 
 Id = BigInteger().with_variant(Integer(), "sqlite")
 """Surrogate primary keys: BIGINT, but INTEGER on SQLite so that the column aliases the rowid."""
-
-LINK_KIND_NAMES: tuple[str, ...] = ("odometry", "loop", "merge", "manual")
-"""``links.kind`` values; the index is the engine's ``em_link_kind`` code."""
 
 SESSION_STATUSES: tuple[str, ...] = ("partial", "complete")
 JOB_STATUSES: tuple[str, ...] = ("queued", "running", "done", "failed")

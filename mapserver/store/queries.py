@@ -10,8 +10,9 @@ import numpy.typing as npt
 from sqlalchemy import Connection, bindparam, case, func, select
 
 from mapserver.errors import InputError
+from mapserver.formats import LINK_KIND_CODES
 from mapserver.store.bulk import fetch_tuples
-from mapserver.store.models import LINK_KIND_NAMES, Experience, Link, Map, MapState, Session
+from mapserver.store.models import Experience, Link, Map, MapState, Session
 
 MAX_PAGE = 10_000
 _MAP_VERSION = select(Map.id, Map.version).where(Map.name == bindparam("name"))  # built once: a cached statement
@@ -71,7 +72,7 @@ def load_graph(*, conn: Connection, map_id: int) -> Graph:
         ),
         dtype=np.float64,
     ).reshape(-1, 4)
-    kind_code = case({name: code for code, name in enumerate(LINK_KIND_NAMES)}, value=Link.kind, else_=-1)
+    kind_code = case(LINK_KIND_CODES, value=Link.kind, else_=-1)
     links = np.array(
         fetch_tuples(
             conn,

@@ -45,7 +45,9 @@ from sqlalchemy import Connection, Update, bindparam, case, func, insert, or_, s
 from sqlalchemy.orm import InstrumentedAttribute
 
 from core.experience_map import per_experience_array
+from core.se3 import quaternions_from_yaws
 from mapserver.errors import StoreError
+from mapserver.formats import LINK_KIND_CODES
 from mapserver.store.arrays import (
     negative_zeros,
     pack_npz,
@@ -274,7 +276,7 @@ def _check_values(snapshot: Mapping[str, npt.ArrayLike], shapes: _Shapes) -> Non
         raise StoreError(msg)
     kinds = _array(snapshot, "em_link_kind")
     if kinds.size and (kinds.min() < 0 or kinds.max() >= len(LINK_KIND_NAMES)):
-        msg = f"em_link_kind holds unknown codes {sorted(set(kinds.tolist()) - set(range(4)))!r}"
+        msg = f"em_link_kind holds unknown codes {sorted(set(kinds.tolist()) - set(range(len(LINK_KIND_NAMES))))!r}"
         raise StoreError(msg)
     for key, limit, what in (
         ("em_template", shapes.templates, "templates"),
@@ -554,9 +556,8 @@ def _insert_experiences(
 ) -> None:
     pose = np.asarray(snapshot["em_pose"], dtype=np.float64).reshape(-1, 4)
     count = pose.shape[0]
-    half = 0.5 * pose[:, 3]
+    qx, qy, qz, qw = quaternions_from_yaws(pose[:, 3]).T.tolist()
     x, y, z, th = _coords(np.asarray(snapshot["em_pc"], dtype=np.float64).reshape(-1, rank), rank)
-    zeros = [0.0] * count
     rows = list(
         zip(
             [map_id] * count,
@@ -566,10 +567,10 @@ def _insert_experiences(
             pose[:, 0].tolist(),
             pose[:, 1].tolist(),
             pose[:, 2].tolist(),
-            zeros,
-            zeros,
-            np.sin(half).tolist(),
-            np.cos(half).tolist(),
+            qx,
+            qy,
+            qz,
+            qw,
             pose[:, 3].tolist(),
             x,
             y,
@@ -970,7 +971,7 @@ def _read_experiences(
 
 def _read_links(conn: Connection, map_id: int, built: dict[str, np.ndarray]) -> None:
     """Read the experience links into ``built`` (``em_link_*``, kinds as their codes)."""
-    kind_code = case({name: code for code, name in enumerate(LINK_KIND_NAMES)}, value=Link.kind, else_=-1)
+    kind_code = case(LINK_KIND_CODES, value=Link.kind, else_=-1)
     block = _column_block(
         fetch_tuples(
             conn,

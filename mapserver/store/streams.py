@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection, func, select
 
+from core.se3 import quaternions_from_yaws
 from mapserver.errors import ConflictError, InputError
 from mapserver.formats import MAP_FORMAT, TUM_HEADER, _plain
 from mapserver.formats_csv import EXPERIENCE_COLUMNS, LINK_COLUMNS
@@ -212,9 +213,9 @@ def _restore_negative_zeros(values: np.ndarray, ids: np.ndarray, patch: np.ndarr
 
 
 def _halves(yaw: np.ndarray) -> tuple[list[float], list[float]]:
-    """Return sin and cos of half of each yaw (the quaternion's z and w)."""
-    half = 0.5 * yaw
-    return np.sin(half).tolist(), np.cos(half).tolist()
+    """Return the z and w components of each yaw's quaternion (:func:`core.se3.quaternions_from_yaws`)."""
+    quaternions = quaternions_from_yaws(yaw)
+    return quaternions[:, 2].tolist(), quaternions[:, 3].tolist()
 
 
 # ------------------------------------------------------------------------------------------------ formats

@@ -1,4 +1,4 @@
-"""Wrap-around invariants (hypothesis): angle wrapping, wrapped lattice distances, trips around the torus."""
+"""Wrap-around invariants (hypothesis): wrapped lattice distances, trips around the torus (angles: test_angles)."""
 
 from __future__ import annotations
 
@@ -9,33 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.lattice import circulant_kernel, gaussian_kernel_1d, wrap_angle, wrap_scalar, wrapped_delta, wrapped_distance
+from core.lattice import circulant_kernel, gaussian_kernel_1d, wrapped_delta, wrapped_distance
 from core.posecells import PoseCellNetwork
 from tests.core.conftest import departing
-
-angles = st.floats(-1e4, 1e4, allow_nan=False)
-
-
-@given(a=angles)
-def test_wrap_angle_lands_in_half_open_interval_and_keeps_the_direction(a: float) -> None:
-    w = float(wrap_angle(a))
-    assert -math.pi < w <= math.pi
-    assert math.cos(w) == pytest.approx(math.cos(a), abs=1e-9)
-    assert math.sin(w) == pytest.approx(math.sin(a), abs=1e-9)
-    assert abs(math.remainder(wrap_scalar(a) - w, 2 * math.pi)) < 1e-9  # the same angle (±π may differ)
-
-
-@given(a=st.floats(-math.pi + 1e-6, math.pi - 1e-6), k=st.integers(-50, 50))
-def test_wrap_angle_removes_whole_turns(a: float, k: int) -> None:
-    assert float(wrap_angle(a + 2 * math.pi * k)) == pytest.approx(a, abs=1e-9)
-    assert wrap_scalar(a) == pytest.approx(a, abs=1e-15)
-
-
-def test_wrap_angle_boundaries() -> None:
-    assert float(wrap_angle(-math.pi)) == math.pi
-    assert wrap_scalar(-math.pi) == math.pi
-    assert float(wrap_angle(3 * math.pi)) == pytest.approx(math.pi)
-
 
 dims = st.integers(2, 40)
 

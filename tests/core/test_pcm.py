@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from core.angles import wrap_angle
 from core.pcm import (
     TreePaths,
     greedy_clique,
@@ -23,7 +24,7 @@ from core.pcm import (
     pair_consistency,
     single_consistency,
 )
-from core.se3 import compose, relative, wrap_angle
+from core.se3 import compose, relative
 
 
 @given(st.integers(2, 40), st.integers(0, 10_000))

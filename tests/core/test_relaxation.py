@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core import Engine
+from core.angles import wrap_angle, wrap_angle_below_pi, wrap_angle_exact
 from core.config import Params
 from core.experience_map import ExperienceMap, LinkKind
 from core.motion import Motion
@@ -28,6 +29,7 @@ from core.relaxation import (
     solve,
     subtree_sums,
 )
+from core.se3 import relative_step
 from tests.core.conftest import departing
 from tests.worlds import StripWorld
 
@@ -86,13 +88,13 @@ def _least_squares(em: ExperienceMap, start: np.ndarray) -> np.ndarray:
     out = np.empty((n, 4))
     out[0] = start[0]
     out[1:, :3] = np.linalg.lstsq(a[:, 1:], meas - a[:, :1] * start[0, :3], rcond=None)[0]
-    out[:, 3] = np.remainder(yaw + math.pi, 2 * math.pi) - math.pi
+    out[:, 3] = wrap_angle_below_pi(yaw)
     return out
 
 
 def _pose_error(a: np.ndarray, b: np.ndarray) -> float:
     diff = a - b
-    diff[:, 3] = np.remainder(diff[:, 3] + math.pi, 2 * math.pi) - math.pi
+    diff[:, 3] = wrap_angle_below_pi(diff[:, 3])
     return float(np.abs(diff).max())
 
 
@@ -260,10 +262,7 @@ def _octagon_with_a_turned_closure(turn_error: float) -> tuple[np.ndarray, np.nd
     src, dst = np.arange(8), (np.arange(8) + 1) % 8
     transform = np.zeros((8, 4))
     for k, (i, j) in enumerate(zip(src, dst, strict=True)):
-        c, s = math.cos(truth[i, 3]), math.sin(truth[i, 3])
-        d = truth[j, :2] - truth[i, :2]
-        transform[k] = [c * d[0] + s * d[1], -s * d[0] + c * d[1], truth[j, 2] - truth[i, 2],
-                        math.remainder(truth[j, 3] - truth[i, 3], 2 * math.pi)]  # fmt: skip
+        transform[k] = [*relative_step(truth[i], truth[j])[:3], wrap_angle_exact(truth[j, 3] - truth[i, 3])]
     transform[7, 2] += 0.3
     transform[7, 3] += turn_error
     return truth, src, dst, transform
@@ -311,8 +310,7 @@ def test_the_joint_refinement_leaves_a_consistent_graph_where_it_is() -> None:
     anchor[0] = True
     joint = refine_jointly(truth, src, dst, transform, anchor)
     np.testing.assert_allclose(joint[:, :3], truth[:, :3], atol=1e-12)
-    np.testing.assert_allclose(np.remainder(joint[:, 3] - truth[:, 3] + math.pi, 2 * math.pi) - math.pi, 0.0,
-                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(wrap_angle(joint[:, 3] - truth[:, 3]), 0.0, atol=1e-12)
 
 
 @pytest.mark.parametrize(("weighted", "end"), [(False, 100.0 / 11.0), (True, 9.5)])
@@ -537,7 +535,7 @@ def _compare_with_full_solves(graph: tuple[np.ndarray, ...], seed: int, rebase: 
         assert found is not None
         distance, turn = _exact_link_residuals(pose, src, dst, transform, active)
         assert found[0] == pytest.approx(distance[core], abs=1e-8)
-        assert np.abs(np.remainder(found[1] - turn[core] + math.pi, 2 * math.pi) - math.pi).max(initial=0) < 1e-8
+        assert np.abs(wrap_angle(found[1] - turn[core])).max(initial=0) < 1e-8
         assert distance[~core] == pytest.approx(0.0, abs=1e-8)  # off the 2-core every link fits exactly
         assert np.abs(turn[~core]).max(initial=0.0) < 1e-8
 

@@ -20,9 +20,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.se3 import yaw_from_quaternion
 from mapserver.cli import main
 from mapserver.evaluation import interpolate_poses
-from mapserver.formats import read_tum, write_tum, yaw_from_quaternion
+from mapserver.formats import read_tum, write_tum
 
 EVO_APE = Path(sys.executable).with_name("evo_ape")
 

@@ -9,57 +9,37 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
+from core import LinkKind
 from mapserver.errors import InputError, MapServerError
 from mapserver.formats import (
+    LINK_KIND_CODES,
+    LINK_KIND_NAMES,
     MAP_FORMAT,
     SessionInfo,
     Trajectory,
+    link_kind_name,
     map_json,
     map_trajectory,
     odometry_trajectory,
-    quaternion_from_yaw,
     read_map_json,
     read_tum,
     write_map_json,
     write_tum,
-    yaw_from_quaternion,
 )
 
 SQRT_HALF = math.sqrt(0.5)
 
 
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+# ----------------------------------------------------------------------------------------------- link kinds
 
 
-# ----------------------------------------------------------------------------------------------- rotations
-
-
-@given(st.floats(min_value=-math.pi, max_value=math.pi, exclude_min=True, allow_nan=False))
-def test_yaw_quaternion_round_trip(yaw: float) -> None:
-    q = quaternion_from_yaw(yaw)
-    assert q[0] == 0.0 and q[1] == 0.0
-    assert math.isclose(math.hypot(*q), 1.0, abs_tol=1e-15)
-    assert q[3] >= -1e-16  # yaw in (-pi, pi] -> qw >= 0
-    back = yaw_from_quaternion(*q)
-    assert -math.pi < back <= math.pi
-    assert abs(_wrap(back - yaw)) < 1e-12
-
-
-def test_quaternion_known_values() -> None:
-    assert quaternion_from_yaw(0.0) == (0.0, 0.0, 0.0, 1.0)
-    qx, qy, qz, qw = quaternion_from_yaw(math.pi / 2)
-    assert (qx, qy) == (0.0, 0.0)
-    assert qz == pytest.approx(SQRT_HALF, abs=1e-15)
-    assert qw == pytest.approx(SQRT_HALF, abs=1e-15)
-    assert yaw_from_quaternion(0.0, 0.0, 1.0, 0.0) == pytest.approx(math.pi)
-    # not normalised: same yaw
-    assert yaw_from_quaternion(0.0, 0.0, 2.0, 2.0) == pytest.approx(math.pi / 2)
-    with pytest.raises(ValueError, match="no orientation"):
-        yaw_from_quaternion(0.0, 0.0, 0.0, 0.0)
+def test_link_kind_names_are_the_engine_enums_names_by_code() -> None:
+    assert LINK_KIND_NAMES == ("odometry", "loop", "merge", "manual")  # the map JSON and store contract
+    for kind in LinkKind:
+        assert LINK_KIND_NAMES[kind] == kind.name.lower() == link_kind_name(int(kind))
+        assert LINK_KIND_CODES[kind.name.lower()] == kind
+    assert link_kind_name(len(LINK_KIND_NAMES)) is None and link_kind_name(-1) is None
 
 
 # ----------------------------------------------------------------------------------------------- TUM

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from core import Engine, preset
+from core.angles import wrap_angle
 from mapserver.ingest.reader import open_log
 from tests.simulations import simulate_once
 
@@ -68,7 +69,7 @@ def test_compat_engine_matches_openratslam_trace(scenario: str, tmp_path: Path) 
     poses = engine.map.poses
     assert poses.shape[0] == ref_poses.shape[0]
     assert np.hypot(*(poses[:, :2] - ref_poses[:, :2]).T).max() < 1e-3
-    assert np.abs(_wrapped(poses[:, 3] - ref_poses[:, 2], 2 * np.pi)).max() < 1e-6
+    assert np.abs(wrap_angle(poses[:, 3] - ref_poses[:, 2])).max() < 1e-6
 
 
 def test_default_engine_makes_the_same_decisions_but_not_openratslams_map(tmp_path: Path) -> None:

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from core.se3 import quaternion_from_yaw
 from mapserver.ingest.frames import PoseSample
 from mapserver.ingest.simulator.routes import Route
 from mapserver.ingest.writer import OdomSample
@@ -426,10 +427,7 @@ def _ground_truth_messages(stamps: npt.NDArray[np.int64], true: FloatArray) -> l
             float(true[k, 0]),
             float(true[k, 1]),
             float(true[k, 2]),
-            0.0,
-            0.0,
-            math.sin(true[k, 3] / 2.0),
-            math.cos(true[k, 3] / 2.0),
+            *quaternion_from_yaw(true[k, 3]),
         )
         for k in range(len(stamps))
     ]

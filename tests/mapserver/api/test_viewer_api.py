@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -146,3 +147,16 @@ def test_merges_listed_with_places_and_undone_and_redone_with_a_write_token(make
     assert redone.status_code == 200 and redone.json()["status"] == "applied"
     assert len(api.client.get("/v1/maps/demo", headers=api.read).json()["sessions"]) == 2
     assert api.client.get("/v1/merges/999", headers=api.read).status_code == 404
+
+
+def test_the_viewer_and_the_report_style_exactly_the_link_kinds_the_api_names() -> None:
+    """viewer.js keys its styles by kind name (the API sends the names, ``kinds``); no kind goes unstyled."""
+    from mapserver.formats import LINK_KIND_NAMES
+    from mapserver.report import LINK_STYLE
+
+    script = (Path(__file__).resolve().parents[3] / "mapserver/api/viewer/static/viewer.js").read_text()
+    block = re.search(r"const LINK_STYLES = \{(.*?)\n\};", script, re.S)
+    assert block is not None
+    styled = set(re.findall(r"^\s*(\w+):", block.group(1), re.M))
+    assert styled == {*LINK_KIND_NAMES, "inactive"}
+    assert set(LINK_STYLE) == set(LINK_KIND_NAMES)

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from core.angles import wrap_angle_exact
 from mapserver.ingest.odometry import (
     OdometryState,
     OdometryTrack,
@@ -14,7 +15,6 @@ from mapserver.ingest.odometry import (
     interpolate_pose,
     make_state,
     relative_motion,
-    wrap_angle,
 )
 from tests.mapserver.ingest.conftest import arc_pose
 
@@ -116,7 +116,7 @@ def test_interpolate_pose_wraps_yaw() -> None:
     b = OdometryState(S, 2.0, 4.0, 1.0, -math.pi + 0.1)
     x, y, z, yaw = interpolate_pose([a, b], S // 2)
     assert (x, y, z) == pytest.approx((1.0, 2.0, 0.5))
-    assert abs(wrap_angle(yaw - math.pi)) < 1e-12
+    assert abs(wrap_angle_exact(yaw - math.pi)) < 1e-12
     assert interpolate_pose([a, b], -5) == a.pose
     assert interpolate_pose([a, b], 2 * S) == b.pose
 
@@ -132,7 +132,7 @@ def test_pose_differencing_matches_twist_on_arc() -> None:
     for i in range(60):
         stamp = i * S // rate
         x, y, yaw = arc_pose(stamp * 1e-9, 1.0, 0.5)
-        states_pose.append(OdometryState(stamp, x, y, 0.0, wrap_angle(yaw)))
+        states_pose.append(OdometryState(stamp, x, y, 0.0, wrap_angle_exact(yaw)))
         states_twist.append(OdometryState(stamp, x, y, 0.0, yaw, 1.0, 0.0, 0.0, 0.5))
     for t0, t1 in ((0, 4 * S // 10), (S // 10, 7 * S // 10), (2 * S // 10, S)):
         a = difference_poses(states_pose, t0, t1)

@@ -21,9 +21,9 @@ import numpy as np
 
 from core.relaxation import solve
 from core.robust import component_anchors
-from core.se3 import relative
+from core.se3 import relative, yaw_from_quaternion
 from mapserver.evaluation import ape_positions, interpolate_poses
-from mapserver.formats import Trajectory, read_tum, yaw_from_quaternion
+from mapserver.formats import Trajectory, read_tum
 
 CLOSURE_KINDS = ("loop", "merge")
 

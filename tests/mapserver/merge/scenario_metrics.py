@@ -181,7 +181,7 @@ def measure_ellipse(directory: Path, db_url: str, *extra: str, single: dict[str,
     single_xyz, _ = experiences(single)
     transform_error = (np.inf, np.inf)
     if merges:
-        from core.se3 import wrap_angle
+        from core.angles import wrap_angle
 
         truth = true_alignment(directory, s1, s2, np.radians(merged["params"]["exp_initial_em_deg"]))
         t = merges[0]["transform"]
@@ -209,8 +209,7 @@ def true_alignment(directory: Path, loaded: dict[str, Any], partial: dict[str, A
     map = S ⊕ G⁻¹ ⊕ world with S = (0, 0, 0, initial_yaw) and G the true start pose, so
     T = S ⊕ G_loaded⁻¹ ⊕ G_partial ⊕ S⁻¹.
     """
-    from core.se3 import compose, inverse
-    from mapserver.formats import yaw_from_quaternion
+    from core.se3 import compose, inverse, yaw_from_quaternion
 
     def start(session: dict[str, Any]) -> np.ndarray:
         gt = read_tum(directory / session["ground_truth"])

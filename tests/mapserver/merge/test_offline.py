@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.se3 import compose, wrap_angle
+from core.angles import wrap_angle
+from core.se3 import compose
 from mapserver.errors import MergeError
 from mapserver.merge import StoredMap, find_match, merge_maps
 from tests.mapserver.merge.sessions import PARAMS, map_stretch, true_alignment

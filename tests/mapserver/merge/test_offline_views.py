@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from core.angles import wrap_angle
 from core.config import preset
 from core.engine import Engine
 from core.neocortex.viewcells import NeocortexViewCells
-from core.se3 import wrap_angle
 from mapserver.errors import MergeError, NoConfirmedMatchError
 from mapserver.merge.cortex import translate_offline
 from mapserver.merge.engines import StoredMap, merge_snapshots

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from core import Engine, Params, preset
-from core.se3 import compose, inverse, wrap_angle
+from core.angles import wrap_angle
+from core.se3 import compose, inverse
 from mapserver.merge import OnlineMerger, StoredMap, verify
 from mapserver.merge.hypotheses import MIN_TURN_RAD
 from mapserver.merge.online import MergeEvent

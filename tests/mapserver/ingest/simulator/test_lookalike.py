@@ -18,6 +18,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from core import preset
+from core.angles import wrap_angle_exact
 from core.localview import LocalViewCells
 from mapserver.errors import InputError
 from mapserver.ingest.simulator import plan_scenario, render, render_frames, simulate, simulate_session
@@ -224,7 +225,7 @@ def test_twin_views_match_for_the_whole_stretch_and_only_there() -> None:
     assert frames - 1 <= _longest_run(matched) <= len(matched) <= frames + 3  # seed 0: one run of 21 frames
     for k in matched:  # on the stretch (or within a frame of it), heading east
         assert abs(poses[k, 0] - centre_2[0]) < stretch / 2 + 1.0 and abs(poses[k, 1] - centre_2[1]) < 0.8
-        assert abs(math.remainder(poses[k, 3], 2 * math.pi)) < math.radians(25)
+        assert abs(wrap_angle_exact(poses[k, 3])) < math.radians(25)
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from core import preset
+from core.angles import wrap_angle_exact
 from core.localview import LocalViewCells
 from mapserver.errors import InputError
 from mapserver.formats import read_tum
@@ -157,4 +158,4 @@ def test_aliased_places_match_for_one_or_two_consecutive_frames_only_on_the_stre
     centre_b = np.asarray(plan.info["alias"]["centres"][1])
     for k in matched:  # on (or within a frame of) the look-alike stretch, heading east
         assert np.linalg.norm(poses_b[k, :2] - centre_b) < 0.8
-        assert abs(math.remainder(poses_b[k, 3], 2 * math.pi)) < math.radians(20)
+        assert abs(wrap_angle_exact(poses_b[k, 3])) < math.radians(20)
