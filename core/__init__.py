@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from core.config import ConfigError, Params, load_config, params_from_dict, preset
     from core.engine import Action, Engine, StepResult
-    from core.experience_map import LinkKind
+    from core.links import LinkKind
     from core.localview import ImageError
     from core.motion import Motion
     from core.paths import ExperienceGraph, NoPath, PathResult
@@ -30,7 +30,7 @@ _WHERE = {
     "Engine": "core.engine",
     "ExperienceGraph": "core.paths",
     "ImageError": "core.localview",
-    "LinkKind": "core.experience_map",
+    "LinkKind": "core.links",
     "Motion": "core.motion",
     "NoPath": "core.paths",
     "Params": "core.config",

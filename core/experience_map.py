@@ -75,7 +75,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -84,8 +83,11 @@ from scipy.sparse.csgraph import connected_components
 
 from core import compat
 from core._buffers import GrowBuffer
+from core.angles import wrap_angle, wrap_angle_below_pi
+from core.angles import wrap_angle_scalar as wrap_scalar
 from core.config import Departure
-from core.lattice import wrap_angle, wrap_scalar
+from core.links import SWITCHABLE_KINDS
+from core.links import LinkKind as LinkKind
 from core.relaxation import (
     Incidence,
     PairSet,
@@ -99,7 +101,7 @@ from core.relaxation import (
     solve_block,
     sorted_unique,
 )
-from core.robust import SWITCHABLE_KINDS, Drift, link_length, switch_off_outliers
+from core.robust import Drift, link_length, switch_off_outliers
 
 if TYPE_CHECKING:
     from core.config import Params
@@ -116,15 +118,6 @@ class _Standby:
     partner: np.ndarray  # (M,) the odometry link each stands in for
     switchable: np.ndarray  # (K,) odometry links made switchable by a reckoning link
     closure: np.ndarray  # (M,) the loop link from src made before the partner (the relocalisation's), or −1
-
-
-class LinkKind(IntEnum):
-    """Why a link exists (stored as int8)."""
-
-    ODOMETRY = 0
-    LOOP = 1
-    MERGE = 2
-    MANUAL = 3
 
 
 class ExperienceMap:
@@ -476,7 +469,7 @@ class ExperienceMap:
         pose = self._pose.view
         target, winding_changed = solve_block(pose, ids, owner, src, dst, self._transform.view[links])
         step = target - pose[ids]
-        step[:, 3] = np.remainder(step[:, 3] + math.pi, 2.0 * math.pi) - math.pi
+        step[:, 3] = wrap_angle_below_pi(step[:, 3])
         fraction = min(1.0, 2.0 * p.exp_correction)
         largest = float(np.sqrt(np.einsum("ij,ij->i", step[:, :3], step[:, :3])).max()) * fraction
         for cap in (p.max_correction_step, p.max_correction_norm):

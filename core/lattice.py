@@ -5,12 +5,6 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from core.angles import wrap_angle as wrap_angle
-from core.angles import wrap_angle_scalar
-
-wrap_scalar = wrap_angle_scalar
-"""The name under which ``core.experience_map`` imports :func:`core.angles.wrap_angle_scalar` (with ``wrap_angle``)."""
-
 
 def wrapped_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
     """Return per-axis minimum distances |a-b| on a periodic lattice of size ``dims``.

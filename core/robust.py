@@ -174,6 +174,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 if TYPE_CHECKING:
     from core.config import Params
 
+from core.links import SWITCHABLE_KINDS, LinkKind
 from core.pcm import (
     MAX_LINKS,
     PAIR_THRESHOLD,
@@ -197,10 +198,7 @@ from core.relaxation import (
     sums_to_root,
 )
 
-#: kinds (``core.experience_map.LinkKind``) that may be switched off: loop closures and merge links
-SWITCHABLE_KINDS = (1, 2)
-#: the kind of merge links (``core.experience_map.LinkKind.MERGE``)
-MERGE_KIND = 2
+MERGE_KIND = LinkKind.MERGE
 #: γ, the weight of the never-switched links' terms in the TLS cost (module docstring)
 ODOMETRY_WEIGHT = 0.25
 #: outliers' worth (c̄² each) by which the status-quo start must beat the answer to replace it (module docstring)
@@ -284,7 +282,7 @@ def switchable(kind: np.ndarray) -> np.ndarray:
 def link_length(distance: np.ndarray, kind: np.ndarray) -> float:
     """Return ``s``: the median odometry link length (m), else the median positive link length, else 1 m."""
     distance = np.asarray(distance, dtype=np.float64)
-    odometry = distance[(np.asarray(kind) == 0) & (distance > 0)]
+    odometry = distance[(np.asarray(kind) == LinkKind.ODOMETRY) & (distance > 0)]
     if odometry.size:
         return float(np.median(odometry))
     positive = distance[distance > 0]
