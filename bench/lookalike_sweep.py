@@ -126,10 +126,10 @@ def _place_error(
 def _merge_poses(db: str) -> dict[int, np.ndarray]:
     """Each merge event's robot pose at its merge frame, carried into the stored map (event id → x, y, z, yaw).
 
-    The pose carried is the robot's in the session's own map frame (``session_pose``, stored since stop 50), the
-    frame the merge transform takes: once the session's map has closed a loop it is not the dead reckoning
-    (``reckoning_pose``, used for events stored before; traced on ``twin-overlap`` turns alike 40 m seed 14, where
-    session 2's own closures in the self-aliased stretch moved its map 10 m and 53° from its dead reckoning).
+    The pose carried is the robot's in the session's own map frame (``session_pose``), the frame the merge
+    transform takes: once the session's map has closed a loop it is not the dead reckoning (``reckoning_pose``, used
+    for events stored without ``session_pose``; traced on ``twin-overlap`` turns alike 40 m seed 14, where session 2's
+    own closures in the self-aliased stretch moved its map 10 m and 53° from its dead reckoning).
     """
     from core.se3 import compose
     from mapserver.store import open_database

@@ -10,7 +10,7 @@ meet the earlier sessions' view cells) with the scenario's preset and its varian
 
 * ``lvc``: the preset with intensity templates (``cave3d``: ``poseidon-lvc``, the preset's own LVC values);
 * ``sdr-htm``: the preset with ``frontend = "sdr-htm"`` (weight-free encoder, thesis HTM values; ``cave3d``:
-  ``poseidon`` as it is since stop 40, 16×6 encoder input, I_min 8, VPR Guard at 2 repeats);
+  ``poseidon``'s values, 16×6 encoder input, I_min 8, VPR Guard at 2 repeats);
 * ``sdr-htm-imin8`` (on request): ``sdr-htm`` with the intersection gate lowered from 12 to 8 of 15 bits;
 * ``sdr-sp``, ``sdr-sp-imin8`` (on request): the descriptor from the SP's columns instead of the TM's
   winner cells (``sv_descriptor_source = "sp"``): the same pipeline without sequence memory;

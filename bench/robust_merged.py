@@ -62,7 +62,7 @@ def main() -> None:
     parser.add_argument("--no-ties", action="store_true",
                         help="merge without the ties of the winning hypothesis's hits (the maps before 2026-11-29)")
     parser.add_argument("--no-view-heading", action="store_true",
-                        help="merge_view_heading=0: closures and ties between the sessions as before stop 55")
+                        help="merge_view_heading=0: closures and ties between the sessions carry no view heading")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="robust-merged-"))
     rows = []

@@ -181,11 +181,12 @@ class Engine:
 
         A forward view's closure carries the robot's odometry facing whatever way the view is turned (OpenRatSLAM
         gives it no offset). A single session's map keeps that, as OpenRatSLAM makes it (``vt_shift_heading`` on
-        every closure and view made the single routes of ``symmetric`` worse: docs/journal.md, stop 54). A merged map is
+        every closure and view made the single routes of ``symmetric`` worse: docs/journal.md, "a merge that
+        identified every partial experience makes a merged map", its probe of ``vt_shift_heading``). A merged map is
         settled on the joint least squares over positions and headings (``ExperienceMap.joint``), where a closure's
         heading error bends both sessions' chains; and a closure joining two sessions' experiences (``em_origin``)
-        carries the robot's weave between their drives (docs/journal.md, stop 55: ``symmetric-overlap`` seed 5, two such
-        links 24° apart). Those
+        carries the robot's weave between their drives (docs/journal.md, "where two sessions meet, and in a merged
+        map, a closure faces the way the view says": ``symmetric-overlap`` seed 5, two such links 24° apart). Those
         closures take the view's column shift against the matched template (:meth:`LocalViewCells.view_heading`),
         as ``vt_shift_heading`` gives every closure. Not for ``vt_shift_heading`` (every closure has it already),
         panoramic views (their match gives the offset), other front-ends, or ``openratslam_compat``.

@@ -704,10 +704,12 @@ class ExperienceMap:
 
         ``exp_relax_joint`` for every map; ``merge_relax_joint`` for a merged map: one that holds a merge link
         or experiences of more than one session (``em_origin``; a merge that identified every experience of the
-        partial map leaves no merge link; docs/journal.md, stop 54: ``symmetric-overlap`` seed 15, 0.99 → 0.52 m). A
+        partial map leaves no merge link; docs/journal.md, "a merge that identified every partial experience makes a
+        merged map": ``symmetric-overlap`` seed 15, 0.99 → 0.52 m). A
         merged map's closures carry the merge's heading error, which RatSLAM's fixed point (headings relaxed apart
         from the position residuals) turns into a misclosure in position; a true merge or closure then looks like
-        an outlier to the robust check (docs/journal.md, stop 28: ``twin-overlap`` 40 m seed 7). A single session's
+        an outlier to the robust check (docs/journal.md, "three tries at the heading errors of forward-view
+        closures": ``twin-overlap`` 40 m seed 7). A single session's
         map is relaxed as OpenRatSLAM relaxes it.
         """
         p = self.params

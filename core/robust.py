@@ -46,17 +46,17 @@ map stood on at its previous check, with the links added since off, then switche
 links on, the descent kept two of them and switched both true closures off at a cost of 117.9-121.6,
 where the map as it stood costs 82.4). It replaces the answer at any lower C: the map as it stood is an
 answer the map already held, and new links have to earn their place against it. It is tried whenever the answer
-switches off a link the map stood on, not only after a first descent that switched something off (stop 46): the
+switches off a link the map stood on, not only after a first descent that switched something off: the
 strain pass below trades too (merged ``twin-overlap`` map seed 3, one wrong link of 2 m, injection seed 3: with it
 and the stored closure 139 → 86 both on nothing exceeds c̄, C 46.1; the strain pass switched the closure off for it,
 C 37.4; the map as it stood costs 21.1; APE 1.40× the clean map's, now 1.00×). A merge link that was on
-costs the answer one more outlier's worth to switch off (``MERGE_LINK_HOLD``, stop 42): it joined two maps after
+costs the answer one more outlier's worth to switch off (``MERGE_LINK_HOLD``): it joined two maps after
 the merge passed its probation, and TLS charges any link off at c̄² whatever it is, so a batch of new links could
 buy its way in by switching off as many merge links as it adds, for a few tenths of an outlier's worth of
 residual (merged ``symmetric`` map, 20 wrong links of 5 m, injection seed 1: 3 kept on for 2 merge links and a
 loop closure off, C 223.8 against 233.8 as the map stood, c̄² = 10.4; APE 3.2× the clean map's). A prior on
-those switches at their previous values (Sünderhauf & Protzel's switch prior, here one outlier's worth each). Since
-stop 45 it is a term of C itself, ``MERGE_LINK_HOLD``·c̄² for each merge link that was on as the map stood and is
+those switches at their previous values (Sünderhauf & Protzel's switch prior, here one outlier's worth each). It
+is a term of C itself, ``MERGE_LINK_HOLD``·c̄² for each merge link that was on as the map stood and is
 off, so every start weighs it, not only the comparison between the starts' answers: the status quo's own start traded
 a merge link for a wrong link that, switched back on alone, lowered C with the merge link off for it (merged
 ``twin-overlap`` map seed 3, 20 wrong links of 5 m, injection seed 7: 2 → 104 on for 108 → 0; APE 1.72×, now 1.00×).
@@ -66,7 +66,7 @@ costs it one outlier's worth more than the trade TLS otherwise sees as even (sam
 90 → 138 on for the closure 139 → 86; APE 1.49×, now 1.00×). A running session's own links carry none, so its later
 closures still correct its earlier ones at once (the same prior on those delayed them: the online sweeps' single
 routes got worse, ``twin-overlap`` turns alike 40 m seed 4 0.825 → 1.249 m).
-New links that only fit together hold the same against them (``NEW_LINK_HOLD``, stop 45): the status quo's start
+New links that only fit together hold the same against them (``NEW_LINK_HOLD``): the status quo's start
 switches each new link back on alone and keeps it when the cost falls, so a new link the answer keeps on and the
 status quo left off lowers the cost only with others beside it — two or more wrong links that agree with one
 another (neighbouring pairs of a batch of injected links join neighbouring places with the same error) and bend
@@ -79,10 +79,10 @@ delayed until they outweigh one outlier's worth each. Not in the check that sett
 offline merge adds with it (``mapserver.merge.offline_evidence.OfflineEvidence.closures``) are view matches its
 evidence walk found where the alignment puts them, and held there, true ones stayed off with no later check to
 bring them back (offline ``twin-overlap`` 40 m with turns, seeds 3 and 8: merged APE 0.45 → 0.51 m, 0.68 → 0.77 m).
-(With the clique's margin, stops 31-36, the injected-link bench's ``cave3d`` maps of seeds 1 and 4 kept wrong
-links at a C 0.7-15.2 above the status quo's, APE up to 3.6× the clean map's; at stop 31 taking it at any lower C
-bent a merged ``twin-overlap`` map, 1.47 → 6.54 m, which the joint least squares of merged maps, stop
-36, no longer does.)
+(With the clique's margin instead of any lower C, the injected-link bench's ``cave3d`` maps of seeds 1 and 4 kept
+wrong links at a C 0.7-15.2 above the status quo's, APE up to 3.6× the clean map's; without the joint least squares
+of merged maps, taking it at any lower C bent a merged ``twin-overlap`` map, 1.47 → 6.54 m. Measured:
+docs/journal.md, "every start of the robust search gets its own budget".)
 
 Normalisation (the threshold rule). Odometry drifts by about ``drift`` metres and
 ``yaw_drift`` radians per metre travelled. Least squares spreads a cycle's misclosure

@@ -70,7 +70,7 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
         ),
         # PoseidonSLAM thesis Table 4.1: lattice [15,15,15,8] at 0.1 m, VPR Guard 26/3/20, motion gate
         # 0.12/0.05 m, clamps 20.0/0.05, sync_stale_sec 0.75, with intensity templates in place of its CNN
-        # ("poseidon" until stop 40; "poseidon" is now the neocortical front-end below). The template keys
+        # ("poseidon" is the neocortical front-end below; this preset keeps its back-end). The template keys
         # (template size, threshold, shift, normalisation, injection, experience threshold, exp_loops,
         # initial heading) are chosen by us, not taken from the thesis.
         "poseidon-lvc": _DEFAULT.replace(
@@ -83,7 +83,8 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             exp_loops=20, exp_initial_em_deg=0.0,
             # sdr-htm merges (poseidon): the cave's SDRs overlap less at a true place than a street's; at the
             # default 0.68 cave3d's true merges fail (9 of 10 seeds), at 0.62 none (README, 2026-11-27); raised per
-            # map to the 95th percentile of its own look-alikes, so a street-like map gets a street's gate (stop 34)
+            # map to the 95th percentile of its own look-alikes, so a street-like map gets a street's gate
+            # (measured: docs/journal.md, "a gate calibrated on the stored map's own look-alikes")
             merge_sdr_min_overlap=0.62, merge_sdr_null_quantile=0.95, **_MEASURED_MERGING,
         ),
     }
@@ -93,17 +94,19 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
 # 2048 columns, 20 active, potential radius 600, inc/dec 0.006/0.008; TM 40 cells, activation 5, initial
 # 0.55, connected 0.5, 20 new synapses, inc/dec 0.008/0.012; descriptor window 7, top-15, θα 0.65, θρ 3;
 # gates I_min 12, τ_R 0.30, F1 0.55, IoU tie-break). Weight-free encoder unless frontend_backbone/weights
-# are given; "poseidon-lvc" keeps the intensity templates of the maps made before stop 40.
+# are given; "poseidon-lvc" keeps the intensity templates, for maps made with them.
 _SDR_HTM = {"frontend": "sdr-htm"}
 # poseidon's weight-free encoder (ours; the thesis's CNN has no weights here): the cave image at 16×6
 # before the projection and I_min 8 of 15 (thesis: 12 with its CNN). At poseidon-lvc's 64×24 and I_min 12 a
 # revisit 0.2-0.4 m off keeps too few descriptor bits: cave3d single routes closed no loop (seeds 0-4,
 # 0.78-1.04 m APE against LVC's 0.12-0.19 m); at 16×6 and I_min 8 they close 3-8 loops, 0.11-0.28 m, and
-# session 2 merges at its true place on 10 of 10 seeds, never into another cave (README, stop 38).
-# The VPR Guard asks for 2 repeats in its window, not the thesis's 3 (ours, stop 40): the thesis's CNN recognises
+# session 2 merges at its true place on 10 of 10 seeds, never into another cave (measured: docs/journal.md,
+# "`poseidon-sdr`'s weight-free encoder sees the cave at 16×6, gate I_min 8").
+# The VPR Guard asks for 2 repeats in its window, not the thesis's 3 (ours): the thesis's CNN recognises
 # a place for many frames, the weight-free front-end makes a new view cell nearly every frame, and at 3 the guard
 # kept 115 of 383 loop links on cave3d (seeds 0-2), at 2 285 (5 false): single routes 0.09-0.12 m with 12-23
-# closures (0.11-0.28 m, 3-8 at 3), injected wrong links held on 75 of 75 rows (59 at 3) (README, stop 39/40).
+# closures (0.11-0.28 m, 3-8 at 3), injected wrong links held on 75 of 75 rows (59 at 3) (measured:
+# docs/journal.md, "what keeps `poseidon` on `lvc` goes away with the VPR Guard at two repeats").
 # With a learnt backbone the thesis's values come back with --set sv_min_intersection=12,vpr_min_rep=3.
 _POSEIDON_ENCODER = {"template_x_size": 16, "template_y_size": 6, "sv_min_intersection": 8, "vpr_min_rep": 2}
 # fjscoelho/ratslam config/neoslam_robotarium.yaml (OpenRatSLAM2's NeoSLAM run): its pose-cell and
@@ -119,11 +122,12 @@ _POSEIDON = PRESETS["poseidon-lvc"].replace(**_SDR_HTM, **_POSEIDON_ENCODER)
 PRESETS = MappingProxyType(
     {
         **PRESETS,
-        # PoseidonSLAM with its neocortical front-end; "poseidon-sdr" is the same preset under its stop 31-39 name
+        # PoseidonSLAM with its neocortical front-end; "poseidon-sdr" is the same preset under an older name
         "poseidon": _POSEIDON,
         "poseidon-sdr": _POSEIDON,
         # merge_sdr_null_quantile: neoslam's code gate rises to its map's own look-alikes as poseidon's does; at the
-        # plain 0.68 `twin` with 20 and 40 m look-alikes holding turns kept 3 and 3 false merges of 10 (README, stop 38)
+        # plain 0.68 `twin` with 20 and 40 m look-alikes holding turns kept 3 and 3 false merges of 10 (measured:
+        # docs/journal.md, "`neoslam` merged into look-alikes")
         "neoslam": _DEFAULT.replace(**_NEOSLAM_YAML, **_SDR_HTM, template_x_size=64, template_y_size=24,
                                     merge_sdr_null_quantile=0.95, **_MEASURED_MERGING),
     }

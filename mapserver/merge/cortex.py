@@ -91,7 +91,7 @@ def null_overlap(codes: np.ndarray, places: np.ndarray, far_m: float, quantile: 
     aliasing, so a gate below it accepts look-alikes as readily as the place itself; 0.0 when fewer than
     :data:`NULL_MIN_CELLS` cells have a place and a far partner. A calibration per map of the gate
     ``merge_sdr_min_overlap`` (measured: a street world's far views overlap 0.67–0.86 at the 99th percentile,
-    a cave's 0.55–0.65; README, 2026-11-27, stop 34).
+    a cave's 0.55–0.65; docs/journal.md, "a gate calibrated on the stored map's own look-alikes").
     """
     placed = np.flatnonzero(np.isfinite(places[:, 0]) & (codes.sum(axis=1) > 0))
     if placed.size > NULL_SAMPLE:

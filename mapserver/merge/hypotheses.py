@@ -62,7 +62,7 @@ PLACE_EXTENT = 1.0
 """Metres of hits one place can give a hypothesis in a row, in position tolerances (front-ends that place views
 loosely: ``sdr-htm``).
 
-A hit re-anchors the alignment on the place matched (during an LVC probation, since stop 43, only the first hit
+A hit re-anchors the alignment on the place matched (during an LVC probation only the first hit
 at a place in a row; later ones slide it along the place: :meth:`HypothesisSet.reanchor`), so where a stretch's
 views are all accepted at one place the robot's prediction stays on that place however far it drives, and every
 frame is a hit there. Measured on ``twin`` with a 40 m look-alike holding turns (seed 0, ``sdr-htm`` at

@@ -14,7 +14,7 @@ three spacings, so a jump between A's sessions weighs nothing), and the alignmen
 
 the online rule's figures (Wald's SPRT over distance; a straight look-alike cannot pin an alignment).
 A's whole map is the evidence, before the merge; a look-alike that holds turns passes that test as a true
-overlap does (``twin`` with 10–40 m alike: 1–2 of 10 seeds merged two places, stop 39). So the winner also
+overlap does (``twin`` with 10–40 m alike: 1–2 of 10 seeds merged two places on that test alone). So the winner also
 meets the rule an online merge's probation applies after it (:class:`mapserver.merge.verify.Probation`): along
 A's chain after the anchor, in A's own time order, for ``probation_m`` metres and then as long as the matches
 go on, no run of ``evidence_m`` metres of misses without a hit between them — and the same along B's chain

@@ -576,10 +576,10 @@ def _lever_arm(f: LatticeTransform | None, coords: np.ndarray) -> np.ndarray:
     """Return each partial coordinate's (x, y) distance in cells from the anchor f rotates about (0: not moved).
 
     Operation (iii) rotates the partial lattice about the matched cell by the heading offset of one view, and
-    that offset is off by the view's heading error ε (stop 32 measured 1–17° on true merges): a coordinate r
-    cells from the anchor lands about ε·r cells from where the loaded lattice holds its place. The engine
-    widens its closure gate by ``merge_lattice_slack`` (ε) times this lever (``Engine._get_action``); levers
-    of successive merges add.
+    that offset is off by the view's heading error ε (1–17° on true merges; docs/journal.md, "the merge's heading
+    fitted over its support"): a coordinate r cells from the anchor lands about ε·r cells from where the loaded
+    lattice holds its place. The engine widens its closure gate by ``merge_lattice_slack`` (ε) times this lever
+    (``Engine._get_action``); levers of successive merges add.
     """
     if f is None:
         return np.zeros(coords.shape[0], dtype=np.float64)

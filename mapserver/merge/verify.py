@@ -25,7 +25,7 @@ distances, ``PROBATION_CAP`` once it has closed a loop on the stored map): a loo
 turns keeps matching until the robot leaves it, and only what comes after it can tell. It does not end on a
 run of mismatches longer than leaving the stored map's edge explains (:meth:`Probation.held_open`): it stays
 open until matches come back, the run rejects the merge, the session merges into another stored map, or the log
-ends (past the cap too, since stop 47).
+ends (past the cap too).
 
 Meanwhile the session's engine *without* the merge (the *shadow*) is kept with the probation's frames,
 and stepped through them only when the merge is rolled back (or when the frames held pass
@@ -71,7 +71,7 @@ false merges at a 40 m look-alike holding turns ended inside the look-alike (48 
 longest look-alike the probation can see the end of. The cost is the probation's frames held for up to 8
 probation distances (``LAZY_SHADOW_BYTES``), and the shadow stepped through them if the merge is rolled back."""
 OPEN_PROBATION_CAP = 16.0
-"""The cap of a probation that has not closed a loop on the stored map (stop 50).
+"""The cap of a probation that has not closed a loop on the stored map.
 
 Inside a look-alike the merged map's predictions match as they would at the true place: the probations of ``twin``
 turns alike 100 m's false merges matched 86–98 % of their metres, the true merges' of ``twin-overlap`` turns alike
@@ -297,7 +297,7 @@ class Probation:
     def held_open(self, distance: float) -> bool:
         """Whether the probation would end now but for a run of mismatches since its matches stopped.
 
-        Past the cap too (since stop 47): the cap ends a probation whose matches never stop, and one whose matches
+        Past the cap too: the cap ends a probation whose matches never stop, and one whose matches
         stopped ``evidence_m`` back and that is meeting mismatches beyond the map's edge (:meth:`_ends_on_mismatches`)
         is not that. Measured: ``twin`` turns alike 80 m (seed 2, ``circle``), beyond the issue's 5–40 m: a false
         merge's probation matched the look-alike for 77 m, its matches stopped 14 m before the cap (96 m) and it
@@ -393,7 +393,7 @@ class Probation:
         a place that matches two times in three — is rolled back (measured: the false merges of the
         look-alike sweep ended their probation at −0.9 to +1.1 m, the true ones of ``chain5``, ``bridge``
         and the sweep's overlap rows at +2.9 m and more, with ``evidence_m`` 4 m). An LVC probation must also have
-        matched over the evidence distance itself, as the decision did (since stop 43): its prediction slides
+        matched over the evidence distance itself, as the decision did: its prediction slides
         along a place's heading instead of staying on it (:meth:`HypothesisSet.reanchor`), so a false merge whose
         prediction leaves the stored places sideways sees unmapped ground, not mismatches (``twin`` turns alike
         60 m seed 1: 2.91 m of matches, none after, net +2.91 m — it passed the half line).

@@ -105,7 +105,7 @@ def test_preset_values_follow_their_sources() -> None:
     assert poseidon.vpr_min_rep == 2 and preset("poseidon-lvc").vpr_min_rep == 3  # ours for the weight-free encoder
     assert (poseidon.motion_gate, poseidon.min_event_trans_xy, poseidon.min_event_dz) == (True, 0.12, 0.05)
     assert (poseidon.max_correction_norm, poseidon.max_correction_step) == (20.0, 0.05)
-    lvc = preset("poseidon-lvc")  # the same back-end with intensity templates (poseidon until stop 40)
+    lvc = preset("poseidon-lvc")  # the same back-end with intensity templates
     assert lvc.lattice_shape == poseidon.lattice_shape and lvc.motion_gate and lvc.vpr_guard
     assert (lvc.template_x_size, lvc.template_y_size, lvc.vt_match_threshold) == (64, 24, 0.06)
     for name in ("irat", "stlucia", "newcollege", "lake", "circle"):  # PoseidonSLAM options are off in RatSLAM sets

@@ -122,13 +122,13 @@ def test_restore_refuses_a_projection_of_another_seed() -> None:
 def test_lvc_presets_keep_lvc_and_the_sdr_presets_select_it() -> None:
     assert preset("poseidon-lvc").frontend == "lvc" and preset("irat").frontend == "lvc"
     assert preset("poseidon").frontend == "sdr-htm" and preset("neoslam").frontend == "sdr-htm"  # issue 17 item 4
-    assert preset("poseidon-sdr") == preset("poseidon")  # its name from stop 31 to 39
+    assert preset("poseidon-sdr") == preset("poseidon")  # an older name of the same preset
     assert isinstance(Engine(preset("poseidon")).local_view, NeocortexViewCells)
     sdr = preset("poseidon")
     assert (sdr.sp_columns, sdr.sp_num_active_columns, sdr.sp_potential_radius, sdr.tm_cells_per_column) == (
         2048, 20, 600, 40)
     assert (sdr.sv_tm_window, sdr.sv_tm_topk, sdr.sv_tm_match_threshold) == (7, 15, 0.3)
-    # the weight-free encoder's input and gate are ours (README, stop 38); NeoSLAM keeps the thesis's I_min 12
+    # the weight-free encoder's input and gate are ours (core/config/_presets.py); NeoSLAM keeps the thesis's I_min 12
     assert (sdr.template_x_size, sdr.template_y_size, sdr.sv_min_intersection) == (16, 6, 8)
     assert preset("neoslam").sv_min_intersection == 12
     with pytest.raises(ConfigError, match="frontend"):

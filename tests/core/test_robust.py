@@ -516,8 +516,8 @@ def test_a_false_closure_before_a_true_relocalisation_lets_the_robots_odometry_j
     joined = _ape(truth, em.poses)
     assert joined < 0.06  # the yaw bias of 0.02 rad per step alone
     # the paired must-fail: without the closure rule the reckoning link stands by while 9 → 23 stands, so the
-    # check switches off the true lap closure 15 → 0 and 9 → 23 as well to let it in (APE 0.21 m). Since stop 46
-    # the status quo's start, tried when the answer switches off a link that stood, keeps the lap closure on by itself
+    # check switches off the true lap closure 15 → 0 and 9 → 23 as well to let it in (APE 0.21 m). The status
+    # quo's start, tried when the answer switches off a link that stood, keeps the lap closure on by itself
     # (only 22 → 0 off, APE 0.09 m), so it is patched out too: the case of a map with no previous check.
     monkeypatch.setattr("core.experience_map._last_loop_from", lambda src, kind, start, before: np.full(start.size, -1))
     monkeypatch.setattr("core.robust._status_quo_start", lambda _problem, _status_quo: None)
@@ -530,11 +530,11 @@ def test_a_false_closure_before_a_true_relocalisation_lets_the_robots_odometry_j
 def test_where_the_closure_rule_stops_keeping_a_true_relocalisation(
     short: float, kept: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The same double relocalisation with the second pass's odometry ``short`` too little: the reckoning link
-    22 → 23 joins and the map beats the rule patched out (APE 0.16/0.44/0.58 m against 0.23/0.57/0.91 m at 10,
-    30, 40 %) while the true relocalisation 9 → 23 stays on; at 50 % short too, where the lap closure 15 → 0 goes
-    off instead (0.71 m against 1.11; until stop 46, whose status quo's start found that cheaper answer, 9 → 23 went
-    off, 1.11 m); at 70 % short 9 → 23 is switched off, with or without the rule (1.50 m both): where it breaks."""
+    """The same double relocalisation with the second pass's odometry ``short`` too little: the reckoning link 22 → 23
+    joins and the map beats the rule patched out (APE 0.16/0.44/0.58 m against 0.23/0.57/0.91 m at 10, 30, 40 %) while
+    the true relocalisation 9 → 23 stays on; at 50 % short too, where the lap closure 15 → 0 goes off instead (0.71 m
+    against 1.11: the cheaper answer, which the status quo's start finds; the other switches 9 → 23 off, 1.11 m); at
+    70 % short 9 → 23 is switched off, with or without the rule (1.50 m both): where it breaks."""
     em, truth = _twice_relocalised_map(first_false=True, short=short)
     em.settle()
     assert not em.link_active[23] and bool(em.link_active[24]) is kept
@@ -920,9 +920,9 @@ def test_chain_headings_join_parts_by_a_link_that_is_on_where_only_avoided_links
 @pytest.mark.parametrize("false", [True, False])
 def test_an_odometry_link_a_check_switched_off_stays_switchable_without_its_reckoning_link(false: bool) -> None:
     """An odometry link that is off (a relocalisation's, whose reckoning link a merge no longer holds: ``symmetric``
-    seed 7 offline, stop 41) is decided by the check like a loop link: false (3 → 11, 0.1 m claimed) it stays off
-    and the map stays clean; true (3 → 5 at its exact relative pose) it comes back on. Not switchable, as
-    before, the check had to turn the false one on, and it bent the lap."""
+    seed 7 offline) is decided by the check like a loop link: false (3 → 11, 0.1 m claimed) it stays off
+    and the map stays clean; true (3 → 5 at its exact relative pose) it comes back on. Were it not switchable,
+    the check would have to turn the false one on, and that would bend the lap."""
     em = _lap_map(departing())
     em.settle()
     clean = em.poses.copy()

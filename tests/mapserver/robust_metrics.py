@@ -66,10 +66,10 @@ def simulate_merged(
     (session 2 merges into session 1's map) and return the map holding most sessions with both sessions' ground truth.
 
     ``preset_name``: the engine preset (default: the scenario's). ``tie_hits``: the merge ties the session's copy of
-    the stored ground by its hits (``mapserver.merge.online.TIE_HITS``, on in the product since 2026-11-29). Off by
+    the stored ground by its hits (``mapserver.merge.online.TIE_HITS``, on in the product). Off by
     default: the robust check's cases were found on merged maps made before the ties, and are kept on those maps
     (with the ties a merged map holds more merge links, and several of the cases no longer arise there).
-    ``view_heading``: ``merge_view_heading`` (on in the product since stop 55); off by default for the same reason
+    ``view_heading``: ``merge_view_heading`` (on in the product); off by default for the same reason
     (the merged ``twin-overlap`` seed 3 map's closures move, and three of its cases no longer arise).
     """
     info = simulate_once(scenario, out, seed=seed, only=("session1", "session2"))

@@ -256,7 +256,7 @@ def test_set_changes_engine_parameters_on_top_of_the_preset(
     assert (before["exp_relax_joint"], after["exp_relax_joint"]) == (False, True)
     assert (before["vt_match_threshold"], after["vt_match_threshold"]) == (0.06, 0.07)
     assert after["pc_dim_xy"] == before["pc_dim_xy"] == 15  # the rest is poseidon-lvc's
-    repeated = tmp_path / "repeated.json"  # every --set applies (the last one alone did, silently, until stop 39)
+    repeated = tmp_path / "repeated.json"  # every --set applies, not only the last one
     code, _, _ = _run(capsys, "process", str(small_log), "--preset", "poseidon-lvc", "--out", str(repeated),
                       "--set", "exp_relax_joint=1", "--set", "vt_match_threshold=0.07")  # fmt: skip
     assert code == 0 and read_map_json(repeated)["params"] == after

@@ -25,8 +25,8 @@ SIZE_M = 2.0  # the wrong links join experiences 2–3 m apart
 
 
 def _without_the_map_test(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Switch off the test of new links between sessions against the map as it stood (stop 56,
-    :func:`core.robust.contradicts_the_map`): the negative controls of the cases it also catches."""
+    """Switch off the test of new links between sessions against the map as it stood
+    (:func:`core.robust.contradicts_the_map`): the negative controls of the cases it also catches."""
     monkeypatch.setattr(robust_module, "contradicts_the_map", lambda start, graph, *_: np.zeros(graph[0].size, bool))
 
 
@@ -61,13 +61,13 @@ def test_wrong_loop_links_do_not_bend_the_map(simulated: Simulated, count: int) 
 
 
 def test_a_mirror_fold_over_a_long_cycle_is_told_by_the_odometrys_heading_bias(tmp_path: Path) -> None:
-    """``symmetric`` seed 7's single route (docs/journal.md, stop 29): three mirror closures over 135 m turn 118-130°
-    (π plus the odometry's heading bias of −0.0105 rad/m × 135 m), within the one-link test's drift allowance
-    (163°), so they held a fold: APE 4.27 m, and the true closure 82 → 68 was switched off. Taking out the bias
-    its two true long cycles show, they are left 160° turned and flagged: APE 1.31 m. The paired must-still: the
-    true lap closure 80 → 5 stays on; every loop link whose ends lie 3 m or more apart in the world is off. (The
-    other true one, 82 → 68, stays off: both its ends were reached through the false relocalisations, and the
-    robot's own odometry that stands in for them misses it by 7.5 m and 42°.)"""
+    """``symmetric`` seed 7's single route (docs/journal.md, "the odometry's heading bias in the one-link test"): three
+    mirror closures over 135 m turn 118-130° (π plus the odometry's heading bias of −0.0105 rad/m × 135 m), within the
+    one-link test's drift allowance (163°), so they held a fold: APE 4.27 m, and the true closure 82 → 68 was switched
+    off. Taking out the bias its two true long cycles show, they are left 160° turned and flagged: APE 1.31 m. The
+    paired must-still: the true lap closure 80 → 5 stays on; every loop link whose ends lie 3 m or more apart in the
+    world is off. (The other true one, 82 → 68, stays off: both its ends were reached through the false relocalisations,
+    and the robot's own odometry that stands in for them misses it by 7.5 m and 42°.)"""
     sim = simulate_single(tmp_path / "symmetric", "symmetric", seed=7)
     state = sim.state
     stamps = state["em_stamp"]
@@ -109,7 +109,7 @@ def test_a_batch_of_wrong_links_is_measured_against_the_map_as_it_stood(
         return original(problem, best, distance)
 
     monkeypatch.setattr(robust_module, "_search", without_status_quo)
-    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # stop 45: the stored closures' prior holds them too
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # the stored closures' prior holds them too
     assert min(ratios()) > 2.5
 
 
@@ -119,11 +119,11 @@ def test_each_start_of_the_search_gets_its_own_budget_of_solves(
     """The merged ``cave3d`` map (seed 0, session 2 merged into session 1) with 20 wrong links of 1-1.5 m (injection
     seed 2): polishing the first descent's answer took 254 of the check's 400 solves and the pairwise clique's the
     rest, so the status quo — the map as it stood with the batch off, TLS 358.9 against the 409.1 found — was never
-    tried, three wrong links stayed on and the APE rose 4.4×. Each start now has its own 400 solves: the status
+    tried, three wrong links stayed on and the APE rose 4.4×. Each start has its own 400 solves: the status
     quo's start finds 350.4, every wrong link is off and the APE is the clean map's. Paired: one budget shared
-    by the three starts, as before, brings the failure back once the merge links' switch prior is off too (stop 45:
-    with the prior in the cost, one shared budget also ends with every wrong link off). (Found on ``poseidon-lvc``'s
-    maps, ``poseidon`` until stop 40: the intensity templates' map is where the case lives.)"""
+    by the three starts brings the failure back once the merge links' switch prior is off too (with the prior in
+    the cost, one shared budget also ends with every wrong link off). (Found on ``poseidon-lvc``'s maps: the
+    intensity templates' map is where the case lives.)"""
     sim = simulate_merged(tmp_path / "cave3d", "cave3d", seed=0, preset_name="poseidon-lvc")
     stamps = sim.state["em_stamp"]
     assert sim.state["em_link_kind"].tolist().count(int(LinkKind.MERGE)) >= 1
@@ -144,10 +144,10 @@ def test_the_map_as_it_stood_replaces_a_costlier_answer_at_any_lower_cost(
 ) -> None:
     """``cave3d`` map seed 4 with 20 wrong links of 1-1.5 m (injection seeds 0, 5, 6): the search's answer keeps
     some of them at a TLS cost above the status quo's (the map as it stood, the batch off) but within one
-    outlier's worth, the margin the status quo had to beat until this stop: APE up to 3.6× the clean map's. Taken
-    at any lower cost, every row is the clean map's. Paired: with the margin back and without the new-link hold
-    (stop 45: what the answer keeps fits only together, so that hold alone also keeps the map as it stood) the
-    failure is back. (Found on ``poseidon-lvc``'s map, ``poseidon`` until stop 40.)"""
+    outlier's worth, a margin the status quo would have to beat (``STATUS_QUO_MARGIN`` 1): APE up to 3.6× the
+    clean map's. Taken at any lower cost, every row is the clean map's. Paired: with that margin and without the
+    new-link hold (what the answer keeps fits only together, so that hold alone also keeps the map as it stood) the
+    failure is back. (Found on ``poseidon-lvc``'s map.)"""
     sim = simulate_single(tmp_path / "cave3d", "cave3d", seed=4, preset_name="poseidon-lvc")
     stamps = sim.state["em_stamp"]
     clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
@@ -159,7 +159,7 @@ def test_the_map_as_it_stood_replaces_a_costlier_answer_at_any_lower_cost(
     monkeypatch.setattr(robust_module, "STATUS_QUO_MARGIN", 1.0)
     assert worst() <= 1.01  # the wrong links the answer keeps fit only together: the new-link hold holds them too
     monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
-    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior (stop 45)
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior
     assert worst() > 2.0
 
 
@@ -170,9 +170,9 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     kept 3 of them on and switched 2 merge links and a loop closure off instead — as many links off, so TLS charged
     only the residuals, 10.0 below the map as it stood (one outlier's worth is 10.4): APE 3.2× the clean map's. Now
     the status quo holds one outlier's worth for each merge link the answer switches off (``MERGE_LINK_HOLD``): the
-    clean map. Paired: without the hold (the rule of stops 37-41) and without the new-link hold (stop 45: the three
-    wrong links fit only together, so that hold alone also keeps the map as it stood) and without the test of new links
-    between the sessions against the map as it stood (stop 56, which refutes the three too) the failure is back."""
+    clean map. Paired: without the hold and without the new-link hold (the three wrong links fit only together, so
+    that hold alone also keeps the map as it stood) and without the test of new links between the sessions against
+    the map as it stood (which refutes the three too) the failure is back."""
     sim = simulate_merged(tmp_path / "symmetric", "symmetric", seed=0)
     stamps = sim.state["em_stamp"]
     clean = map_ape(sim.state["em_pose"], stamps, sim.truth)
@@ -182,7 +182,7 @@ def test_wrong_links_do_not_buy_their_way_into_a_merged_map_by_switching_its_mer
     monkeypatch.setattr(robust_module, "MERGE_LINK_HOLD", 0.0)
     assert not inject(sim, 20, 5.0, seed=1).engine.map.link_active[held.injected].any()  # the new-link hold, too
     monkeypatch.setattr(robust_module, "NEW_LINK_HOLD", 0.0)
-    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior (stop 45)
+    monkeypatch.setattr(robust_module, "STORED_LINK_HOLD", 0.0)  # and the stored closures' prior
     assert not inject(sim, 20, 5.0, seed=1).engine.map.link_active[held.injected].any()  # and the map's test
     _without_the_map_test(monkeypatch)
     bought = inject(sim, 20, 5.0, seed=1)
@@ -255,8 +255,8 @@ def test_a_merge_link_that_stood_is_not_traded_for_a_wrong_link_by_any_start_of_
     """The merged ``twin-overlap`` map (seed 3) with 20 wrong links of 5-7.5 m (injection seed 7): one of them, 2 → 104,
     joins session 1's start to session 2's approach a few experiences before the merge link 108 → 0. Switched back on
     alone in the status quo's start, it lowered the cost with the merge link switched off for it (one link off for one
-    on: TLS charges both the same), so the map as it stood was itself the trade, and the merge-link hold of stop 42,
-    weighed only between the starts' answers, never saw it: APE 1.72× the clean map's. Now the hold is a switch prior
+    on: TLS charges both the same), so the map as it stood was itself the trade, and a merge-link hold weighed
+    only between the starts' answers never saw it: APE 1.72× the clean map's. The hold is a switch prior
     in the cost itself (one outlier's worth for each merge link that was on and is off), which every start weighs: the
     merge link stays on, every wrong link is off, the clean map. Paired: without the prior the trade is back."""
     sim = twin_overlap_merged

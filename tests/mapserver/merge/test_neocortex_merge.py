@@ -31,7 +31,7 @@ SDR = preset("irat").replace(frontend="sdr-htm")  # the engine tests' small sdr-
 def test_sdr_maps_merge_online_with_the_same_cortex_structure_and_lvc_maps_still_merge() -> None:
     sdr, lvc = preset("poseidon"), preset("poseidon-lvc")
     assert params_incompatibility(lvc, lvc) is None  # must still merge
-    assert "front-ends differ" in (params_incompatibility(lvc, sdr) or "")  # an atlas of poseidon before stop 40
+    assert "front-ends differ" in (params_incompatibility(lvc, sdr) or "")  # an LVC atlas against poseidon's sdr-htm
     assert params_incompatibility(sdr, sdr, reads_frames=True) is None
     assert "merge only where their views are compared" in (params_incompatibility(sdr, sdr) or "")  # offline: codes
     assert "sp_columns" in (params_incompatibility(sdr, sdr.replace(sp_columns=1024), reads_frames=True) or "")
@@ -321,9 +321,10 @@ def _online(
 
 
 def test_neoslam_raises_its_code_gate_to_its_maps_own_look_alikes(tmp_path: Path) -> None:
-    """Issue 12 for the ``neoslam`` preset (README, stop 38): ``twin`` with a 20 m look-alike holding turns, seed 0.
+    """Issue 12 for the ``neoslam`` preset: ``twin`` with a 20 m look-alike holding turns, seed 0 (docs/journal.md,
+    "`neoslam` merged into look-alikes").
 
-    At the plain code gate (0.68, ``merge_sdr_null_quantile`` 0, the preset until stop 38) session 2 merges into the
+    At the plain code gate (0.68, ``merge_sdr_null_quantile`` 0) session 2 merges into the
     other world and the merge passes its probation (3 of 10 seeds, and 3 of 10 at 40 m); with the gate raised to
     the 0.95 quantile of the stored map's own look-alikes (0.72 here) that merge is rolled back and none survives
     (0 of 20). Must still: in one world (``twin-overlap``, 20 m) the session merges at its true place and stays."""
@@ -371,11 +372,12 @@ def test_an_sdr_merge_into_a_look_alike_holding_turns_is_rolled_back_and_the_tru
 
 
 def test_a_true_sdr_merge_stands_when_the_loop_links_that_disagree_with_it_agree_on_nothing(tmp_path: Path) -> None:
-    """``cave3d`` with ``poseidon``'s ``sdr-htm`` front-end, seed 6 (README, stop 42): the merge at frame 12 is at the
-    true place (0.12 m), then the front-end closes 3 false loops onto the stored map (the robot 1.9–4.1 m from the
-    experiences linked) beside 2 true ones. Counting every disagreeing link rolled the merge back at frame 67 (it
-    merged again at frame 109); the three put the robot at three different places (the largest group that agrees
-    on one alignment: 1), so now the merge stands. The
+    """``cave3d`` with ``poseidon``'s ``sdr-htm`` front-end, seed 6 (docs/journal.md, "loop links that disagree with
+    a merge count only when they agree with one another"): the merge at frame 12 is at the true place (0.12 m), then
+    the front-end closes 3 false loops onto the stored map (the robot 1.9–4.1 m from the experiences linked) beside
+    2 true ones. Counting every disagreeing link would roll the merge back at frame 67 (to merge again at frame
+    109); the three put the robot at three different places (the largest group that agrees on one alignment: 1),
+    so the merge stands. The
     must-still of the link rule is ``tests/mapserver/merge/test_verify.py`` (two links that agree on another
     alignment reject a merge)."""
     params = preset("poseidon").replace(frontend="sdr-htm")
@@ -474,7 +476,8 @@ def test_a_look_alike_longer_than_the_probation_cannot_pin_an_sdr_merge_on_one_p
     The merge is made 4 m into the look-alike; along it the views are accepted at one place of session 1's map
     (R 0.76–0.91 against a gate of 0.71), each hit re-anchored the probation's prediction there, and 33 m of
     such hits let the merge pass though the robot then drove ground the stored map never saw (the one false
-    merge of 60 that survived stop 34). With a place's hits counted for its extent only
+    merge of 60 that the calibrated code gate let through; docs/journal.md, "a place witnesses only its own
+    ground"). With a place's hits counted for its extent only
     (:data:`mapserver.merge.hypotheses.PLACE_EXTENT`) the probation sees 2.89 m of matches against 1.97 m of
     mismatches and rolls it back. Must still: in one world (``twin-overlap``) the session merges at its true
     place, and that merge stands (after a first one rolled back on loop links, as before the rule).

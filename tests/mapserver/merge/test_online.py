@@ -68,7 +68,7 @@ def test_a_merge_records_the_robots_pose_in_the_session_map_which_its_transform_
 ) -> None:
     """``session_pose`` is where the session's own map had the robot when it merged: the transform takes it to
     where the merged engine has the robot, and that is where the robot truly was in the stored map's frame (the
-    look-alike bench judges a merge's place by it; stop 50)."""
+    look-alike bench judges a merge's place by it)."""
     engine, driver = Engine(PARAMS, origin=9), OnlineMerger([first_half])
     merged_at: list[tuple[float, np.ndarray, np.ndarray]] = []
     arcs = WORLD.arc(24.0, 40.0)
@@ -254,9 +254,9 @@ def test_a_session_bridging_two_maps_joins_them() -> None:
     run = run_session(WORLD, 0.0, 38.0, [a, b], origin=3)
     assert [e.key for e in run.events] == [1, 2]
     assert run.events[1].absorbed == (1,)
-    # leaving A's ground: since stop 43 the probation's prediction leaves A's edge with the robot (unmapped ground,
-    # no trials), where re-anchoring on A's last places made a run of mismatches that held it open
-    # (Probation.held_open) until the session merged into B; either way it passes and does not block that merge
+    # leaving A's ground: the probation's prediction leaves A's edge with the robot (unmapped ground, no trials);
+    # re-anchoring on A's last places would make a run of mismatches that holds it open (Probation.held_open) until
+    # the session merges into B; either way it passes and does not block that merge
     first = run.events[0].evidence["verification"]
     assert first["status"] == "passed"
     engine = run.engine

@@ -137,8 +137,8 @@ def test_a_session_merged_before_its_first_experience_continues_where_its_odomet
 
     Hand-computed: the anchor view was seen at (0.1, 0, 0, 0.3) in the session frame and matches stored
     experience 2 at (2, 0, 0, 0), so T = (2 − 0.1·cos 0.3, 0.1·sin 0.3, 0, −0.3); since the session start the
-    robot went to (0.4, 0.2, 0, 0.5), i.e. to T ⊕ that = T's position + R(−0.3)(0.4, 0.2), heading 0.2. Until
-    stop 40 it was put on e_u itself facing e_u's way (here 0.36 m and 11° off; on ``cave3d`` seed 0 35° off).
+    robot went to (0.4, 0.2, 0, 0.5), i.e. to T ⊕ that = T's position + R(−0.3)(0.4, 0.2), heading 0.2. Put on
+    e_u itself facing e_u's way, it would be 0.36 m and 11° off here (on ``cave3d`` seed 0 35° off).
     """
     partial = partial_state(SHIFT, world_x=(1.0,), accum=np.array([0.4, 0.2, 0.0, 0.5, 2.0, 0.45]))
     for key in ("em_pose", "em_pc", "em_template", "em_stamp", "em_origin"):

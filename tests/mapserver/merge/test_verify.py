@@ -102,8 +102,8 @@ def test_merge_probation_max_m_sets_the_cap_in_metres_never_below_the_probation_
 
 
 def test_the_cap_does_not_close_a_probation_held_open_on_mismatches() -> None:
-    """Stop 47: ``twin`` turns alike 80 m seed 2's false merge reached the cap 3.95 m into a run of mismatches, its
-    matches stopped 14 m before, and passed there. Held open, the run went on to 4.49 m and rolled it back."""
+    """``twin`` turns alike 80 m seed 2's false merge reaches the cap 3.95 m into a run of mismatches, its matches
+    stopped 14 m before: the cap does not pass it there. Held open, the run goes on to 4.49 m and rolls it back."""
     cap = 100.0 + OPEN_PROBATION_CAP * 12.0
     held = _probation(last_hit_m=cap - 14.0)
     held.miss_run_m = 3.95  # > the coverage radius (1.5 m): a run beyond the map's edge
@@ -153,9 +153,10 @@ def test_a_probation_the_log_cut_short_is_judged_on_what_it_saw() -> None:
 
 
 def test_an_lvc_probation_passes_only_on_the_evidence_distance_of_matches() -> None:
-    """Stop 43: ``twin`` turns alike 60 m seed 1's false merge ended its probation on 2.91 m of matches and no
-    mismatch (net +2.91 m, over the half line of 2 m); an LVC probation must also have matched over ``evidence_m``
-    (4 m here). Must still: 4 m of matches pass; a front-end with weak misses (``sdr-htm``) keeps the half line."""
+    """``twin`` turns alike 60 m seed 1's false merge ends its probation on 2.91 m of matches and no mismatch
+    (net +2.91 m, over the half line of 2 m), which is not enough: an LVC probation must also have matched over
+    ``evidence_m`` (4 m here). Must still: 4 m of matches pass; a front-end with weak misses (``sdr-htm``) keeps the
+    half line."""
     scarce = _probation(last_hit_m=103.0)
     scarce.hypothesis = SimpleNamespace(post_hit_m=2.91, post_miss_m=0.0)
     assert scarce._conclude() == REJECTED and "net 2.91 m" in scarce.reason
@@ -201,7 +202,7 @@ def test_a_probation_does_not_close_on_a_run_of_mismatches_longer_than_the_maps_
     contradicted = _probation(last_hit_m=120.0)
     contradicted.miss_run_m = 2.1  # more than that: wait for more evidence
     assert not contradicted._may_conclude(124.0) and not contradicted._may_conclude(150.0)
-    assert not contradicted._may_conclude(100.0 + PROBATION_CAP * 12.0)  # nor the cap (stop 47: test below)
+    assert not contradicted._may_conclude(100.0 + PROBATION_CAP * 12.0)  # nor the cap (test below)
     sdr = _probation(last_hit_m=120.0)
     sdr.hset.rule.miss_weight = 0.16  # weak misses: runs of mismatches on true ground are common
     sdr.miss_run_m = 5.0
@@ -292,9 +293,10 @@ def test_an_agreeing_loop_link_places_the_prediction_on_its_experience_and_count
 def test_a_true_merge_stands_when_the_robot_drives_on_past_the_stored_maps_end(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``twin-overlap`` with a 40 m look-alike holding turns, seed 2 (``circle``; README, stop 43): session 2 merges
-    at its true place (frame 70) and drives 83 m on session 1's ground, then past the end of session 1's map, whose
-    last views it keeps matching for metres. Re-anchoring the probation's prediction on every hit held it on those
+    """``twin-overlap`` with a 40 m look-alike holding turns, seed 2 (``circle``; docs/journal.md, "an LVC
+    probation slides its prediction along a place instead of pinning it there"): session 2 merges at its true place
+    (frame 70) and drives 83 m on session 1's ground, then past the end of session 1's map, whose last views it keeps
+    matching for metres. Re-anchoring the probation's prediction on every hit held it on those
     last places while the robot drove 8 m on (a run of 4.07 m of mismatches after 83.5 m of matches: rolled back);
     dead-reckoned on from the first hit at a place, the prediction leaves the map with the robot and the merge
     passes. Must still (the other half of the pair): with every hit re-anchoring, the run rule rolls it back."""

@@ -40,8 +40,8 @@ def test_stop_after_then_resume_equals_one_run(tmp_path: Path, db_url: str, make
 def test_an_archive_keeps_sdr_prototypes_inline_since_a_merge_rewrites_their_rows(tmp_path: Path, db_url: str) -> None:
     """An archive references stored template rows by identity, shape and mean (templates are immutable); an
     ``sdr-htm`` view cell's row is rewritten when a merge re-expresses its prototype, usually at the same size,
-    so an archive that referenced it would restore the merged map's prototype (an offline merge's unmerge did,
-    until stop 39). Its archives keep every prototype inline and restore the map as archived."""
+    so an archive that referenced it would restore the merged map's prototype (an offline merge's unmerge would
+    then restore the wrong one). Its archives keep every prototype inline and restore the map as archived."""
     from sqlalchemy import update
 
     from mapserver.store.archive import archive_map_state, load_archive
