@@ -166,6 +166,13 @@ def test_demo_atlas_maps_node_path_merge_and_upload(page: Any, live: dict[str, A
     assert page.eval_on_selector_all("#maps-table tbody tr", "rs => rs.map(r => r.dataset.map)") == ["demo", "big"]
     page.click("#maps-table th[data-key=experiences]")
     assert page.eval_on_selector_all("#maps-table tbody tr", "rs => rs.map(r => r.dataset.map)") == ["big", "demo"]
+    # health in words, with the figures and a colour (the demo's links agree: consistent, green)
+    health = httpx.get(f"{live['url']}/v1/maps", headers=headers).json()["maps"]
+    demo_health = next(m["health"] for m in health if m["name"] == "demo")
+    cell = page.locator("#maps-table tr[data-map=demo] td.health")
+    assert cell.inner_text() == (f"consistent: residual {demo_health['residual']:.2f}, worst "
+                                 f"{demo_health['worst']:.1f}")  # fmt: skip
+    assert "health-ok" in (cell.get_attribute("class") or "") and "{" not in cell.inner_text()
     page.screenshot(path=str(tmp_path / "1-maps.png"))
 
     # map page: two sessions in two colours, links drawn
@@ -174,6 +181,12 @@ def test_demo_atlas_maps_node_path_merge_and_upload(page: Any, live: dict[str, A
     assert count_colour(page, SESSION_A) > 100 and count_colour(page, SESSION_B) > 100, "both sessions' colours"
     assert page.evaluate("window.viewer.V.data.sessions") == ["demo-a", "demo-b"]
     page.screenshot(path=str(tmp_path / "2-map.png"))
+    # sessions: when each was recorded (a date, not Unix seconds) and for how long
+    page.click(".tabs button[data-tab=sessions]")
+    recorded = page.locator("#session-list td.when").first.inner_text()
+    assert any(ch in recorded for ch in "/.-") and ":" in recorded and not recorded.replace(".", "").isdigit()
+    assert " s" in page.inner_text("#session-list")
+    page.screenshot(path=str(tmp_path / "2b-sessions.png"))
 
     # node details: click node 5 (session A), its evidence image and its links
     x, y = node_screen(page, 5)

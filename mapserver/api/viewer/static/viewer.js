@@ -79,16 +79,40 @@ async function loadMaps() {
   } catch (err) { banner(err.message); }
 }
 
+// a map's health (GET /v1/maps): how well its active links agree, in words and a colour. A residual of
+// 0.5–1.2 drifts expected over a link is consistent, a worst link over 3 is not (MapHealthPublic)
+function healthGrade(h) {
+  if (!h || typeof h.residual !== "number") return "none";
+  if (h.unmeasured > 0 || h.residual > 2 || h.worst > 6) return "bad";
+  return h.residual <= 1.2 && h.worst <= 3 ? "ok" : "warn";
+}
+
 function healthText(h) {
-  if (h === undefined || h === null) return "–";
-  if (typeof h === "object") return h.status || h.state || JSON.stringify(h);
-  return String(h);
+  if (!h || typeof h.residual !== "number") return "–";
+  const words = { ok: "consistent", warn: "strained", bad: "inconsistent" }[healthGrade(h)];
+  const off = h.switched_off ? `, ${h.switched_off} link${h.switched_off > 1 ? "s" : ""} off` : "";
+  return `${words}: residual ${h.residual.toFixed(2)}, worst ${h.worst.toFixed(1)}${off}`;
+}
+
+const healthKey = (h) => (h && typeof h.residual === "number" ? h.residual : Infinity);
+
+// log stamps (Unix seconds) as a local date and time, and a span as minutes and seconds
+function when(stamp) {
+  if (stamp === null || stamp === undefined) return "–";
+  const d = new Date(stamp * 1000);
+  return `${d.toLocaleDateString()} ${d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" })}`;
+}
+
+function span(first, last) {
+  if (first === null || first === undefined || last === null || last === undefined) return "–";
+  const seconds = Math.max(0, Math.round(last - first));
+  return seconds >= 60 ? `${Math.floor(seconds / 60)} min ${seconds % 60} s` : `${seconds} s`;
 }
 
 function renderMaps() {
   const { rows, key, dir } = mapsState;
   const sorted = rows.slice().sort((a, b) => {
-    const x = key === "health" ? healthText(a.health) : a[key], y = key === "health" ? healthText(b.health) : b[key];
+    const x = key === "health" ? healthKey(a.health) : a[key], y = key === "health" ? healthKey(b.health) : b[key];
     return (x < y ? -1 : x > y ? 1 : 0) * dir;
   });
   const body = $("#maps-table tbody");
@@ -96,7 +120,7 @@ function renderMaps() {
     el("td", {}, el("a", { href: "#/map/" + encodeURIComponent(m.name) }, m.name)),
     el("td", { class: "num" }, m.sessions), el("td", { class: "num" }, m.experiences),
     el("td", { class: "num" }, m.templates), el("td", { class: "num" }, m.links),
-    el("td", {}, healthText(m.health)),
+    el("td", { class: "health health-" + healthGrade(m.health) }, healthText(m.health)),
     el("td", {}, m.updated_at ? new Date(m.updated_at).toLocaleString() : "–"))));
   $("#maps-empty").hidden = rows.length > 0;
   for (const th of document.querySelectorAll("#maps-table th")) {
@@ -419,11 +443,12 @@ function renderSessions() {
     const k = V.data && V.data.sessions.includes(s.name) ? V.data.sessions.indexOf(s.name) : i;
     return el("tr", {},
     el("td", {}, el("span", { class: "sw", style: `display:inline-block;width:10px;height:10px;background:${SESSION_COLOURS[k % SESSION_COLOURS.length]}` })),
-    el("td", {}, s.name), el("td", {}, s.status), el("td", { class: "num" }, s.frames),
-    el("td", {}, `${fmt(s.first_stamp, 1)}–${fmt(s.last_stamp, 1)} s`));
+    el("td", {}, s.name, el("br"), el("small", {}, s.status)),
+    el("td", { class: "num" }, s.frames, el("br"), el("small", {}, s.frames_per_s ? `${Math.round(s.frames_per_s)}/s` : "")),
+    el("td", { class: "when" }, when(s.first_stamp), el("br"), el("small", {}, span(s.first_stamp, s.last_stamp))));
   });
   $("#session-list").replaceChildren(el("table", {}, el("tr", {}, el("th", {}, ""), el("th", {}, "session"),
-    el("th", {}, "status"), el("th", {}, "frames"), el("th", {}, "stamps")), ...rows));
+    el("th", {}, "frames"), el("th", {}, "recorded")), ...rows));
 }
 
 function selectTab(name) {
