@@ -329,6 +329,8 @@ class _MapEvaluation:
     session: str | None
     exp_ids: list[int]
     exp_stamps: FloatArray
+    exp_xyz: FloatArray  # the experiences' map positions, before alignment
+    exp_yaw: FloatArray  # and headings (rad)
     exp_aligned: FloatArray
     links: list[tuple[int, int, str]]
     gt: Trajectory
@@ -383,6 +385,8 @@ def _evaluate(
         session=session,
         exp_ids=exp_ids,
         exp_stamps=stamps,
+        exp_xyz=xyz,
+        exp_yaw=np.array([float(e.get("yaw", 0.0)) for e in exps]),
         exp_aligned=aligned,
         links=links,
         gt=gt,
@@ -409,9 +413,9 @@ def covered_by(gt_stamps: FloatArray, stamps: FloatArray) -> npt.NDArray[np.bool
     ordered = np.sort(stamps)
     spacing = float(np.median(np.diff(ordered))) if ordered.size > 1 else 0.0
     reach = max(2.0 * spacing, 1.0)
-    slot = np.clip(np.searchsorted(ordered, gt_stamps), 1, max(ordered.size - 1, 1))
-    nearest = np.minimum(np.abs(gt_stamps - ordered[slot - 1]), np.abs(ordered[np.minimum(slot, ordered.size - 1)]
-                                                                        - gt_stamps))  # fmt: skip
+    after = np.clip(np.searchsorted(ordered, gt_stamps), 0, ordered.size - 1)  # first stamp at or after
+    before = np.maximum(after - 1, 0)
+    nearest = np.minimum(np.abs(gt_stamps - ordered[before]), np.abs(gt_stamps - ordered[after]))
     covered = nearest <= reach
     return covered if covered.any() else np.ones(gt_stamps.size, dtype=bool)
 
@@ -535,9 +539,6 @@ def evaluate_map(
 
     """
     ev = _evaluate(doc, ground_truth, odometry=odometry, max_diff_s=max_diff_s, session=session)
-    exps = _experiences_to_evaluate(doc, ground_truth, session)
-    yaw = np.array([float(e.get("yaw", 0.0)) for e in exps])
-    xyz = np.array([[float(e["x"]), float(e["y"]), float(e["z"])] for e in exps])
     odometry_rpe = None
     if odometry is not None and len(odometry):  # a file's odometry has orientations; the map's own has none
         odo = odometry.sorted()
@@ -556,7 +557,7 @@ def evaluate_map(
         "ape_z_rmse": ev.z_rmse,
         "odometry_ape_z_rmse": ev.odo_z_rmse,
         "alignment": {"rotation": ev.R3.tolist(), "translation": ev.t3.tolist()},
-        "rpe": map_rpe(ground_truth, ev.exp_stamps, xyz, yaw, ev.dims),
+        "rpe": map_rpe(ground_truth, ev.exp_stamps, ev.exp_xyz, ev.exp_yaw, ev.dims),
         "odometry_rpe": odometry_rpe,
     }
 

@@ -312,22 +312,11 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
         data: the complete file content.
 
     """
-    target = Path(path)
-    fd, tmp_name = _temporary_beside(target)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp_name)
-        raise
+    atomic_write_chunks(path, (data,))
 
 
 def atomic_write_chunks(path: PathLike, chunks: Iterable[bytes]) -> int:
-    """Write ``chunks`` to ``path`` atomically as :func:`atomic_write_bytes` does; return the bytes written.
+    """Write ``chunks`` to ``path`` atomically (see :func:`atomic_write_bytes`); return the bytes written.
 
     Args:
         path: destination file; its directory must exist.
