@@ -1,16 +1,21 @@
-"""``mapserver inspect LOG``: every topic (type, count, rate, span) and the topic mapping ``process`` would use.
+"""``mapserver inspect LOG``: a log's topics, the mapping ``process`` would use, the preset and settings it decides.
 
-A log ``process`` could not use is listed all the same (exit 0), with what is missing.
+Every topic (type, count, rate, span); the settings: :mod:`mapserver.ingest.recommend`. A log ``process`` could
+not use is listed all the same (exit 0), with what is missing.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from pathlib import Path
 from typing import Any
 
 from mapserver.cli._output import emit_json
+from mapserver.errors import InputError
 from mapserver.ingest import parse_topics_arg
+from mapserver.ingest.recommend import NEED_TEXTS, Recommendation, recommend
 from mapserver.ingest.survey import survey_log
 
 
@@ -26,7 +31,9 @@ def register(subparsers: Any) -> None:
             "the nav_msgs/Odometry topic with the most messages whose name is not ground-truth-like; "
             "ground_truth = the ground-truth-like Odometry/Pose topic, else the only PoseStamped topic. "
             "A log that 'process' cannot use (no camera topic, undecodable images) is still listed, with "
-            "what is missing; the exit code is 0 for any readable log."
+            "what is missing; the exit code is 0 for any readable log. For a usable log it recommends a preset "
+            "(circle for a 360° camera, forward otherwise) and the settings the log decides (field of view, "
+            "camera rate, template size, panoramic matching) as a --set argument and an INI file."
         ),
     )
     parser.add_argument("log", metavar="LOG", help="mission log: .bag, .db3, .mcap or a ROS 2 bag directory")
@@ -35,8 +42,22 @@ def register(subparsers: Any) -> None:
         metavar="K=V,...",
         help="override the mapping, keys image, odometry, ground_truth (e.g. image=/cam/image,odometry=none)",
     )
+    parser.add_argument(
+        "--fov",
+        type=float,
+        metavar="DEG",
+        help="the camera's horizontal field of view in degrees (0 < DEG <= 360; wins over a CameraInfo topic's)",
+    )
+    parser.add_argument("--ini", metavar="FILE", help="also write the recommended parameters as an INI (--config)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on the last stdout line")
     parser.set_defaults(func=run)
+
+
+def _check_fov(value: float | None) -> float | None:
+    if value is not None and not (math.isfinite(value) and 0.0 < value <= 360.0):
+        msg = f"--fov must be a field of view in degrees, 0 < DEG <= 360, got {value!r}"
+        raise InputError(msg)
+    return value
 
 
 def _row(topic: dict[str, Any]) -> tuple[str, str, str, str, str]:
@@ -70,11 +91,38 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def format_recommendation(rec: Recommendation, log: str) -> str:
+    """Render the recommendation: the camera as the log shows it, the ``process`` command, the INI."""
+    cam = rec.camera
+    fov = "unknown" if cam["fov_deg"] is None else f"{cam['fov_deg']:g}° (from {cam['fov_source']})"
+    odometry = "none" if cam["odometry_hz"] is None else f"{cam['odometry_hz']:.2f} Hz"
+    kind = "panoramic (360°)" if cam["panoramic"] else "forward"
+    lines = [
+        "",
+        f"camera: {cam['width']}×{cam['height']} px, {kind}, field of view {fov}; "
+        f"camera {cam['camera_hz']:.2f} Hz, odometry {odometry}",
+        f"recommended: preset {rec.preset}",
+        f"  mapserver process {log} --preset {rec.preset} --set {rec.set_argument()}",
+        "  or as an INI for --config:",
+    ]
+    lines += [f"    {line}" for line in rec.ini().splitlines()]
+    lines += [f"{'need' if note in NEED_TEXTS.values() else 'note'}: {note}" for note in rec.notes]
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> int:
     """Inspect the log; the table goes to stdout, or to stderr with ``--json`` (JSON on stdout)."""
     overrides = parse_topics_arg(args.topics) if args.topics else None
-    result = survey_log(args.log, overrides).as_dict()
+    fov = _check_fov(args.fov)
+    survey = survey_log(args.log, overrides)
+    result = survey.as_dict()
     table = format_table(result)
+    rec = recommend(survey, fov)
+    result["recommendation"] = None if rec is None else rec.as_dict()
+    if rec is not None:
+        table += "\n" + format_recommendation(rec, args.log)
+        if args.ini:
+            Path(args.ini).write_text(rec.ini(), encoding="utf-8")
     if args.json:
         sys.stderr.write(table + "\n")
         sys.stderr.flush()

@@ -338,8 +338,12 @@ class MissionLog:
 
     def first_image(self) -> Any:
         """Return the first deserialised message of the image topic (None when there is none)."""
+        return self.first_message(self.mapping.image)
+
+    def first_message(self, topic: str) -> Any:
+        """Return the first deserialised message of ``topic`` in bag order (None when it has none)."""
         reader = self._require_open()
-        for conn, _receive_ns, raw in self._messages(reader, self.mapping.image):
+        for conn, _receive_ns, raw in self._messages(reader, topic):
             return self._deserialize(reader, raw, conn)
         return None
 

@@ -15,6 +15,8 @@ neither the message definitions nor a camera. Then it chooses the topic mapping 
   their absence is a note.
 * A log ``process`` cannot open although its topics are readable (its first image does not decode, its
   message definitions do not parse) is listed with ``usable = False``, ``image`` missing and the reason.
+* **Camera** (a usable log only): the first frame's size and, from a ``CameraInfo`` topic, the field of view
+  (:mod:`mapserver.ingest.camera`).
 
 Errors (:class:`~mapserver.errors.IngestError`): a missing path, a file that is not a log or whose storage
 cannot be read, and a bad ``--topics`` override.
@@ -31,6 +33,7 @@ from rosbags.rosbag1 import Reader as Reader1
 from rosbags.rosbag2 import Reader as Reader2
 
 from mapserver.errors import IngestError
+from mapserver.ingest.camera import CameraGeometry, read_camera
 from mapserver.ingest.reader import _check_path, _describe, open_log
 from mapserver.ingest.topics import NO_CAMERA, TopicInfo, choose_topics
 
@@ -74,6 +77,7 @@ class LogSurvey:
     start_ns: int
     end_ns: int
     odometry_mode: str | None = None
+    camera: CameraGeometry | None = None
     missing: list[str] = field(default_factory=list)
     reasons: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -87,6 +91,11 @@ class LogSurvey:
         """Messages on the image topic (0 without one)."""
         image = self.mapping.get("image")
         return next((t.count for t in self.topics if t.name == image), 0)
+
+    def rate_hz(self, role: str) -> float | None:
+        """Mean rate of the topic mapped to ``role`` (``image``, ``odometry``, ...), None when none is mapped."""
+        name = self.mapping.get(role)
+        return next((t.rate_hz for t in self.topics if t.name == name), None) if name else None
 
     def as_dict(self) -> dict[str, Any]:
         """Return the ``inspect --json`` object (contract keys plus spans, reasons and notes)."""
@@ -212,6 +221,7 @@ def survey_log(path: str | Path, overrides: Mapping[str, str] | None = None) -> 
         try:
             with open_log(log_path, overrides) as log:
                 survey.odometry_mode = log.odometry_mode
+                survey.camera = read_camera(log)
         except IngestError as err:
             survey.missing.append("image")
             survey.reasons["image"] = str(err)
