@@ -87,3 +87,11 @@ def test_following_the_section_gives_a_map_within_the_benchs_median(tmp_path: Pa
     assert evaluation["false_match_rate"] == 0.0
     # ... as well as the bench's median map of the family
     assert evaluation["ape_rmse"] <= BENCH_SMALL_STREET_MEDIAN_APE_M
+    # the other form inspect printed, 'process LOG --preset forward --set ...', makes the same map as the INI
+    printed = next(line.strip() for line in done.stdout.splitlines() if line.strip().startswith("mapserver process"))
+    assert "--preset forward --set camera_fov_deg=75,camera_hz=5," in printed
+    again = subprocess.run(["bash", "-eu", "-c", f"{printed} --out set.json"], cwd=work, env=env, capture_output=True,
+                           text=True, timeout=300, check=False)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-3000:]
+    by_ini, by_set = (json.loads(next(work.glob(name)).read_text()) for name in ("mybag.json", "set.json"))
+    assert by_set["experiences"] == by_ini["experiences"] and by_set["links"] == by_ini["links"]
