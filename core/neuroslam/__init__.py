@@ -8,6 +8,7 @@ from core.neuroslam.networks import (
     HeadDirectionParams,
     injection_energy,
 )
+from core.neuroslam.viewlinks import ViewDecay, ViewLinks
 
 __all__ = [
     "Codes",
@@ -15,6 +16,8 @@ __all__ = [
     "GridCellParams",
     "HeadDirectionParams",
     "Kernel",
+    "ViewDecay",
+    "ViewLinks",
     "WrappedAttractor",
     "injection_energy",
 ]

@@ -116,14 +116,15 @@ class ConjunctivePoseCells:
         """The head-direction packet's yaw, in radians: what drives the grid cells' planar shift."""
         return self.codes.head[0] * 2.0 * math.pi / self.head_params.dims[0]
 
-    def calibrate(self, codes: Codes, decay: float) -> None:
-        """Inject a familiar view's energy at the codes its template stored (Eqs. 10–11, code form)."""
+    def calibrate(self, codes: Codes, decay: float) -> bool:
+        """Inject a familiar view's energy at the codes its template stored (Eqs. 10–11, code form); whether any."""
         grid_energy = injection_energy(self.grid_params.inject_energy, decay)
         head_energy = injection_energy(self.head_params.inject_energy, decay)
         if grid_energy > 0.0:
             self.grid.inject(tuple(round(c) for c in codes.grid), grid_energy)
         if head_energy > 0.0:
             self.head.inject(tuple(round(c) for c in codes.head), head_energy)
+        return grid_energy > 0.0 or head_energy > 0.0
 
     def step(self, forward_m: float, dyaw_rad: float, dz_m: float) -> Codes:
         """One frame of self-motion: head direction first, its yaw into the grid cells; the new codes."""
