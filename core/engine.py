@@ -33,6 +33,7 @@ from core.experience_map import ExperienceMap, LinkKind
 from core.gate import EventGate
 from core.localview import LocalViewCells
 from core.motion import ZERO_MOTION, Motion
+from core.neuroslam.posecells import NeuroslamPoseCells
 from core.paths import ExperienceGraph, NoPath, PathResult, Weight
 from core.posecells import PoseCellNetwork
 from core.visual_odometry import VisualOdometry
@@ -49,6 +50,11 @@ def view_cells_class(params: Params) -> type[LocalViewCells] | type[NeocortexVie
 
         return NeocortexViewCells
     return LocalViewCells
+
+
+def pose_cells_class(params: Params) -> type[PoseCellNetwork] | type[NeuroslamPoseCells]:
+    """Return the pose cells of ``params.engine``: RatSLAM's lattice, or NeuroSLAM's grid and head-direction cells."""
+    return NeuroslamPoseCells if params.engine == "neuroslam" else PoseCellNetwork
 
 
 class Action(IntEnum):
@@ -92,7 +98,7 @@ class Engine:
         self.origin = origin
         self.local_view = view_cells_class(params)(params) if local_view is None else local_view
         self.odometry = VisualOdometry(params)
-        self.pose_cells = PoseCellNetwork(params)
+        self.pose_cells: PoseCellNetwork | NeuroslamPoseCells = pose_cells_class(params)(params)
         self.map = ExperienceMap(params, self.pose_cells.rank)
         self.gate = EventGate(params)
         self.lv_origin: list[int] = []
@@ -218,6 +224,10 @@ class Engine:
         gates the closest is linked, as OpenRatSLAM links the closest: every link OpenRatSLAM's gate makes is
         made the same, the slack only adds links where it would create an experience. With no merge every
         lever is 0 and the gate is OpenRatSLAM's.
+
+        NeuroSLAM (``engine = neuroslam``; notes ``neuroslam.md`` §7.1) decides on its five codes with the same
+        rule, plus its guard against false links: when more than one other experience of the template is within
+        the threshold, nothing is done.
         """
         em = self.map
         candidates = em.experiences_of_template(template)
@@ -231,6 +241,8 @@ class Engine:
         if others:
             deltas = self.pose_cells.delta_to(em.lattice_coords[others])
             within = deltas < threshold + self.params.merge_lattice_slack * em.lattice_levers[others]
+            if self.params.engine == "neuroslam" and int(np.count_nonzero(within)) > 1:
+                return Action.NONE, -1  # NeuroSLAM's guard: two candidates is a hash collision, not a place
             if within.any():
                 return Action.CREATE_EDGE, others[int(np.argmin(np.where(within, deltas, np.inf)))]
         return Action.CREATE_NODE, -1
@@ -292,7 +304,7 @@ class Engine:
         engine.lv_place, engine.lv_place_offset = place.tolist(), list(offset)
         engine.lv_place_yaw = template_place_yaws(state, len(engine.lv_origin)).tolist()
         engine.odometry = VisualOdometry.restore(params, state)
-        engine.pose_cells = PoseCellNetwork.restore(params, state)
+        engine.pose_cells = pose_cells_class(params).restore(params, state)
         engine.map = ExperienceMap.restore(params, engine.pose_cells.rank, state)
         engine.gate = EventGate.restore(params, state)
         engine.frames = int(state["eng_frames"])

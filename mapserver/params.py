@@ -104,3 +104,15 @@ def with_settings(params: Params, settings: str | None) -> Params:
         return params_from_dict(values, params, where="--set")
     except CoreConfigError as err:
         raise ConfigError(str(err)) from err
+
+
+def require_storable(params: Params) -> Params:
+    """Return ``params`` if the store can keep the maps they make; the ``neuroslam`` engine's it cannot yet.
+
+    Raises:
+        ConfigError: ``engine = neuroslam`` (its grid and head-direction cells have no tables in the store).
+    """
+    if params.engine != "ratslam":
+        msg = f"maps of the {params.engine} engine cannot be stored in a database yet: process with --out MAP.json"
+        raise ConfigError(msg)
+    return params

@@ -187,6 +187,31 @@ class Params:
     sv_enable_f1_gate: bool = True
     min_f1: float = 0.55
     sv_use_iou_tiebreak: bool = True
+    # engine: "ratslam" (pose cells on an (x, y, [z,] θ) lattice) or "neuroslam" (Yu et al. 2019: grid cells and
+    # multilayer head-direction cells, core.neuroslam); the gc_/hdc_ keys are NeuroSLAM's Tables 5–6 (SynPerData)
+    engine: str = "ratslam"
+    gc_dim_xy: int = 36
+    gc_dim_z: int = 36
+    gc_excite_size: int = 7
+    gc_excite_var: float = 1.5
+    gc_inhibit_size: int = 5
+    gc_inhibit_var: float = 2.0
+    gc_global_inhib: float = 0.0002
+    gc_vt_inject_energy: float = 0.1
+    gc_packet_size: int = 4
+    gc_cell_size: float = 1.0  # metres per grid cell in the plane
+    gc_cell_size_z: float = 1.0  # metres per grid cell in height
+    hdc_dim_yaw: int = 36
+    hdc_dim_height: int = 36
+    hdc_excite_size: int = 8
+    hdc_excite_var: float = 1.9
+    hdc_inhibit_size: int = 5
+    hdc_inhibit_var: float = 3.0
+    hdc_global_inhib: float = 0.0002
+    hdc_vt_inject_energy: float = 0.001
+    hdc_packet_size: int = 5
+    hdc_cell_size_height: float = 1.0  # metres per head-direction cell in height
+    vt_global_decay: float = 0.1  # NeuroSLAM: every template's novelty decay recovers this much a frame
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -343,11 +368,35 @@ def _validate(p: Params) -> None:
         if getattr(p, key) < 0 and getattr(p, key) != -1.0:
             fail(key, "must be ≥ 0 metres, or -1 for the map's scale")
     _validate_frontend(p, fail)
+    _validate_neuroslam(p, fail)
     parse_departures(p.openratslam_parts)
     for axis in ("x", "y"):
         lo, hi = getattr(p, f"image_crop_{axis}_min"), getattr(p, f"image_crop_{axis}_max")
         if lo < 0 or (hi != -1 and hi <= lo):
             fail(f"image_crop_{axis}_max", f"must be -1 or greater than image_crop_{axis}_min ({lo})")
+
+
+ENGINES = ("ratslam", "neuroslam")
+
+
+def _validate_neuroslam(p: Params, fail: typing.Callable[[str, str], None]) -> None:
+    """NeuroSLAM's networks: sizes, kernels, widths and rates (only read when ``engine = neuroslam``)."""
+    if p.engine not in ENGINES:
+        fail("engine", f"must be one of {', '.join(ENGINES)}")
+    for key in ("gc_dim_xy", "gc_dim_z", "hdc_dim_yaw", "hdc_dim_height", "gc_excite_size", "gc_inhibit_size",
+                "hdc_excite_size", "hdc_inhibit_size"):
+        if getattr(p, key) < 1:
+            fail(key, "must be at least 1")
+    for key in ("gc_excite_var", "gc_inhibit_var", "hdc_excite_var", "hdc_inhibit_var", "gc_cell_size",
+                "gc_cell_size_z", "hdc_cell_size_height"):
+        if not getattr(p, key) > 0:
+            fail(key, "must be > 0")
+    for key in ("gc_global_inhib", "gc_vt_inject_energy", "gc_packet_size", "hdc_global_inhib",
+                "hdc_vt_inject_energy", "hdc_packet_size", "vt_global_decay"):
+        if getattr(p, key) < 0:
+            fail(key, "must be ≥ 0")
+    if p.engine == "neuroslam" and p.frontend != "lvc":
+        fail("frontend", "the neuroslam engine takes intensity templates (lvc)")
 
 
 FRONTENDS = ("lvc", "sdr-htm")

@@ -75,6 +75,15 @@ PRESETS: Mapping[str, Params] = MappingProxyType(
             vt_normalisation=0.4, pc_cell_x_size=0.25, exp_delta_pc_threshold=2.0, exp_loops=20,
             exp_initial_em_deg=0.0, camera_fov_deg=75.0,
         ),
+        # NeuroSLAM (Yu et al. 2019), SynPerData: grid and head-direction cells at Tables 5–6 (the gc_/hdc_ defaults),
+        # S_max 40 and correction 0.5 with 5 loops (Table 8), templates 16 × 12 with 5 × 5 patch normalisation and
+        # ±5 px shifts (Table 7 and the authors' code), VT_ACTIVE_DECAY 2.0 / VT_GLOBAL_DECAY 0.1, 81.5° FOV
+        # (Table 9). The match threshold is ours: the paper's d_m (0.15) is on its code's SAD scale, not ours.
+        "neuroslam": _DEFAULT.replace(
+            engine="neuroslam", exp_delta_pc_threshold=40.0, exp_correction=0.5, exp_loops=5, vt_active_decay=2.0,
+            vt_global_decay=0.1, template_x_size=16, template_y_size=12, vt_patch_normalise=2, vt_shift_match=5,
+            vt_step_match=1, camera_fov_deg=81.5,
+        ),
         # PoseidonSLAM thesis Table 4.1: lattice [15,15,15,8] at 0.1 m, VPR Guard 26/3/20, motion gate
         # 0.12/0.05 m, clamps 20.0/0.05, sync_stale_sec 0.75, with intensity templates in place of its CNN
         # ("poseidon" is the neocortical front-end below; this preset keeps its back-end). The template keys

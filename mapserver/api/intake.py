@@ -25,7 +25,7 @@ from mapserver.api.uploads import ReceivedUpload
 from mapserver.errors import InputError, LimitError
 from mapserver.ingest import LOG_SUFFIXES, open_log, parse_topics_arg
 from mapserver.names import check_map_name, default_map_name
-from mapserver.params import DEFAULT_PRESET, resolve_params
+from mapserver.params import DEFAULT_PRESET, require_storable, resolve_params
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +64,7 @@ def parse_options(fields: Mapping[str, str]) -> UploadOptions:
         msg = f"unknown form field(s) {', '.join(map(repr, unknown))}; expected file, {', '.join(KNOWN_FIELDS)}"
         raise InputError(msg)
     preset = (fields.get("preset") or "").strip() or DEFAULT_PRESET
-    resolve_params(preset)  # ConfigError (400) names the valid presets
+    require_storable(resolve_params(preset))  # ConfigError (400) names the valid presets
     map_name = fields.get("map")
     if map_name is not None:
         map_name = check_map_name(map_name.strip())

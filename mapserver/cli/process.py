@@ -77,6 +77,10 @@ def run(args: argparse.Namespace) -> int:
     if args.map_name and not args.db:
         msg = "--map needs --db"
         raise InputError(msg)
+    if args.db:
+        from mapserver.params import require_storable
+
+        require_storable(params)
     if args.max_image_pixels is not None:
         from mapserver.ingest.decode import set_max_image_pixels
 
