@@ -103,6 +103,60 @@ LIBRARY_OWNERS: dict[str, frozenset[str]] = {
 }
 """Third-party libraries only these units import (``migrations/``, outside the walk, uses sqlalchemy too)."""
 
+# ---------------------------------------------------------------------------------------------- the picture
+
+GROUPS: tuple[tuple[str, frozenset[str]], ...] = (
+    ("orchestration", ORCHESTRATION),
+    ("domain", DOMAIN),
+    ("leaves", HELPERS),
+    ("shared", SHARED),
+)
+"""Names the picture gives to these sets of units (a row that allows all of one shows its name)."""
+
+PICTURE_BEGIN = "<!-- tests/test_layers.py: picture begin -->"
+PICTURE_END = "<!-- tests/test_layers.py: picture end -->"
+ARCHITECTURE = ROOT / "docs" / "architecture.md"
+
+
+def short(unit: str) -> str:
+    """Return a unit's name in the picture: ``core``, ``mapserver``, else the part after ``mapserver.``."""
+    return unit if unit in ("core", "mapserver") else unit.removeprefix("mapserver.")
+
+
+def layer_of(unit: str, memo: dict[str, int] | None = None) -> int:
+    """Return a unit's layer: 0 for a unit that imports no other, else one above the highest unit it may import."""
+    memo = {} if memo is None else memo
+    if unit not in memo:
+        memo[unit] = 1 + max((layer_of(u, memo) for u in ALLOWED[unit]), default=-1)
+    return memo[unit]
+
+
+def _row(unit: str) -> str:
+    """Return what a unit may import in the picture's words: the units, then the groups it has whole."""
+    rest = set(ALLOWED[unit])
+    if rest >= BASE and unit not in BASE:
+        rest -= BASE
+    names: list[str] = []
+    for name, members in GROUPS:
+        if members <= rest:
+            rest -= members
+            names.append(name)
+    order = sorted(rest, key=lambda u: (-layer_of(u), short(u)))
+    empty = "nothing of mapserver" if unit in BASE else "the base only"
+    return " · ".join([*(short(u) for u in order), *names]) or empty
+
+
+def picture() -> str:
+    """Return the text picture of :data:`ALLOWED`: one row per unit, highest layer first (docs/architecture.md)."""
+    width = max(len(short(u)) for u in ALLOWED)
+    lines = [f"layer  {'unit'.ljust(width)}     may import (besides the base, which every unit outside it may import)"]
+    for unit in sorted(ALLOWED, key=lambda u: (-layer_of(u), short(u))):
+        lines.append(f"{layer_of(unit):>5}  {short(unit).ljust(width)} ──► {_row(unit)}")
+    lines.append("")
+    for name, members in (("base", BASE), *GROUPS):
+        lines.append(f"{name}: {' · '.join(short(u) for u in sorted(members, key=lambda u: (-layer_of(u), short(u))))}")
+    return "\n".join(lines)
+
 # ------------------------------------------------------------------------------------------------ the walker
 
 
@@ -219,6 +273,29 @@ def test_the_table_keeps_the_sideways_rules() -> None:
     assert ALLOWED["core"] == frozenset()
 
 
+def test_the_architecture_page_draws_the_table() -> None:
+    """docs/architecture.md holds :func:`picture` as it is (``python tests/test_layers.py`` prints it)."""
+    text = ARCHITECTURE.read_text(encoding="utf-8")
+    drawn = text.split(PICTURE_BEGIN, 1)[-1].split(PICTURE_END, 1)[0].strip().removeprefix("```").removesuffix("```")
+    assert PICTURE_BEGIN in text and drawn.strip("\n") == picture(), "paste `python tests/test_layers.py` into the page"
+
+
+def test_the_architecture_page_lists_every_unit() -> None:
+    """The page's first block names every unit's file or folder (``mapserver/store/``, ``mapserver/rpe.py``)."""
+    listing = ARCHITECTURE.read_text(encoding="utf-8").split("```", 2)[1]
+    paths = {line.split()[0] for line in listing.splitlines() if line.strip()}
+    for unit in ALLOWED:
+        folder = unit.replace(".", "/")
+        names = {f"{folder}/__init__.py"} if unit == "mapserver" else {f"{folder}/", f"{folder}.py"}
+        assert names & paths, f"docs/architecture.md does not list {unit}"
+
+
+def test_the_picture_puts_every_import_below_its_importer() -> None:
+    for unit, allowed in ALLOWED.items():
+        assert all(layer_of(u) < layer_of(unit) for u in allowed), unit
+    assert {layer_of(u) for u in BASE} == {0} and layer_of("mapserver.cli") == max(map(layer_of, ALLOWED))
+
+
 def test_walker_sees_real_imports() -> None:
     """Guard against a walker that finds nothing: core must import numpy, the store sqlalchemy."""
     edges = [e for p in files(ROOT) for e in imports_of(p, ROOT)]
@@ -276,3 +353,7 @@ def test_allowed_and_relative_imports_pass(tmp_path: Path) -> None:
     assert violations(root) == []
     edges = {e.imported for p in files(root) for e in imports_of(p, root)}
     assert {"mapserver.store.models", "mapserver.api.deps", "mapserver.atlas"} <= edges
+
+
+if __name__ == "__main__":
+    print(picture())
