@@ -28,8 +28,8 @@ BASE = frozenset({"core", "mapserver", "mapserver.errors", "mapserver.bounds"})
 of values from outside."""
 
 SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats_csv",
-                    "mapserver.formats_g2o"})  # fmt: skip
-"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats."""
+                    "mapserver.formats_g2o", "mapserver.plotting"})  # fmt: skip
+"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats, figures."""
 
 HELPERS = SHARED | {"mapserver.params", "mapserver.reckoning", "mapserver.evaluation"}
 """Every leaf module: the shared ones, choosing parameters, dead reckoning, evaluation against ground truth."""
@@ -58,7 +58,8 @@ ALLOWED: dict[str, frozenset[str]] = {
     "mapserver.params": BASE | {"mapserver.pairs"},
     "mapserver.reckoning": BASE,
     "mapserver.rpe": BASE,
-    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.rpe"},
+    "mapserver.plotting": BASE,
+    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.rpe", "mapserver.plotting"},
     # domain packages
     "mapserver.ingest": BASE | SHARED,
     "mapserver.store": BASE | SHARED,
@@ -100,8 +101,14 @@ LIBRARY_OWNERS: dict[str, frozenset[str]] = {
     "alembic": frozenset({"mapserver.store"}),
     "rosbags": frozenset({"mapserver.ingest"}),
     **{web: frozenset({"mapserver.api"}) for web in ("fastapi", "starlette", "uvicorn", "celery", "prometheus_client")},
+    "matplotlib": frozenset({"mapserver.plotting"}),
 }
 """Third-party libraries only these units import (``migrations/``, outside the walk, uses sqlalchemy too)."""
+
+FORBIDDEN: dict[str, str] = {
+    "matplotlib.pyplot": "pyplot keeps global state: draw on a figure of mapserver.plotting",
+}
+"""Modules no unit imports, and why."""
 
 # ---------------------------------------------------------------------------------------------- the picture
 
@@ -230,6 +237,9 @@ def check(edge: Edge) -> str | None:
     if unit is None:
         return None
     if target is None:
+        for module, why in FORBIDDEN.items():
+            if edge.imported == module or edge.imported.startswith(module + "."):
+                return f"{where}: {why}"
         owners = LIBRARY_OWNERS.get(edge.imported.split(".")[0])
         if owners is not None and unit not in owners:
             return f"{where}: only {', '.join(sorted(owners))} may import {edge.imported.split('.')[0]}"
@@ -274,10 +284,10 @@ def test_the_table_keeps_the_sideways_rules() -> None:
 
 
 def test_the_architecture_page_draws_the_table() -> None:
-    """docs/architecture.md holds :func:`picture` as it is (``python tests/test_layers.py`` prints it)."""
+    """docs/architecture.md holds :func:`picture` as it is (``python tests/test_layers.py --write`` draws it there)."""
     text = ARCHITECTURE.read_text(encoding="utf-8")
     drawn = text.split(PICTURE_BEGIN, 1)[-1].split(PICTURE_END, 1)[0].strip().removeprefix("```").removesuffix("```")
-    assert PICTURE_BEGIN in text and drawn.strip("\n") == picture(), "paste `python tests/test_layers.py` into the page"
+    assert PICTURE_BEGIN in text and drawn.strip("\n") == picture(), "run `python tests/test_layers.py --write`"
 
 
 def test_the_architecture_page_lists_every_unit() -> None:
@@ -332,6 +342,10 @@ def _tree(root: Path, sources: dict[str, str]) -> Path:
          "mapserver.store.models is private to mapserver.store"),
         ({"mapserver/atlas.py": "def f():\n    from sqlalchemy import select\n"},
          "only mapserver.store may import sqlalchemy"),
+        ({"mapserver/plotting.py": "def f():\n    import matplotlib.pyplot as plt\n"},
+         "mapserver.plotting imports matplotlib.pyplot: pyplot keeps global state"),
+        ({"mapserver/store/export.py": "def f():\n    from matplotlib.figure import Figure\n"},
+         "only mapserver.plotting may import matplotlib"),
         ({"mapserver/report.py": "from mapserver import pipeline\n", "mapserver/pipeline.py": ""},
          "mapserver.report imports mapserver.pipeline: mapserver.report may not import mapserver.pipeline"),
     ],
@@ -355,5 +369,15 @@ def test_allowed_and_relative_imports_pass(tmp_path: Path) -> None:
     assert {"mapserver.store.models", "mapserver.api.deps", "mapserver.atlas"} <= edges
 
 
+def draw_on_the_page() -> None:
+    """Write :func:`picture` between the markers of docs/architecture.md."""
+    text = ARCHITECTURE.read_text(encoding="utf-8")
+    head, rest = text.split(PICTURE_BEGIN, 1)
+    tail = rest.split(PICTURE_END, 1)[1]
+    ARCHITECTURE.write_text(f"{head}{PICTURE_BEGIN}\n```\n{picture()}\n```\n{PICTURE_END}{tail}", encoding="utf-8")
+
+
 if __name__ == "__main__":
-    print(picture())
+    import sys
+
+    draw_on_the_page() if "--write" in sys.argv[1:] else print(picture())

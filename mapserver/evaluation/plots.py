@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from mapserver.evaluation.maps import MapEvaluation, align_map
 from mapserver.formats import PathLike, Trajectory, atomic_write_bytes
+from mapserver.plotting import add_segments, new_figure, png_bytes
 
 if TYPE_CHECKING:
-    from matplotlib.axes import Axes
+    from mapserver.plotting import Axes
 
 
 def plot_map_vs_ground_truth(
@@ -28,7 +28,7 @@ def plot_map_vs_ground_truth(
     Top view with equal axes: the ground truth as a line, the aligned experiences as dots joined by their
     links (odometry links solid, loop/merge/manual links dashed), the aligned odometry dashed, and a legend
     with the APE RMSEs and the Hausdorff distance. Maps with height get a second panel, z against time.
-    Uses matplotlib's Agg canvas directly (no pyplot, no global backend change).
+    Drawn on a figure of :mod:`mapserver.plotting` (no pyplot, no global backend change).
 
     Args:
         doc: map JSON document.
@@ -43,13 +43,9 @@ def plot_map_vs_ground_truth(
         InputError: as for :func:`evaluate_map`.
 
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     ev = align_map(doc, gt, odometry=odometry, max_diff_s=max_diff_s, session=session)
     three_d = ev.dims == 3
-    fig = Figure(figsize=(13.0, 6.0) if three_d else (8.0, 7.0), dpi=110)
-    FigureCanvasAgg(fig)
+    fig = new_figure((13.0, 6.0) if three_d else (8.0, 7.0), dpi=110)
     if three_d:
         ax = fig.add_subplot(1, 2, 1)
         ax_z = fig.add_subplot(1, 2, 2)
@@ -66,15 +62,11 @@ def plot_map_vs_ground_truth(
         title = f"{names}: {len(ev.exp_ids)} experiences vs ground truth"
     fig.suptitle(title)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, png_bytes(fig))
 
 
 def _plot_top_view(ax: Axes, ev: MapEvaluation) -> None:
     """Draw the top view: ground truth, aligned odometry, experiences joined by their links, legend."""
-    from matplotlib.collections import LineCollection
-
     ax.plot(ev.gt_xyz[:, 0], ev.gt_xyz[:, 1], "-", color="k", lw=1.2, label="ground truth")
     if ev.odo_aligned is not None and ev.odo_ape is not None:
         ax.plot(
@@ -89,9 +81,9 @@ def _plot_top_view(ax: Axes, ev: MapEvaluation) -> None:
     odo_links = [(xy[i], xy[j]) for i, j, kind in ev.links if kind == "odometry"]
     other_links = [(xy[i], xy[j]) for i, j, kind in ev.links if kind != "odometry"]
     if odo_links:
-        ax.add_collection(LineCollection(odo_links, colors="C0", linewidths=0.8, alpha=0.6))
+        add_segments(ax, odo_links, colors="C0", linewidths=0.8, alpha=0.6)
     if other_links:
-        ax.add_collection(LineCollection(other_links, colors="C3", linewidths=0.8, linestyles="dashed", alpha=0.7))
+        add_segments(ax, other_links, colors="C3", linewidths=0.8, linestyles="dashed", alpha=0.7)
     ax.scatter(
         xy[:, 0],
         xy[:, 1],
