@@ -24,7 +24,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapserver.errors import ConfigError, IngestError, LimitError
+from core.config import ConfigError
+from mapserver.errors import IngestError, LimitError
 
 DEFAULT_MAX_IMAGE_PIXELS = 1 << 25  # 33.5 Mpx: an 8K (7680×4320) frame fits
 PIXELS_ENV = "MAPSERVER_MAX_IMAGE_PIXELS"

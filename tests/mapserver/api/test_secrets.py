@@ -139,6 +139,23 @@ def test_a_job_record_names_the_uploads_request_id_not_the_error(
     assert job["error"] == internal_error_detail(upload.headers["x-request-id"])
 
 
+def test_a_job_refused_for_its_parameters_shows_the_message(
+    api: Api, strip_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The engine's ConfigError is the client's input: the job record shows its message, not an internal error."""
+    from core.config import ConfigError
+    from mapserver import pipeline
+
+    def refused(*_: Any, **__: Any) -> Any:
+        raise ConfigError("parameter 'frontend_backbone' = 'vgg': must be one of none, shufflenetv2, alexnet")
+
+    monkeypatch.setattr(pipeline, "process_into_store", refused)
+    upload = api.upload(strip_log, preset="irat")
+    job = api.wait(upload.json()["job"])
+    assert job["status"] == "failed"
+    assert job["error"] == "parameter 'frontend_backbone' = 'vgg': must be one of none, shufflenetv2, alexnet"
+
+
 def test_a_404_for_an_unknown_map_lists_no_other_map(api: Api) -> None:
     store_graph_map(api.db_url, "classified-site", np.zeros((2, 4)), [(0, 1, 1.0, 1.0)])
     response = api.client.get("/v1/maps/nope", headers=api.read)
