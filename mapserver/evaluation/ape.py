@@ -17,7 +17,6 @@ References:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,11 +132,6 @@ def interpolate_poses(traj: Trajectory, stamps: npt.ArrayLike, *, max_diff_s: fl
 
 
 # ----------------------------------------------------------------------------------------------- alignment
-
-
-def _rotation_z(theta: float) -> FloatArray:
-    c, s = math.cos(theta), math.sin(theta)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def umeyama_alignment(

@@ -43,11 +43,6 @@ def is_compressed(msg: Any) -> bool:
     return hasattr(msg, "format") and not hasattr(msg, "encoding")
 
 
-def image_format(msg: Any) -> str:
-    """Return the encoding of an ``Image`` or the format of a ``CompressedImage`` (as stored)."""
-    return str(msg.format if is_compressed(msg) else msg.encoding)
-
-
 def check_supported(msg: Any, topic: str = "") -> None:
     """Raise IngestError when the message's encoding is not one :func:`decode_image` handles.
 
