@@ -180,8 +180,9 @@ async def _validation_error(request: Request, err: Exception) -> JSONResponse:
 
 
 async def _http_error(request: Request, err: Exception) -> JSONResponse:
-    del request
     assert isinstance(err, StarletteHTTPException)
+    if err.status_code >= 500:  # whatever raised it, a 5xx body names only the request's reference
+        return _internal(request, err)
     detail = err.detail if isinstance(err.detail, str) else str(err.detail)
     return JSONResponse({"detail": detail}, status_code=err.status_code, headers=getattr(err, "headers", None))
 
