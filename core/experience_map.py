@@ -743,12 +743,6 @@ class ExperienceMap:
         )
         self._work.clear()
 
-    def link_residual(self, link: int) -> float:
-        """Return the largest absolute residual (m or rad) of one link under the current poses."""
-        index = np.array([link])
-        res = residuals(self._pose.view, self._from.view[index], self._to.view[index], self._transform.view[index])
-        return float(np.abs(res).max())
-
     # -------------------------------------------------------------- snapshot
     def snapshot(self) -> dict[str, np.ndarray]:
         """Return the map as plain arrays (keys ``em_*`` of docs/architecture.md)."""

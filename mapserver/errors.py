@@ -1,4 +1,9 @@
-"""One exception family for mapserver; the CLI and the API map it to exit codes and HTTP statuses."""
+"""One exception family for mapserver; the CLI and the API map it to exit codes and HTTP statuses.
+
+A preset, configuration file or setting that is invalid raises the engine's own ``core.config.ConfigError``
+(a ``ValueError``, one class for core and mapserver); the CLI and the API map it as an :class:`InputError`
+(exit 2, HTTP 400).
+"""
 
 from __future__ import annotations
 
@@ -21,10 +26,6 @@ class InputError(MapServerError):
 
 class IngestError(InputError):
     """A mission log cannot be read or has no usable topics."""
-
-
-class ConfigError(InputError):
-    """A preset, configuration file or parameter is invalid."""
 
 
 class LimitError(InputError):

@@ -8,7 +8,7 @@ from mapserver.errors import InputError
 
 
 def parse_pairs(
-    texts: str | Iterable[str], *, flag: str, form: str, example: str, error: type[InputError] = InputError
+    texts: str | Iterable[str], *, flag: str, form: str, example: str, error: type[Exception] = InputError
 ) -> dict[str, str]:
     """Return ``{key: value}`` from comma-separated ``KEY=VALUE`` pairs (one text, or the texts of a repeated flag).
 

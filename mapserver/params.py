@@ -6,10 +6,8 @@ import json
 import logging
 from pathlib import Path
 
-from core import ConfigError as CoreConfigError
 from core import Params, load_config, preset
-from core.config import params_from_dict
-from mapserver.errors import ConfigError
+from core.config import ConfigError, params_from_dict
 from mapserver.pairs import parse_pairs
 
 logger = logging.getLogger(__name__)
@@ -31,15 +29,12 @@ def resolve_params(
     if preset_name and config:
         msg = "give either --preset or --config, not both"
         raise ConfigError(msg)
-    try:
-        if config:
-            return load_config(config)
-        if preset_name:
-            return preset(preset_name)
-        suggested = _scenario_preset(log)
-        return preset(suggested or DEFAULT_PRESET)
-    except CoreConfigError as err:
-        raise ConfigError(str(err)) from err
+    if config:
+        return load_config(config)
+    if preset_name:
+        return preset(preset_name)
+    suggested = _scenario_preset(log)
+    return preset(suggested or DEFAULT_PRESET)
 
 
 def _scenario_preset(log: str | Path | None) -> str | None:
@@ -75,10 +70,7 @@ def with_frontend(params: Params, backbone: str | None = None, weights: str | Pa
         changes["frontend_weights"] = str(weights)
     if not changes:
         return params
-    try:
-        updated = params.replace(**changes)
-    except CoreConfigError as err:
-        raise ConfigError(str(err)) from err
+    updated = params.replace(**changes)
     if updated.frontend != "sdr-htm":
         msg = "--backbone/--weights apply to the sdr-htm front-end: use --preset poseidon or neoslam"
         raise ConfigError(msg)
@@ -100,10 +92,7 @@ def with_settings(params: Params, settings: str | None) -> Params:
     if not settings:
         return params
     values = parse_pairs(settings, flag="--set", form="KEY=VALUE", example="vt_shift_heading=1", error=ConfigError)
-    try:
-        return params_from_dict(values, params, where="--set")
-    except CoreConfigError as err:
-        raise ConfigError(str(err)) from err
+    return params_from_dict(values, params, where="--set")
 
 
 def require_storable(params: Params) -> Params:

@@ -341,10 +341,7 @@ def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, i
         engine = Engine.restore(own.params, own.snapshot, origin=session.id)
         resume = resume_merger_state(own, session.id, read.candidates)
         return engine, own.identities.copy(), session.id, session.frames_processed, reckoning, resume
-    try:
-        engine = Engine(params, origin=NEW_SESSION_ORIGIN)
-    except ConfigError as err:
-        raise InputError(str(err)) from err
+    engine = Engine(params, origin=NEW_SESSION_ORIGIN)  # an invalid front-end setting raises ConfigError
     return engine, RowIdentities(), NEW_SESSION_ORIGIN, 0, reckoning, None
 
 

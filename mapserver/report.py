@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,7 @@ import numpy as np
 from mapserver.errors import InputError, NotFoundError
 from mapserver.evaluation import evaluate_map, plot_map_vs_ground_truth
 from mapserver.formats import Trajectory, atomic_write_bytes, odometry_trajectory
+from mapserver.plotting import add_segments, new_figure, png_bytes
 from mapserver.store import Connection, Database, find_map, get_map_by_id, load_map
 from mapserver.store.export import map_document
 from mapserver.store.identities import template_ids_by_identity, template_ids_matching
@@ -180,39 +180,22 @@ def _activations(
     return out
 
 
-def _png(fig: Any) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    return buf.getvalue()
-
-
-def _figure(size: tuple[float, float]) -> Any:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=size, dpi=100)
-    FigureCanvasAgg(fig)
-    return fig
-
-
 def map_figure(inputs: ReportInputs) -> bytes:
     """Draw the experience map (top view, to scale): sessions in colours, links by kind, merge places marked."""
-    from matplotlib.collections import LineCollection
-
     doc = inputs.doc
     exps = doc["experiences"]
     xy = np.array([[e["x"], e["y"]] for e in exps], dtype=np.float64).reshape(-1, 2)
     sessions = [s["name"] for s in doc["sessions"]]
     who = np.array([sessions.index(e["session"]) if e["session"] in sessions else 0 for e in exps], dtype=np.int64)
-    fig = _figure((8.0, 7.0))
+    fig = new_figure((8.0, 7.0))
     ax = fig.add_subplot(1, 1, 1)
     for kind, (colour, style) in LINK_STYLE.items():
         segs = [(xy[lk["from"]], xy[lk["to"]]) for lk in doc["links"] if lk["kind"] == kind and lk.get("active", True)]
         if segs:
-            ax.add_collection(LineCollection(segs, colors=colour, linestyles=style, linewidths=1.0, label=kind))
+            add_segments(ax, segs, colors=colour, linestyles=style, linewidths=1.0, label=kind)
     off = [(xy[lk["from"]], xy[lk["to"]]) for lk in doc["links"] if not lk.get("active", True)]
     if off:
-        ax.add_collection(LineCollection(off, colors="#bbbbbb", linestyles=":", linewidths=1.0, label="switched off"))
+        add_segments(ax, off, colors="#bbbbbb", linestyles=":", linewidths=1.0, label="switched off")
     for k, name in enumerate(sessions):
         mine = who == k
         if inputs.session is None or inputs.session == name:
@@ -232,7 +215,7 @@ def map_figure(inputs: ReportInputs) -> bytes:
     ax.legend(loc="best", fontsize=8)
     ax.set_title(f"map {inputs.map_name}: {len(exps)} experiences, {len(doc['links'])} links")
     fig.tight_layout()
-    return _png(fig)
+    return png_bytes(fig)
 
 
 def timeline(inputs: ReportInputs) -> dict[str, Any]:
@@ -267,7 +250,7 @@ def timeline_figure(inputs: ReportInputs) -> bytes:
     t = series["stamp"].copy()
     for k in np.unique(who):
         t[who == k] -= t[who == k].min()
-    fig = _figure((9.0, 6.5))
+    fig = new_figure((9.0, 6.5))
     ax = fig.add_subplot(2, 1, 1)
     ax2 = fig.add_subplot(2, 1, 2, sharex=ax)
     new = series["new"]
@@ -307,7 +290,7 @@ def timeline_figure(inputs: ReportInputs) -> bytes:
     ax2.grid(True, alpha=0.3)
     fig.suptitle(f"activation timeline: {inputs.session or inputs.map_name}")
     fig.tight_layout()
-    return _png(fig)
+    return png_bytes(fig)
 
 
 def _table(rows: list[tuple[str, Any]]) -> str:

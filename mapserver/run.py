@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from threadpoolctl import threadpool_limits
 
-from core.config import ConfigError, Params
+from core.config import Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import Frame, MissionLog, open_log
@@ -193,13 +193,10 @@ def _check_modalities(opened: MissionLog, params: Params) -> None:
 
 
 def _new_engine(params: Params) -> Engine:
-    """Return a new session's engine (origin 0); an invalid front-end setting is an InputError."""
+    """Return a new session's engine (origin 0); an invalid front-end setting raises ``ConfigError``."""
     from core.engine import Engine
 
-    try:
-        return Engine(params, origin=0)
-    except ConfigError as err:
-        raise InputError(str(err)) from err
+    return Engine(params, origin=0)
 
 
 def process_log(

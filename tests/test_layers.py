@@ -28,8 +28,8 @@ BASE = frozenset({"core", "mapserver", "mapserver.errors", "mapserver.bounds"})
 of values from outside."""
 
 SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats_csv",
-                    "mapserver.formats_g2o"})  # fmt: skip
-"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats."""
+                    "mapserver.formats_g2o", "mapserver.plotting"})  # fmt: skip
+"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats, figures."""
 
 HELPERS = SHARED | {"mapserver.params", "mapserver.reckoning", "mapserver.evaluation"}
 """Every leaf module: the shared ones, choosing parameters, dead reckoning, evaluation against ground truth."""
@@ -58,7 +58,8 @@ ALLOWED: dict[str, frozenset[str]] = {
     "mapserver.params": BASE | {"mapserver.pairs"},
     "mapserver.reckoning": BASE,
     "mapserver.rpe": BASE,
-    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.rpe"},
+    "mapserver.plotting": BASE,
+    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.rpe", "mapserver.plotting"},
     # domain packages
     "mapserver.ingest": BASE | SHARED,
     "mapserver.store": BASE | SHARED,
@@ -100,8 +101,68 @@ LIBRARY_OWNERS: dict[str, frozenset[str]] = {
     "alembic": frozenset({"mapserver.store"}),
     "rosbags": frozenset({"mapserver.ingest"}),
     **{web: frozenset({"mapserver.api"}) for web in ("fastapi", "starlette", "uvicorn", "celery", "prometheus_client")},
+    "matplotlib": frozenset({"mapserver.plotting"}),
 }
 """Third-party libraries only these units import (``migrations/``, outside the walk, uses sqlalchemy too)."""
+
+FORBIDDEN: dict[str, str] = {
+    "matplotlib.pyplot": "pyplot keeps global state: draw on a figure of mapserver.plotting",
+}
+"""Modules no unit imports, and why."""
+
+# ---------------------------------------------------------------------------------------------- the picture
+
+GROUPS: tuple[tuple[str, frozenset[str]], ...] = (
+    ("orchestration", ORCHESTRATION),
+    ("domain", DOMAIN),
+    ("leaves", HELPERS),
+    ("shared", SHARED),
+)
+"""Names the picture gives to these sets of units (a row that allows all of one shows its name)."""
+
+PICTURE_BEGIN = "<!-- tests/test_layers.py: picture begin -->"
+PICTURE_END = "<!-- tests/test_layers.py: picture end -->"
+ARCHITECTURE = ROOT / "docs" / "architecture.md"
+
+
+def short(unit: str) -> str:
+    """Return a unit's name in the picture: ``core``, ``mapserver``, else the part after ``mapserver.``."""
+    return unit if unit in ("core", "mapserver") else unit.removeprefix("mapserver.")
+
+
+def layer_of(unit: str, memo: dict[str, int] | None = None) -> int:
+    """Return a unit's layer: 0 for a unit that imports no other, else one above the highest unit it may import."""
+    memo = {} if memo is None else memo
+    if unit not in memo:
+        memo[unit] = 1 + max((layer_of(u, memo) for u in ALLOWED[unit]), default=-1)
+    return memo[unit]
+
+
+def _row(unit: str) -> str:
+    """Return what a unit may import in the picture's words: the units, then the groups it has whole."""
+    rest = set(ALLOWED[unit])
+    if rest >= BASE and unit not in BASE:
+        rest -= BASE
+    names: list[str] = []
+    for name, members in GROUPS:
+        if members <= rest:
+            rest -= members
+            names.append(name)
+    order = sorted(rest, key=lambda u: (-layer_of(u), short(u)))
+    empty = "nothing of mapserver" if unit in BASE else "the base only"
+    return " · ".join([*(short(u) for u in order), *names]) or empty
+
+
+def picture() -> str:
+    """Return the text picture of :data:`ALLOWED`: one row per unit, highest layer first (docs/architecture.md)."""
+    width = max(len(short(u)) for u in ALLOWED)
+    lines = [f"layer  {'unit'.ljust(width)}     may import (besides the base, which every unit outside it may import)"]
+    for unit in sorted(ALLOWED, key=lambda u: (-layer_of(u), short(u))):
+        lines.append(f"{layer_of(unit):>5}  {short(unit).ljust(width)} ──► {_row(unit)}")
+    lines.append("")
+    for name, members in (("base", BASE), *GROUPS):
+        lines.append(f"{name}: {' · '.join(short(u) for u in sorted(members, key=lambda u: (-layer_of(u), short(u))))}")
+    return "\n".join(lines)
 
 # ------------------------------------------------------------------------------------------------ the walker
 
@@ -176,6 +237,9 @@ def check(edge: Edge) -> str | None:
     if unit is None:
         return None
     if target is None:
+        for module, why in FORBIDDEN.items():
+            if edge.imported == module or edge.imported.startswith(module + "."):
+                return f"{where}: {why}"
         owners = LIBRARY_OWNERS.get(edge.imported.split(".")[0])
         if owners is not None and unit not in owners:
             return f"{where}: only {', '.join(sorted(owners))} may import {edge.imported.split('.')[0]}"
@@ -219,6 +283,29 @@ def test_the_table_keeps_the_sideways_rules() -> None:
     assert ALLOWED["core"] == frozenset()
 
 
+def test_the_architecture_page_draws_the_table() -> None:
+    """docs/architecture.md holds :func:`picture` as it is (``python tests/test_layers.py --write`` draws it there)."""
+    text = ARCHITECTURE.read_text(encoding="utf-8")
+    drawn = text.split(PICTURE_BEGIN, 1)[-1].split(PICTURE_END, 1)[0].strip().removeprefix("```").removesuffix("```")
+    assert PICTURE_BEGIN in text and drawn.strip("\n") == picture(), "run `python tests/test_layers.py --write`"
+
+
+def test_the_architecture_page_lists_every_unit() -> None:
+    """The page's first block names every unit's file or folder (``mapserver/store/``, ``mapserver/rpe.py``)."""
+    listing = ARCHITECTURE.read_text(encoding="utf-8").split("```", 2)[1]
+    paths = {line.split()[0] for line in listing.splitlines() if line.strip()}
+    for unit in ALLOWED:
+        folder = unit.replace(".", "/")
+        names = {f"{folder}/__init__.py"} if unit == "mapserver" else {f"{folder}/", f"{folder}.py"}
+        assert names & paths, f"docs/architecture.md does not list {unit}"
+
+
+def test_the_picture_puts_every_import_below_its_importer() -> None:
+    for unit, allowed in ALLOWED.items():
+        assert all(layer_of(u) < layer_of(unit) for u in allowed), unit
+    assert {layer_of(u) for u in BASE} == {0} and layer_of("mapserver.cli") == max(map(layer_of, ALLOWED))
+
+
 def test_walker_sees_real_imports() -> None:
     """Guard against a walker that finds nothing: core must import numpy, the store sqlalchemy."""
     edges = [e for p in files(ROOT) for e in imports_of(p, ROOT)]
@@ -255,6 +342,10 @@ def _tree(root: Path, sources: dict[str, str]) -> Path:
          "mapserver.store.models is private to mapserver.store"),
         ({"mapserver/atlas.py": "def f():\n    from sqlalchemy import select\n"},
          "only mapserver.store may import sqlalchemy"),
+        ({"mapserver/plotting.py": "def f():\n    import matplotlib.pyplot as plt\n"},
+         "mapserver.plotting imports matplotlib.pyplot: pyplot keeps global state"),
+        ({"mapserver/store/export.py": "def f():\n    from matplotlib.figure import Figure\n"},
+         "only mapserver.plotting may import matplotlib"),
         ({"mapserver/report.py": "from mapserver import pipeline\n", "mapserver/pipeline.py": ""},
          "mapserver.report imports mapserver.pipeline: mapserver.report may not import mapserver.pipeline"),
     ],
@@ -276,3 +367,17 @@ def test_allowed_and_relative_imports_pass(tmp_path: Path) -> None:
     assert violations(root) == []
     edges = {e.imported for p in files(root) for e in imports_of(p, root)}
     assert {"mapserver.store.models", "mapserver.api.deps", "mapserver.atlas"} <= edges
+
+
+def draw_on_the_page() -> None:
+    """Write :func:`picture` between the markers of docs/architecture.md."""
+    text = ARCHITECTURE.read_text(encoding="utf-8")
+    head, rest = text.split(PICTURE_BEGIN, 1)
+    tail = rest.split(PICTURE_END, 1)[1]
+    ARCHITECTURE.write_text(f"{head}{PICTURE_BEGIN}\n```\n{picture()}\n```\n{PICTURE_END}{tail}", encoding="utf-8")
+
+
+if __name__ == "__main__":
+    import sys
+
+    draw_on_the_page() if "--write" in sys.argv[1:] else print(picture())

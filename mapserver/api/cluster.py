@@ -20,6 +20,7 @@ recovers jobs at start; each runs a :class:`Dispatcher` (duplicate messages are 
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from typing import Any
@@ -65,6 +66,19 @@ def make_celery(broker_url: str, queue: str = DEFAULT_QUEUE) -> Celery:
         drain(key)
 
     return app
+
+
+_URL = re.compile(r"\b[A-Za-z][A-Za-z0-9+.-]*://\S+")
+
+
+def broker_problem(err: BaseException) -> str:
+    """Return the health report's word for an unreachable broker: the transport's reason, any URL in it replaced.
+
+    ``unreachable: <reason>`` on one line, at most 200 characters of reason; a URL the reason quotes (which may
+    hold a user name or a host) reads ``<broker>``, the log keeps the whole text.
+    """
+    reason = _URL.sub("<broker>", " ".join(str(err).split()))
+    return f"unreachable: {reason[:200]}"
 
 
 class Dispatcher:
@@ -178,7 +192,8 @@ class CeleryJobEngine:
                 conn.ensure_connection(max_retries=1, timeout=2)
             replies = self.app.control.inspect(timeout=1.0).active_queues() or {}
         except Exception as err:  # a broker that cannot be reached, whatever the transport says
-            report["broker"] = f"unreachable: {' '.join(str(err).split())[:200]}"
+            logger.warning("the broker cannot be reached: %s", err)
+            report["broker"] = broker_problem(err)
             return report
         report["workers"] = sorted(
             name for name, queues in replies.items() if any(q.get("name") == self.queue for q in queues or [])

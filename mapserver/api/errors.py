@@ -1,7 +1,8 @@
 """The one place where errors become HTTP responses: ``{"detail": "..."}`` with the right status.
 
 ``mapserver.errors`` carries each class's status (``InputError`` 400, ``NotFoundError`` 404,
-``ConflictError`` 409, ``LimitError`` 413, anything else 500); this module adds the API's own members
+``ConflictError`` 409, ``LimitError`` 413, anything else 500), and the engine's ``core.config.ConfigError`` (a
+bad preset or parameter) is answered as an ``InputError`` (400); this module adds the API's own members
 (413, 415, 401, 403, 408, 503 with ``Retry-After``, 507), turns request validation failures into 422 with a
 one-line detail, adds ``"limit"`` (the limit's name in ``GET /v1/limits``) to the body of a refusal by a limit,
 and keeps 5xx bodies free of internals: ``internal error (reference R; ...)``, where R is the request's id
@@ -21,6 +22,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from core.config import ConfigError
 from mapserver.api.requestid import current_request_id, internal_error_detail, new_request_id
 from mapserver.errors import InputError, LimitError, MapServerError
 
@@ -159,6 +161,12 @@ def _internal(request: Request, err: Exception) -> JSONResponse:
     return JSONResponse({"detail": internal_error_detail(reference)}, status_code=500)
 
 
+async def _config_error(request: Request, err: Exception) -> JSONResponse:
+    """400 with the message: a bad preset or parameter is the client's input."""
+    del request
+    return JSONResponse({"detail": str(err)}, status_code=InputError.http_status)
+
+
 async def _storage_error(request: Request, err: Exception) -> JSONResponse:
     """507 with the cause in REST words (the operator's log line was written where the error was found)."""
     del request
@@ -172,8 +180,9 @@ async def _validation_error(request: Request, err: Exception) -> JSONResponse:
 
 
 async def _http_error(request: Request, err: Exception) -> JSONResponse:
-    del request
     assert isinstance(err, StarletteHTTPException)
+    if err.status_code >= 500:  # whatever raised it, a 5xx body names only the request's reference
+        return _internal(request, err)
     detail = err.detail if isinstance(err.detail, str) else str(err.detail)
     return JSONResponse({"detail": detail}, status_code=err.status_code, headers=getattr(err, "headers", None))
 
@@ -186,6 +195,7 @@ def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers that turn every error into ``{"detail": ...}`` with its status."""
     app.add_exception_handler(MapServerError, _mapserver_error)
     app.add_exception_handler(InsufficientStorageError, _storage_error)
+    app.add_exception_handler(ConfigError, _config_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(Exception, _unexpected_error)

@@ -8,8 +8,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from core.config import ConfigError
 from mapserver.api.archives import ArchiveLimits
-from mapserver.errors import ConfigError
 from mapserver.ingest.decode import DEFAULT_MAX_IMAGE_PIXELS
 from mapserver.store import DEFAULT_DB_URL
 

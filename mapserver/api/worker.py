@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from core.config import ConfigError
 from mapserver import pipeline
 from mapserver.api.requestid import internal_error_detail, new_request_id
 from mapserver.errors import MapServerError
@@ -155,8 +156,8 @@ def execute_job(
         )
     except JobInterrupted:
         raise
-    except MapServerError as err:
-        if err.http_status >= 500:  # the store's or the server's own failure: its text stays in the log
+    except (MapServerError, ConfigError) as err:
+        if isinstance(err, MapServerError) and err.http_status >= 500:  # the server's own failure: text to the log
             return JobOutcome(error=_internal_error(job, err))
         return JobOutcome(error=str(err).replace(str(log_path.parent) + "/", ""), stale=isinstance(err, StaleMapError))
     except Exception as err:

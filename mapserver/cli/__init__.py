@@ -4,7 +4,8 @@ Each command lives in its own module in this package and exposes
 ``register(subparsers) -> None``, which adds its parser and sets ``func`` to a
 callable ``run(args) -> int``. The dispatcher discovers the modules, so adding a
 command never touches this file. Errors become one line on stderr here, and only
-here: ``InputError``/``NotFoundError`` exit 2, any other ``MapServerError`` exits 1.
+here: ``InputError``/``NotFoundError`` and the engine's ``ConfigError`` (a bad preset, config file or
+``--set``) exit 2, any other ``MapServerError`` exits 1.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import pkgutil
 import sys
 from collections.abc import Sequence
 
-from mapserver.errors import MapServerError
+from core.config import ConfigError
+from mapserver.errors import InputError, MapServerError
 
 
 def command_modules() -> list[str]:
@@ -65,13 +67,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:
         code = int(args.func(args))
-    except MapServerError as err:
+    except (MapServerError, ConfigError) as err:
         print(f"ERROR: {err}", file=sys.stderr)
-        return err.exit_code
+        return exit_code(err)
     except KeyboardInterrupt:
         print("ERROR: interrupted", file=sys.stderr)
         return 1
     return code
+
+
+def exit_code(err: MapServerError | ConfigError) -> int:
+    """Return the exit code of an error: its class's, and an input error's (2) for the engine's ``ConfigError``."""
+    return InputError.exit_code if isinstance(err, ConfigError) else err.exit_code
 
 
 def entry() -> None:

@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from core.config import PRESETS, ConfigError, Params
+from core.config import PRESETS, Params
 from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
 
@@ -136,10 +136,7 @@ def _params(args: argparse.Namespace, log: Path) -> Params:
         if not args.db:
             msg = "--merge-evidence and --merge-probation need --db (merging is into stored maps)"
             raise InputError(msg)
-        try:
-            params = params.replace(**overrides)
-        except ConfigError as err:
-            raise InputError(str(err)) from err
+        params = params.replace(**overrides)
     return params
 
 

@@ -7,8 +7,8 @@ import os
 import socket
 import uuid
 
+from core.config import ConfigError
 from mapserver.cli._output import info
-from mapserver.errors import ConfigError
 
 DEFAULT_BROKER = "redis://127.0.0.1:6379/0"
 

@@ -24,7 +24,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from mapserver.errors import ConfigError, IngestError, LimitError
+from core.config import ConfigError
+from mapserver.errors import IngestError, LimitError
 
 DEFAULT_MAX_IMAGE_PIXELS = 1 << 25  # 33.5 Mpx: an 8K (7680×4320) frame fits
 PIXELS_ENV = "MAPSERVER_MAX_IMAGE_PIXELS"
@@ -40,11 +41,6 @@ _COMPRESSED_OK = ("jpeg", "jpg", "png")
 def is_compressed(msg: Any) -> bool:
     """Return True for a ``CompressedImage`` (it has ``format`` and no ``encoding``)."""
     return hasattr(msg, "format") and not hasattr(msg, "encoding")
-
-
-def image_format(msg: Any) -> str:
-    """Return the encoding of an ``Image`` or the format of a ``CompressedImage`` (as stored)."""
-    return str(msg.format if is_compressed(msg) else msg.encoding)
 
 
 def check_supported(msg: Any, topic: str = "") -> None:

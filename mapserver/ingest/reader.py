@@ -52,6 +52,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
 
+from core.config import ConfigError
 from core.motion import ZERO_MOTION, Motion
 from mapserver.errors import IngestError, InputError, LimitError, describe_cause
 from mapserver.ingest.decode import decode_image
@@ -688,7 +689,7 @@ def open_log(
         except IngestError as err:
             msg = f"{err} in {str(log_path)!r}"
             raise IngestError(msg) from err
-    except InputError:  # IngestError, a bad override, or a first frame over the pixel limit (LimitError)
+    except (InputError, ConfigError):  # IngestError, a bad override, a first frame over the pixel limit, a bad limit
         reader.close()
         raise
     except Exception as err:

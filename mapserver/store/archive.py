@@ -300,16 +300,6 @@ def load_archive(*, conn: Connection, archive_id: int) -> ArchivedState:
     )
 
 
-def archives_of_event(*, conn: Connection, event_id: int) -> list[int]:
-    """Return the ids of a merge event's archives, in creation order."""
-    return [
-        int(v)
-        for v in conn.execute(
-            select(MapArchive.id).where(MapArchive.event_id == event_id).order_by(MapArchive.id)
-        ).scalars()
-    ]
-
-
 def restore_map_states(*, conn: Connection, archive_ids: Sequence[int]) -> list[WriteResult]:
     """Write archived states back as stored maps, each under its archived name, in one transaction.
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from sqlalchemy import Connection, and_, func, select, tuple_
+from sqlalchemy import Connection, and_, select, tuple_
 
 from mapserver.errors import NotFoundError, StoreError
 from mapserver.store.bulk import bulk_insert
@@ -209,18 +209,3 @@ def get_evidence(*, conn: Connection, map_id: int, experience: int) -> StoredEvi
         msg = f"experience {experience!r} of this map has no evidence image"
         raise NotFoundError(msg)
     return StoredEvidence(int(row[0]), int(row[1]), row[2], row[3], int(row[4]), int(row[5]), str(row[6]), row[7])
-
-
-def count_evidence(*, conn: Connection, map_id: int) -> int:
-    """Return how many experiences of a map have evidence."""
-    return int(
-        conn.execute(
-            select(func.count())
-            .select_from(Experience)
-            .join(
-                Evidence,
-                and_(Experience.session_id == Evidence.session_id, Experience.origin_index == Evidence.origin_index),
-            )
-            .where(Experience.map_id == map_id)
-        ).scalar_one()
-    )

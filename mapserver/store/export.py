@@ -4,14 +4,13 @@ Map JSON is the contract's ``mapserver-map/1``; g2o is :mod:`mapserver.formats_g
 :mod:`mapserver.formats_csv` (``--out X.csv`` holds the experiences, ``X.links.csv`` beside it the links).
 
 JSON, TUM, g2o and CSV are written from :mod:`mapserver.store.streams` (rows read a batch at a time, the
-same bytes as the formatters of a loaded map); the PNG plot is drawn on a figure of its own (no pyplot), so
-concurrent exports need no lock. Every writer is atomic (temporary file + rename,
-:func:`mapserver.formats.atomic_write_chunks`).
+same bytes as the formatters of a loaded map); the PNG plot is drawn on a figure of its own
+(:mod:`mapserver.plotting`, no pyplot), so concurrent exports need no lock. Every writer is atomic
+(temporary file + rename, :func:`mapserver.formats.atomic_write_chunks`).
 """
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from core import LinkKind
 from core.se3 import quaternions_from_yaws
 from mapserver.errors import InputError
 from mapserver.formats import LINK_KIND_CODES, SessionInfo, atomic_write_bytes, atomic_write_chunks, map_json
+from mapserver.plotting import add_segments, new_figure, png_bytes, session_colour
 from mapserver.store.bulk import fetch_tuples
 from mapserver.store.db import Database
 from mapserver.store.maps import get_map
@@ -121,16 +121,12 @@ def read_plot_graph(db: Database, *, name: str) -> PlotGraph:
 def render_png(content: MapContent | PlotGraph, *, title: str | None = None) -> bytes:
     """Plot the experience graph (x, y), coloured by session, links drawn by kind; return PNG bytes.
 
-    Draws on a ``matplotlib.figure.Figure`` of its own (the object-oriented API, no pyplot state), so
-    any number of threads may render at once.
+    Draws on a figure of its own (:mod:`mapserver.plotting`: no pyplot state), so any number of threads may
+    render at once.
     """
-    from matplotlib import colormaps
-    from matplotlib.collections import LineCollection
-    from matplotlib.figure import Figure
-
     graph = content if isinstance(content, PlotGraph) else plot_graph_of(content)
     xy, src, dst, kinds, active = graph.xy, graph.src, graph.dst, graph.kinds, graph.active
-    fig = Figure(figsize=(8, 8), dpi=100)
+    fig = new_figure((8.0, 8.0))
     ax = fig.subplots()
     styles = {LinkKind.ODOMETRY: ("0.6", "-"), LinkKind.LOOP: ("tab:red", "--"), LinkKind.MERGE: ("tab:green", "-"),
               LinkKind.MANUAL: ("tab:purple", ":")}  # fmt: skip
@@ -139,25 +135,14 @@ def render_png(content: MapContent | PlotGraph, *, title: str | None = None) -> 
         label = LINK_KIND_NAMES[kind]
         if np.any(chosen):
             segments = np.stack([xy[src[chosen]], xy[dst[chosen]]], axis=1)
-            ax.add_collection(
-                LineCollection(
-                    segments,  # type: ignore[arg-type]  # the stubs take a sequence; an (N, 2, 2) array is valid
-                    colors=colour, linestyles=style, linewidths=0.8, label=f"{label} links",
-                )
-            )
+            add_segments(ax, segments, colors=colour, linestyles=style, linewidths=0.8, label=f"{label} links")
     if not active.all():  # switched off by robust relaxation: grey, dashed
         segments = np.stack([xy[src[~active]], xy[dst[~active]]], axis=1)
-        ax.add_collection(
-            LineCollection(
-                segments,  # type: ignore[arg-type]  # the stubs take a sequence; an (N, 2, 2) array is valid
-                colors="0.75", linestyles="--", linewidths=0.8, label="switched-off links",
-            )
-        )
-    cmap = colormaps["tab10"]
+        add_segments(ax, segments, colors="0.75", linestyles="--", linewidths=0.8, label="switched-off links")
     for k, (session_id, session_name) in enumerate(graph.sessions):
         chosen = graph.origin == session_id
         if np.any(chosen):
-            ax.scatter(xy[chosen, 0], xy[chosen, 1], s=10, color=cmap(k % 10), label=session_name, zorder=3)
+            ax.scatter(xy[chosen, 0], xy[chosen, 1], s=10, color=session_colour(k), label=session_name, zorder=3)
     ax.set_aspect("equal", adjustable="datalim")
     ax.autoscale_view()
     ax.set_xlabel("x (m)")
@@ -166,9 +151,7 @@ def render_png(content: MapContent | PlotGraph, *, title: str | None = None) -> 
     if xy.shape[0] or src.shape[0]:
         ax.legend(loc="best", fontsize="small")
     ax.grid(True, linewidth=0.3)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
-    return buffer.getvalue()
+    return png_bytes(fig)
 
 
 def links_csv_path(out: str | Path) -> Path:

@@ -32,11 +32,6 @@ MAP_LOCK_NAMESPACE = 0x6D61_7073  # "maps": first key of the two-key advisory lo
 """Two-key advisory locks live apart from the one-key locks of uploads and the atlas."""
 
 
-def map_key(job: JobRecord) -> str:
-    """Return the key that serialises a job with the other jobs of its map."""
-    return job.map_name if job.map_name is not None else f"#job-{job.id}"
-
-
 class MapLock:
     """A PostgreSQL session-level advisory lock on one map key, held on a dedicated connection.
 

@@ -49,3 +49,19 @@ def test_running_a_command_imports_only_its_module(tmp_path: Path) -> None:
     assert report["rc"] == 0
     assert report["modules"] == ["mapserver.cli._output", "mapserver.cli.maps"]
     assert report["fastapi"] is False  # the server's stack is not loaded to list maps
+
+
+def test_the_engines_config_error_is_exit_2_in_one_line_and_a_store_error_exit_1(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """core.config.ConfigError is the one ConfigError: the dispatcher maps it to an input error's exit 2."""
+    import mapserver.errors
+    from core.config import ConfigError
+    from mapserver.cli import exit_code
+    from mapserver.errors import StoreError
+
+    assert not hasattr(mapserver.errors, "ConfigError")
+    code = main(["worker", "--db", "sqlite:///x.db"])  # the worker refuses a database it cannot share
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("ERROR: mapserver worker needs a PostgreSQL database") and err.count("\n") == 1
+    assert exit_code(ConfigError("bad")) == 2 and exit_code(StoreError("down")) == 1

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from mapserver.errors import ConfigError
+from core.config import ConfigError
 from mapserver.params import resolve_params
 
 BLANK_WITH_TAB = " " * 48 + "\t"

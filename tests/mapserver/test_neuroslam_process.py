@@ -50,7 +50,7 @@ def test_the_same_log_gives_the_same_map(loop_log: Path) -> None:
 def test_a_neuroslam_map_is_refused_by_the_store_before_any_work(loop_log: Path, tmp_path: Path,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     from mapserver.api.intake import parse_options
-    from mapserver.errors import ConfigError
+    from core.config import ConfigError
 
     db = tmp_path / "maps.sqlite"
     code = main(["process", str(loop_log / "single.bag"), "--preset", "neuroslam", "--db", f"sqlite:///{db}"])

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from mapserver.errors import ConfigError, InputError
+from core.config import ConfigError
+from mapserver.errors import InputError
 from mapserver.pairs import parse_pairs
 
 

@@ -413,20 +413,6 @@ def build_aliased(seed: int, scale: float, params: dict[str, float]) -> Plan:
     return _ground_plan("aliased", seed, params, [region_a, region_b], sessions, None, scale, info, builder)
 
 
-def _segment_disc(p0: tuple[float, float], p1: tuple[float, float], disc: tuple[float, float, float]) -> bool:
-    """Return True when the segment p0–p1 comes within the disc (x, y, r)."""
-    a = np.asarray(p0)
-    b = np.asarray(p1)
-    c = np.asarray(disc[:2])
-    ab = b - a
-    t = float(np.clip(np.dot(c - a, ab) / max(float(np.dot(ab, ab)), 1e-12), 0.0, 1.0))
-    return float(np.linalg.norm(a + t * ab - c)) <= disc[2]
-
-
-def _inside_disc(p0: tuple[float, float], p1: tuple[float, float], disc: tuple[float, float, float]) -> bool:
-    return all(math.hypot(p[0] - disc[0], p[1] - disc[1]) <= disc[2] for p in (p0, p1))
-
-
 def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
     """An underwater cave loop (ellipse 3 m × 1.8 m semi-axes) whose depth changes along the way (4-DoF).
 

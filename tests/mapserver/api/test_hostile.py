@@ -437,8 +437,8 @@ def test_a_served_server_keeps_its_bytes_and_memory_under_the_limits(tmp_path: P
 
 
 def test_limits_come_from_the_environment_and_are_checked() -> None:
+    from core.config import ConfigError
     from mapserver.api import Settings
-    from mapserver.errors import ConfigError
 
     environment = {"MAPSERVER_MAX_UNPACKED_BYTES": "1000", "MAPSERVER_MAX_UNPACKED_RATIO": "2.5",
                    "MAPSERVER_MAX_ARCHIVE_ENTRIES": "7", "MAPSERVER_MAX_IMAGE_PIXELS": "99"}  # fmt: skip

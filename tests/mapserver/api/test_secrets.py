@@ -123,13 +123,43 @@ def test_a_500_names_the_request_id_and_the_log_has_the_detail(
     assert ok.status_code == 200 and len(ok.headers["x-request-id"]) == 16
 
 
+def test_a_5xx_http_exception_names_the_request_id_and_a_4xx_keeps_its_detail(
+    api: Api, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    from starlette.exceptions import HTTPException
+
+    import mapserver.api.routes.maps as maps_route
+
+    def upstream(**_: Any) -> Any:
+        raise HTTPException(status_code=502, detail=f"bad gateway to {SECRET}")
+
+    monkeypatch.setattr(maps_route, "list_maps", upstream)
+    with caplog.at_level(logging.ERROR):
+        response = api.client.get("/v1/maps", headers=api.read)
+    request_id = response.headers["x-request-id"]
+    assert response.status_code == 500 and response.json() == {"detail": internal_error_detail(request_id)}
+    assert "hunter2" not in response.text and "/srv/tmp" not in response.text
+    assert any(request_id in r.getMessage() and "hunter2" in r.getMessage() for r in caplog.records)
+    missing = api.client.get("/v1/no-such-route", headers=api.read)
+    assert missing.status_code == 404 and missing.json() == {"detail": "Not Found"}
+
+
+def test_the_health_reports_an_unreachable_broker_without_its_url() -> None:
+    from mapserver.api.cluster import broker_problem
+
+    refused = OSError("Error 111 connecting to redis://admin:hunter2@mq.internal:6379/0.\nConnection refused.")
+    assert broker_problem(refused) == "unreachable: Error 111 connecting to <broker> Connection refused."
+    assert broker_problem(OSError("timed out")) == "unreachable: timed out"
+
+
+@pytest.mark.parametrize("error", [StoreError, RuntimeError])
 def test_a_job_record_names_the_uploads_request_id_not_the_error(
-    api: Api, strip_log: Path, monkeypatch: pytest.MonkeyPatch
+    api: Api, strip_log: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, error: type[Exception]
 ) -> None:
     from mapserver import pipeline
 
     def broken(*_: Any, **__: Any) -> Any:
-        raise StoreError(f"database error on {SECRET}")
+        raise error(f"database error on {SECRET}")
 
     monkeypatch.setattr(pipeline, "process_into_store", broken)
     upload = api.upload(strip_log, preset="irat")
@@ -137,6 +167,26 @@ def test_a_job_record_names_the_uploads_request_id_not_the_error(
     job = api.wait(upload.json()["job"])
     assert job["status"] == "failed"
     assert job["error"] == internal_error_detail(upload.headers["x-request-id"])
+    assert "hunter2" not in json.dumps(job) and "/srv/tmp" not in json.dumps(job)
+    logged = [r.getMessage() for r in caplog.records if upload.headers["x-request-id"] in r.getMessage()]
+    assert any("hunter2" in line for line in logged)  # the detail went to the log under the same reference
+
+
+def test_a_job_refused_for_its_parameters_shows_the_message(
+    api: Api, strip_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The engine's ConfigError is the client's input: the job record shows its message, not an internal error."""
+    from core.config import ConfigError
+    from mapserver import pipeline
+
+    def refused(*_: Any, **__: Any) -> Any:
+        raise ConfigError("parameter 'frontend_backbone' = 'vgg': must be one of none, shufflenetv2, alexnet")
+
+    monkeypatch.setattr(pipeline, "process_into_store", refused)
+    upload = api.upload(strip_log, preset="irat")
+    job = api.wait(upload.json()["job"])
+    assert job["status"] == "failed"
+    assert job["error"] == "parameter 'frontend_backbone' = 'vgg': must be one of none, shufflenetv2, alexnet"
 
 
 def test_a_404_for_an_unknown_map_lists_no_other_map(api: Api) -> None:

@@ -55,6 +55,19 @@ def test_truncated_bag_is_400(api: Api, strip_log: Path) -> None:
     assert _files(api) == [] and _jobs(api) == 0
 
 
+def test_an_unknown_preset_is_400_with_the_engines_message(api: Api, strip_log: Path) -> None:
+    """The engine's ConfigError (one class for core and mapserver) is a 400 naming the presets, writing nothing."""
+    from core.config import ConfigError, preset
+
+    with pytest.raises(ConfigError) as refused:
+        preset("cirkle")
+    response = api.upload(strip_log, preset="cirkle")
+    assert response.status_code == 400 and response.json() == {"detail": str(refused.value)}
+    assert "did you mean 'circle'" in response.json()["detail"]
+    assert _files(api) == [] and _jobs(api) == 0
+    assert api.upload(strip_log, preset="circle").status_code == 202  # the same log with a preset that exists
+
+
 def test_bad_form_fields_are_400(api: Api, strip_log: Path) -> None:
     cases = {
         ("preset", "nope"): "nope",
