@@ -49,8 +49,8 @@ def test_the_same_log_gives_the_same_map(loop_log: Path) -> None:
 
 def test_a_neuroslam_map_is_refused_by_the_store_before_any_work(loop_log: Path, tmp_path: Path,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    from mapserver.api.intake import parse_options
     from core.config import ConfigError
+    from mapserver.api.intake import parse_options
 
     db = tmp_path / "maps.sqlite"
     code = main(["process", str(loop_log / "single.bag"), "--preset", "neuroslam", "--db", f"sqlite:///{db}"])
