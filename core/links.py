@@ -18,5 +18,5 @@ class LinkKind(IntEnum):
     MANUAL = 3
 
 
-SWITCHABLE_KINDS = (LinkKind.LOOP, LinkKind.MERGE)
+SWITCHABLE_KINDS = (LinkKind.LOOP, LinkKind.MERGE, LinkKind.MANUAL)
 """The kinds that the robust relaxation may switch off: loop closures and merge links."""
