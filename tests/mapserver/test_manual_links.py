@@ -28,9 +28,10 @@ from mapserver.api import Settings, create_app
 from mapserver.errors import ConflictError
 from mapserver.evaluation import evaluate_map, interpolate_poses
 from mapserver.formats import Trajectory, read_tum
+from mapserver.formats_g2o import g2o_text
 from mapserver.manual_links import LinkRequest, link_experiences
 from mapserver.store import get_map, load_map, open_database
-from mapserver.store.export import map_document
+from mapserver.store.export import export_map, map_document
 from mapserver.store.manual_links import manual_links
 from mapserver.store.tokens import create_token
 from mapserver.undo import redo_merge, unmerge
@@ -128,6 +129,11 @@ def test_a_contradicting_manual_link_is_flagged_and_bends_nothing(lap: tuple[Pat
     assert [(x["kind"], x.get("active", True)) for x in after_doc["links"][-1:]] == [("manual", False)]
     health = cli_json("maps", "--db", url)["maps"][0]["health"]
     assert health["switched_off"] == 1
+    with open_database(url) as db:
+        export_map(db, name="blind", fmt="g2o", out=tmp_path / "blind.g2o")
+        streamed = (tmp_path / "blind.g2o").read_text(encoding="utf-8")
+        assert streamed == g2o_text(load_map(db, name="blind").snapshot, planar=True)
+    assert streamed.splitlines()[-2].startswith("# inactive EDGE_SE2 0 69 ") and streamed.endswith("\n# manual 0 69\n")
 
 
 @pytest.mark.usefixtures("db_url")
