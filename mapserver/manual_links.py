@@ -87,7 +87,8 @@ class LinkOutcome:
 
     ``from_id``/``to_id``/``link`` are ids in ``map_name`` as it is after the link. ``misfit_m`` and
     ``misfit_rad``: how far the settled map puts ``to`` from where the link says (0 for a link kept on in a
-    map that agrees with it; the contradiction itself for a link switched off).
+    map that agrees with it; the contradiction itself for a link switched off). ``checked``: False when the map's
+    parameters switch the robust check off (``exp_robust``): the link is then applied unchecked, and says so.
     """
 
     event_id: int
@@ -99,6 +100,7 @@ class LinkOutcome:
     misfit_m: float
     misfit_rad: float
     author: str
+    checked: bool
     merged: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -107,6 +109,7 @@ class LinkOutcome:
             "linked": True, "event": self.event_id, "map": self.map_name, "link": self.link, "from": self.from_id,
             "to": self.to_id, "kind": "manual", "active": self.active, "flagged": not self.active,
             "misfit_m": self.misfit_m, "misfit_rad": self.misfit_rad, "author": self.author, "merged": self.merged,
+            "checked": self.checked,
             "reason": None if self.active else _reason(self.misfit_m, self.misfit_rad),
         }  # fmt: skip
 
@@ -239,7 +242,7 @@ def _link_within(db: Database, request: LinkRequest) -> LinkOutcome:
             template_index=m.identities.template_arrays()[1], experience_index=m.identities.experience_arrays()[1],
         )  # fmt: skip
     return LinkOutcome(event_id, m.name, link, request.from_id, request.to_id, active, misfit_m, misfit_rad,
-                       request.author)  # fmt: skip
+                       request.author, m.params.exp_robust)  # fmt: skip
 
 
 def placing_match(a: AtlasMap, b: AtlasMap, from_id: int, to_id: int, transform: Sequence[float]) -> Match:
@@ -299,7 +302,7 @@ def _link_across(db: Database, request: LinkRequest) -> LinkOutcome:
         )  # fmt: skip
     merged = [n for n in (a.name, b.name) if n != written.host_name]
     return LinkOutcome(written.event_ids[0], written.host_name, link, request.from_id, to_id, active, misfit_m,
-                       misfit_rad, request.author, merged=merged)  # fmt: skip
+                       misfit_rad, request.author, a.params.exp_robust, merged=merged)  # fmt: skip
 
 
 def link_experiences(db: Database, request: LinkRequest) -> LinkOutcome:

@@ -263,3 +263,20 @@ def test_linking_two_maps_merges_them_through_the_link(
         unmerge(db, event_id=outcome.event_id)
         for name, snapshot in before.items():
             assert_same_arrays(snapshot, load_map(db, name=name).snapshot)
+
+
+def test_without_the_robust_check_a_link_goes_in_unchecked_and_says_so(
+    lap: tuple[Path, Trajectory], tmp_path: Path
+) -> None:
+    """The check is what flags: a map whose parameters switch it off (``exp_robust``) takes the 20 m link, is bent
+    by it (APE up several-fold), and the answer says ``checked: false`` rather than pass it off as checked."""
+    url, gt = f"sqlite:///{tmp_path / 'unchecked.db'}", lap[1]
+    log = lap[0].parent / "single.bag"
+    pipeline.process_into_store(log, BLIND.replace(exp_robust=False), db_url=url, map_name="blind")
+    before = _ape(url, "blind", gt)
+    stated = list(_stated(url, gt, "blind", LAP_START, LAP_END))
+    stated[0] += 20.0
+    with open_database(url) as db:
+        outcome = link_experiences(db, LinkRequest("blind", LAP_START, LAP_END, transform=tuple(stated), author="ops"))  # type: ignore[arg-type]
+    assert (outcome.checked, outcome.active, outcome.as_dict()["flagged"]) == (False, True, False)
+    assert _ape(url, "blind", gt) > 3 * before
