@@ -205,6 +205,7 @@ def test_the_rest_api_adds_lists_and_undoes_manual_links(lap: tuple[Path, Trajec
             answer["event"], answer["author"], True, "manual")  # fmt: skip
         events = client.get("/v1/merges", headers=read).json()["merges"]
         assert [(e["id"], e["mode"], e["status"]) for e in events] == [(answer["event"], "manual", "applied")]
+        assert (events[0]["link"]["author"], events[0]["link"]["active"]) == (answer["author"], True)
         undone = client.post(f"/v1/merges/{answer['event']}/undo", headers=write)
         assert undone.status_code == 200 and undone.json()["status"] == "undone"
         assert client.get("/v1/maps/blind/links", headers=read).json()["links"] == []
