@@ -18,5 +18,6 @@ class LinkKind(IntEnum):
     MANUAL = 3
 
 
-SWITCHABLE_KINDS = (LinkKind.LOOP, LinkKind.MERGE)
-"""The kinds that the robust relaxation may switch off: loop closures and merge links."""
+SWITCHABLE_KINDS = (LinkKind.LOOP, LinkKind.MERGE, LinkKind.MANUAL)
+"""The kinds that the robust relaxation may switch off: loop closures, merge links and manual links (an operator's
+link that contradicts the map is flagged, switched off, never bent into it: ``mapserver link``)."""

@@ -2,7 +2,7 @@
 
 Model: switchable constraints (Sünderhauf & Protzel, "Switchable Constraints for Robust Pose
 Graph SLAM", IROS 2012) with binary switches: every loop and merge link l carries a switch
-s_l ∈ {0, 1}; odometry and manual links are never switched. The switches minimise the
+s_l ∈ {0, 1}, and so does every manual link; odometry links are never switched. The switches minimise the
 truncated least squares (TLS) cost of Yang, Antonante, Tzoumas & Carlone ("Graduated
 Non-Convexity for Robust Spatial Perception", RA-L 2020, Eq. 2 with the TLS loss)
 

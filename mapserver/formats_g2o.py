@@ -21,6 +21,8 @@ A link switched off by relaxation (``em_link_active`` false, when the snapshot h
 written as a comment line ``# inactive EDGE_...`` at the end of the file, after ``FIX 0``: g2o skips
 comments, and GTSAM's ``readG2o`` (4.3) stops reading at the first line it does not know, so nothing that
 matters comes after one (tests/mapserver/test_formats_g2o.py reads an export whole with the PyPI package).
+A link's kind is not part of an edge; the manual links (added by an operator, ``mapserver link``) are named last,
+one comment line ``# manual FROM TO`` each (:func:`manual_lines`).
 
 Reading (:func:`read_g2o_vertices`): the vertices of a file (SE2 or SE3:QUAT) as poses ``[x, y, z, yaw]``;
 edges, ``FIX`` and comments are skipped. An SE3 vertex's yaw is that of its rotation; its roll and pitch
@@ -39,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from core.links import LinkKind
 from core.se3 import quaternions_from_yaws, yaw_of_unit_quaternion
 from mapserver.bounds import MAX_ANGLE_RAD, MAX_POSITION_M, value_problem
 from mapserver.errors import InputError
@@ -118,6 +121,12 @@ def edge_lines(
     return [f"{prefix}{tag} {s} {t} {m}\n" for (s, t), m in zip(ends, _numbers(values), strict=True)]
 
 
+def manual_lines(src: npt.ArrayLike, dst: npt.ArrayLike) -> list[str]:
+    """Return ``# manual FROM TO`` for each manual link ``src`` → ``dst`` (comments: g2o and GTSAM skip them)."""
+    ends = zip(np.asarray(src).reshape(-1).tolist(), np.asarray(dst).reshape(-1).tolist(), strict=True)
+    return [f"# manual {s} {t}\n" for s, t in ends]
+
+
 def g2o_text(snapshot: Mapping[str, npt.ArrayLike], *, planar: bool) -> str:
     """Return the g2o file of a map snapshot (``em_pose``, ``em_link_*``; see the module docstring).
 
@@ -137,6 +146,10 @@ def g2o_text(snapshot: Mapping[str, npt.ArrayLike], *, planar: bool) -> str:
         lines.append("FIX 0\n")
     off = ~active
     lines += edge_lines(src[off], dst[off], tf[off], dist[off], planar=planar, inactive=True)
+    kind = np.asarray(snapshot.get("em_link_kind", np.zeros(0)), dtype=np.int64).reshape(-1)[: src.shape[0]]
+    manual = np.zeros(src.shape[0], dtype=bool)
+    manual[: kind.size] = kind == int(LinkKind.MANUAL)
+    lines += manual_lines(src[manual], dst[manual])
     return "".join(lines) if lines else "\n"
 
 

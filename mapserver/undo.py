@@ -151,6 +151,10 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
         if event.status != "undone":
             msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
             raise ConflictError(msg)
+        if event.mode == "manual":  # mapserver.manual_links.MANUAL_MODE
+            msg = (f"merge event {event_id} is a manual link; add it again to redo it (mapserver link, "
+                   "POST /v1/maps/{name}/links)")
+            raise ConflictError(msg)
         details = dict(event.details or {})
         current, target, source = _restored_maps_and_archives(conn, event_id, details.get("undo") or {}, event)
         match = match_from_dict(details["match"])

@@ -38,7 +38,7 @@ DOMAIN = frozenset({"mapserver.ingest", "mapserver.store", "mapserver.merge"})
 """Reading logs, keeping maps, merging engine states: they never import each other."""
 
 ORCHESTRATION = frozenset({"mapserver.run", "mapserver.live", "mapserver.atlas", "mapserver.undo", "mapserver.report",
-                           "mapserver.pipeline"})  # fmt: skip
+                           "mapserver.pipeline", "mapserver.manual_links"})  # fmt: skip
 """The modules that run the domain packages together (each row below says which ones it uses)."""
 
 FACES = ("mapserver.api", "mapserver.cli")
@@ -68,6 +68,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     "mapserver.run": BASE | HELPERS | {"mapserver.ingest"},
     "mapserver.atlas": BASE | HELPERS | {"mapserver.store", "mapserver.merge"},
     "mapserver.undo": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
+    "mapserver.manual_links": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
     "mapserver.live": BASE | HELPERS | {"mapserver.merge", "mapserver.atlas"},
     "mapserver.report": BASE | HELPERS | {"mapserver.ingest", "mapserver.store"},
     "mapserver.pipeline": BASE | HELPERS | DOMAIN | {"mapserver.run", "mapserver.live", "mapserver.atlas"},

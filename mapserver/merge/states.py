@@ -61,8 +61,11 @@ def _check_id(value: int, count: int, what: str, allow_none: bool = False) -> No
 
 
 def _template_map(match: Match, n_loaded: int, n_partial: int) -> np.ndarray:
-    """Return (P,) merged template ids: identified ones → loaded ids, the rest appended in order."""
-    identified: dict[int, int] = {match.partial_template: match.stored_template}
+    """Return (P,) merged template ids: identified ones → loaded ids, the rest appended in order.
+
+    A match whose ``partial_template`` is −1 (a manual link, :mod:`mapserver.manual_links`) identifies none.
+    """
+    identified: dict[int, int] = {} if match.partial_template < 0 else {match.partial_template: match.stored_template}
     for z, u in match.pairs:
         _check_id(z, n_partial, "partial template")
         _check_id(u, n_loaded, "stored template")
@@ -288,7 +291,7 @@ def _check_inputs(loaded: State, partial: State, match: Match) -> tuple[int, ...
     dims = lattice_shape(loaded)
     _check_id(match.stored_template, int(np.shape(loaded["lv_means"])[0]), "stored template")
     _check_id(match.stored_experience, int(np.shape(loaded["em_pose"])[0]), "stored experience")
-    _check_id(match.partial_template, int(np.shape(partial["lv_means"])[0]), "partial template")
+    _check_id(match.partial_template, int(np.shape(partial["lv_means"])[0]), "partial template", allow_none=True)
     if len(match.partial_packet) != len(dims) or len(match.partial_pose) != 4:
         msg = f"partial anchor must be a pose (4,) and a packet ({len(dims)},), got {match.partial_pose!r}, " \
               f"{match.partial_packet!r}"

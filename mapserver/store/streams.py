@@ -31,7 +31,7 @@ from core.se3 import quaternions_from_yaws
 from mapserver.errors import ConflictError, InputError
 from mapserver.formats import MAP_FORMAT, TUM_HEADER, _plain
 from mapserver.formats_csv import EXPERIENCE_COLUMNS, LINK_COLUMNS
-from mapserver.formats_g2o import edge_lines, vertex_lines
+from mapserver.formats_g2o import edge_lines, manual_lines, vertex_lines
 from mapserver.store.bulk import iter_tuples
 from mapserver.store.db import Database, small_page_cache
 from mapserver.store.errors import CorruptStateError
@@ -356,8 +356,8 @@ def is_planar(params: Mapping[str, Any]) -> bool:
 def _g2o(conn: Connection, head: ExportHead, batch: int) -> Iterator[bytes]:
     """The experience graph as ``formats_g2o.g2o_text`` writes it (SE2 for planar maps, else SE3:QUAT).
 
-    Vertices, then the active links, ``FIX 0``, and last the switched-off links as comments (a second pass
-    over the links, so that memory stays one batch).
+    Vertices, then the active links, ``FIX 0``, the switched-off links as comments (a second pass over the links,
+    so that memory stays one batch), and last the manual links named as comments ``# manual FROM TO``.
     """
     planar = is_planar(head.params)
     any_line = False
@@ -374,6 +374,9 @@ def _g2o(conn: Connection, head: ExportHead, batch: int) -> Iterator[bytes]:
                                    planar=planar, inactive=inactive)  # fmt: skip
                 yield "".join(lines).encode("utf-8")
                 any_line = True
+    manual = select(Link.from_id, Link.to_id).where(Link.map_id == head.map_id, Link.kind == "manual")
+    for rows in iter_tuples(conn, manual.order_by(Link.seq), batch):
+        yield "".join(manual_lines([r[0] for r in rows], [r[1] for r in rows])).encode("utf-8")
     if not any_line:
         yield b"\n"
 

@@ -75,6 +75,7 @@ def event_view(conn: Connection, event: MergeEventRecord) -> dict[str, Any]:
         "anchor": matches.get("anchor"), "places": places,
         "reason": ((details.get("evidence") or {}).get("verification") or {}).get("reason"),
         "evidence": details.get("evidence"),
+        "link": details.get("link"),  # a manual link's: ends, transform, author, whether the check kept it on
     }  # fmt: skip
 
 

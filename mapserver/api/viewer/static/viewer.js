@@ -413,10 +413,12 @@ function mergeItem(m) {
     el("div", {}, sessions),
     el("div", {}, `transform t = (${fmt(t[0], 2)}, ${fmt(t[1], 2)}, ${fmt(t[2], 2)}) m, yaw ${fmt(m.yaw * 180 / Math.PI, 1)}°`),
     el("div", {}, `${m.places.length} matched places`),
-    m.reason ? el("div", { class: "hint" }, String(m.reason)) : "");
+    m.reason ? el("div", { class: "hint" }, String(m.reason)) : "",
+    m.link ? el("div", {}, `manual link ${m.link.from} → ${m.link.to} by ${m.link.author}` +
+                           (m.link.active ? "" : " · flagged: it contradicts the map, switched off")) : "");
   const buttons = el("div", {}, el("button", { class: "show", onclick: () => showMerge(m, item) }, "show on map"));
   if (m.status === "applied") buttons.append(el("button", { class: "undo", onclick: () => mergeAction(m.id, "undo") }, "undo"));
-  if (m.status === "undone") buttons.append(el("button", { class: "redo", onclick: () => mergeAction(m.id, "redo") }, "redo"));
+  if (m.status === "undone" && m.mode !== "manual") buttons.append(el("button", { class: "redo", onclick: () => mergeAction(m.id, "redo") }, "redo"));
   item.append(buttons);
   return item;
 }
