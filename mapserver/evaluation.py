@@ -316,8 +316,8 @@ def hausdorff(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
     if pa.shape[0] == 0 or pb.shape[0] == 0:
         msg = "hausdorff needs two non-empty point sets"
         raise ValueError(msg)
-    a_to_b = cKDTree(pb).query(pa, k=1)[0]
-    b_to_a = cKDTree(pa).query(pb, k=1)[0]
+    a_to_b = np.asarray(cKDTree(pb).query(pa, k=1)[0], dtype=np.float64)
+    b_to_a = np.asarray(cKDTree(pa).query(pb, k=1)[0], dtype=np.float64)
     return float(max(a_to_b.max(), b_to_a.max()))
 
 
