@@ -13,6 +13,7 @@ import pytest
 
 from mapserver import pipeline
 from mapserver.api.viewdata import session_ends
+from mapserver.api.viewtruth import in_map_frame, thin
 from mapserver.cli import main
 from mapserver.errors import InputError
 from mapserver.formats import read_tum, write_tum
@@ -61,6 +62,16 @@ def test_each_session_starts_and_ends_at_its_first_and_last_experience_in_time()
     assert ends[0]["end"] == {"id": 4, "x": 6.0, "y": 5.0}
     side = session_ends(g, "xz")  # the side view's plane: x and z (0 here)
     assert side[1]["start"] == {"id": 2, "x": 2.0, "y": 0.0}
+
+
+def test_the_overlay_undoes_the_alignment_and_thins_evenly() -> None:
+    rows = np.zeros((2, 8))
+    rows[:, 1:4] = [[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]]
+    quarter = {"rotation": [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], "translation": [1.0, 0.0, 1.0]}
+    # p_map = Rᵀ(p − t): (1, 2, 3) − t = (0, 2, 2), turned back a quarter: (2, 0, 2); planar maps drop z first
+    assert in_map_frame(rows, quarter, 3).tolist() == [[2.0, 0.0, 2.0], [0.0, 1.0, 0.0]]
+    assert in_map_frame(rows, quarter, 2).tolist() == [[2.0, 0.0, -1.0], [0.0, 1.0, -1.0]]
+    assert thin(5, 10).tolist() == [0, 1, 2, 3, 4] and thin(101, 5).tolist() == [0, 25, 50, 75, 100]
 
 
 def process(log: Path, db_url: str, name: str) -> None:
