@@ -10,7 +10,7 @@ const TOKEN_KEY = "mapserver-token";
 const SESSION_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"];
 const LINK_STYLES = {
   odometry: { color: "#9e9e9e", width: 1, dash: [] },
-  loop: { color: "#d62728", width: 2, dash: [] },
+  loop: { color: "#d62728", width: 1, dash: [] },
   merge: { color: "#6a1b9a", width: 2, dash: [6, 4] },
   manual: { color: "#00838f", width: 1.5, dash: [2, 2] },
   inactive: { color: "#cfcfcf", width: 1, dash: [1, 3] },
