@@ -226,6 +226,7 @@ def _process_session(
     complete = processed >= total
     if complete:
         engine.settle()
+    truth = log_ground_truth_rows(log) if complete else None
     ids.extend(engine.template_count, engine.experience_count, tag)
     progress = _Progress(processed, total, live.stamps, np.concatenate([read.rows, reckoning.array()]),
                          tuple(float(v) for v in reckoning.pose))  # fmt: skip
@@ -234,7 +235,25 @@ def _process_session(
         merger=merger if not complete else None, candidates=candidates, progress=progress, collector=live.collector,
         frames_run=run.frames, activations=(read.activations, live.activation_rows),
         relevance=(set() if merger is None else merger.observed, live.views), dropped=run.info["dropped"],
+        ground_truth=truth,
     ))  # fmt: skip
+
+
+def log_ground_truth_rows(log: MissionLog) -> np.ndarray | None:
+    """Return the log's ground-truth topic as rows ``[stamp s, x, y, z, qx, qy, qz, qw]`` (None: it has none).
+
+    A ground-truth message that cannot be read leaves the session without ground truth (a warning says so):
+    the map does not depend on it.
+    """
+    try:
+        rows = [(s.stamp_ns * 1e-9, s.x, s.y, s.z, s.qx, s.qy, s.qz, s.qw) for s in log.ground_truth()]
+    except InputError as err:
+        logger.warning("the log's ground truth is not kept: %s", err)
+        return None
+    array = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    if array.shape[0] == 0 or not np.isfinite(array).all():
+        return None
+    return array
 
 
 @dataclass
@@ -363,6 +382,7 @@ class _RunOutcome:
     activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
     relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
     dropped: Any = None  # what reading the log dropped (mapserver.ingest.frames.IngestReport)
+    ground_truth: np.ndarray | None = None  # the log's ground-truth rows, kept with the session once it is complete
 
 
 def _store_session(
@@ -476,6 +496,10 @@ def _write_session_row(
             ),
         )  # fmt: skip
         session_id = int(created.id)
+    if run.ground_truth is not None:
+        from mapserver.store.ground_truth import set_ground_truth
+
+        set_ground_truth(conn=conn, session_id=session_id, rows=run.ground_truth)
     stored, live = run.activations
     if stored is not None:
         set_activations(conn=conn, session_id=session_id,

@@ -194,7 +194,8 @@ def decimate(
     Returns:
         ``{"nodes": {"id", "x", "y", "session"}, "links": {"a", "b", "kind", "active"}`` (a, b index the
         returned nodes), ``"in_view"`` (experiences in the box), ``"decimated"``, ``"cell"`` (grid cell
-        size, 0 when not decimated), ``"bounds"`` (the whole map's), ``"sessions"``, ``"kinds"``}.
+        size, 0 when not decimated), ``"bounds"`` (the whole map's), ``"sessions"``, ``"kinds"``, ``"ends"``
+        (:func:`session_ends`)}.
     """
     xy = graph.plane(view)
     ids = np.arange(xy.shape[0], dtype=np.int64)
@@ -239,7 +240,30 @@ def decimate(
         "sessions": graph.session_names,
         "kinds": list(LINK_KIND_NAMES),
         "view": view,
+        "ends": session_ends(graph, view),
     }
+
+
+def session_ends(graph: ViewGraph, view: View = "xy") -> list[dict[str, Any]]:
+    """Return where each session's trajectory starts and ends: its first and last experience by stamp.
+
+    Taken over the whole map (not the box, not the decimated nodes), lowest id first among equal stamps:
+    ``[{"session" (index into ``sessions``), "start": {"id", "x", "y"}, "end": {"id", "x", "y"}}]``.
+    """
+    if graph.session.size == 0:
+        return []
+    xy = graph.plane(view)
+    ids = np.arange(graph.session.size, dtype=np.int64)
+    order = np.lexsort((ids, graph.stamp, graph.session))  # by session, then stamp, then id
+    ordered = graph.session[order]
+    firsts = order[np.flatnonzero(np.diff(ordered, prepend=-1))]
+    lasts = order[np.flatnonzero(np.diff(ordered, append=ordered[-1] + 1))]
+
+    def point(k: int) -> dict[str, Any]:
+        return {"id": k, "x": round(float(xy[k, 0]), 4), "y": round(float(xy[k, 1]), 4)}
+
+    return [{"session": int(graph.session[a]), "start": point(int(a)), "end": point(int(b))}
+            for a, b in zip(firsts.tolist(), lasts.tolist(), strict=True)]  # fmt: skip
 
 
 def nearest(graph: ViewGraph, x: float, y: float, view: View = "xy") -> int | None:

@@ -47,13 +47,14 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def _command_module(argv: Sequence[str]) -> str | None:
     """Return the module of the command named in ``argv`` (its first non-option word), if any.
 
-    A command module may register a command of another spelling (``import_`` registers ``import``).
+    A command module may register a command of another spelling (``import_`` registers ``import``,
+    ``ground_truth`` ``ground-truth``).
     """
     word = next((a for a in argv if not a.startswith("-")), None)
     if word is None:
         return None
     modules = command_modules()
-    for name in (word, f"{word}_"):
+    for name in (word, f"{word}_", word.replace("-", "_")):
         if name in modules:
             return name
     return None

@@ -163,6 +163,9 @@ class Session(Base):
     #: per frame ``[stamp, template session, template origin index, created]`` (float64 LE, N × 4): the
     #: activation timeline (mapserver.store.sessions.get_activations); NULL before migration 0005
     activations: Mapped[bytes | None] = mapped_column(LargeBinary)
+    #: the log's ground truth ``[stamp, x, y, z, qx, qy, qz, qw]`` (float64 LE, N × 8), decimated
+    #: (mapserver.store.ground_truth); NULL when the session has none (and before migration 0009)
+    ground_truth: Mapped[bytes | None] = mapped_column(LargeBinary)
     started_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)

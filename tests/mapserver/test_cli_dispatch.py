@@ -18,7 +18,7 @@ def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     for name in command_modules():
-        assert name.rstrip("_") in out  # import_ registers "import"
+        assert name.rstrip("_").replace("_", "-") in out  # import_ registers "import", ground_truth "ground-truth"
     assert len(command_modules()) >= 14
 
 

@@ -14,7 +14,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from mapserver.api.routes import graph, merges
+from mapserver.api.routes import graph, merges, truth
 
 STATIC = Path(__file__).resolve().parent / "static"
 
@@ -23,6 +23,7 @@ def install_viewer(app: FastAPI) -> None:
     """Add the viewer's API routes, ``/viewer/static/*`` and the page at ``/``."""
     app.include_router(graph.router)
     app.include_router(merges.router)
+    app.include_router(truth.router)  # the ground-truth overlay with each session's APE
     app.mount("/viewer/static", StaticFiles(directory=STATIC), name="viewer-static")
 
     @app.get("/", include_in_schema=False)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapserver.ingest.frames import PoseSample
 from mapserver.ingest.writer import OdomSample, write_log
 
 T0_NS = 1_700_000_000_000_000_000
@@ -33,10 +34,13 @@ def _texture(seed: int, height: int = 20, columns: int = int(PERIMETER_M * PX_PE
 def write_strip_log(path: Path, *, laps: float = 1.3, seed: int = 3, rate_hz: float = 2.0, fmt: str = "bag",
                     width: int = 64, t0_ns: int = T0_NS, directory: bool = False,
                     odometry_edit: Callable[[list[OdomSample]], list[OdomSample]] | None = None,
-                    pose_only: bool = False) -> Path:  # fmt: skip
+                    pose_only: bool = False, truth_hz: float = 0.0,
+                    truth_frame: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Path:  # fmt: skip
     """Write a log of the strip world driven ``laps`` times around (images at ``rate_hz``, odometry 10 Hz).
 
     ``odometry_edit`` gets the odometry samples and returns the ones written; ``pose_only`` writes zero twists.
+    ``truth_hz`` > 0 adds a ground-truth topic at that rate: the same circle, in a frame turned by
+    ``truth_frame[0]`` rad and shifted by ``truth_frame[1:]`` m from the odometry's.
     """
     texture = _texture(seed)
     columns = texture.shape[1]
@@ -57,8 +61,25 @@ def write_strip_log(path: Path, *, laps: float = 1.3, seed: int = 3, rate_hz: fl
                                    0.0, yaw, speed, 0.0, 0.0, wz))  # fmt: skip
     if odometry_edit is not None:
         odometry = odometry_edit(odometry)
-    return write_log(path, fmt, images, odometry, directory=directory,  # type: ignore[arg-type]
+    truth = strip_truth(duration, truth_hz, truth_frame, t0_ns) if truth_hz > 0 else []
+    return write_log(path, fmt, images, odometry, truth, directory=directory,  # type: ignore[arg-type]
                      pose_only_odometry=pose_only)  # fmt: skip
+
+
+def strip_truth(duration: float, hz: float, frame: tuple[float, float, float], t0_ns: int = T0_NS) -> list[PoseSample]:
+    """Return the strip log's ground truth: its circle at ``hz`` for ``duration`` s, in ``frame`` (yaw, x, y)."""
+    radius = PERIMETER_M / (2 * math.pi)
+    turn, dx, dy = frame
+    out = []
+    for j in range(int(duration * hz) + 1):
+        t = j / hz
+        yaw = t / radius  # 1 m/s
+        x, y = radius * math.sin(yaw), radius * (1 - math.cos(yaw))
+        heading = yaw + turn
+        out.append(PoseSample(t0_ns + round(t * 1e9), math.cos(turn) * x - math.sin(turn) * y + dx,
+                              math.sin(turn) * x + math.cos(turn) * y + dy, 0.0, 0.0, 0.0,
+                              math.sin(heading / 2), math.cos(heading / 2)))  # fmt: skip
+    return out
 
 
 def zip_directory(directory: Path, out: Path, *, prefix: str | None = None) -> Path:

@@ -382,3 +382,113 @@ def test_api_docs_render_with_every_outside_request_blocked(browser: Any, live: 
     finally:
         context.close()
     assert outside == [] and errors == []
+
+
+TRUTH_RGB, LOOP_RGB = (33, 33, 33), (214, 39, 40)  # viewer.js TRUTH_STYLE, LINK_STYLES.loop
+
+
+@pytest.fixture
+def offline_page(browser: Any, live: dict[str, Any]) -> Iterator[Any]:
+    """A page with a token that may reach this server only: every other request is aborted and counted.
+
+    Must not happen, checked at the end: a request to another host, a JavaScript error, an error on the console.
+    """
+    context = browser.new_context(viewport={"width": 1400, "height": 800})
+    outside: list[str] = []
+
+    def only_this_server(route: Any) -> None:
+        if route.request.url.startswith(live["url"]):
+            route.continue_()
+        else:
+            outside.append(route.request.url)
+            route.abort()
+
+    context.route("**/*", only_this_server)
+    pg = context.new_page()
+    pg.set_default_timeout(20_000)
+    errors: list[str] = []
+    pg.on("pageerror", lambda err: errors.append(str(err)))
+    pg.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
+    # the token is in the browser session before the first page asks for anything (no 401 on the console)
+    pg.add_init_script(f"sessionStorage.setItem('mapserver-token', {json.dumps(live['token'])})")
+    pg.goto(live["url"] + "/")
+    yield pg
+    context.close()
+    assert outside == [] and errors == [], (outside, errors)
+
+
+def pixel(page: Any, x: float, y: float) -> tuple[int, int, int]:
+    """Return the canvas pixel at canvas coordinates (x, y)."""
+    rgb = page.evaluate(
+        """([x, y]) => Array.from(document.querySelector('#graph').getContext('2d')
+                         .getImageData(Math.round(x), Math.round(y), 1, 1).data.slice(0, 3))""",
+        [x, y],
+    )
+    return int(rgb[0]), int(rgb[1]), int(rgb[2])
+
+
+def assert_marker(page: Any, mark: dict[str, Any], fill: tuple[int, int, int]) -> None:
+    """A start (circle) or end (square) marker: its colour at the centre, its black outline 7 px up."""
+    assert pixel(page, mark["sx"], mark["sy"]) == fill, mark
+    assert max(pixel(page, mark["sx"], mark["sy"] - 7)) < 90, mark
+
+
+def wait_truth(page: Any, name: str) -> None:
+    page.wait_for_function("name => window.viewer.V.name === name && window.viewer.V.truth", arg=name)
+    settle(page)
+
+
+def test_loops_above_odometry_trajectory_ends_and_ground_truth(
+    offline_page: Any, live: dict[str, Any], tmp_path: Path
+) -> None:
+    page, headers = offline_page, bearer(live["token"])
+    page.goto(live["url"] + "/#/map/demo")
+    wait_drawn(page, "demo")
+    wait_truth(page, "demo")
+    # each session's start (circle) and end (square) where the API puts them, in the session's colour
+    ends = httpx.get(f"{live['url']}/v1/maps/demo/graph", headers=headers).json()["ends"]
+    marks = page.evaluate("window.viewerStats.markers")
+    assert [(m["kind"], m["id"]) for m in marks] == [(k, e[k]["id"]) for e in ends for k in ("start", "end")]
+    for m in marks:
+        assert_marker(page, m, SESSION_A if m["session"] == "demo-a" else SESSION_B)
+    # ground truth: both sessions have it (kept from the simulator's logs), drawn only when switched on
+    truth = httpx.get(f"{live['url']}/v1/maps/demo/ground-truth", headers=headers).json()
+    assert [s["name"] for s in truth["sessions"]] == ["demo-a", "demo-b"] and truth["without"] == []
+    assert page.is_visible("#truth-toggle") and count_colour(page, TRUTH_RGB) == 0
+    page.check("#truth-show")
+    settle(page)
+    assert count_colour(page, TRUTH_RGB) > 300, "ground truth drawn"
+    assert page.evaluate("window.viewerStats.truthDrawn") == sum(s["drawn"] for s in truth["sessions"])
+    assert "ground truth" in page.inner_text("#legend")
+    page.click(".tabs button[data-tab=truth]")
+    for s in truth["sessions"]:  # the APE figure the API gives, which is `mapserver evaluate`'s
+        cell = page.inner_text(f"#truth-table tr[data-session={s['name']}] td.ape")
+        assert cell == f"{s['ape']['ape_rmse']:.3f} m"
+    page.screenshot(path=str(tmp_path / "10-ground-truth.png"))
+    page.uncheck("#truth-show")
+    settle(page)
+    assert count_colour(page, TRUTH_RGB) == 0
+    # a path's two ends marked in the path's colour
+    page.click(".tabs button[data-tab=path]")
+    page.fill("#path-from", "5")
+    page.fill("#path-to", "40")
+    page.click("#path-go")
+    page.wait_for_selector("#path-cost")
+    settle(page)
+    path_marks = [m for m in page.evaluate("window.viewerStats.markers") if m["session"] is None]
+    assert [(m["kind"], m["id"]) for m in path_marks] == [("start", 5), ("end", 40)]
+    for m in path_marks:
+        assert_marker(page, m, PATH_RGB)
+    page.screenshot(path=str(tmp_path / "11-path-ends.png"))
+
+    # the 100k walk: loop links stroked after the odometry chain (above it); no ground truth, and no error
+    page.goto(live["url"] + "/#/map/big")
+    wait_drawn(page, "big")
+    wait_truth(page, "big")
+    order = page.evaluate("window.viewerStats.linkOrder")
+    assert "odometry" in order and "loop" in order and order.index("odometry") < order.index("loop")
+    assert count_colour(page, LOOP_RGB) > 100
+    assert page.is_hidden("#truth-toggle") and count_colour(page, TRUTH_RGB) == 0
+    page.click(".tabs button[data-tab=truth]")
+    assert "No session of this map has ground truth" in page.inner_text("#truth-none")
+    page.screenshot(path=str(tmp_path / "12-loops-no-truth.png"))

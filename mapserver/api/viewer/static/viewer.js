@@ -154,6 +154,7 @@ function viewBox(margin = 0.5) {
 
 async function openMap(name) {
   V.name = name; V.data = null; V.selected = null; V.path = null; V.merge = null; V.pick = null;
+  V.truth = null;
   $("#map-title").textContent = name;
   $("#node-details").replaceChildren(); $("#path-result").replaceChildren();
   try {
@@ -165,6 +166,7 @@ async function openMap(name) {
   renderSessions();
   fit();
   loadMerges();
+  loadTruth();
 }
 
 async function fetchGraph(box) {
@@ -209,7 +211,7 @@ function renderLegend() {
     items.push(el("div", {}, el("span", { class: "ln", style: `border-top:2px ${st.dash.length ? "dashed" : "solid"} ${st.color}` }),
       k === "inactive" ? "switched off" : k));
   }
-  $("#legend").replaceChildren(...items);
+  $("#legend").replaceChildren(...items, ...legendExtras());
 }
 
 /* ------------------------------------------------------------------ drawing */
@@ -229,7 +231,7 @@ function drawLinks(ctx, d, xs, ys, w, h) {
     const style = L.active[k] ? d.kinds[L.kind[k]] : "inactive";
     (groups[style] || (groups[style] = [])).push(k);
   }
-  for (const [style, list] of Object.entries(groups)) {
+  for (const [style, list] of linkLayers(groups)) {
     const st = LINK_STYLES[style] || LINK_STYLES.manual;
     ctx.strokeStyle = st.color; ctx.lineWidth = st.width; ctx.setLineDash(st.dash);
     ctx.beginPath();
@@ -302,9 +304,11 @@ function draw() {
     const n = d.nodes.id.length, xs = new Float64Array(n), ys = new Float64Array(n);
     const cam = V.cam, ox = w / 2 - cam.cx * cam.scale, oy = h / 2 + cam.cy * cam.scale;
     for (let i = 0; i < n; i++) { xs[i] = d.nodes.x[i] * cam.scale + ox; ys[i] = oy - d.nodes.y[i] * cam.scale; }
+    drawTruth(ctx);
     drawLinks(ctx, d, xs, ys, w, h);
     drawNodes(ctx, d, xs, ys, w, h);
     drawOverlays(ctx);
+    drawEnds(ctx, d);
     drawScale(ctx, w, h);
   }
   if (window.viewerStats.sync) ctx.getImageData(0, 0, 1, 1); // wait for the raster (measurement)
@@ -458,6 +462,115 @@ function selectTab(name) {
   for (const t of document.querySelectorAll(".tab")) t.hidden = t.id !== "tab-" + name;
 }
 
+/* ------------------------------------------------------------------ link layers, trajectory ends, ground truth */
+// links are stroked kind by kind in this order, so loop closures and merges lie above the odometry chain
+const LINK_ORDER = ["inactive", "odometry", "manual", "merge", "loop"];
+const TRUTH_STYLE = { color: "#212121", width: 2, dash: [6, 4] };
+const END_OUTLINE = "#000000";
+
+function linkLayers(groups) {
+  const rank = (k) => (LINK_ORDER.includes(k) ? LINK_ORDER.indexOf(k) : LINK_ORDER.length);
+  const layers = Object.entries(groups).sort((a, b) => rank(a[0]) - rank(b[0]));
+  window.viewerStats.linkOrder = layers.map(([k]) => k);
+  return layers;
+}
+
+// each session's first and last experience (data.ends, over the whole map) and the path's two ends:
+// a circle where a trajectory starts, a square where it ends, filled with its colour, outlined in black
+function endMarkers(d) {
+  const marks = [];
+  for (const e of d.ends || []) {
+    const colour = SESSION_COLOURS[e.session % SESSION_COLOURS.length];
+    marks.push({ kind: "start", session: d.sessions[e.session], id: e.start.id, x: e.start.x, y: e.start.y, colour });
+    marks.push({ kind: "end", session: d.sessions[e.session], id: e.end.id, x: e.end.x, y: e.end.y, colour });
+  }
+  if (V.path && V.path.poses.length) {
+    const ends = [["start", V.path.poses[0], V.path.nodes[0]], ["end", V.path.poses[V.path.poses.length - 1], V.path.nodes[V.path.nodes.length - 1]]];
+    for (const [kind, p, id] of ends) marks.push({ kind, session: null, id, x: p.x, y: V.view === "xz" ? p.z : p.y, colour: PATH_COLOUR });
+  }
+  return marks;
+}
+
+function drawMarker(ctx, kind, sx, sy, colour) {
+  ctx.fillStyle = colour; ctx.strokeStyle = END_OUTLINE; ctx.lineWidth = 2; ctx.setLineDash([]);
+  ctx.beginPath();
+  if (kind === "start") ctx.arc(sx, sy, 7, 0, 2 * Math.PI); else ctx.rect(sx - 6.5, sy - 6.5, 13, 13);
+  ctx.fill(); ctx.stroke();
+}
+
+function drawEnds(ctx, d) {
+  const marks = endMarkers(d);
+  for (const m of marks) { const [sx, sy] = toScreen(m.x, m.y); drawMarker(ctx, m.kind, sx, sy, m.colour); m.sx = sx; m.sy = sy; }
+  window.viewerStats.markers = marks;
+}
+
+function drawTruth(ctx) {
+  if (!V.truth || !V.truthShown) { window.viewerStats.truthDrawn = 0; return; }
+  ctx.strokeStyle = TRUTH_STYLE.color; ctx.lineWidth = TRUTH_STYLE.width; ctx.setLineDash(TRUTH_STYLE.dash);
+  ctx.lineJoin = "round";
+  let drawn = 0;
+  for (const s of V.truth.sessions) {
+    ctx.beginPath();
+    for (let i = 0; i < s.x.length; i++) {
+      const [sx, sy] = toScreen(s.x[i], s.y[i]);
+      if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+    }
+    ctx.stroke();
+    drawn += s.x.length;
+  }
+  ctx.setLineDash([]);
+  window.viewerStats.truthDrawn = drawn;
+}
+
+function legendExtras() {
+  const shape = (kind) => {
+    const c = el("canvas", { width: "16", height: "16", class: "mk" });
+    drawMarker(c.getContext("2d"), kind, 8, 8, "#ffffff");
+    return c;
+  };
+  const items = [el("div", { class: "lg-start" }, shape("start"), "start"), el("div", { class: "lg-end" }, shape("end"), "end")];
+  if (V.truth && V.truth.sessions.length) {
+    items.push(el("div", { class: "lg-truth" },
+      el("span", { class: "ln", style: `border-top:2px dashed ${TRUTH_STYLE.color}` }), "ground truth"));
+  }
+  return items;
+}
+
+// GET …/ground-truth: the sessions' stored ground truth in the map's frame and each one's APE (as
+// `mapserver evaluate --session` gives it); the toggle shows only when a session has ground truth
+async function loadTruth() {
+  const name = V.name;
+  V.truth = null;
+  $("#truth-toggle").hidden = true;
+  try {
+    const q = new URLSearchParams({ view: V.view, limit: 5000 });
+    const truth = await api(`/v1/maps/${encodeURIComponent(name)}/ground-truth?${q}`);
+    if (name !== V.name) return;
+    V.truth = truth;
+  } catch (err) { if (name === V.name) $("#truth-list").textContent = err.message; return; }
+  $("#truth-toggle").hidden = V.truth.sessions.length === 0;
+  renderTruth(); renderLegend(); requestDraw();
+}
+
+function renderTruth() {
+  const t = V.truth, box = $("#truth-list");
+  if (!t.sessions.length) {
+    box.replaceChildren(el("p", { class: "hint", id: "truth-none" }, "No session of this map has ground truth " +
+      "(a log with a ground-truth topic keeps it; mapserver ground-truth adds it to a stored session)."));
+    return;
+  }
+  const rows = t.sessions.map((s) => el("tr", { "data-session": s.name },
+    el("td", {}, s.name),
+    s.ape ? el("td", { class: "num ape" }, `${fmt(s.ape.ape_rmse, 3)} m`) : el("td", { class: "hint" }, s.error),
+    el("td", { class: "num" }, s.ape ? `${s.ape.aligned} / ${s.ape.experiences}` : "–"),
+    el("td", { class: "num" }, s.ape ? `${fmt(s.ape.hausdorff, 2)} m` : "–")));
+  for (const n of t.without) rows.push(el("tr", { "data-session": n }, el("td", {}, n), el("td", { class: "hint" }, "no ground truth"), el("td", {}, ""), el("td", {}, "")));
+  box.replaceChildren(el("table", { id: "truth-table" }, el("tr", {}, el("th", {}, "session"), el("th", {}, "APE RMSE"),
+    el("th", {}, "aligned"), el("th", {}, "Hausdorff")), ...rows),
+    el("p", { class: "hint" }, "As mapserver evaluate --session gives it: the session's experiences aligned rigidly " +
+      "to its ground truth (Umeyama), the RMSE of their position errors."));
+}
+
 /* ------------------------------------------------------------------ uploads and jobs */
 let jobList = [];  // the newest jobs as GET /v1/jobs lists them: sent from this tab, another one, or curl
 let queuedBanner = null;  // the job whose "queued" banner shows, cleared when it ends
@@ -515,7 +628,8 @@ function start() {
     });
   }
   for (const b of document.querySelectorAll(".tabs button")) b.addEventListener("click", () => selectTab(b.dataset.tab));
-  $("#view-select").addEventListener("change", async (e) => { V.view = e.target.value; await fetchGraph(null); fit(); });
+  $("#view-select").addEventListener("change", async (e) => { V.view = e.target.value; await fetchGraph(null); fit(); loadTruth(); });
+  $("#truth-show").addEventListener("change", (e) => { V.truthShown = e.target.checked; requestDraw(); });
   $("#fit").addEventListener("click", fit);
   for (const which of ["from", "to"]) {
     $("#pick-" + which).addEventListener("click", (e) => { V.pick = which; e.target.classList.add("picking"); });
