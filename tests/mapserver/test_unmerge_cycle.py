@@ -23,7 +23,7 @@ from mapserver import pipeline, undo
 from mapserver.api import create_app
 from mapserver.errors import ConflictError
 from mapserver.store import load_map, open_database
-from mapserver.store.sessions import get_session_progress
+from mapserver.store.sessions import get_activations, get_session_progress
 from mapserver.store.streams import open_export
 from tests.mapserver.api.conftest import api_settings, bearer, make_token
 from tests.mapserver.merge.scenario_metrics import cli_code, cli_json
@@ -144,6 +144,8 @@ def test_an_unmerge_that_rewinds_leaves_the_session_to_continue_and_unmergeable(
     assert code == 1 and "still being processed (partial)" in err
     rest = pipeline.process_into_store(atlases["tour"] / "session2.bag", PARAMS, db_url=url, merge=False)
     assert rest.frames_run == rest.frames - frame - 1 and maps_of(url)["session2"][0] == 1  # continued to its end
+    with open_database(url) as db, db.read() as conn:  # one timeline row per frame (the rows after the merge were cut)
+        assert get_activations(conn=conn, session_id=rest.session_id).shape == (rest.frames, 4)
     code, err = cli_code("merge", "--db", url, "--redo", str(event))
     assert code == 1 and "map 'session2' changed after merge event 1 was undone" in err
 
