@@ -29,6 +29,8 @@ from mapserver.names import check_map_name, default_map_name
 from mapserver.store import Connection, Database, drop_map, find_map, get_map_by_id
 from mapserver.store.archive import (
     ArchivedState,
+    ArchiveHead,
+    archive_head,
     archive_map_state,
     delete_archive,
     load_archive,
@@ -105,7 +107,7 @@ def _unmerge_in(
 ) -> UnmergeOutcome:
     """Undo ``event`` in the caller's write transaction; ``moved``: (archive id, name) restored under another name."""
     details = dict(event.details or {})
-    archives = [load_archive(conn=conn, archive_id=a) for a in event.archive_ids]
+    archives = [archive_head(conn=conn, archive_id=a) for a in event.archive_ids]
     if not archives:
         msg = f"merge event {event.id} has no archived states to restore"
         raise ConflictError(msg)
@@ -136,7 +138,7 @@ def _holding_map(conn: Connection, event: MergeEventRecord) -> Any:
 
 
 def _restore_names(
-    archives: Sequence[ArchivedState], host_name: str, holder_name: str, moved: tuple[int, str] | None
+    archives: Sequence[ArchiveHead], host_name: str, holder_name: str, moved: tuple[int, str] | None
 ) -> dict[int, str]:
     """Return archive id → name for archives restored under another name than their own.
 
@@ -275,9 +277,9 @@ def _archive_of(conn: Connection, event: MergeEventRecord, sid: int, session: st
         )
         raise ConflictError(msg)
     for archive_id in event.archive_ids:
-        archived = load_archive(conn=conn, archive_id=archive_id)
-        if sid in archived.session_ids:
-            others = sorted(set(archived.session_ids) - {sid})
+        held = archive_head(conn=conn, archive_id=archive_id).session_ids
+        if sid in held:
+            others = sorted(set(held) - {sid})
             if others:
                 names = ", ".join(repr(s.name) for s in get_sessions(conn=conn, session_ids=others))
                 msg = (

@@ -363,6 +363,31 @@ def load_archive(*, conn: Connection, archive_id: int) -> ArchivedState:
     )
 
 
+@dataclass(frozen=True)
+class ArchiveHead:
+    """An archive's name, role and sessions, read without its state."""
+
+    id: int
+    map_name: str
+    role: str | None
+    session_ids: tuple[int, ...]
+
+
+def archive_head(*, conn: Connection, archive_id: int) -> ArchiveHead:
+    """Return an archive's name, role and sessions without reading (or unpacking) its state.
+
+    Raises:
+        NotFoundError: no such archive.
+    """
+    row = conn.execute(
+        select(MapArchive.map_name, MapArchive.role, MapArchive.session_ids).where(MapArchive.id == archive_id)
+    ).first()
+    if row is None:
+        msg = f"no archived map state with id {archive_id!r}"
+        raise NotFoundError(msg)
+    return ArchiveHead(archive_id, str(row[0]), row[1], tuple(int(s) for s in row[2]))
+
+
 def archives_of_event(*, conn: Connection, event_id: int) -> list[int]:
     """Return the ids of a merge event's archives, in creation order."""
     return [
