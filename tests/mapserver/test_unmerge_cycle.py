@@ -23,6 +23,8 @@ from mapserver import pipeline, undo
 from mapserver.api import create_app
 from mapserver.errors import ConflictError
 from mapserver.store import load_map, open_database
+from mapserver.store.archive import delete_archive
+from mapserver.store.merge_events import get_merge_event
 from mapserver.store.sessions import get_activations, get_session_progress
 from mapserver.store.streams import open_export
 from tests.mapserver.api.conftest import api_settings, bearer, make_token
@@ -164,6 +166,12 @@ def test_offline_merge_unmerge_merge_redo(atlases: dict[str, Any], tmp_path: Pat
     assert digest(url, "session1") == merged and set(maps_of(url)) == {"session1"}
     code, err = cli_code("merge", "--db", url, "--redo", str(second))
     assert code == 1 and "only an undone event can be redone" in err
+    assert digest(url, "session1") == merged
+    # an event undone before unmerges archived the merged map is merged again from its archives: the same map
+    cli_json("unmerge", "--db", url, "--event", str(second))
+    with open_database(url) as db, db.write() as conn:
+        delete_archive(conn=conn, archive_id=get_merge_event(conn=conn, event_id=second).merged_archive)
+    cli_json("merge", "--db", url, "--redo", str(second))
     assert digest(url, "session1") == merged
 
 
