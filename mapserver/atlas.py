@@ -432,11 +432,11 @@ def merge_summary(event_id: int, merge: MergeToWrite, host_name: str) -> dict[st
 
 @dataclass(frozen=True)
 class MergeOutcome:
-    """What an offline merge or a redo did."""
+    """What an offline merge or a redo did (``record``: None for a redo that restored the merged map's archive)."""
 
     event_id: int
     map_name: str
-    record: MergeRecord
+    record: MergeRecord | None
     sessions: list[str] = field(default_factory=list)
     settled: bool = True
 

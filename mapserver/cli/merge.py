@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
                 settle=args.settle,
             )
         r = outcome.record
+        assert r is not None  # a merge always has its record; only a redo may restore an archive instead
         info(
             f"merged map {args.source!r} into {args.into!r}: event {outcome.event_id}, map {outcome.map_name!r} "
             f"({r.confirmations} confirming templates, {r.templates} templates, {r.experiences} experiences)"

@@ -18,10 +18,15 @@ Unmerge recipe (what ``mapserver unmerge`` does, issue 5)::
 
 Restoring several archives in one call is order-independent: every map named by an archive is emptied
 first, so identities the merged map held are free again when the pre-merge maps are written back.
+
+An archive may also keep its sessions' progress rows (:class:`~mapserver.store.sessions.SessionProgress`:
+status, frames, dead reckoning, activation timeline), written back exactly with :func:`restore_progress`
+(an unmerge archives the merged map that way, role ``merged``, so that a redo gives it back bit for bit).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -29,7 +34,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import Connection, insert, select
+from sqlalchemy import Connection, delete, insert, select
 
 from mapserver.errors import NotFoundError, StoreError
 from mapserver.store.arrays import pack_npz, unpack_npz
@@ -37,6 +42,7 @@ from mapserver.store.blobs import resolve_arrays, share_arrays
 from mapserver.store.bulk import fetch_tuples
 from mapserver.store.maps import clear_map, create_map, find_map, get_map_by_id
 from mapserver.store.models import MapArchive, Template
+from mapserver.store.sessions import SessionProgress, set_session_progress
 from mapserver.store.state import WriteResult, frontend_of, plain_params, read_map_state, write_map_state
 
 _META = "__archive__."
@@ -44,6 +50,7 @@ _TEMPLATE_REF = _META + "template_ref"
 _TEMPLATE_INLINE = _META + "template_inline"
 _TEMPLATE_SHAPE = _META + "template_shape"
 _IDENTITIES = ("template_session", "template_index", "experience_session", "experience_index")
+_PROGRESS = _META + "progress"
 
 
 @dataclass(frozen=True)
@@ -64,6 +71,7 @@ class ArchivedState:
     experience_session: npt.NDArray[np.int64]
     experience_index: npt.NDArray[np.int64]
     created_at: datetime
+    progress: tuple[SessionProgress, ...] = ()
 
 
 def _template_refs(
@@ -101,6 +109,7 @@ def archive_state(
     map_version: int | None = None,
     event_id: int | None = None,
     role: str | None = None,
+    progress: Sequence[SessionProgress] = (),
 ) -> int:
     """Archive an in-memory map state (e.g. a new session's partial map at the moment it merges).
 
@@ -117,7 +126,8 @@ def archive_state(
         map_id: the map the state belonged to, if stored.
         map_version: that map's version when archived.
         event_id: the merge event the archive belongs to.
-        role: its role in that event (``target`` or ``source``).
+        role: its role in that event (``target``, ``source``, or ``merged``: ``merge_events.MERGED_ARCHIVE_ROLE``).
+        progress: session rows' progress to keep with the state (see :func:`restore_progress`).
 
     Returns:
         The archive id.
@@ -129,6 +139,7 @@ def archive_state(
     templates = _snapshot_templates(arrays)
     ids = _checked_identities(arrays, templates, template_session, template_index, experience_session, experience_index)
     content = _archive_content(conn, arrays, templates, ids, reference=frontend_of(params) != "sdr-htm")
+    content.update(_progress_arrays(progress))
     row = {
         "event_id": event_id,
         "role": role,
@@ -214,10 +225,59 @@ def _archive_content(
     return content
 
 
+def _progress_arrays(progress: Sequence[SessionProgress]) -> dict[str, np.ndarray]:
+    """Return the npz entries that keep sessions' progress rows: scalars as JSON, blobs as bytes."""
+    if not progress:
+        return {}
+    scalars = [{"session": p.session_id, "status": p.status, "frames": p.frames_processed,
+                "last_stamp": p.last_stamp, "pose": p.reckoning_pose,
+                "finished_at": None if p.finished_at is None else p.finished_at.isoformat(),
+                "reckoning": p.reckoning is not None, "activations": p.activations is not None}
+               for p in progress]  # fmt: skip
+    out = {_PROGRESS: np.asarray(json.dumps(scalars))}
+    for k, p in enumerate(progress):
+        for key, blob in (("reckoning", p.reckoning), ("activations", p.activations)):
+            if blob is not None:
+                out[f"{_PROGRESS}.{k}.{key}"] = np.frombuffer(blob, dtype=np.uint8)
+    return out
+
+
+def _progress_from(content: dict[str, np.ndarray]) -> tuple[SessionProgress, ...]:
+    """Return (and take out of ``content``) the sessions' progress rows an archive keeps."""
+    if _PROGRESS not in content:
+        return ()
+    scalars = json.loads(str(content.pop(_PROGRESS)))
+    out = []
+    for k, s in enumerate(scalars):
+        blobs = {key: content.pop(f"{_PROGRESS}.{k}.{key}").tobytes() if s[key] else None
+                 for key in ("reckoning", "activations")}  # fmt: skip
+        out.append(SessionProgress(
+            session_id=int(s["session"]), status=str(s["status"]), frames_processed=int(s["frames"]),
+            last_stamp=s["last_stamp"], reckoning=blobs["reckoning"], reckoning_pose=s["pose"],
+            activations=blobs["activations"],
+            finished_at=None if s["finished_at"] is None else datetime.fromisoformat(s["finished_at"]),
+        ))  # fmt: skip
+    return tuple(out)
+
+
+def restore_progress(*, conn: Connection, archived: ArchivedState) -> None:
+    """Write the sessions' progress rows an archive keeps back exactly (status, frames, reckoning, timeline)."""
+    for progress in archived.progress:
+        set_session_progress(conn=conn, progress=progress)
+
+
+def delete_archive(*, conn: Connection, archive_id: int) -> None:
+    """Delete one archive row (a redo drops the ``merged`` archive it restored: the map is live again)."""
+    conn.execute(delete(MapArchive).where(MapArchive.id == archive_id))
+
+
 def archive_map_state(
-    *, conn: Connection, map_id: int, event_id: int | None = None, role: str | None = None
-) -> int:
+    *, conn: Connection, map_id: int, event_id: int | None = None, role: str | None = None,
+    progress: Sequence[SessionProgress] = (),
+) -> int:  # fmt: skip
     """Archive a stored map's current state (call it before a merge changes or drops the map).
+
+    ``progress``: session rows' progress to keep with it (an unmerge keeps the merged map's sessions').
 
     Returns:
         The archive id.
@@ -238,6 +298,7 @@ def archive_map_state(
         map_version=meta.map.version,
         event_id=event_id,
         role=role,
+        progress=progress,
     )
 
 
@@ -258,6 +319,7 @@ def load_archive(*, conn: Connection, archive_id: int) -> ArchivedState:
         msg = f"no archived map state with id {archive_id!r}"
         raise NotFoundError(msg)
     content = resolve_arrays(conn, unpack_npz(row[7]), f"archive {archive_id}")
+    progress = _progress_from(content)
     keys = [str(k) for k in content.pop(_META + "keys")]
     ids = {key: content.pop(_META + key).astype(np.int64) for key in _IDENTITIES}
     inline_mask = content.pop(_TEMPLATE_INLINE).astype(bool)
@@ -296,13 +358,42 @@ def load_archive(*, conn: Connection, archive_id: int) -> ArchivedState:
         session_ids=tuple(int(s) for s in row[6]),
         snapshot=snapshot,
         created_at=row[8],
+        progress=progress,
         **ids,
     )
 
 
-def restore_map_states(*, conn: Connection, archive_ids: Sequence[int]) -> list[WriteResult]:
+@dataclass(frozen=True)
+class ArchiveHead:
+    """An archive's name, role and sessions, read without its state."""
+
+    id: int
+    map_name: str
+    role: str | None
+    session_ids: tuple[int, ...]
+
+
+def archive_head(*, conn: Connection, archive_id: int) -> ArchiveHead:
+    """Return an archive's name, role and sessions without reading (or unpacking) its state.
+
+    Raises:
+        NotFoundError: no such archive.
+    """
+    row = conn.execute(
+        select(MapArchive.map_name, MapArchive.role, MapArchive.session_ids).where(MapArchive.id == archive_id)
+    ).first()
+    if row is None:
+        msg = f"no archived map state with id {archive_id!r}"
+        raise NotFoundError(msg)
+    return ArchiveHead(archive_id, str(row[0]), row[1], tuple(int(s) for s in row[2]))
+
+
+def restore_map_states(
+    *, conn: Connection, archive_ids: Sequence[int], names: Mapping[int, str] | None = None
+) -> list[WriteResult]:
     """Write archived states back as stored maps, each under its archived name, in one transaction.
 
+    ``names``: archive id → the name to restore it under instead (a map renamed since, a session moved out).
     Every map named by an archive is emptied first (created if it no longer exists), then each state is
     written with its archived sessions and identities; the maps' versions are bumped. Maps not named by
     an archive are not touched, so an identity still held by one of them is an ``OwnershipError``.
@@ -317,9 +408,10 @@ def restore_map_states(*, conn: Connection, archive_ids: Sequence[int]) -> list[
     states = [load_archive(conn=conn, archive_id=a) for a in archive_ids]
     targets: list[tuple[int, int]] = []
     for archived in states:
-        record = find_map(conn=conn, name=archived.map_name)
+        name = (names or {}).get(archived.id, archived.map_name)
+        record = find_map(conn=conn, name=name)
         if record is None:
-            record = create_map(conn=conn, name=archived.map_name, params=archived.params)
+            record = create_map(conn=conn, name=name, params=archived.params)
         else:
             clear_map(conn=conn, map_id=record.id)
         targets.append((record.id, record.version))

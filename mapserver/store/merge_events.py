@@ -19,6 +19,9 @@ from sqlalchemy import Connection, func, insert, select, update
 from mapserver.errors import NotFoundError, StoreError
 from mapserver.store.models import MERGE_STATUSES, MapArchive, MergeEvent, MergeEventSession, utcnow
 
+MERGED_ARCHIVE_ROLE = "merged"
+"""The role of the archive an unmerge takes of the merged map as it found it (``mapserver.store.archive``)."""
+
 
 @dataclass(frozen=True)
 class MergeEventSpec:
@@ -71,6 +74,9 @@ class MergeEventRecord:
     undone_at: datetime | None
     sessions: dict[int, str] = field(default_factory=dict)
     archive_ids: list[int] = field(default_factory=list)
+    """The maps as they were before the merge (roles ``target`` and ``source``)."""
+    merged_archive: int | None = None
+    """The merged map as the last unmerge found it (role ``merged``; a redo restores it), None when none."""
 
 
 def record_merge_event(*, conn: Connection, spec: MergeEventSpec) -> int:
@@ -185,10 +191,16 @@ def _events(conn: Connection, where: Any) -> list[MergeEventRecord]:
     ).all():
         sessions[int(event_id)][int(session_id)] = str(role)
     archives: dict[int, list[int]] = {i: [] for i in ids}
-    for archive_id, owner in conn.execute(
-        select(MapArchive.id, MapArchive.event_id).where(MapArchive.event_id.in_(ids)).order_by(MapArchive.id)
+    merged: dict[int, int] = {}
+    for archive_id, owner, archive_role in conn.execute(
+        select(MapArchive.id, MapArchive.event_id, MapArchive.role)
+        .where(MapArchive.event_id.in_(ids))
+        .order_by(MapArchive.id)
     ).all():
-        archives[int(cast(int, owner))].append(int(archive_id))  # event_id IN ids: never NULL
+        if archive_role == MERGED_ARCHIVE_ROLE:
+            merged[int(cast(int, owner))] = int(archive_id)  # the newest one
+        else:
+            archives[int(cast(int, owner))].append(int(archive_id))  # event_id IN ids: never NULL
     return [
         MergeEventRecord(
             id=int(r.id),
@@ -206,6 +218,7 @@ def _events(conn: Connection, where: Any) -> list[MergeEventRecord]:
             undone_at=r.undone_at,
             sessions=sessions[int(r.id)],
             archive_ids=archives[int(r.id)],
+            merged_archive=merged.get(int(r.id)),
         )
         for r in rows
     ]

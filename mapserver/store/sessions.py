@@ -309,3 +309,72 @@ def get_activations(*, conn: Connection, session_id: int) -> np.ndarray | None:
     if blob is None:
         return None
     return np.frombuffer(blob, dtype="<f8").reshape(-1, ACTIVATION_COLUMNS).astype(np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class SessionProgress:
+    """How far a session stands, as stored: what an unmerge changes in its row and a redo puts back exactly.
+
+    ``reckoning`` and ``activations`` are the row's blobs as stored (float64 LE, N × 4; None when absent).
+    """
+
+    session_id: int
+    status: str
+    frames_processed: int
+    last_stamp: float | None
+    reckoning: bytes | None
+    reckoning_pose: list[float] | None
+    activations: bytes | None
+    finished_at: datetime | None
+
+
+def get_session_progress(*, conn: Connection, session_id: int) -> SessionProgress:
+    """Return a session's progress columns as stored (see :class:`SessionProgress`).
+
+    Raises:
+        NotFoundError: no such session.
+    """
+    row = conn.execute(
+        select(Session.status, Session.frames_processed, Session.last_stamp, Session.reckoning,
+               Session.reckoning_pose, Session.activations, Session.finished_at).where(Session.id == session_id)
+    ).first()  # fmt: skip
+    if row is None:
+        msg = f"no session with id {session_id!r}"
+        raise NotFoundError(msg)
+    return SessionProgress(
+        session_id=session_id, status=str(row[0]), frames_processed=int(row[1]), last_stamp=row[2],
+        reckoning=None if row[3] is None else bytes(row[3]),
+        reckoning_pose=None if row[4] is None else [float(v) for v in row[4]],
+        activations=None if row[5] is None else bytes(row[5]), finished_at=row[6],
+    )  # fmt: skip
+
+
+def set_session_progress(*, conn: Connection, progress: SessionProgress) -> None:
+    """Write a session's progress columns back exactly as :func:`get_session_progress` read them."""
+    conn.execute(
+        update(Session).where(Session.id == progress.session_id).values(
+            status=progress.status, frames_processed=progress.frames_processed, last_stamp=progress.last_stamp,
+            reckoning=progress.reckoning, reckoning_pose=progress.reckoning_pose, activations=progress.activations,
+            finished_at=progress.finished_at, updated_at=utcnow(),
+        )
+    )  # fmt: skip
+
+
+def cut_session(
+    *, conn: Connection, session_id: int, frames: int, status: str, last_stamp: float,
+    reckoning_pose: tuple[float, float, float, float] | None,
+) -> SessionRecord:  # fmt: skip
+    """Set a session back to its first ``frames`` frames: progress, dead reckoning and activation timeline cut there.
+
+    ``status`` ``complete``: the session ends there (a whole map of those frames); ``partial``: processing its
+    log again continues it from frame ``frames``.
+    """
+    rows, _pose = get_reckoning(conn=conn, session_id=session_id)
+    update_session(
+        conn=conn, session_id=session_id, status=status, frames_processed=frames, last_stamp=last_stamp,
+        reckoning=rows[:frames], reckoning_pose=reckoning_pose,
+    )  # fmt: skip
+    activations = get_activations(conn=conn, session_id=session_id)
+    if activations is not None:
+        set_activations(conn=conn, session_id=session_id, rows=activations[:frames])
+    return get_session(conn=conn, session_id=session_id)

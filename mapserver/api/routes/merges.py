@@ -111,11 +111,21 @@ async def read_merge(event: EventId, services: ServicesDep, _token: ReadAccess) 
 
 
 @router.post("/{event}/undo", operation_id="undo_merge", responses=WRITE_ERRORS)
-async def undo_merge(event: EventId, services: ServicesDep, _token: WriteAccess) -> dict[str, Any]:
-    """Undo an applied merge: its maps are restored as they were before it (409 when that would lose work)."""
-    outcome = await run_in_threadpool(unmerge, services.db, event_id=event)
+async def undo_merge(
+    event: EventId,
+    services: ServicesDep,
+    _token: WriteAccess,
+    rewind: Annotated[bool, Query(description="leave an online merge's session partial at its merge frame")] = False,
+) -> dict[str, Any]:
+    """Undo an applied merge: its maps are restored as they were before it (409 when that would lose work).
+
+    An online merge's session keeps the frames it had at the merge (``frames``): complete there, or partial
+    with ``rewind`` (``session_status``).
+    """
+    outcome = await run_in_threadpool(unmerge, services.db, event_id=event, rewind=rewind)
     body = await run_in_threadpool(_one, services, event)
-    return {**body, "maps": outcome.maps, "session_rewound": outcome.session_rewound}
+    return {**body, "maps": outcome.maps, "session_rewound": outcome.session_rewound, "frames": outcome.frames,
+            "session_status": outcome.session_status}  # fmt: skip
 
 
 @router.post("/{event}/redo", operation_id="redo_merge", responses=WRITE_ERRORS)

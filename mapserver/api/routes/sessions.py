@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
@@ -15,6 +15,7 @@ from mapserver.api.schemas import ErrorPublic, UploadAccepted
 from mapserver.api.uploads import FILE_FIELD, receive_upload
 from mapserver.store import get_session
 from mapserver.store.jobs import JobRecord
+from mapserver.undo import move_session
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -118,3 +119,24 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
         map=job.map_name,
     )
     return JSONResponse(body.model_dump(mode="json"), status_code=202)
+
+
+MOVE_ERRORS: dict[int | str, dict[str, Any]] = {code: {"model": ErrorPublic} for code in (400, 401, 403, 404, 409)}
+
+
+@router.post("/{name}/move", operation_id="move_session", responses=MOVE_ERRORS)
+async def move(
+    name: Annotated[str, Path(min_length=1, max_length=200, description="the session's name")],
+    services: ServicesDep,
+    _token: WriteAccess,
+    to: Annotated[str | None, Query(min_length=1, max_length=200, description="the new map's name")] = None,
+) -> dict[str, Any]:
+    """Take a session out of its merged map into a new map of its own (``mapserver session move``).
+
+    It undoes the merge event that brought the session in; the rest of the map stays whole under its name.
+    Answers ``{"moved", "session", "map", "rest", "event", "frames"}``; 400 an invalid name, 404 no such
+    session, 409 the name is taken, the session is alone in its map, or its part is entangled with others'.
+    """
+    outcome = await run_in_threadpool(move_session, services.db, session=name, map_name=to)
+    return {"moved": True, "session": outcome.session, "map": outcome.map, "rest": outcome.rest,
+            "event": outcome.event_id, "frames": outcome.frames}  # fmt: skip

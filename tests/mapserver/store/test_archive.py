@@ -7,7 +7,14 @@ import pytest
 
 from mapserver.errors import NotFoundError
 from mapserver.store import Database, NewSession, drop_map, get_map, load_map, save_map, write_map_state
-from mapserver.store.archive import archive_map_state, archive_state, load_archive, restore_map_states
+from mapserver.store.archive import (
+    archive_map_state,
+    archive_state,
+    delete_archive,
+    load_archive,
+    restore_map_states,
+    restore_progress,
+)
 from mapserver.store.merge_events import (
     MergeEventSpec,
     get_merge_event,
@@ -16,6 +23,7 @@ from mapserver.store.merge_events import (
     set_merge_status,
 )
 from mapserver.store.models import MapArchive
+from mapserver.store.sessions import cut_session, get_activations, get_session_progress, set_activations
 from tests.mapserver.store.conftest import assert_same_arrays, drive_engine, row_counts, small_params
 
 
@@ -113,3 +121,40 @@ def test_an_in_memory_state_is_archived_with_its_pixels_inline(db: Database) -> 
             load_archive(conn=conn, archive_id=archive_id + 100)
     assert_same_arrays(partial, back.snapshot)
     assert back.map_name == "P" and back.session_ids == (sid,)
+
+
+def test_an_archive_keeps_its_sessions_progress_exactly_and_a_merged_archive_stays_apart(db: Database) -> None:
+    params = small_params()
+    save_map(db, name="A", params=params, snapshot=drive_engine(params, laps=0.5, seed=2).snapshot(),
+             sessions=[_session("a"), _session("b")])  # fmt: skip
+    a = load_map(db, name="A")
+    first, second = (s.id for s in a.meta.sessions)
+    rows = np.arange(24, dtype=np.float64).reshape(6, 4) - 0.0
+    rows[0, 1] = -0.0  # the sign of zero and the blob's bytes come back as they were
+    with db.write() as conn:
+        set_activations(conn=conn, session_id=first, rows=rows[:, ::-1])
+        cut_session(conn=conn, session_id=first, frames=6, status="complete", last_stamp=12.5,
+                    reckoning_pose=(1.0, -2.0, 0.0, 0.5))  # fmt: skip
+        kept = [get_session_progress(conn=conn, session_id=s) for s in (first, second)]
+        event = record_merge_event(conn=conn, spec=MergeEventSpec(
+            map_id=a.meta.map.id, map_name="A", mode="offline", confirmations=1, lattice_offset=[0.0, 0.0, 0.0],
+            transform=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), yaw=0.0, matches={}, target_sessions=[first],
+            source_sessions=[second],
+        ))  # fmt: skip
+        target = archive_map_state(conn=conn, map_id=a.meta.map.id, event_id=event, role="target")
+        merged = archive_map_state(conn=conn, map_id=a.meta.map.id, event_id=event, role="merged", progress=kept)
+        cut_session(conn=conn, session_id=first, frames=2, status="partial", last_stamp=3.0, reckoning_pose=None)
+    with db.read() as conn:
+        record = get_merge_event(conn=conn, event_id=event)
+        assert (record.archive_ids, record.merged_archive) == ([target], merged)  # a redo's, not an undo's
+        assert get_session_progress(conn=conn, session_id=first).frames_processed == 2
+        back = load_archive(conn=conn, archive_id=merged)
+        assert load_archive(conn=conn, archive_id=target).progress == ()
+    assert back.progress == tuple(kept) and (kept[0].reckoning, kept[1].reckoning) == (b"", None)  # empty, none
+    with db.write() as conn:
+        restore_progress(conn=conn, archived=back)
+        assert [get_session_progress(conn=conn, session_id=s) for s in (first, second)] == kept
+        delete_archive(conn=conn, archive_id=merged)
+    with db.read() as conn:
+        assert get_merge_event(conn=conn, event_id=event).merged_archive is None
+        assert np.array_equal(get_activations(conn=conn, session_id=first), rows[:, ::-1])
