@@ -138,21 +138,25 @@ def test_a_contradicting_manual_link_is_flagged_and_bends_nothing(lap: tuple[Pat
 
 @pytest.mark.usefixtures("db_url")
 def test_undo_restores_the_map_bit_for_bit(lap: tuple[Path, Trajectory], db_url: str, tmp_path: Path) -> None:  # noqa: F811
-    """The link is a merge event: ``unmerge`` restores every array; then it is undone (a second undo refused)."""
+    """The link is a merge event: ``unmerge`` restores every array (a second undo refused); ``redo`` gives back the
+    linked map bit for bit, from the archive the unmerge kept of it."""
     directory = lap[0].parent
     pipeline.process_into_store(directory / "single.bag", BLIND, db_url=db_url, map_name="blind")
     with open_database(db_url) as db:
         before = load_map(db, name="blind").snapshot
         outcome = link_experiences(db, LinkRequest("blind", LAP_START, LAP_END, author="ops"))  # the same place
-        assert not np.array_equal(load_map(db, name="blind").snapshot["em_pose"], before["em_pose"])
+        linked = load_map(db, name="blind").snapshot
+        assert not np.array_equal(linked["em_pose"], before["em_pose"])
         assert cli_json("unmerge", "--db", db_url, "--event", str(outcome.event_id))["maps"] == ["blind"]
         assert_same_arrays(before, load_map(db, name="blind").snapshot)
         with pytest.raises(ConflictError, match="undone already"):
             unmerge(db, event_id=outcome.event_id)
-        with pytest.raises(ConflictError, match="manual link; add it again"):
-            redo_merge(db, event_id=outcome.event_id)
         with db.read() as conn:
             assert manual_links(conn=conn, map_id=get_map(conn=conn, name="blind").id) == []
+        redo_merge(db, event_id=outcome.event_id)
+        assert_same_arrays(linked, load_map(db, name="blind").snapshot)
+        with db.read() as conn:
+            assert len(manual_links(conn=conn, map_id=get_map(conn=conn, name="blind").id)) == 1
 
 
 def test_unknown_experiences_and_bad_transforms_are_refused_in_one_line(
