@@ -106,6 +106,8 @@ def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
     options = job.options or {}
     if options.get("map_given"):
         return job.map_name
+    if options.get("into") is not None:  # merged into that map: no new map is named
+        return None
     base = job.map_name or default_map_name(log_path)
     with open_log(log_path, job.topics) as log:
         sha256, mapping = log.sha256, log.mapping.as_dict()
@@ -152,6 +154,7 @@ def execute_job(
             topics=job.topics,
             merge=bool((job.options or {}).get("merge", True)),
             progress=reporter,
+            into=(job.options or {}).get("into"),
         )
     except JobInterrupted:
         raise
