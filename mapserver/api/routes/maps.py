@@ -48,7 +48,9 @@ EXPORT_TYPES = {"json": "application/json", "tum": "text/plain; charset=utf-8", 
                 "g2o": "text/plain; charset=utf-8", "csv": "text/csv; charset=utf-8"}
 
 
-@router.get("", operation_id="list_maps", response_model=MapsPublic, responses=AUTH_ERRORS)
+# a live map's entry has no ``archived_at`` (the key is set for archived maps only)
+@router.get("", operation_id="list_maps", response_model=MapsPublic, responses=AUTH_ERRORS,
+            response_model_exclude_unset=True)  # fmt: skip
 def read_maps(
     services: ServicesDep,
     _token: ReadAccess,

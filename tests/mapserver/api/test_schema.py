@@ -51,8 +51,9 @@ def test_no_server_errors(tmp_path: Path) -> None:
     # TestClient around it would start a second server on the database, which its server lock refuses
     schema = schemathesis.openapi.from_asgi("/openapi.json", app)
     operations = [result.ok() for result in schema.get_all_operations()]
-    # 9 (the jobs listed), the viewer's 8 (graph, nearest, node, evidence, merges x4), metrics, limits
-    assert len(operations) == 19
+    # 9 (the jobs listed), the viewer's 8 (graph, nearest, node, evidence, merges x4), metrics, limits, and a
+    # map's lifecycle: delete, restore, rename, and the token's scope
+    assert len(operations) == 23
     statuses: dict[str, set[int]] = {}
     for operation in operations:
         _exercise(operation, headers, statuses.setdefault(operation.label, set()))
