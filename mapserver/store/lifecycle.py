@@ -11,8 +11,9 @@ Purging deletes an archived map for good: its content, its sessions (with their 
 every merge event that produced it or involved one of its sessions (with their archived states). Jobs keep
 their history with the session and map left empty. The name and the logs are free again afterwards.
 
-Renaming changes the map's name, and the name its merge events and archived states record (an unmerge
-restores the map under its current name). A new name follows :func:`mapserver.names.check_map_name`.
+Renaming changes the map's name, and the name its merge events, their details and archived states record (an
+unmerge restores the map under its current name, a redo finds it by it). A new name follows
+:func:`mapserver.names.check_map_name`.
 
 Each function runs inside the caller's write transaction; archive and restore take the atlas lock
 (:func:`mapserver.store.maps.lock_atlas`) so that a session being stored sees the maps it may merge into
@@ -149,7 +150,28 @@ def rename_map(*, conn: Connection, name: str, new_name: str) -> MapRecord:
     conn.execute(update(Map).where(Map.id == record.id).values(name=new_name))
     conn.execute(update(MergeEvent).where(MergeEvent.map_id == record.id).values(map_name=new_name))
     conn.execute(update(MapArchive).where(MapArchive.map_id == record.id).values(map_name=new_name))
+    _rename_in_details(conn, record.id, name, new_name)
     return MapRecord(record.id, new_name, record.version, record.params, record.created_at, record.updated_at)
+
+
+def _rename_in_details(conn: Connection, map_id: int, name: str, new_name: str) -> None:
+    """Rename the map where its merge events' details name it: the host of an online merge, the maps an undo restored.
+
+    A redo finds the maps by these names (:mod:`mapserver.undo`).
+    """
+    rows = conn.execute(select(MergeEvent.id, MergeEvent.details).where(MergeEvent.map_id == map_id)).all()
+    for event_id, details in rows:
+        if not details:
+            continue
+        changed = dict(details)
+        host = changed.get("host")
+        if isinstance(host, dict) and host.get("map_id") == map_id and host.get("name") == name:
+            changed["host"] = {**host, "name": new_name}
+        undo = changed.get("undo")
+        if isinstance(undo, dict) and name in undo:
+            changed["undo"] = {new_name if k == name else k: v for k, v in undo.items()}
+        if changed != details:
+            conn.execute(update(MergeEvent).where(MergeEvent.id == event_id).values(details=changed))
 
 
 def purge_map(*, conn: Connection, name: str) -> PurgeOutcome:

@@ -187,3 +187,11 @@ def test_an_upload_into_a_map_merges_into_it_or_fails_storing_nothing(api: Api, 
     assert sorted(s["name"] for s in detail["sessions"]) == ["evening", "morning"]
     assert [(e["mode"], e["status"]) for e in detail["merge_events"]] == [("online", "applied")]
     assert _names(api) == ["morning"]
+    # a rename between an undo and a redo: the merge history follows the map to its new name
+    event = detail["merge_events"][0]["id"]
+    undone = api.client.post(f"/v1/merges/{event}/undo", headers=api.write)
+    assert undone.status_code == 200 and sorted(undone.json()["maps"]) == ["evening", "morning"]
+    assert api.client.patch("/v1/maps/morning", json={"name": "dawn"}, headers=api.write).status_code == 200
+    redone = api.client.post(f"/v1/merges/{event}/redo", headers=api.write)
+    assert redone.status_code == 200, redone.text
+    assert redone.json()["maps"] == ["dawn"] and _names(api) == ["dawn"]
