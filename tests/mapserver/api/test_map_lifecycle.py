@@ -6,9 +6,11 @@ Every refusal is paired with what must still happen. Delete and rename run on SQ
 from __future__ import annotations
 
 import hashlib
+from functools import cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from mapserver.store import NewSession, open_database, save_map
@@ -19,13 +21,18 @@ from tests.mapserver.api.test_admission import backend_api  # noqa: F401 (the fi
 from tests.mapserver.store.conftest import drive_engine, small_params
 
 
+@cache
+def _snapshot(seed: int) -> dict[str, np.ndarray]:
+    return drive_engine(small_params(), laps=0.4, seed=seed).snapshot()
+
+
 def _store(db_url: str, name: str, seed: int) -> None:
+    """Store a small map ``name`` (one session, the strip world driven 0.4 laps) straight into the database."""
     params = small_params()
     session = NewSession(name=f"{name}-s", log_name=f"{name}.bag", log_sha256=name.ljust(64, "0"),
                          topics={"image": "/camera"}, params=params.to_dict())  # fmt: skip
     with open_database(db_url) as db:
-        save_map(db, name=name, params=params, snapshot=drive_engine(params, laps=0.4, seed=seed).snapshot(),
-                 sessions=[session])  # fmt: skip
+        save_map(db, name=name, params=params, snapshot=_snapshot(seed), sessions=[session])
 
 
 def _content(api: Api, name: str) -> tuple[int, str]:

@@ -8,6 +8,7 @@ untouched, the request that is allowed passes.
 from __future__ import annotations
 
 import hashlib
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -40,15 +41,18 @@ from tests.mapserver.store.conftest import digest, drive_engine, row_counts, sma
 from tests.mapserver.store.test_archive import _concat, _session
 
 
+@cache
+def _snapshot(laps: float, seed: int) -> dict[str, np.ndarray]:
+    """An engine's snapshot around the strip world (driven once per test run)."""
+    return drive_engine(small_params(), laps=laps, seed=seed).snapshot()
+
+
 def _atlas(db: Database) -> int:
     """Store ``B`` (``A`` merged into it: sessions a and b, one event) and ``C``; return the event id."""
     params = small_params()
-    save_map(db, name="A", params=params, snapshot=drive_engine(params, laps=0.6, seed=3).snapshot(),
-             sessions=[_session("a")])  # fmt: skip
-    save_map(db, name="B", params=params, snapshot=drive_engine(params, laps=0.5, seed=5).snapshot(),
-             sessions=[_session("b")])  # fmt: skip
-    save_map(db, name="C", params=params, snapshot=drive_engine(params, laps=0.4, seed=7).snapshot(),
-             sessions=[_session("c")])  # fmt: skip
+    save_map(db, name="A", params=params, snapshot=_snapshot(0.6, 3), sessions=[_session("a")])
+    save_map(db, name="B", params=params, snapshot=_snapshot(0.5, 5), sessions=[_session("b")])
+    save_map(db, name="C", params=params, snapshot=_snapshot(0.4, 7), sessions=[_session("c")])
     a, b = load_map(db, name="A"), load_map(db, name="B")
     with db.write() as conn:
         event = record_merge_event(conn=conn, spec=MergeEventSpec(
