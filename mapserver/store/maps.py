@@ -184,20 +184,23 @@ def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
     holds the database write lock.
 
     Raises:
-        StaleMapError: another writer changed the map since it was read.
+        StaleMapError: another writer changed the map since it was read, or deleted (archived) it.
         UnknownMapError: the map no longer exists.
     """
     result = conn.execute(
         update(Map)
-        .where(Map.id == map_id, Map.version == expected_version)
+        .where(Map.id == map_id, Map.version == expected_version, Map.archived_at.is_(None))
         .values(version=Map.version + 1, updated_at=utcnow())
     )
     if result.rowcount == 1:
         return expected_version + 1
-    row = conn.execute(select(Map.name, Map.version).where(Map.id == map_id)).first()
+    row = conn.execute(select(Map.name, Map.version, Map.archived_at).where(Map.id == map_id)).first()
     if row is None:
         msg = f"map id {map_id!r} was deleted by another writer"
         raise UnknownMapError(msg)
+    if row[2] is not None:
+        msg = f"map {row[0]!r} was deleted (archived) while this write was prepared; nothing was written"
+        raise StaleMapError(msg)
     msg = (
         f"map {row[0]!r} was changed by another writer (version {row[1]}, expected {expected_version}); "
         "nothing was written"

@@ -1,6 +1,6 @@
 """A map's lifecycle over REST (issue 65): delete (archive), restore, purge, rename, and uploads ``into`` a map.
 
-Every refusal is paired with what must still happen. Delete and rename run on SQLite and PostgreSQL.
+Every refusal is paired with what must still happen. Each test runs on SQLite and on PostgreSQL.
 """
 
 from __future__ import annotations
@@ -142,7 +142,11 @@ def _kept_uploads(api: Api) -> list[Path]:
     return [p for p in root.iterdir() if not p.name.startswith(".")] if root.exists() else []
 
 
-def test_uploads_into_a_map_are_refused_before_202_for_every_reason_known(api: Api, tmp_path: Path) -> None:
+def test_uploads_into_a_map_are_refused_before_202_for_every_reason_known(
+    backend_api: Api,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    api = backend_api
     _store(api.db_url, "lab", 3)
     _store(api.db_url, "old", 5)
     assert api.client.delete("/v1/maps/old", headers=api.write).status_code == 200
@@ -171,7 +175,8 @@ def test_uploads_into_a_map_are_refused_before_202_for_every_reason_known(api: A
 
 
 @pytest.mark.slow
-def test_an_upload_into_a_map_merges_into_it_or_fails_storing_nothing(api: Api, tmp_path: Path) -> None:
+def test_an_upload_into_a_map_merges_into_it_or_fails_storing_nothing(backend_api: Api, tmp_path: Path) -> None:  # noqa: F811
+    api = backend_api
     morning = write_strip_log(tmp_path / "logs" / "morning.bag", laps=1.3)
     evening = write_strip_log(tmp_path / "logs" / "evening.bag", laps=1.6, t0_ns=1_800_000_000_000_000_000)
     elsewhere = write_strip_log(tmp_path / "logs" / "elsewhere.bag", laps=1.3, seed=8)

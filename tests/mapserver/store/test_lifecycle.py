@@ -19,7 +19,9 @@ from mapserver.errors import ConflictError, InputError
 from mapserver.store import (
     Database,
     MapExistsError,
+    StaleMapError,
     UnknownMapError,
+    claim_map,
     create_map,
     drop_map,
     find_map,
@@ -168,6 +170,15 @@ def test_refused_lifecycle_requests_leave_the_map_as_it_was(db: Database) -> Non
         archive_map(conn=conn, name="B")
     with pytest.raises(ConflictError, match="archived already"), db.write() as conn:
         archive_map(conn=conn, name="B")
+    # a writer that read B before the delete (a session resuming in it) cannot write into it: it reads again
+    record = load_map(db, name="C").meta.map
+    with db.read() as conn:
+        archived = find_map(conn=conn, name="B", archived=True)
+    assert archived is not None
+    with pytest.raises(StaleMapError, match="deleted \\(archived\\)"), db.write() as conn:
+        claim_map(conn=conn, map_id=archived.id, expected_version=archived.version)
+    with db.write() as conn:  # must still happen: a live map's write
+        assert claim_map(conn=conn, map_id=record.id, expected_version=record.version) == record.version + 1
     with pytest.raises(ConflictError, match="restore it before you rename it"), db.write() as conn:
         rename_map(conn=conn, name="B", new_name="D")
 
