@@ -68,10 +68,10 @@ def _print_table(maps: list[MapSummary]) -> None:
         health = f"{m.health['residual']:>8.2f}  {m.health['switched_off']:>3}" if m.health else f"{'-':>8}  {'-':>3}"
         merges = m.as_dict()["merges"]
         counts = f"{merges['applied']:>6} ({merges['rejected']}, {merges['unverified']})"
-        when = "" if m.archived_at is None else f"  {m.archived_at.isoformat(timespec='seconds')}"
+        tail = counts if m.archived_at is None else f"{counts:<30}  {m.archived_at.isoformat(timespec='seconds')}"
         sys.stdout.write(
             f"{m.name:<{width}}  {m.sessions:>8}  {m.templates:>9}  {m.experiences:>11}  {m.links:>7}  {health}  "
-            f"{counts:<30}{when}\n".rstrip() + "\n"
+            f"{tail}\n"
         )
 
 
