@@ -131,6 +131,15 @@ def test_the_token_endpoint_tells_the_viewer_what_it_may_do(api: Api) -> None:
     assert api.client.get("/v1/token", headers=api.read).json()["scope"] == "read"
 
 
+def test_a_log_named_like_an_archived_map_gets_a_name_of_its_own(api: Api, tmp_path: Path) -> None:
+    _store(api.db_url, "walk", 3)
+    assert api.client.delete("/v1/maps/walk", headers=api.write).status_code == 200
+    log = write_strip_log(tmp_path / "logs" / "walk.bag", laps=0.4, seed=4)
+    job = api.wait(api.upload(log, preset="irat", merge="false").json()["job"])
+    assert job["status"] == "done" and job["map"] == "walk-2", job
+    assert _names(api) == ["walk-2"] and _names(api, archived=True) == ["walk"]
+
+
 # --------------------------------------------------------------------------------------- upload into
 def _jobs(api: Api) -> int:
     with open_database(api.db_url) as db, db.read() as conn:
