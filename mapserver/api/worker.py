@@ -100,8 +100,8 @@ def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
 
     An explicit ``map`` is passed as given; a job sent ``into`` a map names none. Without either, the log's
     name is used, made unique (``name-2``, ...) when a map of that name exists (live or archived: an
-    archived map keeps its name) or a pending job's request names it — unless this log is stored already (then the pipeline continues or answers with its session and
-    needs no name).
+    archived map keeps its name) or a pending job's request names it — unless this log is stored already
+    (then the pipeline continues or answers with its session and needs no name).
     """
     options = job.options or {}
     if options.get("map_given"):

@@ -45,6 +45,9 @@ def test_delete_restore_rename_purge_from_the_command_line(tmp_path: Path, capsy
     code, out, _ = _json(capsys, ["maps", "delete", "yard", "--purge", "--db", db, "--json"])
     assert (code, out) == (0, {"purged": "yard", "sessions": 1, "merge_events": 0})
     assert _json(capsys, ["maps", "--archived", "--db", db, "--json"])[1] == {"maps": []}
+    # an atlas whose maps are all deleted is not empty: the demo is not built over it
+    assert main(["maps", "delete", "lab2", "--db", db]) == 0
+    assert _json(capsys, ["demo", "--if-empty", "--db", db, "--json"])[:2] == (0, {"built": False, "maps": []})
 
 
 def test_process_into_refuses_what_it_excludes_and_a_missing_map(tmp_path: Path, capsys: Any) -> None:
