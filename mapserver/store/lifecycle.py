@@ -155,7 +155,7 @@ def rename_map(*, conn: Connection, name: str, new_name: str) -> MapRecord:
 
 
 def _rename_in_details(conn: Connection, map_id: int, name: str, new_name: str) -> None:
-    """Rename the map where its merge events' details name it: the host of an online merge, the maps an undo restored.
+    """Rename the map where its merge events' details name it: an online merge's host, the maps an undo restored.
 
     A redo finds the maps by these names (:mod:`mapserver.undo`).
     """
@@ -170,6 +170,8 @@ def _rename_in_details(conn: Connection, map_id: int, name: str, new_name: str) 
         undo = changed.get("undo")
         if isinstance(undo, dict) and name in undo:
             changed["undo"] = {new_name if k == name else k: v for k, v in undo.items()}
+        if changed.get("undo_host") == name:  # the map that held the merge when it was undone
+            changed["undo_host"] = new_name
         if changed != details:
             conn.execute(update(MergeEvent).where(MergeEvent.id == event_id).values(details=changed))
 
