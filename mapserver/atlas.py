@@ -109,13 +109,18 @@ def read_atlas_map(conn: Connection, map_id: int) -> AtlasMap:
     )
 
 
-def _eligible_maps(conn: Connection, *, params: Params, exclude: int | None) -> tuple[dict[int, int], dict[str, str]]:
-    """Return {map id: version} of the stored maps a session with ``params`` may merge into, and why not the others."""
+def _eligible_maps(
+    conn: Connection, *, params: Params, exclude: int | None, only: str | None = None
+) -> tuple[dict[int, int], dict[str, str]]:
+    """Return {map id: version} of the stored maps a session with ``params`` may merge into, and why not the others.
+
+    ``only``: consider the map of that name alone (a session sent into one map).
+    """
     rows = list_map_params(conn=conn)
     eligible: dict[int, int] = {}
     skipped: dict[str, str] = {}
     for map_id, name, map_params, version in rows:
-        if exclude is not None and int(map_id) == exclude:
+        if (exclude is not None and int(map_id) == exclude) or (only is not None and name != only):
             continue
         try:
             reason = params_incompatibility(params_from_dict(dict(map_params)), params, reads_frames=True)
@@ -133,16 +138,23 @@ def _eligible_maps(conn: Connection, *, params: Params, exclude: int | None) -> 
 
 
 def merge_candidates(
-    conn: Connection, *, params: Params, exclude: int | None = None
+    conn: Connection, *, params: Params, exclude: int | None = None, only: str | None = None
 ) -> tuple[list[AtlasMap], dict[str, str]]:
     """Return the stored maps a session with ``params`` may merge into, and why the others may not.
 
-    A map is a candidate when its parameters are compatible (lattice, template size, matcher
-    geometry) and none of its sessions is still being processed (a partial session's robot state
-    lives in its map; a merge would replace it). Maps are returned by id (oldest first).
+    A map is a candidate when it is live (not archived), its parameters are compatible (lattice, template
+    size, matcher geometry) and none of its sessions is still being processed (a partial session's robot
+    state lives in its map; a merge would replace it). Maps are returned by id (oldest first). ``only``: the
+    map of that name alone is considered (a session sent into one map).
     """
-    eligible, skipped = _eligible_maps(conn, params=params, exclude=exclude)
+    eligible, skipped = _eligible_maps(conn, params=params, exclude=exclude, only=only)
     return [read_atlas_map(conn, map_id) for map_id in eligible], skipped
+
+
+def merge_target_problem(conn: Connection, *, name: str, params: Params) -> str | None:
+    """Return why the live map ``name`` cannot take a session with ``params`` (one line), None when it can."""
+    _eligible, skipped = _eligible_maps(conn, params=params, exclude=None, only=name)
+    return skipped.get(name)
 
 
 def ensure_candidates_unchanged(
@@ -152,6 +164,7 @@ def ensure_candidates_unchanged(
     exclude: int | None,
     seen: Mapping[int, int],
     relevance: tuple[set[object], ViewLog] | None = None,
+    only: str | None = None,
 ) -> None:
     """Raise ``StaleMapError`` when the maps a session may merge into changed in a way that can matter to it.
 
@@ -164,7 +177,7 @@ def ensure_candidates_unchanged(
     views, :mod:`mapserver.merge.relevance`), changes to maps it never observed and whose templates none
     of its views meets are let through: its run is what it would have been against the atlas as it is now.
     """
-    now, _skipped = _eligible_maps(conn, params=params, exclude=exclude)
+    now, _skipped = _eligible_maps(conn, params=params, exclude=exclude, only=only)
     if now == dict(seen):
         return
     differing = {k for k in now.keys() | seen.keys() if now.get(k) != seen.get(k)}

@@ -96,6 +96,7 @@ def process_into_store(
     progress: ProgressCallback | None = None,
     confirm: int | None = None,
     shift_lattice: bool = True,
+    into: str | None = None,
 ) -> ProcessResult:
     """Run a log through the engine and store the session in a database, in one transaction.
 
@@ -126,6 +127,9 @@ def process_into_store(
         progress: ``progress(done, total)`` callback.
         confirm: K, consecutive matching frames that confirm a merge (None: ``params.merge_confirm``).
         shift_lattice: False disables merge operation (iii), the lattice shift (debug, Fig. 12).
+        into: merge into this stored map only: the map alone is the merge candidate, and a session that
+            does not end up merged into it (no confirmed merge, or one its verification rolled back) is
+            refused with nothing stored. Excludes ``map_name`` and ``stop_after``; needs ``merge``.
 
     Returns:
         The summary (``frames`` counts the session's frames so far; ``merges`` one entry per merge).
@@ -149,9 +153,10 @@ def process_into_store(
         raise InputError(msg)
     if map_name is not None:
         check_map_name(map_name)
+    _check_into(into, map_name=map_name, merge=merge, stop_after=stop_after)
     load_frontend(params)
     started = time.perf_counter()
-    options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice, utcnow())
+    options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice, utcnow(), into)
     with open_log(log_path, topics) as log, open_database(db_url) as db:
         identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
         for attempt in range(1, STALE_ATTEMPTS + 1):
@@ -178,6 +183,35 @@ class _Options:
     confirm: int | None
     shift_lattice: bool
     started_at: datetime  # wall-clock time the processing began (the new session's ``started_at``)
+    into: str | None = None  # the one map the session must merge into
+
+
+def _check_into(into: str | None, *, map_name: str | None, merge: bool, stop_after: int | None) -> None:
+    """Refuse a target map that the other options contradict (worded for the CLI and the REST API alike)."""
+    if into is None:
+        return
+    check_map_name(into)
+    if map_name is not None:
+        msg = f"a new map's name ({map_name!r}) and a map to merge into ({into!r}) exclude each other; give one"
+        raise InputError(msg)
+    if not merge:
+        msg = f"merging into map {into!r} needs merging on"
+        raise InputError(msg)
+    if stop_after is not None:
+        msg = f"a session merged into map {into!r} is processed to its end; it cannot stop after {stop_after} frames"
+        raise InputError(msg)
+
+
+def _require_merged_into(into: str | None, holder_id: int | None, candidates: list[Any]) -> None:
+    """Refuse to store a session sent into a map when it did not end up merged into that map."""
+    if into is None or (holder_id is not None and any(c.id == holder_id for c in candidates)):
+        return
+    msg = (
+        f"the session did not merge into map {into!r}: its views never confirmed a merge with the map, or the "
+        "merge was rolled back by its verification; nothing was stored (send it without a map to merge into to "
+        "keep it as a map of its own)"
+    )
+    raise InputError(msg)
 
 
 def _process_session(
@@ -218,6 +252,8 @@ def _process_session(
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
     engine = live.finish() or run.engine  # a probation the log ended is judged: its rollback's engine goes on
+    if own is None:
+        _require_merged_into(opts.into, live.holder.id, candidates)
     ids = live.holder.ids
     if merger is not None:
         for other, reason in merger.skipped.items():
@@ -288,10 +324,17 @@ def _read_atlas(
         session = find_session(conn=conn, log_sha256=identity["sha256"], topics=identity["mapping"])
         if session is not None:
             record = get_map_by_id(conn=conn, map_id=_check_stored_session(log_path, params, session))
-            if opts.map_name is not None and opts.map_name != record.name:
+            if record.archived_at is not None:
+                msg = (
+                    f"this log is session {session.name!r} of map {record.name!r}, which is archived (deleted); "
+                    "restore the map first"
+                )
+                raise InputError(msg)
+            wanted = opts.map_name if opts.into is None else opts.into
+            if wanted is not None and wanted != record.name:
                 msg = (
                     f"{str(log_path)!r} is session {session.name!r} of map {record.name!r}; "
-                    f"it cannot be stored in map {opts.map_name!r}"
+                    f"it cannot be stored in map {wanted!r}"
                 )
                 raise InputError(msg)
             done, total = session.frames_processed, int(identity["total"])
@@ -304,17 +347,24 @@ def _read_atlas(
             read.session, read.own = session, atlas.read_atlas_map(conn, record.id)
             read.rows, read.pose = get_reckoning(conn=conn, session_id=session.id)
             read.activations = get_activations(conn=conn, session_id=session.id)
-        elif find_map(conn=conn, name=name) is not None:
+        elif opts.into is None and (holder := find_map(conn=conn, name=name, archived=None)) is not None:
             msg = (
                 f"a map named {name!r} already exists and this log is not one of its sessions; "
                 "choose another map name"
+                if holder.archived_at is None
+                else f"the name {name!r} is held by an archived (deleted) map; restore or purge it, or choose "
+                "another map name"
             )
             raise InputError(msg)
         if opts.merge:
             exclude = None if read.own is None else read.own.id
-            read.candidates, skipped = atlas.merge_candidates(conn, params=params, exclude=exclude)
+            read.candidates, skipped = atlas.merge_candidates(conn, params=params, exclude=exclude, only=opts.into)
             for other, reason in skipped.items():
                 logger.warning("map %r is not a merge candidate: %s", other, reason)
+            if opts.into is not None and read.own is None and not read.candidates:
+                reason = skipped.get(opts.into) or "there is no live map of that name"
+                msg = f"map {opts.into!r} cannot take this session: {reason}"
+                raise InputError(msg)
     return read
 
 
@@ -412,7 +462,7 @@ def _store_session(
             atlas.ensure_candidates_unchanged(
                 conn, params=params, exclude=None if run.own is None else run.own.id,
                 seen={c.id: c.version for c in run.candidates},
-                relevance=run.relevance if run.relevance[1] is not None and complete else None,
+                relevance=run.relevance if run.relevance[1] is not None and complete else None, only=opts.into,
             )  # fmt: skip
         session_id = _write_session_row(conn, log_path, params, identity, run, opts.started_at)
         tags = {NEW_SESSION_ORIGIN: session_id} if run.session is None else {}

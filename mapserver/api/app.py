@@ -16,7 +16,7 @@ from mapserver.api.errors import install_error_handlers
 from mapserver.api.lifecycle import ServerLock
 from mapserver.api.openapi import install_openapi
 from mapserver.api.requestid import RequestIdMiddleware
-from mapserver.api.routes import health, jobs, limits, links, maps, sessions
+from mapserver.api.routes import health, jobs, limits, links, maps, sessions, token
 from mapserver.api.services import Services
 from mapserver.api.settings import Settings
 from mapserver.api.slots import ReadSlots
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None, *, server_lock: ServerLock | No
     app.state.export_slots = ReadSlots(chosen.max_exports)
     install_error_handlers(app)
     app.add_middleware(RequestIdMiddleware)  # X-Request-ID on every response; the reference of 5xx answers
-    for module in (health, sessions, jobs, maps, limits, links):
+    for module in (health, sessions, jobs, maps, limits, links, token):
         app.include_router(module.router)
     install_viewer(app)  # the web viewer at / and its routes (issue 16)
     install_docs(app)  # /docs and /redoc, from this server's files

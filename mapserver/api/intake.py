@@ -29,7 +29,7 @@ from mapserver.params import DEFAULT_PRESET, require_storable, resolve_params
 
 logger = logging.getLogger(__name__)
 
-KNOWN_FIELDS = ("preset", "map", "topics", "merge")
+KNOWN_FIELDS = ("preset", "map", "into", "topics", "merge")
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,12 +41,14 @@ class UploadOptions:
         map_name: name for a new map, None for the default (the log's name).
         topics: topic overrides (``image``, ``odometry``, ``ground_truth``), or None.
         merge: merge the session into stored maps it connects to (``process`` without ``--no-merge``).
+        into: the existing map the session must merge into (None: any map it connects to, or a new one).
     """
 
     preset: str
     map_name: str | None
     topics: dict[str, str] | None
     merge: bool
+    into: str | None = None
 
 
 def parse_options(fields: Mapping[str, str]) -> UploadOptions:
@@ -57,7 +59,8 @@ def parse_options(fields: Mapping[str, str]) -> UploadOptions:
 
     Raises:
         InputError: unknown field, unknown preset, a map name that breaks the rule
-            (:func:`mapserver.names.check_map_name`), bad topics or merge flag.
+            (:func:`mapserver.names.check_map_name`), bad topics or merge flag; both ``map`` and ``into``,
+            or ``into`` with ``merge=false``.
     """
     unknown = sorted(set(fields) - set(KNOWN_FIELDS))
     if unknown:
@@ -73,7 +76,25 @@ def parse_options(fields: Mapping[str, str]) -> UploadOptions:
     if merge_text not in ("true", "false", "1", "0", "yes", "no"):
         msg = f"merge must be true or false, got {fields.get('merge')!r}"
         raise InputError(msg)
-    return UploadOptions(preset, map_name, topics, merge_text in ("true", "1", "yes"))
+    merge = merge_text in ("true", "1", "yes")
+    return UploadOptions(preset, map_name, topics, merge, _into(fields.get("into"), map_name=map_name, merge=merge))
+
+
+def _into(text: str | None, *, map_name: str | None, merge: bool) -> str | None:
+    """Return the checked ``into`` field (the map to merge into), None when it is not given."""
+    if text is None or not text.strip():
+        return None
+    into = check_map_name(text.strip())
+    if map_name is not None:
+        msg = (
+            f"give either map (the name of a new map, {map_name!r}) or into (an existing map to merge into, "
+            f"{into!r}), not both"
+        )
+        raise InputError(msg)
+    if not merge:
+        msg = f"into={into!r} merges the session into that map; it cannot be combined with merge=false"
+        raise InputError(msg)
+    return into
 
 
 def _topics(text: str | None) -> dict[str, str] | None:

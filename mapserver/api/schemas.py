@@ -138,6 +138,33 @@ class MapSummaryPublic(BaseModel):
     merges: dict[str, int] = Field(
         default_factory=dict, description="merge events of this map by status: applied, rejected, undone"
     )
+    archived_at: datetime | None = Field(None, description="when the map was deleted (archived maps only)")
+
+
+class MapRenamePublic(BaseModel):
+    """``PATCH /v1/maps/{name}``: the map's new name."""
+
+    name: str = Field(min_length=1, max_length=200, description="the new name (the map name rule)")
+
+
+class MapChangePublic(BaseModel):
+    """What a lifecycle request did to a map: deleted (archived), restored, renamed or purged."""
+
+    map: str = Field(description="the map's name (after a rename: the new one)")
+    status: Literal["archived", "live", "purged"]
+    archived_at: datetime | None = None
+    previous: str | None = Field(None, description="the old name (rename)")
+    sessions: int | None = Field(None, description="sessions deleted with the map (purge)")
+    merge_events: int | None = Field(None, description="merge events deleted with the map (purge)")
+
+
+class TokenPublic(BaseModel):
+    """``GET /v1/token``: the token the request sent (never its characters)."""
+
+    id: int
+    scope: Literal["read", "write"]
+    label: str | None = None
+    expires_at: datetime | None = None
 
 
 class MapsPublic(BaseModel):

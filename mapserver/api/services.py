@@ -18,10 +18,12 @@ from mapserver.api.jobengine import EmbeddedJobEngine, JobEngine
 from mapserver.api.lifecycle import ServerLock
 from mapserver.api.settings import Settings
 from mapserver.api.uploads import ReceivedUpload
+from mapserver.atlas import merge_target_problem
 from mapserver.errors import ConflictError, MapServerError
 from mapserver.ingest import open_log
-from mapserver.store import Database, open_database
-from mapserver.store.admission import UploadClaim, admission_conflict, lock_admission
+from mapserver.params import resolve_params
+from mapserver.store import Connection, Database, open_database
+from mapserver.store.admission import UploadClaim, admission_refusal, lock_admission
 from mapserver.store.jobs import JobRecord, create_job, find_upload_job, lock_upload
 from mapserver.store.tokens import LAST_USED_RESOLUTION_S, mark_token_used
 
@@ -113,7 +115,9 @@ class Services:
     @staticmethod
     def job_options(options: UploadOptions) -> dict[str, object]:
         """Return the ``jobs.options`` of an upload (what, besides bytes, topics and preset, makes it distinct)."""
-        return {"merge": options.merge, "map_given": options.map_name is not None, "requested_map": options.map_name}
+        into = {} if options.into is None else {"into": options.into}
+        return {"merge": options.merge, "map_given": options.map_name is not None, "requested_map": options.map_name,
+                **into}  # fmt: skip
 
     def find_duplicate(self, upload: ReceivedUpload, options: UploadOptions) -> JobRecord | None:
         """Return the job of an earlier identical upload (same bytes and request), unless it failed."""
@@ -124,16 +128,18 @@ class Services:
             )  # fmt: skip
 
     def check_admission(self, upload: ReceivedUpload, options: UploadOptions) -> None:
-        """Refuse an upload whose job would fail for a reason known before its log is opened (409).
+        """Refuse an upload whose job would fail for a reason known before its log is opened (404, 409).
 
         Raises:
-            ConflictError: another pending job processes the same log, or creates the map asked for.
+            ConflictError: another pending job processes the same log, or creates the map asked for; the map
+                to merge into is archived, has a partial session or parameters the preset cannot merge with.
+            NotFoundError: no map to merge into of that name.
         """
-        claim = UploadClaim(upload.sha256, options.topics, options.map_name)
+        claim = UploadClaim(upload.sha256, options.topics, options.map_name, into=options.into)
         with self.db.read() as conn:
-            reason = admission_conflict(conn=conn, claim=claim)
-        if reason is not None:
-            raise ConflictError(reason)
+            refusal = admission_refusal(conn=conn, claim=claim) or _into_params_refusal(conn, options)
+        if refusal is not None:
+            raise refusal
 
     def queue_job(
         self, upload: ReceivedUpload, log: StoredLog, options: UploadOptions, request_id: str | None = None
@@ -152,7 +158,7 @@ class Services:
             ConflictError: the job would fail for a reason known now (the message says which).
         """
         identity = _log_sha256(upload, log, options)
-        claim = UploadClaim(upload.sha256, options.topics, options.map_name, identity, log.mapping)
+        claim = UploadClaim(upload.sha256, options.topics, options.map_name, identity, log.mapping, options.into)
         with self.db.write() as conn:
             lock_admission(conn=conn)
             lock_upload(conn=conn, upload_sha256=upload.sha256)
@@ -162,15 +168,15 @@ class Services:
             )  # fmt: skip
             if existing is not None:
                 return existing, True
-            reason = admission_conflict(conn=conn, claim=claim)
-            if reason is not None:
-                raise ConflictError(reason)
+            refusal = admission_refusal(conn=conn, claim=claim) or _into_params_refusal(conn, options)
+            if refusal is not None:
+                raise refusal
             job = create_job(
                 conn=conn,
                 upload_path=str(log.path.resolve()),
                 upload_name=upload.filename,
                 upload_sha256=upload.sha256,
-                map_name=options.map_name or log.name,
+                map_name=options.into or options.map_name or log.name,
                 preset=options.preset,
                 topics=options.topics,
                 options={**self.job_options(options), "frames": log.frames, "attempts": 0, "request_id": request_id},
@@ -194,6 +200,14 @@ class Services:
                 mark_token_used(conn=conn, token_id=token_id)
         except MapServerError as err:  # bookkeeping only: never fail a request for it
             logger.warning("cannot record the use of token %d: %s", token_id, err)
+
+
+def _into_params_refusal(conn: Connection, options: UploadOptions) -> ConflictError | None:
+    """Return the 409 when the map to merge into cannot take a session of the upload's preset."""
+    if options.into is None:
+        return None
+    problem = merge_target_problem(conn, name=options.into, params=resolve_params(options.preset))
+    return None if problem is None else ConflictError(f"map {options.into!r} cannot take this session: {problem}")
 
 
 def _log_sha256(upload: ReceivedUpload, log: StoredLog, options: UploadOptions) -> str:

@@ -99,14 +99,16 @@ class ProgressReporter:
 def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
     """Return the map name to pass to the pipeline.
 
-    An explicit ``map`` is passed as given. Without one, the log's name is used, made unique
-    (``name-2``, ...) when another log already has a map of that name or a pending job's request names
-    it — unless this log is stored already (then the pipeline continues or answers with its session and
-    needs no name).
+    An explicit ``map`` is passed as given; a job sent ``into`` a map names none. Without either, the log's
+    name is used, made unique (``name-2``, ...) when a map of that name exists (live or archived: an
+    archived map keeps its name) or a pending job's request names it — unless this log is stored already
+    (then the pipeline continues or answers with its session and needs no name).
     """
     options = job.options or {}
     if options.get("map_given"):
         return job.map_name
+    if options.get("into") is not None:  # merged into that map: no new map is named
+        return None
     base = job.map_name or default_map_name(log_path)
     with open_log(log_path, job.topics) as log:
         sha256, mapping = log.sha256, log.mapping.as_dict()
@@ -114,7 +116,7 @@ def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
         if find_session(conn=conn, log_sha256=sha256, topics=mapping) is not None:
             return None
         name, k = base, 2
-        while find_map(conn=conn, name=name) is not None or pending_map_creator(
+        while find_map(conn=conn, name=name, archived=None) is not None or pending_map_creator(
             conn=conn, name=name, except_job=job.id
         ) is not None:
             name, k = f"{base}-{k}", k + 1
@@ -153,6 +155,7 @@ def execute_job(
             topics=job.topics,
             merge=bool((job.options or {}).get("merge", True)),
             progress=reporter,
+            into=(job.options or {}).get("into"),
         )
     except JobInterrupted:
         raise

@@ -66,11 +66,12 @@ def build_demo(db_url: str) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Build the demo atlas (or skip it with ``--if-empty`` when maps exist)."""
+    """Build the demo atlas (or skip it with ``--if-empty`` when maps exist, deleted ones included)."""
     with open_database(args.db) as db, db.read() as conn:
         maps = list_maps(conn=conn)
-    if args.if_empty and maps:
-        info(f"the database holds {len(maps)} map(s) already; no demo built")
+        archived = list_maps(conn=conn, archived=True)
+    if args.if_empty and (maps or archived):
+        info(f"the database holds {len(maps)} map(s) and {len(archived)} deleted one(s) already; no demo built")
         if args.json:
             emit_json({"built": False, "maps": [m.as_dict() for m in maps]})
         return 0

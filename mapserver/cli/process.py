@@ -31,6 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--db", help="store the session in this database (SQLAlchemy URL)")
     parser.add_argument("--map", dest="map_name", help="name of the new map when the session connects to none")
     parser.add_argument("--no-merge", action="store_true", help="always keep the session a separate map")
+    parser.add_argument("--into", metavar="MAP",
+                        help="merge the session into this stored map only; refused, with nothing stored, when it "
+                             "does not merge (excludes --map, --no-merge, --stop-after)")  # fmt: skip
     parser.add_argument(
         "--confirm", type=int, metavar="K",
         help="consecutive matching frames that confirm a merge (default: the parameters' merge_confirm; 1 = paper)",
@@ -63,6 +66,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _check_into(args: argparse.Namespace) -> None:
+    """Refuse ``--into`` with the flags it excludes (the pipeline words the same refusals for any caller)."""
+    if args.into is None:
+        return
+    for given, flag in ((not args.db, "needs --db"), (args.map_name, "excludes --map"),
+                        (args.no_merge, "excludes --no-merge"), (args.stop_after is not None, "excludes --stop-after")):
+        if given:
+            msg = f"--into {flag}"
+            raise InputError(msg)
+
+
 def run(args: argparse.Namespace) -> int:
     """Process the log and report the summary."""
     from mapserver.cli._progress import progress_bar
@@ -77,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     if args.map_name and not args.db:
         msg = "--map needs --db"
         raise InputError(msg)
+    _check_into(args)
     if args.db:
         from mapserver.params import require_storable
 
@@ -102,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
                 progress=update,
                 confirm=args.confirm,
                 shift_lattice=not args.merge_no_shift,
+                into=args.into,
             )
         else:
             if args.stop_after is not None:

@@ -1,4 +1,8 @@
-"""Maps: create, find, list (with counts, or with parameters), claim for writing (optimistic version check), drop."""
+"""Maps: create, find, list (with counts, or with parameters), claim for writing (optimistic version check), drop.
+
+Lookups by name and listings see live maps only: an archived (deleted, restorable) map is found by
+:mod:`mapserver.store.lifecycle`, which archives, restores, renames and purges maps.
+"""
 
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ class MapRecord:
         params: the map's effective engine parameters (``Params.to_dict()``).
         created_at: creation time (UTC).
         updated_at: last state write (UTC).
+        archived_at: when the map was deleted (archived; restorable), None for a live map.
     """
 
     id: int
@@ -43,6 +48,7 @@ class MapRecord:
     params: dict[str, Any]
     created_at: datetime
     updated_at: datetime
+    archived_at: datetime | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,9 +64,15 @@ class MapSummary:
     health: dict[str, Any] | None = None
     #: merge events that produced this map (or were rolled back in it), by status: applied, rejected, undone
     merges: dict[str, int] | None = None
+    #: when the map was deleted (archived), None for a live map
+    archived_at: datetime | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """Return ``{"name", "sessions", "templates", "experiences", "links", "health", "merges"}``."""
+        """Return ``{"name", "sessions", "templates", "experiences", "links", "health", "merges"}``.
+
+        An archived map's dict also holds ``archived_at`` (ISO 8601).
+        """
+        extra = {} if self.archived_at is None else {"archived_at": self.archived_at.isoformat()}
         return {
             "name": self.name,
             "sessions": self.sessions,
@@ -69,6 +81,7 @@ class MapSummary:
             "links": self.links,
             "health": self.health,
             "merges": dict(self.merges) if self.merges is not None else _no_merges(),
+            **extra,
         }
 
 
@@ -81,16 +94,22 @@ class MapParams(NamedTuple):
     version: int
 
 
-_COLUMNS = (Map.id, Map.name, Map.version, Map.params, Map.created_at, Map.updated_at)
+_COLUMNS = (Map.id, Map.name, Map.version, Map.params, Map.created_at, Map.updated_at, Map.archived_at)
 
 
 def _record(row: Any) -> MapRecord:
-    return MapRecord(int(row[0]), str(row[1]), int(row[2]), dict(row[3]), row[4], row[5])
+    return MapRecord(int(row[0]), str(row[1]), int(row[2]), dict(row[3]), row[4], row[5], row[6])
 
 
-def find_map(*, conn: Connection, name: str) -> MapRecord | None:
-    """Return the map called ``name`` or None."""
-    row = conn.execute(select(*_COLUMNS).where(Map.name == name)).first()
+def find_map(*, conn: Connection, name: str, archived: bool | None = False) -> MapRecord | None:
+    """Return the map called ``name`` or None.
+
+    ``archived``: False (the default) finds a live map only, True an archived one only, None either.
+    """
+    query = select(*_COLUMNS).where(Map.name == name)
+    if archived is not None:
+        query = query.where(Map.archived_at.is_not(None) if archived else Map.archived_at.is_(None))
+    row = conn.execute(query).first()
     return None if row is None else _record(row)
 
 
@@ -125,10 +144,15 @@ def create_map(*, conn: Connection, name: str, params: Mapping[str, Any]) -> Map
     """Create an empty map (version 0; its state is written by :func:`~mapserver.store.state.write_map_state`).
 
     Raises:
-        MapExistsError: the name is taken.
+        MapExistsError: the name is taken, by a live map or by an archived one (restore or purge it first).
     """
-    if find_map(conn=conn, name=name) is not None:
-        msg = f"a map named {name!r} already exists"
+    holder = find_map(conn=conn, name=name, archived=None)
+    if holder is not None:
+        msg = (
+            f"a map named {name!r} already exists"
+            if holder.archived_at is None
+            else f"the name {name!r} is held by an archived (deleted) map; restore it, or purge it for good first"
+        )
         raise MapExistsError(msg)
     now = utcnow()
     map_id = conn.execute(
@@ -160,20 +184,23 @@ def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
     holds the database write lock.
 
     Raises:
-        StaleMapError: another writer changed the map since it was read.
+        StaleMapError: another writer changed the map since it was read, or deleted (archived) it.
         UnknownMapError: the map no longer exists.
     """
     result = conn.execute(
         update(Map)
-        .where(Map.id == map_id, Map.version == expected_version)
+        .where(Map.id == map_id, Map.version == expected_version, Map.archived_at.is_(None))
         .values(version=Map.version + 1, updated_at=utcnow())
     )
     if result.rowcount == 1:
         return expected_version + 1
-    row = conn.execute(select(Map.name, Map.version).where(Map.id == map_id)).first()
+    row = conn.execute(select(Map.name, Map.version, Map.archived_at).where(Map.id == map_id)).first()
     if row is None:
         msg = f"map id {map_id!r} was deleted by another writer"
         raise UnknownMapError(msg)
+    if row[2] is not None:
+        msg = f"map {row[0]!r} was deleted (archived) while this write was prepared; nothing was written"
+        raise StaleMapError(msg)
     msg = (
         f"map {row[0]!r} was changed by another writer (version {row[1]}, expected {expected_version}); "
         "nothing was written"
@@ -181,8 +208,11 @@ def claim_map(*, conn: Connection, map_id: int, expected_version: int) -> int:
     raise StaleMapError(msg)
 
 
-def list_maps(*, conn: Connection) -> list[MapSummary]:
-    """Return every map with its session, template, experience and link counts, health and merges, by name."""
+def list_maps(*, conn: Connection, archived: bool = False) -> list[MapSummary]:
+    """Return every map with its session, template, experience and link counts, health and merges, by name.
+
+    ``archived``: list the archived (deleted, restorable) maps instead of the live ones.
+    """
     sessions = (
         select(Session.map_id, func.count().label("n")).where(Session.map_id.is_not(None)).group_by(Session.map_id)
     ).subquery()
@@ -195,22 +225,26 @@ def list_maps(*, conn: Connection) -> list[MapSummary]:
             func.coalesce(MapState.n_experiences, 0),
             func.coalesce(MapState.n_links, 0),
             MapState.health,
+            Map.archived_at,
         )
         .outerjoin(sessions, sessions.c.map_id == Map.id)
         .outerjoin(MapState, MapState.map_id == Map.id)
+        .where(Map.archived_at.is_not(None) if archived else Map.archived_at.is_(None))
         .order_by(Map.name)
     ).all()
     merges = _merge_counts(conn)
     return [
         MapSummary(str(r[1]), int(r[2]), int(r[3]), int(r[4]), int(r[5]), r[6],
-                   merges.get(int(r[0]), _no_merges()))
+                   merges.get(int(r[0]), _no_merges()), r[7])
         for r in rows
     ]  # fmt: skip
 
 
 def list_map_params(*, conn: Connection) -> list[MapParams]:
-    """Return every map's id, name, parameters and version, by id (no counts, no state)."""
-    rows = conn.execute(select(Map.id, Map.name, Map.params, Map.version).order_by(Map.id)).all()
+    """Return every live map's id, name, parameters and version, by id (no counts, no state)."""
+    rows = conn.execute(
+        select(Map.id, Map.name, Map.params, Map.version).where(Map.archived_at.is_(None)).order_by(Map.id)
+    ).all()
     return [MapParams(r[0], r[1], r[2], r[3]) for r in rows]
 
 

@@ -26,7 +26,7 @@ logger = logging.getLogger(__name__)
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
 """The Alembic script directory (``migrations/`` at the repository root)."""
 
-HEAD_REVISION = "0009"
+HEAD_REVISION = "0010"
 """The revision the code expects (a test checks it is the script directory's head)."""
 
 VERSION_TABLE = "alembic_version"

@@ -114,7 +114,8 @@ class Map(Base):
     """A map: one set of templates, one pose-cell lattice, one experience graph; one or more sessions.
 
     ``version`` is incremented by every write of the map's state; writers check it (optimistic
-    concurrency) so that two processes never interleave their states.
+    concurrency) so that two processes never interleave their states. ``archived_at`` marks a deleted map
+    (:mod:`mapserver.store.lifecycle`): hidden from lookups and listings, everything it holds kept.
     """
 
     __tablename__ = "maps"
@@ -126,6 +127,8 @@ class Map(Base):
     params: Mapped[dict[str, Any]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    #: set when the map is deleted (archived, restorable; migration 0009); NULL for a live map
+    archived_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
 
 
 class Session(Base):

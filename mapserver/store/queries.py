@@ -15,7 +15,8 @@ from mapserver.store.bulk import fetch_tuples
 from mapserver.store.models import Experience, Link, Map, MapState, Session
 
 MAX_PAGE = 10_000
-_MAP_VERSION = select(Map.id, Map.version).where(Map.name == bindparam("name"))  # built once: a cached statement
+# built once: a cached statement; an archived (deleted) map is no map here
+_MAP_VERSION = select(Map.id, Map.version).where(Map.name == bindparam("name"), Map.archived_at.is_(None))
 
 
 def page_experiences(

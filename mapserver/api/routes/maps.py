@@ -1,4 +1,4 @@
-"""``/v1/maps``: list, one map, paged experiences, shortest paths, export."""
+"""``/v1/maps``: list, one map, paged experiences, shortest paths, export; delete, restore, rename (write)."""
 
 from __future__ import annotations
 
@@ -8,20 +8,22 @@ from functools import partial
 from typing import Annotated, Any, Literal
 
 import anyio
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Body, Path, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic_core import to_json
 from starlette.concurrency import run_in_threadpool
 from starlette.types import Send
 
 from core.paths import PathResult
-from mapserver.api.deps import ReadAccess, ServicesDep
+from mapserver.api.deps import ReadAccess, ServicesDep, WriteAccess
 from mapserver.api.metrics import PATH_SECONDS
 from mapserver.api.schemas import (
     ErrorPublic,
     ExperiencePublic,
     ExperiencesPublic,
+    MapChangePublic,
     MapPublic,
+    MapRenamePublic,
     MapsPublic,
     MapSummaryPublic,
     MergeEventPublic,
@@ -30,6 +32,7 @@ from mapserver.api.schemas import (
 )
 from mapserver.store import get_map, list_maps, sessions_of_map
 from mapserver.store.export import read_plot_graph, render_png
+from mapserver.store.lifecycle import archive_map, purge_map, rename_map, restore_map
 from mapserver.store.merge_events import list_merge_events
 from mapserver.store.queries import MAX_PAGE, page_experiences
 from mapserver.store.sessions import get_sessions
@@ -45,12 +48,66 @@ EXPORT_TYPES = {"json": "application/json", "tum": "text/plain; charset=utf-8", 
                 "g2o": "text/plain; charset=utf-8", "csv": "text/csv; charset=utf-8"}
 
 
-@router.get("", operation_id="list_maps", response_model=MapsPublic, responses=AUTH_ERRORS)
-def read_maps(services: ServicesDep, _token: ReadAccess) -> MapsPublic:
-    """List the stored maps with their session, template, experience and link counts."""
+# a live map's entry has no ``archived_at`` (the key is set for archived maps only)
+@router.get("", operation_id="list_maps", response_model=MapsPublic, responses=AUTH_ERRORS,
+            response_model_exclude_unset=True)  # fmt: skip
+def read_maps(
+    services: ServicesDep,
+    _token: ReadAccess,
+    archived: Annotated[bool, Query(description="list the archived (deleted, restorable) maps instead")] = False,
+) -> MapsPublic:
+    """List the stored maps with their session, template, experience and link counts (or the archived ones)."""
     with services.db.read() as conn:
-        maps = list_maps(conn=conn)
+        maps = list_maps(conn=conn, archived=archived)
     return MapsPublic(maps=[MapSummaryPublic(**m.as_dict()) for m in maps])
+
+
+WRITE_MAP_ERRORS: dict[int | str, dict[str, Any]] = {**MAP_ERRORS, 409: {"model": ErrorPublic}}
+
+
+@router.delete("/{name}", operation_id="delete_map", response_model=MapChangePublic, responses=WRITE_MAP_ERRORS)
+def delete_map(
+    name: MapName,
+    services: ServicesDep,
+    _token: WriteAccess,
+    purge: Annotated[bool, Query(description="delete an archived map for good (its sessions and merges too)")] = False,
+) -> MapChangePublic:
+    """Delete a map: it is archived (hidden, restorable with ``POST .../restore``), nothing of it is lost.
+
+    ``purge=true`` deletes an archived map for good: its content, sessions and the merge events that involve
+    it. 409: the map is archived already (without ``purge``), live (with ``purge``), or a queued or running
+    job processes a log into it.
+    """
+    with services.db.write() as conn:
+        if purge:
+            outcome = purge_map(conn=conn, name=name)
+            return MapChangePublic(map=outcome.name, status="purged", sessions=outcome.sessions,
+                                   merge_events=outcome.merge_events)  # fmt: skip
+        record = archive_map(conn=conn, name=name)
+    return MapChangePublic(map=record.name, status="archived", archived_at=record.archived_at)
+
+
+@router.post(
+    "/{name}/restore", operation_id="restore_map", response_model=MapChangePublic, responses=WRITE_MAP_ERRORS
+)
+def restore(name: MapName, services: ServicesDep, _token: WriteAccess) -> MapChangePublic:
+    """Bring a deleted (archived) map back, exactly as it was; 409 when the map is not archived."""
+    with services.db.write() as conn:
+        record = restore_map(conn=conn, name=name)
+    return MapChangePublic(map=record.name, status="live")
+
+
+@router.patch(
+    "/{name}", operation_id="rename_map", response_model=MapChangePublic,
+    responses={**WRITE_MAP_ERRORS, 400: {"model": ErrorPublic}},
+)  # fmt: skip
+def rename(
+    name: MapName, body: Annotated[MapRenamePublic, Body()], services: ServicesDep, _token: WriteAccess
+) -> MapChangePublic:
+    """Rename a map (``{"name": NEW}``); 400 a name that breaks the rule, 409 a name taken (an archived map's too)."""
+    with services.db.write() as conn:
+        record = rename_map(conn=conn, name=name, new_name=body.name)
+    return MapChangePublic(map=record.name, status="live", previous=name)
 
 
 @router.get("/{name}", operation_id="get_map", response_model=MapPublic, responses=MAP_ERRORS)

@@ -35,6 +35,8 @@ UPLOAD_BODY: dict[str, Any] = {
                         },
                         "preset": {"type": "string", "description": "engine preset (default circle)"},
                         "map": {"type": "string", "description": "name of the new map if it joins none"},
+                        "into": {"type": "string", "description": "an existing map the session must merge into "
+                                 "(instead of map); the job fails, storing nothing, if it does not merge"},
                         "topics": {"type": "string", "description": "topic overrides: image=/cam,odometry=/odom"},
                         "merge": {"type": "string", "enum": ["true", "false"], "description": "default true"},
                     },
@@ -44,7 +46,7 @@ UPLOAD_BODY: dict[str, Any] = {
     }
 }
 ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorPublic} for code in (400, 401, 403, 408, 409, 413, 415, 422, 507)
+    code: {"model": ErrorPublic} for code in (400, 401, 403, 404, 408, 409, 413, 415, 422, 507)
 }
 
 
@@ -70,6 +72,8 @@ async def upload_session(request: Request, services: ServicesDep, _token: WriteA
     answered with the earlier job (``duplicate: true``) instead of being queued twice. 409 when the job
     would fail for a reason known now: another pending job processes the same log, or creates the map
     named; the log is stored in another map; the named map exists and the log is not one of its sessions.
+    With ``into``: 404 when no map has that name, 409 when it is archived, has a partial session or
+    parameters the preset cannot merge with, or the log is stored in another map.
     A full disk while receiving or unpacking is answered 507 (:func:`mapserver.api.errors.raise_server_fault`).
     """
     settings = services.settings

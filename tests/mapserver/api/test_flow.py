@@ -173,7 +173,7 @@ def test_openapi_and_docs(api: Api) -> None:
                    "find_path", "export_map", "get_metrics", "get_graph_view", "get_nearest_experience",
                    "get_experience", "get_experience_evidence", "list_merges", "get_merge", "undo_merge",
                    "redo_merge", "get_limits", "add_link", "list_links", "move_session",
-                   "get_ground_truth_overlay"}  # fmt: skip
+                   "get_ground_truth_overlay", "delete_map", "restore_map", "rename_map", "read_token"}  # fmt: skip
     assert "multipart/form-data" in schema["paths"]["/v1/sessions"]["post"]["requestBody"]["content"]
     assert api.client.get("/docs").status_code == 200
     assert api.client.get("/healthz").json() == {"status": "ok"}

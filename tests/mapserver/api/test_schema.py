@@ -52,8 +52,8 @@ def test_no_server_errors(tmp_path: Path) -> None:
     schema = schemathesis.openapi.from_asgi("/openapi.json", app)
     operations = [result.ok() for result in schema.get_all_operations()]
     # 9 (the jobs listed), session move, the viewer's 9 (graph, nearest, node, evidence, ground truth, merges x4),
-    # metrics, limits, links x2
-    assert len(operations) == 23
+    # metrics, limits, links x2, and a map's lifecycle: delete, restore, rename, and the token's scope
+    assert len(operations) == 27
     statuses: dict[str, set[int]] = {}
     for operation in operations:
         _exercise(operation, headers, statuses.setdefault(operation.label, set()))

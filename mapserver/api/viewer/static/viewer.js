@@ -57,6 +57,16 @@ function showToken() {
   $("#upload-hint").hidden = !!token();
 }
 
+// what the token may do (GET /v1/token): delete, rename and restore maps are shown to a write token only
+let writeAccess = false;
+async function refreshAccess() {
+  let scope = null;
+  if (token()) { try { scope = (await api("/v1/token")).scope; } catch (e) { scope = null; } }
+  writeAccess = scope === "write";
+  for (const node of document.querySelectorAll(".write-only")) node.hidden = !writeAccess;
+  if (!writeAccess) $("#archived-list").hidden = true;
+}
+
 /* ------------------------------------------------------------------ routing */
 function route() {
   const hash = decodeURIComponent(location.hash.replace(/^#/, "")) || "/";
@@ -76,6 +86,7 @@ async function loadMaps() {
     const details = await Promise.all(maps.map((m) => api("/v1/maps/" + encodeURIComponent(m.name)).catch(() => ({}))));
     mapsState.rows = maps.map((m, i) => Object.assign({}, m, { updated_at: details[i].updated_at || "" }));
     renderMaps();
+    await loadArchived();
   } catch (err) { banner(err.message); }
 }
 
@@ -121,12 +132,94 @@ function renderMaps() {
     el("td", { class: "num" }, m.sessions), el("td", { class: "num" }, m.experiences),
     el("td", { class: "num" }, m.templates), el("td", { class: "num" }, m.links),
     el("td", { class: "health health-" + healthGrade(m.health) }, healthText(m.health)),
-    el("td", {}, m.updated_at ? new Date(m.updated_at).toLocaleString() : "–"))));
+    el("td", {}, m.updated_at ? new Date(m.updated_at).toLocaleString() : "–"),
+    ...(writeAccess ? [mapActions(m)] : []))));
   $("#maps-empty").hidden = rows.length > 0;
   for (const th of document.querySelectorAll("#maps-table th")) {
     th.classList.toggle("asc", th.dataset.key === key && dir === 1);
     th.classList.toggle("desc", th.dataset.key === key && dir === -1);
   }
+}
+
+/* ------------------------------------------------------------------ deleting, renaming, restoring maps */
+// a modal question: resolves with the field's text (or true) when confirmed, null when cancelled; `act`
+// runs on confirm and a failure it throws is shown in the dialog, which stays open
+function ask({ title, text, ok, danger = false, field = null, act }) {
+  return new Promise((resolve) => {
+    const input = $("#dialog-input"), okButton = $("#dialog-ok");
+    $("#dialog-title").textContent = title; $("#dialog-text").textContent = text; $("#dialog-error").textContent = "";
+    $("#dialog-field").hidden = field === null; input.value = field || "";
+    okButton.textContent = ok; okButton.className = danger ? "danger" : "";
+    $("#dialog-backdrop").hidden = false;
+    (field === null ? $("#dialog-cancel") : input).focus();
+    const close = (value) => {
+      $("#dialog-backdrop").hidden = true; okButton.onclick = null; $("#dialog-cancel").onclick = null;
+      resolve(value);
+    };
+    $("#dialog-cancel").onclick = () => close(null);
+    okButton.onclick = async () => {
+      const value = field === null ? true : input.value.trim();
+      try { await act(value); close(value); } catch (err) { $("#dialog-error").textContent = err.message; }
+    };
+  });
+}
+
+function mapActions(m) {
+  return el("td", { class: "actions" },
+    el("button", { class: "map-rename", type: "button", onclick: () => renameMap(m) }, "rename"),
+    el("button", { class: "map-delete", type: "button", onclick: () => deleteMap(m) }, "delete"));
+}
+
+async function deleteMap(m) {
+  const sessions = `${m.sessions} session${m.sessions === 1 ? "" : "s"}`;
+  const done = await ask({
+    title: `Delete map “${m.name}”?`,
+    text: `The map leaves the list. It is archived, not destroyed: its ${sessions}, ${m.experiences} experiences ` +
+      `and merge events are kept, and “show deleted maps” below restores it as it was.`,
+    ok: "delete", danger: true,
+    act: () => api("/v1/maps/" + encodeURIComponent(m.name), { method: "DELETE" }),
+  });
+  if (done) { banner(`map ${m.name} deleted (archived: it can be restored)`, true); await loadMaps(); }
+}
+
+async function renameMap(m) {
+  const name = await ask({
+    title: `Rename map “${m.name}”`,
+    text: "1 to 64 characters from A-Z a-z 0-9 . _ -, starting with a letter or a digit.",
+    ok: "rename", field: m.name,
+    act: (value) => api("/v1/maps/" + encodeURIComponent(m.name), {
+      method: "PATCH", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ name: value }),
+    }),
+  });
+  if (name) { banner(`map ${m.name} renamed to ${name}`, true); await loadMaps(); }
+}
+
+async function loadArchived() {
+  const box = $("#archived-list");
+  if (box.hidden) return;
+  try {
+    const { maps } = await api("/v1/maps?archived=true");
+    $("#archived-table tbody").replaceChildren(...maps.map((m) => el("tr", { "data-map": m.name },
+      el("td", {}, m.name), el("td", { class: "num" }, m.sessions), el("td", { class: "num" }, m.experiences),
+      el("td", {}, m.archived_at ? new Date(m.archived_at).toLocaleString() : "–"),
+      el("td", {}, el("button", { class: "map-restore", type: "button", onclick: () => restoreMap(m.name) }, "restore")))));
+    $("#archived-empty").hidden = maps.length > 0;
+  } catch (err) { banner(err.message); }
+}
+
+async function restoreMap(name) {
+  try {
+    await api("/v1/maps/" + encodeURIComponent(name) + "/restore", { method: "POST" });
+    banner(`map ${name} restored`, true);
+    await loadMaps();
+  } catch (err) { banner(err.message); }
+}
+
+function toggleArchived() {
+  const box = $("#archived-list");
+  box.hidden = !box.hidden;
+  $("#show-archived").textContent = box.hidden ? "show deleted maps" : "hide deleted maps";
+  loadArchived();
 }
 
 /* ------------------------------------------------------------------ map page state */
@@ -618,9 +711,12 @@ function start() {
   $("#token-form").addEventListener("submit", (e) => {
     e.preventDefault();
     sessionStorage.setItem(TOKEN_KEY, $("#token").value.trim()); $("#token").value = "";
-    showToken(); route();
+    showToken(); refreshAccess().then(route);
   });
-  $("#token-clear").addEventListener("click", () => { sessionStorage.removeItem(TOKEN_KEY); showToken(); route(); });
+  $("#token-clear").addEventListener("click", () => {
+    sessionStorage.removeItem(TOKEN_KEY); showToken(); refreshAccess().then(route);
+  });
+  $("#show-archived").addEventListener("click", toggleArchived);
   for (const th of document.querySelectorAll("#maps-table th[data-key]")) {
     th.addEventListener("click", () => {
       mapsState.dir = mapsState.key === th.dataset.key ? -mapsState.dir : 1;
@@ -638,7 +734,7 @@ function start() {
   $("#upload-form").addEventListener("submit", upload);
   setupCanvas();
   window.addEventListener("hashchange", route);
-  route();
+  refreshAccess().then(route);
 }
 
 window.viewer = { V, draw, fit, showNode, findPath, toScreen, fetchGraph, viewBox };
