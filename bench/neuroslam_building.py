@@ -53,12 +53,11 @@ from core import preset
 from mapserver.evaluation import evaluate_map, interpolate_poses
 from mapserver.formats import read_map_json, read_tum
 from mapserver.ingest.simulator import simulate
+from mapserver.ingest.simulator.building import STAIRWELL_WALL_M
 from mapserver.run import process_log
 
 ENGINES = ("neuroslam", "poseidon-lvc", "circle")
 SMALL = {"scale": 0.75, "params": {"laps": 1.0}}
-STAIRWELL_MARGIN_M = 1.3
-"""The stairwell's wall stands this far outside the ramp (``building``'s ``STAIRWELL_WALL_M``)."""
 OFF_FLOOR_M = 0.25
 """An experience more than this far from both storeys' heights is on the ramp."""
 
@@ -83,7 +82,7 @@ class Floors:
         """Whether each (N, 3) true position is on the ramp (in the stairwell, or between storeys)."""
         d = np.hypot(xyz[:, 0] - self.ramp_centre[0], xyz[:, 1] - self.ramp_centre[1])
         off = np.min(np.abs(xyz[:, 2:3] - np.asarray(self.z_m)[None, :]), axis=1) > OFF_FLOOR_M
-        return np.asarray((d <= self.ramp_radius_m + STAIRWELL_MARGIN_M) | off)
+        return np.asarray((d <= self.ramp_radius_m + STAIRWELL_WALL_M) | off)
 
     def floor(self, xyz: npt.NDArray[np.float64]) -> npt.NDArray[np.int64]:
         """The index of the storey nearest in height to each (N, 3) true position."""
@@ -112,8 +111,14 @@ def wrong_links(
         pair = np.asarray([truth_xyz[a], truth_xyz[b]], dtype=np.float64)
         if abs(pair[0, 2] - pair[1, 2]) <= floors.storey_m / 2 or floors.on_ramp(pair).any():
             continue
-        out.append({"from": a, "to": b, "kind": str(link["kind"]),
-                    "z": [round(float(pair[0, 2]), 3), round(float(pair[1, 2]), 3)]})
+        out.append(
+            {
+                "from": a,
+                "to": b,
+                "kind": str(link["kind"]),
+                "z": [round(float(pair[0, 2]), 3), round(float(pair[1, 2]), 3)],
+            }
+        )
     return out
 
 

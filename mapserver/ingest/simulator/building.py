@@ -51,8 +51,15 @@ CORRIDOR_HALF_M = 1.5
 STAIRWELL_WALL_M = 1.3
 """Distance of the stairwell's cylinder wall and column from the ramp."""
 LEVEL_NOISE = Noise(
-    lateral_m=0.1, speed_variation=0.08, scale_error=0.025, yaw_bias=0.004, vz_bias=0.003, vz_noise=0.01,
-    session_scale_error=0.003, session_yaw_bias=0.0005, session_yaw_walk=2e-5,
+    lateral_m=0.1,
+    speed_variation=0.08,
+    scale_error=0.025,
+    yaw_bias=0.004,
+    vz_bias=0.003,
+    vz_noise=0.01,
+    session_scale_error=0.003,
+    session_yaw_bias=0.0005,
+    session_yaw_walk=2e-5,
 )
 """A wheeled robot with a barometric or visual-inertial height rate: the ground scenarios' odometry errors
 plus a 0.003 m/s vertical-speed bias and 0.01 m/s of vertical-speed noise per message."""
@@ -61,13 +68,29 @@ plus a 0.003 m/s vertical-speed bias and 0.01 m/s of vertical-speed noise per me
 def _camera(params: dict[str, float]) -> Camera:
     """The forward camera: ``fov_deg`` over 128 × 96 square pixels, 1.2 m up, seeing 12 m."""
     return Camera(
-        width=128, height=96, hfov_deg=params["fov_deg"], vfov_deg=None, mount_height=1.2, fog_length=20.0,
-        max_range=12.0, fade=2.0, fog_level=0.6, blur_px=0.7, vblur_px=0.7,
+        width=128,
+        height=96,
+        hfov_deg=params["fov_deg"],
+        vfov_deg=None,
+        mount_height=1.2,
+        fog_length=20.0,
+        max_range=12.0,
+        fade=2.0,
+        fog_level=0.6,
+        blur_px=0.7,
+        vblur_px=0.7,
     )
 
 
-def _level_plan(name: str, builder: WorldBuilder, params: dict[str, float], scale: float,
-                sessions: list[SessionPlan], single: SessionPlan, info: dict[str, Any]) -> Plan:
+def _level_plan(
+    name: str,
+    builder: WorldBuilder,
+    params: dict[str, float],
+    scale: float,
+    sessions: list[SessionPlan],
+    single: SessionPlan,
+    info: dict[str, Any],
+) -> Plan:
     """The plan of a scenario that changes height: forward camera, rates and noise of the module docstring."""
     if not (params["speed"] > 0 and params["camera_hz"] > 0 and 0 < params["fov_deg"] < 180):
         msg = f"speed and camera_hz must be positive and 0 < fov_deg < 180, got {params!r}"
@@ -93,8 +116,14 @@ def _profile(knots: list[tuple[float, float]]) -> Callable[[FloatArray], FloatAr
 # ----------------------------------------------------------------------------------------------- building
 
 
-def _storey(builder: WorldBuilder, rng: np.random.Generator, loop: Route, keep: FloatArray,
-            stairwell: tuple[float, float, float], storey: float) -> list[int]:
+def _storey(
+    builder: WorldBuilder,
+    rng: np.random.Generator,
+    loop: Route,
+    keep: FloatArray,
+    stairwell: tuple[float, float, float],
+    storey: float,
+) -> list[int]:
     """Build storey 1: corridor panels along the loop, furniture in the rooms, the outer wall; return its surfaces."""
     first = len(builder.surfaces)
     builder.line_route(rng, loop.xy[:-1], keep, offset=CORRIDOR_HALF_M, clearance=1.2, panel=(1.0, 3.0),
@@ -108,8 +137,9 @@ def _storey(builder: WorldBuilder, rng: np.random.Generator, loop: Route, keep: 
     return list(range(first, len(builder.surfaces)))
 
 
-def _stairwell(builder: WorldBuilder, centre: tuple[float, float], radius: float, landing_y: float,
-               storey: float) -> None:
+def _stairwell(
+    builder: WorldBuilder, centre: tuple[float, float], radius: float, landing_y: float, storey: float
+) -> None:
     """Add the stairwell's cylinder wall (open towards the corridor) and central column, two storeys tall."""
     angles = np.linspace(0.0, 2.0 * math.pi, 25)
     outer = radius + STAIRWELL_WALL_M
@@ -154,10 +184,19 @@ def build_building(seed: int, scale: float, params: dict[str, float]) -> Plan:
     restyled = _restyle(builder, np.random.default_rng([seed, 5]), floor2, share)
     _stairwell(builder, centre, radius, landing[1], storey)
     sessions = _building_sessions(loop, ramp, laps, storey, params["speed"])
-    info = {"floors": {"z_m": [0.0, storey], "storey_m": storey, "landing": list(landing),
-                       "ramp_centre": list(centre), "ramp_radius_m": radius, "restyled": len(restyled),
-                       "surfaces_per_floor": len(floor1), "lap_length_m": round(length, 3),
-                       "ramp_arc_m": {s.name: s.info["ramp_arc_m"] for s in sessions if "ramp_arc_m" in s.info}}}
+    info = {
+        "floors": {
+            "z_m": [0.0, storey],
+            "storey_m": storey,
+            "landing": list(landing),
+            "ramp_centre": list(centre),
+            "ramp_radius_m": radius,
+            "restyled": len(restyled),
+            "surfaces_per_floor": len(floor1),
+            "lap_length_m": round(length, 3),
+            "ramp_arc_m": {s.name: s.info["ramp_arc_m"] for s in sessions if "ramp_arc_m" in s.info},
+        }
+    }
     single = next(s for s in sessions if s.name == "single")
     return _level_plan("building", builder, params, scale, sessions, single, info)
 
@@ -190,8 +229,9 @@ def _building_sessions(loop: Route, ramp: Route, laps: float, storey: float, spe
 # ------------------------------------------------------------------------------------------------ terrain
 
 
-def _hills(seed: int, count: int, height: float, bounds: tuple[float, float, float, float]) -> Callable[
-        [FloatArray], FloatArray]:
+def _hills(
+    seed: int, count: int, height: float, bounds: tuple[float, float, float, float]
+) -> Callable[[FloatArray], FloatArray]:
     """Return h(xy) for (…, 2) points: ``count`` Gaussian bumps up to ``height`` m, 4–8 m wide, inside bounds."""
     rng = np.random.default_rng([seed, 7])
     x0, y0, x1, y1 = bounds
@@ -213,8 +253,9 @@ def build_terrain(seed: int, scale: float, params: dict[str, float]) -> Plan:
         msg = f"hill_m and hills must be ≥ 0 and laps > 0, got {params!r}"
         raise InputError(msg)
     route = routes.rounded_rectangle((0.0, 0.0), 30.0 * scale, 20.0 * scale, 5.0 * scale)
-    ground = _hills(seed, int(params["hills"]), params["hill_m"], (-15.0 * scale, -10.0 * scale, 15.0 * scale,
-                                                                    10.0 * scale))
+    ground = _hills(
+        seed, int(params["hills"]), params["hill_m"], (-15.0 * scale, -10.0 * scale, 15.0 * scale, 10.0 * scale)
+    )
 
     def height(s: FloatArray) -> FloatArray:
         return ground(route.position(s))
@@ -224,8 +265,16 @@ def build_terrain(seed: int, scale: float, params: dict[str, float]) -> Plan:
     midpoints = builder.midpoints()
     builder.raise_surfaces(range(len(builder.surfaces)), (ground(midpoints) - 0.3).tolist())
     distance = params["laps"] * route.length
-    single = _session("single", 0, route, 0.0, distance, speed=params["speed"], depth=height,
-                      info={"laps": params["laps"], "lap_length_m": round(route.length, 3)})
+    single = _session(
+        "single",
+        0,
+        route,
+        0.0,
+        distance,
+        speed=params["speed"],
+        depth=height,
+        info={"laps": params["laps"], "lap_length_m": round(route.length, 3)},
+    )
     z = height(np.linspace(0.0, route.length, 400))
     info = {"terrain": {"route_z_m": [round(float(z.min()), 3), round(float(z.max()), 3)]}}
     return _level_plan("terrain", builder, params, scale, [single], single, info)
@@ -237,12 +286,21 @@ DEFINITIONS: tuple[ScenarioDef, ...] = (
     ScenarioDef(
         "building",
         "two look-alike storeys joined by a spiral ramp; laps of each, forward camera (4-DoF, neuroslam)",
-        {"laps": 2.0, "storey_m": 3.0, "restyle": 0.3, "width_m": 16.0, "depth_m": 10.0, "ramp_radius_m": 2.5,
-         **_CAMERA},
+        {
+            "laps": 2.0,
+            "storey_m": 3.0,
+            "restyle": 0.3,
+            "width_m": 16.0,
+            "depth_m": 10.0,
+            "ramp_radius_m": 2.5,
+            **_CAMERA,
+        },
         build_building,
     ),
     ScenarioDef(
-        "terrain", "laps of a loop over hills, forward camera (4-DoF, neuroslam)",
-        {"laps": 2.0, "hills": 5.0, "hill_m": 2.5, **_CAMERA}, build_terrain,
+        "terrain",
+        "laps of a loop over hills, forward camera (4-DoF, neuroslam)",
+        {"laps": 2.0, "hills": 5.0, "hill_m": 2.5, **_CAMERA},
+        build_terrain,
     ),
 )
