@@ -11,21 +11,22 @@ The log is processed as ``mapserver process single.bag --preset P --out map.json
 
 * ``neuroslam`` — NeuroSLAM's grid cells (x, y, z) and multilayer head-direction cells (yaw, height);
 * ``poseidon-lvc`` — 4-DoF RatSLAM (x, y, z, yaw pose cells);
-* ``circle`` — 3-DoF RatSLAM (x, y, yaw): the map is planar.
+* ``circle`` — 3-DoF RatSLAM (x, y, yaw pose cells).
 
 and evaluated as ``mapserver evaluate map.json --ground-truth single.tum --json`` does: ``ape_rmse`` and
-``ape_z_rmse`` (a planar map is aligned in xy; its ``ape_z_rmse`` is null, and the bench adds ``flat_z_rmse``,
-the height error of the best flat map: the RMSE of the ground truth's height about its mean at the
-experiences' stamps).
+``ape_z_rmse`` (every engine's experience map takes the odometry's height, ``circle``'s too, so all three are
+aligned in 3-D), and ``flat_z_rmse``, the height error of a map with the storeys folded onto one height (the
+RMSE of the ground truth's height about its mean at the experiences' stamps).
 
 **Floor collapse.** Each experience is given its ground-truth pose at its stamp (linear interpolation, as the
-evaluation aligns them). Its floor is the storey whose height is nearest; it is *on the ramp* when it stands in
-the stairwell (within the ramp radius + 1.3 m of the ramp's centre, in xy) or more than 0.25 m from both
-storeys' heights. A *wrong link* joins two experiences whose true heights differ by more than half a storey,
-neither on the ramp. A seed *collapses floors* for an engine when its map holds a wrong link. Per wrong link the
-bench reports its kind (``loop`` closure, or the ``odometry`` link from a closure's target to the next new
-experience). What makes them: ``recognised_other_floor`` counts the frames off the ramp that re-recognised a
-template made on the other storey (of ``recognised_frames`` that re-recognised any template).
+evaluation aligns them). Its floor is the storey whose height is nearest; it is *on the ramp* when its true height
+is more than 5 cm from both storeys' (the vehicle stays on the floor, so only the ramp is between them; the
+landings at both ends of the ramp are on their storeys). A *wrong link* joins two experiences whose true heights
+differ by more than half a storey, neither on the ramp. A seed *collapses floors* for an engine when its map
+holds a wrong link. Per wrong link the bench reports its kind (``loop`` closure, or the ``odometry`` link from a
+closure's target to the next new experience). What makes them: ``recognised_other_floor`` counts the frames off
+the ramp that re-recognised a template made on the other storey (of ``recognised_frames`` that re-recognised
+any template).
 
 ``--small`` runs a smaller building (``--scale 0.75``, one lap per storey) for tests. ``--set`` adds engine
 keys to the ``neuroslam`` preset (tuning runs; the reported table uses the preset as it ships). Logs are
@@ -53,36 +54,29 @@ from core import preset
 from mapserver.evaluation import evaluate_map, interpolate_poses
 from mapserver.formats import read_map_json, read_tum
 from mapserver.ingest.simulator import simulate
-from mapserver.ingest.simulator.building import STAIRWELL_WALL_M
 from mapserver.run import process_log
 
 ENGINES = ("neuroslam", "poseidon-lvc", "circle")
 SMALL = {"scale": 0.75, "params": {"laps": 1.0}}
-OFF_FLOOR_M = 0.25
+OFF_FLOOR_M = 0.05
 """An experience more than this far from both storeys' heights is on the ramp."""
 
 
 @dataclass(frozen=True)
 class Floors:
-    """The building's storeys and stairwell, from scenario.json's ``floors``."""
+    """The building's storeys, from scenario.json's ``floors``."""
 
     z_m: tuple[float, ...]
     storey_m: float
-    ramp_centre: tuple[float, float]
-    ramp_radius_m: float
 
     @classmethod
     def from_scenario(cls, doc: Mapping[str, Any]) -> Floors:
         """Read them from a ``building`` scenario.json document."""
-        f = doc["floors"]
-        return cls(tuple(f["z_m"]), float(f["storey_m"]), (f["ramp_centre"][0], f["ramp_centre"][1]),
-                   float(f["ramp_radius_m"]))  # fmt: skip
+        return cls(tuple(doc["floors"]["z_m"]), float(doc["floors"]["storey_m"]))
 
     def on_ramp(self, xyz: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
-        """Whether each (N, 3) true position is on the ramp (in the stairwell, or between storeys)."""
-        d = np.hypot(xyz[:, 0] - self.ramp_centre[0], xyz[:, 1] - self.ramp_centre[1])
-        off = np.min(np.abs(xyz[:, 2:3] - np.asarray(self.z_m)[None, :]), axis=1) > OFF_FLOOR_M
-        return np.asarray((d <= self.ramp_radius_m + STAIRWELL_WALL_M) | off)
+        """Whether each (N, 3) true position is on the ramp (between the storeys' heights)."""
+        return np.asarray(np.min(np.abs(xyz[:, 2:3] - np.asarray(self.z_m)[None, :]), axis=1) > OFF_FLOOR_M)
 
     def floor(self, xyz: npt.NDArray[np.float64]) -> npt.NDArray[np.int64]:
         """The index of the storey nearest in height to each (N, 3) true position."""

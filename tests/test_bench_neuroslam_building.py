@@ -14,7 +14,7 @@ import neuroslam_building as bench
 
 pytestmark = pytest.mark.slow
 
-FLOORS = bench.Floors(z_m=(0.0, 3.0), storey_m=3.0, ramp_centre=(0.0, -7.5), ramp_radius_m=2.5)
+FLOORS = bench.Floors(z_m=(0.0, 3.0), storey_m=3.0)
 
 
 def _doc(links: list[tuple[int, int, str]]) -> dict:
@@ -22,22 +22,25 @@ def _doc(links: list[tuple[int, int, str]]) -> dict:
 
 
 def test_a_link_between_storeys_away_from_the_ramp_is_wrong() -> None:
-    truth = {0: [5.0, 5.0, 0.0], 1: [5.2, 5.0, 3.0], 2: [-5.0, 5.0, 0.02]}
-    wrong = bench.wrong_links(_doc([(1, 0, "loop"), (0, 2, "loop")]), truth, FLOORS)
-    assert wrong == [{"from": 1, "to": 0, "kind": "loop", "z": [3.0, 0.0]}]  # the same spot one storey up
+    truth = {0: [5.0, 5.0, 0.0], 1: [5.2, 5.0, 3.0], 2: [-5.0, 5.0, 0.02], 3: [0.0, -5.0, 0.0], 4: [0.1, -5.0, 3.0]}
+    links = [(1, 0, "loop"), (0, 2, "loop"), (3, 4, "odometry")]
+    assert bench.wrong_links(_doc(links), truth, FLOORS) == [
+        {"from": 1, "to": 0, "kind": "loop", "z": [3.0, 0.0]},  # the same spot one storey up
+        {"from": 3, "to": 4, "kind": "odometry", "z": [0.0, 3.0]},  # the landings below and above the ramp
+    ]
 
 
-def test_links_on_one_storey_or_through_the_stairwell_are_not_wrong() -> None:
+def test_links_on_one_storey_or_along_the_ramp_are_not_wrong() -> None:
     truth = {
         0: [5.0, 5.0, 0.0],
-        1: [6.0, 5.0, 0.1],  # one storey
-        2: [0.0, -5.0, 0.0],
-        3: [0.0, -5.2, 3.0],  # the landing, below and above: in the stairwell
-        4: [0.0, -10.0, 1.5],  # half-way up the ramp
-        5: [8.0, 0.0, 1.0],  # off both storeys' heights: taken for the ramp
+        1: [6.0, 5.0, 0.04],  # one storey
+        2: [0.0, -5.0, 0.0],  # the landing below
+        3: [0.0, -10.0, 1.5],  # half-way up the ramp
+        4: [0.0, -5.0, 3.0],  # the landing above
+        5: [8.0, 0.0, 0.06],  # 6 cm off storey 1's height: on the ramp
         6: [8.0, 0.0, 3.0],
     }
-    links = [(0, 1, "loop"), (2, 3, "loop"), (2, 4, "odometry"), (4, 3, "odometry"), (5, 6, "odometry"), (0, 9, "loop")]
+    links = [(0, 1, "loop"), (2, 3, "odometry"), (3, 4, "odometry"), (5, 6, "loop"), (0, 9, "loop")]
     assert bench.wrong_links(_doc(links), truth, FLOORS) == []
 
 
