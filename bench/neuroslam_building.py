@@ -22,7 +22,10 @@ RMSE of the ground truth's height about its mean at the experiences' stamps).
 evaluation aligns them). Its floor is the storey whose height is nearest; it is *on the ramp* when its true height
 is more than 5 cm from both storeys' (the vehicle stays on the floor, so only the ramp is between them; the
 landings at both ends of the ramp are on their storeys). A *wrong link* joins two experiences whose true heights
-differ by more than half a storey, neither on the ramp. A seed *collapses floors* for an engine when its map
+differ by more than half a storey, unless it is an odometry link with an end on the ramp (the drive up the ramp
+itself). The issue's rule exempts every link with an end on the ramp; a loop closure from storey 2's landing to
+the foot of the ramp (0.14 m up) folded one seed's storeys onto each other (docs/journal.md), so only the
+ramp's own odometry links are exempt. A seed *collapses floors* for an engine when its map
 holds a wrong link. Per wrong link the bench reports its kind (``loop`` closure, or the ``odometry`` link from a
 closure's target to the next new experience). What makes them: ``recognised_other_floor`` counts the frames off
 the ramp that re-recognised a template made on the other storey (of ``recognised_frames`` that re-recognised
@@ -86,7 +89,7 @@ class Floors:
 def wrong_links(
     doc: Mapping[str, Any], truth_xyz: Mapping[int, Sequence[float]], floors: Floors
 ) -> list[dict[str, Any]]:
-    """Links that join two storeys away from the ramp (module docstring), with what made each.
+    """Links that join two storeys other than by driving up the ramp (module docstring), with their kinds.
 
     Args:
         doc: map JSON (``links`` with ``from``, ``to``, ``kind``).
@@ -103,7 +106,9 @@ def wrong_links(
         if a not in truth_xyz or b not in truth_xyz:
             continue
         pair = np.asarray([truth_xyz[a], truth_xyz[b]], dtype=np.float64)
-        if abs(pair[0, 2] - pair[1, 2]) <= floors.storey_m / 2 or floors.on_ramp(pair).any():
+        if abs(pair[0, 2] - pair[1, 2]) <= floors.storey_m / 2:
+            continue
+        if str(link["kind"]) == "odometry" and floors.on_ramp(pair).any():
             continue
         out.append(
             {
