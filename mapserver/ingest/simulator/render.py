@@ -10,7 +10,9 @@ Per column one horizontal ray is intersected with every surface near the camera 
 intersection, all columns and surfaces at once); the ``HITS`` nearest hits are kept. A pixel shows the
 nearest of them whose surface spans the height ``z_cam + t·tan(elevation)`` at the hit distance ``t``, so
 the camera height decides which part of a wall's texture is seen and a short box does not hide a tall one
-behind it. Rows that hit no surface show the floor, the ceiling, or the sky (fog colour).
+behind it. Rows that hit no surface show the floor, the ceiling, or the sky (fog colour). In a world with a
+local floor (:meth:`~.world.World.band`) the floor lies at the vehicle's height and a hit counts only within
+the visible band above it (a building's storey).
 
 Shading: ``albedo · shade`` (the surface's orientation to the world light), then fog
 ``I·a + fog·(1 − a)`` with ``a = exp(−r/fog_length)`` faded to 0 over the last ``fade`` metres before
@@ -130,13 +132,15 @@ class SurfaceHits:
 
 
 def surface_hits(
-    world: World, x: float, y: float, cz: float, azimuths: FloatArray, slopes: FloatArray, max_range: float
+    world: World, x: float, y: float, cz: float, azimuths: FloatArray, slopes: FloatArray, max_range: float,
+    band: tuple[float, float] = (-math.inf, math.inf),
 ) -> SurfaceHits:
     """Intersect the rays from (x, y, cz) along ``azimuths`` (W,) and elevation ``slopes`` (H,) with the surfaces.
 
     Per column one horizontal ray is intersected with every surface within ``max_range`` (2-D segment
     intersection, all columns and surfaces at once); of its ``HITS`` nearest hits a ray of slope ``h`` meets
-    the nearest whose surface spans the height ``cz + t·h`` at the hit distance ``t``.
+    the nearest whose surface spans the height ``cz + t·h`` at the hit distance ``t``, that height inside
+    ``band`` (lowest, highest).
     """
     dx, dy = np.cos(azimuths), np.sin(azimuths)
     height_px, width_px = slopes.shape[0], azimuths.shape[0]
@@ -165,7 +169,9 @@ def surface_hits(
     surf = sel[nearest]  # (W, k)
     finite = np.isfinite(t_k)
     z_hit = cz + np.where(finite, t_k, 0.0)[None, :, :] * slopes[:, None, None]  # (H, W, k)
-    spans = (z_hit >= world.base[surf][None]) & (z_hit <= world.top[surf][None]) & finite[None]
+    lo = np.maximum(world.base[surf], band[0])[None]
+    hi = np.minimum(world.top[surf], band[1])[None]
+    spans = (z_hit >= lo) & (z_hit <= hi) & finite[None]
     covered = np.asarray(spans.any(axis=2))
     rows_c, cols_c = np.nonzero(covered)
     first = np.argmax(spans[rows_c, cols_c], axis=1)  # nearest surface spanning the ray's height
@@ -196,7 +202,8 @@ def render(world: World, camera: Camera, x: float, y: float, z: float, yaw: floa
     az = yaw + camera.azimuths  # (W,)
     height_px, width_px = h.shape[0], az.shape[0]
     image = np.empty((height_px, width_px))
-    hits = surface_hits(world, x, y, cz, az, h, camera.max_range)
+    floor_z, ceiling_z, lowest, highest = world.band(z)
+    hits = surface_hits(world, x, y, cz, az, h, camera.max_range, (lowest, highest))
     covered = hits.covered
     if hits.rows.size:
         albedo = _sample(world, hits.surface, hits.u_m, hits.z - world.base[hits.surface])
@@ -211,13 +218,13 @@ def render(world: World, camera: Camera, x: float, y: float, z: float, yaw: floa
         level = np.full((height_px, width_px), camera.fog_level)
         with np.errstate(divide="ignore", invalid="ignore"):
             down = slope < 0.0
-            d_floor = (cz - world.floor_z) / -slope
+            d_floor = (cz - floor_z) / -slope
             r_floor = d_floor * np.sqrt(1.0 + slope**2)
             a = _attenuation(camera, np.where(down, r_floor, np.inf))
             level = np.where(down, world.floor_albedo * a + camera.fog_level * (1.0 - a), level)
-            if world.ceiling_z is not None:
+            if ceiling_z is not None:
                 up = slope > 0.0
-                d_ceiling = (world.ceiling_z - cz) / slope
+                d_ceiling = (ceiling_z - cz) / slope
                 r_ceiling = d_ceiling * np.sqrt(1.0 + slope**2)
                 a = _attenuation(camera, np.where(up, r_ceiling, np.inf))
                 level = np.where(up, world.ceiling_albedo * a + camera.fog_level * (1.0 - a), level)

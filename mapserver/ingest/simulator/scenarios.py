@@ -465,6 +465,7 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
 
 # The look-alike scenarios build on this module's helpers; the package imports this module first, so
 # lookalike finds them defined when it imports them.
+from mapserver.ingest.simulator import building as _building  # noqa: E402
 from mapserver.ingest.simulator import lookalike as _lookalike  # noqa: E402
 from mapserver.ingest.simulator import street as _street  # noqa: E402
 
@@ -491,5 +492,6 @@ SCENARIOS: Mapping[str, ScenarioDef] = {
                     {"laps": 1.1, "alias_length_m": 0.25}, build_aliased),
         *_lookalike.DEFINITIONS,
         *_street.DEFINITIONS,
+        *_building.DEFINITIONS,
     )
 }

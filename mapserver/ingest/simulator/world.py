@@ -2,7 +2,10 @@
 
 Geometry is "2.5-D": every surface is a vertical rectangle above a segment ``p0 → p1`` of the ground plane,
 from height ``base`` to ``top``, carrying its own texture (:mod:`.textures`). Boxes are four such faces.
-A world optionally has a ceiling (a cave's water surface); otherwise the sky is the fog colour.
+A world optionally has a ceiling (a cave's water surface); otherwise the sky is the fog colour. In a world
+with a *local floor* (a building's storeys, a terrain's slopes) the floor a camera sees lies at its vehicle's
+own height, and with a ``storey`` height the camera sees only the band from that floor to the ceiling
+``storey`` metres above it: a storey's camera sees neither the storey below nor the one above.
 
 :class:`WorldBuilder` assembles a world: single walls, boxes, boxes scattered at random off the vehicles'
 routes (so every place has its own arrangement of distinct textures), and exact copies of a set of surfaces
@@ -55,6 +58,9 @@ class World:
         floor_albedo: floor brightness.
         ceiling_z: ceiling height, or None for an open sky.
         ceiling_albedo: ceiling brightness.
+        local_floor: the floor a camera sees lies at its vehicle's height (not at ``floor_z``).
+        storey: with ``local_floor``, the height of the visible band above that floor, which is also the
+            ceiling's height above it (None: no band, the world's ceiling).
 
     """
 
@@ -72,6 +78,8 @@ class World:
     floor_albedo: float
     ceiling_z: float | None
     ceiling_albedo: float
+    local_floor: bool = False
+    storey: float | None = None
     midpoint: FloatArray = field(init=False)
     half_length: FloatArray = field(init=False)
 
@@ -89,6 +97,14 @@ class World:
         base = math.atan2(LIGHT_DIRECTION[1], LIGHT_DIRECTION[0]) + turn_rad
         shade = surface_shade(self.p0, self.p1, (math.cos(base), math.sin(base)))
         return dataclasses.replace(self, shade=shade)
+
+    def band(self, z: float) -> tuple[float, float | None, float, float]:
+        """Return (floor, ceiling or None, lowest, highest visible height) for a vehicle at height ``z``."""
+        if not self.local_floor:
+            return self.floor_z, self.ceiling_z, -math.inf, math.inf
+        if self.storey is None:
+            return z, self.ceiling_z, z, math.inf
+        return z, z + self.storey, z, z + self.storey
 
     def near(self, x: float, y: float, radius: float) -> IntArray:
         """Return the indices of surfaces with a point within ``radius`` of (x, y) (bounding-circle test)."""
@@ -128,6 +144,8 @@ class WorldBuilder:
         ceiling_z: ceiling height or None (open sky).
         floor_albedo: floor brightness.
         ceiling_albedo: ceiling brightness.
+        local_floor: the floor a camera sees lies at its vehicle's height (:class:`World`).
+        storey: the visible band's height above that floor (:class:`World`).
 
     """
 
@@ -141,6 +159,8 @@ class WorldBuilder:
         ceiling_z: float | None = None,
         floor_albedo: float = 0.35,
         ceiling_albedo: float = 0.8,
+        local_floor: bool = False,
+        storey: float | None = None,
     ) -> None:
         self.seed = int(seed)
         self.texels_per_m = float(texels_per_m)
@@ -149,6 +169,8 @@ class WorldBuilder:
         self.ceiling_z = ceiling_z
         self.floor_albedo = float(floor_albedo)
         self.ceiling_albedo = float(ceiling_albedo)
+        self.local_floor = bool(local_floor)
+        self.storey = None if storey is None else float(storey)
         self.surfaces: list[_Surface] = []
         self.textures: list[npt.NDArray[np.float32]] = []
 
@@ -213,8 +235,8 @@ class WorldBuilder:
         pts = [(centre[0] + c * a - s * b, centre[1] + s * a + c * b) for a, b in corners]
         return [self.add_wall(pts[k], pts[(k + 1) % 4], top=top) for k in range(4)]
 
-    def copy_surfaces(self, indices: Sequence[int], offset: Sequence[float]) -> list[int]:
-        """Add exact copies (same textures, same heights) of surfaces translated by ``offset``."""
+    def copy_surfaces(self, indices: Sequence[int], offset: Sequence[float], rise: float = 0.0) -> list[int]:
+        """Add exact copies (same textures) of surfaces translated by ``offset`` and raised by ``rise`` metres."""
         out = []
         for k in indices:
             src = self.surfaces[k]
@@ -222,8 +244,8 @@ class WorldBuilder:
                 _Surface(
                     (src.p0[0] + offset[0], src.p0[1] + offset[1]),
                     (src.p1[0] + offset[0], src.p1[1] + offset[1]),
-                    src.base,
-                    src.top,
+                    src.base + rise,
+                    src.top + rise,
                     src.texture,
                 )
             )
@@ -249,6 +271,18 @@ class WorldBuilder:
             self.surfaces.append(_Surface(turn(src.p0), turn(src.p1), src.base, src.top, src.texture))
             out.append(len(self.surfaces) - 1)
         return out
+
+    def retexture(self, index: int, style: str | None = None) -> None:
+        """Give surface ``index`` a new texture of its own (a copy that differs in its details)."""
+        surface = self.surfaces[index]
+        length = math.hypot(surface.p1[0] - surface.p0[0], surface.p1[1] - surface.p0[1])
+        surface.texture = self.add_texture(length, surface.top - surface.base, style)
+
+    def raise_surfaces(self, indices: Sequence[int], heights: Sequence[float]) -> None:
+        """Raise surface ``indices[k]`` (base and top) by ``heights[k]`` metres (walls standing on a slope)."""
+        for k, rise in zip(indices, heights, strict=True):
+            self.surfaces[k].base += float(rise)
+            self.surfaces[k].top += float(rise)
 
     def remove(self, indices: Sequence[int]) -> None:
         """Remove surfaces (their textures stay in the list, unused); later indices shift down."""
@@ -502,4 +536,6 @@ class WorldBuilder:
             floor_albedo=self.floor_albedo,
             ceiling_z=self.ceiling_z,
             ceiling_albedo=self.ceiling_albedo,
+            local_floor=self.local_floor,
+            storey=self.storey,
         )

@@ -32,6 +32,8 @@ EXPECTED = {
     "symmetric": ("circle", ["session1", "session2"], True),
     "symmetric-overlap": ("circle", ["session1", "session2"], True),
     "street": ("forward", ["single"], True),
+    "building": ("neuroslam", ["single", "floor1", "floor2", "stairs"], True),
+    "terrain": ("neuroslam", ["single"], True),
 }
 
 
@@ -42,12 +44,13 @@ def test_every_scenario_plans_with_clear_routes() -> None:
         assert plan.preset == preset_name
         assert [s.name for s in plan.sessions] == sessions
         assert (plan.single is not None) == has_single
-        # no surface blocks any driven route (corridors at least 1.5 m wide each side, 0.5 m in the cave)
+        # no surface blocks any driven route (corridors at least 1.5 m wide each side, 0.5 m in the cave, the
+        # building's stairwell 1.3 m)
         plans = [*plan.sessions, *([plan.single] if plan.single else [])]
         pts = np.vstack([s.spec.route.points(0.1) for s in plans])
         walls = np.vstack([np.linspace(a, b, 20) for a, b in zip(plan.world.p0, plan.world.p1, strict=True)])
         nearest, _ = cKDTree(walls).query(pts)
-        assert nearest.min() > (0.5 if name == "cave3d" else 1.45), name
+        assert nearest.min() > {"cave3d": 0.5, "building": 1.25}.get(name, 1.45), name
 
 
 def test_ellipse_split_is_the_virtual_tour() -> None:
