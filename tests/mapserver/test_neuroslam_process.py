@@ -36,7 +36,7 @@ def test_the_neuroslam_preset_closes_loops_and_beats_odometry(
     assert data["params"]["engine"] == "neuroslam"
     kinds = [link["kind"] for link in data["links"]]
     assert kinds.count("loop") >= 3
-    # NeuroSLAM's S_max of 40 cells is never exceeded: one experience per template (the paper's §6.1.3)
+    # one experience per template, as the paper's §6.1.3 reports: between two templates the codes never move S_max
     assert len(data["experiences"]) == data["templates"]
     assert report["ape_rmse"] < 0.5 * report["odometry_ape_rmse"]
 
