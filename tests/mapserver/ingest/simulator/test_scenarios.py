@@ -32,6 +32,7 @@ EXPECTED = {
     "symmetric": ("circle", ["session1", "session2"], True),
     "symmetric-overlap": ("circle", ["session1", "session2"], True),
     "street": ("forward", ["single"], True),
+    "seabed": ("poseidon-lvc", ["session1", "session2"], True),
 }
 
 
@@ -47,7 +48,7 @@ def test_every_scenario_plans_with_clear_routes() -> None:
         pts = np.vstack([s.spec.route.points(0.1) for s in plans])
         walls = np.vstack([np.linspace(a, b, 20) for a, b in zip(plan.world.p0, plan.world.p1, strict=True)])
         nearest, _ = cKDTree(walls).query(pts)
-        assert nearest.min() > (0.5 if name == "cave3d" else 1.45), name
+        assert nearest.min() > (0.5 if name in ("cave3d", "seabed") else 1.45), name
 
 
 def test_ellipse_split_is_the_virtual_tour() -> None:
