@@ -40,7 +40,8 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--topics",
         metavar="K=V,...",
-        help="override the mapping, keys image, odometry, ground_truth (e.g. image=/cam/image,odometry=none)",
+        help="override the mapping, keys image, odometry, ground_truth, sonar, dvl, imu, depth "
+        "(e.g. image=/cam/image,odometry=none)",
     )
     parser.add_argument(
         "--fov",
@@ -81,6 +82,8 @@ def format_table(result: dict[str, Any]) -> str:
     for key, value in result["mapping"].items():
         suffix = f"  ({result['odometry_mode']})" if key == "odometry" and value and result["odometry_mode"] else ""
         lines.append(f"  {key:<12} {value if value is not None else '-'}{suffix}")
+    motion = {"odometry": "odometry", "navigation": "navigation fusion (dvl + imu + depth)"}
+    lines.append(f"  {'motion':<12} {motion.get(result.get('motion') or '', 'visual odometry')}")
     lines.append("")
     if result["usable"]:
         lines.append("usable by process: yes")

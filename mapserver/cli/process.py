@@ -26,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="engine parameters on top of the preset or config, e.g. vt_shift_heading=1 "
                              "(repeatable: every --set applies)")
     parser.add_argument("--topics", help="topic overrides: image=/cam,odometry=/odom,ground_truth=/gt (none: off); "
-                        "sonar=/t adds a sonar image topic (sdr-htm front-end)")
+                        "sonar=/t adds a sonar image topic (sdr-htm front-end); dvl=, imu=, depth= name the "
+                        "navigation sensors fused when the log has no odometry")
     parser.add_argument("--out", help="write the map JSON here")
     parser.add_argument("--db", help="store the session in this database (SQLAlchemy URL)")
     parser.add_argument("--map", dest="map_name", help="name of the new map when the session connects to none")

@@ -20,6 +20,12 @@ first informative message: one with a non-zero twist means **twist**; a pose tha
 or rad from the first message) while every twist so far was exactly zero means **pose**; a log that never
 moves is treated as twist (both give zero motion).
 
+Navigation (a log without an ``odometry`` role whose mapping has ``dvl`` and ``imu`` topics; rule in
+:func:`mapserver.ingest.topics.motion_source`): the DVL, IMU and depth topics are each read in stamp order,
+merged, and fused (:mod:`mapserver.ingest.fusion`, sensor mountings from ``/tf_static`` or
+:class:`~mapserver.ingest.navigation.NavParams`); the fused estimates take the odometry's place and are
+differenced at the frame stamps (pose mode), through the same odometry check.
+
 Each streaming call (:meth:`MissionLog.frames`, :meth:`MissionLog.ground_truth`) opens its own readers,
 so several streams of one log may be consumed interleaved (rosbags readers share file positions).
 :meth:`MissionLog.frames_ahead` runs :meth:`MissionLog.frames` in a worker (a forked process, or a thread)
@@ -57,6 +63,21 @@ from core.motion import ZERO_MOTION, Motion
 from mapserver.errors import IngestError, InputError, LimitError, describe_cause
 from mapserver.ingest.decode import decode_image
 from mapserver.ingest.frames import Frame, IngestReport, PoseSample
+from mapserver.ingest.fusion import ComplementaryFilter, NavigationReport, NavSample, fuse, merge_samples
+from mapserver.ingest.navigation import (
+    DVL_TYPES,
+    TF_STATIC_TOPIC,
+    TF_TYPE,
+    NavParams,
+    StaticTree,
+    depth_sample,
+    dvl_sample,
+    imu_sample,
+    linear_covariance_diagonal,
+    reports_covariance,
+    sensor_mount,
+    static_tree,
+)
 from mapserver.ingest.odometry import (
     OdometryCheck,
     OdometryMode,
@@ -166,8 +187,12 @@ class MissionLog:
         topics: list[TopicInfo],
         mapping: TopicMapping,
         odometry_mode: OdometryMode | None = None,
+        navigation: NavParams | None = None,
     ) -> None:
         self.path = path
+        self.nav_params = navigation or NavParams()
+        self.navigation_report: NavigationReport | None = None
+        self._dvl_covariance: bool | None = None
         self.topics = topics
         self.mapping = mapping
         self._reader: AnyReader | None = reader
@@ -309,9 +334,86 @@ class MissionLog:
             msg = self._deserialize(reader, raw, conn)
             yield state_from_message(msg, _header_stamp(msg, receive_ns))
 
+    @property
+    def motion_source(self) -> str | None:
+        """``odometry``, ``navigation`` (DVL + IMU fusion) or None (:func:`~mapserver.ingest.topics.motion_source`)."""
+        return "navigation" if self.mapping.fused else ("odometry" if self.mapping.odometry else None)
+
+    def _nav_topics(self) -> list[str]:
+        return [t for t in (self.mapping.dvl, self.mapping.imu, self.mapping.depth) if t is not None]
+
+    def _static_tree(self, reader: AnyReader) -> StaticTree:
+        """Return the log's static transforms (empty without a ``/tf_static`` topic)."""
+        if not any(t.name == TF_STATIC_TOPIC and t.msgtype == TF_TYPE and t.count for t in self.topics):
+            return {}
+        messages = self._messages(reader, TF_STATIC_TOPIC)
+        return static_tree(self._deserialize(reader, raw, conn) for conn, _r, raw in messages)
+
+    def _frame_of(self, reader: AnyReader, topic: str) -> str:
+        """Return the frame a sensor topic's readings are in (an ``Odometry``'s twist: its child frame)."""
+        msg = None
+        for conn, _r, raw in self._messages(reader, topic):
+            msg = self._deserialize(reader, raw, conn)
+            break
+        if msg is None:
+            return ""
+        child = getattr(msg, "child_frame_id", None)
+        return str(child if child is not None else msg.header.frame_id)
+
+    def _dvl_reports_covariance(self, reader: AnyReader) -> bool:
+        """Whether the DVL topic's messages carry a covariance (the lost-bottom rule; read once, cached)."""
+        if self._dvl_covariance is None:
+            topic = self.mapping.dvl
+            assert topic is not None
+            diagonals = (
+                linear_covariance_diagonal(self._deserialize(reader, raw, conn), conn.msgtype)
+                for conn, _r, raw in self._messages(reader, topic)
+            )
+            self._dvl_covariance = reports_covariance(diagonals)
+        return self._dvl_covariance
+
+    def _nav_samples(self, reader: AnyReader, topic: str, covariance: bool) -> Iterator[NavSample]:
+        params = self.nav_params
+        for conn, receive_ns, raw in self._ordered(reader, topic):
+            msg = self._deserialize(reader, raw, conn)
+            stamp = _header_stamp(msg, receive_ns)
+            if topic == self.mapping.dvl and conn.msgtype in DVL_TYPES:
+                yield dvl_sample(msg, conn.msgtype, stamp, covariance_reported=covariance)
+            elif topic == self.mapping.imu:
+                yield imu_sample(msg, stamp)
+            else:
+                yield depth_sample(msg, conn.msgtype, stamp, params)
+
+    def _navigation_states(self, stack: ExitStack) -> Iterator[OdometryState]:
+        """Open one reader per navigation topic (closed with ``stack``) and yield the fused estimates."""
+        assert self.mapping.dvl is not None and self.mapping.imu is not None
+        setup = _new_reader(self.path)
+        try:
+            tree = self._static_tree(setup)
+            covariance = self._dvl_reports_covariance(setup)
+            report = NavigationReport()
+            mounts = {}
+            for sensor, topic in (("dvl", self.mapping.dvl), ("imu", self.mapping.imu)):
+                mounts[sensor] = sensor_mount(tree, self._frame_of(setup, topic), self.nav_params, sensor)
+                report.mounts[sensor] = mounts[sensor].source
+        finally:
+            setup.close()
+        streams = []
+        for topic in self._nav_topics():
+            topic_reader = _new_reader(self.path)
+            stack.callback(topic_reader.close)
+            streams.append(self._nav_samples(topic_reader, topic, covariance))
+        nav_filter = ComplementaryFilter(self.nav_params, mounts["dvl"], mounts["imu"],
+                                         has_depth=self.mapping.depth is not None, report=report)  # fmt: skip
+        self.navigation_report = report
+        return fuse(merge_samples(*streams), nav_filter)
+
     def _odometry_check(self) -> OdometryCheck:
         """Return a new check of the odometry, kept as :attr:`odometry_check` (its counts are :attr:`report`)."""
-        messages = next((t.count for t in self.topics if t.name == self.mapping.odometry), 0)
+        if self.mapping.fused:
+            messages = sum(t.count for t in self.topics if t.name in self._nav_topics())
+        else:
+            messages = next((t.count for t in self.topics if t.name == self.mapping.odometry), 0)
         self.odometry_check = OdometryCheck(messages=messages, frames=self.count_frames(), source=str(self.path))
         return self.odometry_check
 
@@ -335,6 +437,10 @@ class MissionLog:
         if self.mapping.odometry is not None:
             for state in self._odometry_states(reader):
                 check.accept(state)
+        elif self.mapping.fused:
+            with ExitStack() as stack:
+                for state in self._navigation_states(stack):
+                    check.accept(state)
         return check.report
 
     def first_image(self) -> Any:
@@ -367,6 +473,7 @@ class MissionLog:
         """
         self._require_open()
         mode = self.odometry_mode
+        fused = mode is None and self.mapping.fused
         topic = self.mapping.image
         with ExitStack() as stack:
             reader = _new_reader(self.path)
@@ -378,6 +485,9 @@ class MissionLog:
                 stack.callback(odom_reader.close)
                 states = self._odometry_states(odom_reader)
                 track = OdometryTrack(mode, self._odometry_check())
+            elif fused:
+                states = self._navigation_states(stack)
+                track = OdometryTrack("pose", self._odometry_check())
             sonar = None
             if self.mapping.sonar is not None:
                 sonar_reader = _new_reader(self.path)
@@ -480,7 +590,7 @@ class ReadAhead:
         end = log.count_frames() if stop is None else min(stop, log.count_frames())
         self.worker = _worker_kind(worker, end - start >= depth)
         batch = max(1, min(_BATCH, depth // 2))
-        job = (log.path, log.topics, log.mapping, log._odometry_mode, start, stop, batch)
+        job = (log.path, log.topics, log.mapping, log._odometry_mode, start, stop, batch, log.nav_params)
         self._stop = threading.Event()
         self.report: IngestReport | None = None
         if self.worker == "process":
@@ -605,10 +715,10 @@ def _produce(job: tuple[Any, ...], deliver: Callable[[tuple[str, Any]], bool]) -
     The frames read before an error are delivered before it, so the caller sees the stream up to the failure.
     ``deliver`` returns False once the caller stopped the worker.
     """
-    path, topics, mapping, mode, start, stop_at, batch = job
+    path, topics, mapping, mode, start, stop_at, batch, nav_params = job
     chunk: list[Frame] = []
     try:
-        log = MissionLog(path, _new_reader(path), topics, mapping, mode)
+        log = MissionLog(path, _new_reader(path), topics, mapping, mode, nav_params)
         try:
             size = 1
             for frame in log.frames(start, stop_at):
@@ -651,6 +761,7 @@ def open_log(
     topics: Mapping[str, str] | None = None,
     *,
     odometry_mode: Literal["auto", "twist", "pose"] = "auto",
+    navigation: NavParams | None = None,
 ) -> MissionLog:
     """Open a mission log and choose its topics.
 
@@ -659,6 +770,8 @@ def open_log(
             ``.mcap`` file.
         topics: topic overrides, keys ``image``, ``odometry``, ``ground_truth`` (``none`` switches one off).
         odometry_mode: ``auto`` (detect, see the module docstring), or force ``twist`` or ``pose``.
+        navigation: the DVL/IMU/depth constants and mountings (:class:`~mapserver.ingest.navigation.NavParams`;
+            None: the defaults), used when the motion is the navigation fusion.
 
     Returns:
         The open log (close it, or use it as a context manager).
@@ -676,7 +789,7 @@ def open_log(
         infos = _topic_infos(reader)
         mapping = map_topics(infos, topics, source=str(log_path))
         mode: OdometryMode | None = None if odometry_mode == "auto" else odometry_mode
-        log = MissionLog(log_path, reader, infos, mapping, mode)
+        log = MissionLog(log_path, reader, infos, mapping, mode, navigation)
         first = log.first_image()
         if first is None:
             msg = f"{log_path}: camera topic {mapping.image!r} has no readable messages"

@@ -13,6 +13,10 @@ neither the message definitions nor a camera. Then it chooses the topic mapping 
   reason (``no camera topic: process needs sensor_msgs/Image or CompressedImage``). ``odometry`` and
   ``ground_truth`` are optional (``process`` falls back to visual odometry; ``evaluate`` takes a TUM file);
   their absence is a note.
+* **Motion** (``motion``): where the engine's motion comes from (:func:`~mapserver.ingest.topics.motion_source`):
+  ``odometry``, ``navigation`` (the ``dvl``, ``imu`` and, when found, ``depth`` roles fused,
+  :mod:`mapserver.ingest.fusion`) or None (visual odometry). The navigation roles are shown when found,
+  whatever the motion source; a DVL without an IMU is noted as unused.
 * A log ``process`` cannot open although its topics are readable (its first image does not decode, its
   message definitions do not parse) is listed with ``usable = False``, ``image`` missing and the reason.
 * **Camera** (a usable log only): the first frame's size and, from a ``CameraInfo`` topic, the field of view
@@ -35,7 +39,7 @@ from rosbags.rosbag2 import Reader as Reader2
 from mapserver.errors import IngestError
 from mapserver.ingest.camera import CameraGeometry, read_camera
 from mapserver.ingest.reader import _check_path, _describe, open_log
-from mapserver.ingest.topics import NO_CAMERA, TopicInfo, choose_topics
+from mapserver.ingest.topics import NO_CAMERA, TopicInfo, choose_topics, motion_source
 
 REQUIRED_ROLES = ("image",)
 ROLE_NEEDS = {
@@ -77,6 +81,7 @@ class LogSurvey:
     start_ns: int
     end_ns: int
     odometry_mode: str | None = None
+    motion: str | None = None
     camera: CameraGeometry | None = None
     missing: list[str] = field(default_factory=list)
     reasons: dict[str, str] = field(default_factory=dict)
@@ -116,6 +121,7 @@ class LogSurvey:
             ],
             "mapping": dict(self.mapping),
             "odometry_mode": self.odometry_mode,
+            "motion": self.motion,
             "frames": self.frames(),
             "start_time_s": start * 1e-9 if self.topics and any(t.count for t in self.topics) else None,
             "duration_s": round((self.end_ns - self.start_ns) * 1e-9, 6),
@@ -214,9 +220,15 @@ def survey_log(path: str | Path, overrides: Mapping[str, str] | None = None) -> 
         if mapping.get(role) is None:
             survey.missing.append(role)
             survey.reasons[role] = ROLE_NEEDS[role]
+    survey.motion = motion_source(mapping)
     for role in ("odometry", "ground_truth"):
-        if mapping.get(role) is None:
+        if mapping.get(role) is None and not (role == "odometry" and survey.motion == "navigation"):
             survey.notes.append(ROLE_NEEDS[role])
+    if survey.motion == "navigation":
+        sensors = "DVL + IMU + depth" if mapping.get("depth") else "DVL + IMU (no depth topic: z from the DVL)"
+        survey.notes.append(f"no odometry topic: the motion is the {sensors} fusion (complementary filter)")
+    elif mapping.get("dvl") and not mapping.get("imu"):
+        survey.notes.append("a DVL topic without an IMU topic (sensor_msgs/Imu) is not used: no heading")
     if not survey.missing:
         try:
             with open_log(log_path, overrides) as log:

@@ -20,7 +20,7 @@ import heapq
 import os
 import shutil
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -31,7 +31,7 @@ import numpy.typing as npt
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from core.se3 import quaternion_from_yaw
@@ -47,6 +47,12 @@ JPEG_QUALITY = 95
 ODOM_FRAME = "odom"
 BODY_FRAME = "base_link"
 CAMERA_FRAME = "camera"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+
+ExtraMessage = tuple[int, str, str, Callable[[Any], Any]]
+"""A message of any type to write: ``(stamp_ns, topic, msgtype, build)``; ``build(messages)`` returns the
+message, given the writer's message helper (``.types``, ``.header(stamp_ns, frame_id)``, ``.vector``, ``.pose``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,13 +235,15 @@ def _merged(
     odometry: Iterable[OdomSample],
     ground_truth: Iterable[PoseSample],
     sonar: Iterable[tuple[int, npt.NDArray[Any]]] = (),
+    extra: Iterable[ExtraMessage] = (),
 ) -> Iterator[tuple[int, int, Any]]:
-    """Merge the streams lazily by stamp: ``(stamp_ns, kind, item)``, kind 0 odom, 1 gt, 2 image, 3 sonar."""
+    """Merge the streams lazily by stamp: ``(stamp_ns, kind, item)``, kind 0 odom, 1 gt, 2 image, 3 sonar, 4 extra."""
     odom_stream = ((int(s.stamp_ns), 0, s) for s in odometry)
     gt_stream = ((int(s.stamp_ns), 1, s) for s in ground_truth)
     image_stream = ((int(stamp), 2, pixels) for stamp, pixels in images)
     sonar_stream = ((int(stamp), 3, pixels) for stamp, pixels in sonar)
-    return heapq.merge(odom_stream, gt_stream, image_stream, sonar_stream, key=lambda e: (e[0], e[1]))
+    extra_stream = ((int(item[0]), 4, item) for item in extra)
+    return heapq.merge(odom_stream, gt_stream, image_stream, sonar_stream, extra_stream, key=lambda e: (e[0], e[1]))
 
 
 def _target_path(path: Path, fmt: LogFormat, directory: bool) -> Path:
@@ -275,6 +283,7 @@ def write_log(
     sonar: Iterable[tuple[int, npt.NDArray[Any]]] = (),
     sonar_topic: str = "/robot/sonar/image",
     jpeg_quality: int = JPEG_QUALITY,
+    extra: Iterable[ExtraMessage] = (),
 ) -> Path:
     """Write a mission log.
 
@@ -298,6 +307,8 @@ def write_log(
         sonar: ``(stamp_ns, pixels)`` of a second image stream (mono8 ``sensor_msgs/Image``), in stamp order.
         sonar_topic: its topic name (not written when ``sonar`` is empty).
         jpeg_quality: JPEG quality (1–100) of ``jpeg`` camera frames.
+        extra: messages of other topics and types (:data:`ExtraMessage`), in stamp order; at equal stamps
+            they come after the other streams' messages.
 
     Returns:
         The path written.
@@ -314,7 +325,7 @@ def write_log(
         raise ValueError(msg)
     options = dataclasses.replace(options, jpeg_quality=int(jpeg_quality))
     target = _prepared_target(Path(path), fmt, directory)
-    stream = _merged(images, odometry, ground_truth, sonar)
+    stream = _merged(images, odometry, ground_truth, sonar, extra)
     _write_then_replace(target, fmt, directory, stream, options)
     return target
 
@@ -406,20 +417,29 @@ def _build(messages: _Messages, stamp: int, kind: int, item: Any, options: _Opti
         return messages.ground_truth(item, options.gt_type)
     if kind == 2:
         return messages.image(stamp, item, options.image_encoding, options.jpeg_quality)
+    if kind == 4:
+        return item[3](messages)
     return messages.image(stamp, item, "mono8")
+
+
+def _topic_of(kind: int, item: Any, options: _Options) -> tuple[str, str]:
+    """Return the (topic, msgtype) a stream item is written to."""
+    return (item[1], item[2]) if kind == 4 else options.topics[kind]
 
 
 def _write_ros1(temp: Path, stream: Iterator[tuple[int, int, Any]], options: _Options) -> None:
     typestore = get_typestore(Stores.ROS1_NOETIC)
+    if TF_MESSAGE not in typestore.types:  # ROS 1's tf2_msgs is not in rosbags' Noetic store
+        typestore.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE))
     messages = _Messages(typestore)
     with Writer1(temp) as writer:
-        connections: dict[int, Any] = {}
+        connections: dict[str, Any] = {}
         for stamp, kind, item in stream:
-            topic, msgtype = options.topics[kind]
-            if kind not in connections:
-                connections[kind] = writer.add_connection(topic, msgtype, typestore=typestore)
+            topic, msgtype = _topic_of(kind, item, options)
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
             msg = _build(messages, stamp, kind, item, options)
-            writer.write(connections[kind], stamp, typestore.serialize_ros1(msg, msgtype))
+            writer.write(connections[topic], stamp, typestore.serialize_ros1(msg, msgtype))
 
 
 def _write_ros2(
@@ -429,10 +449,10 @@ def _write_ros2(
     messages = _Messages(typestore)
     plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
     with Writer2(temp, version=9, storage_plugin=plugin) as writer:
-        connections: dict[int, Any] = {}
+        connections: dict[str, Any] = {}
         for stamp, kind, item in stream:
-            topic, msgtype = options.topics[kind]
-            if kind not in connections:
-                connections[kind] = writer.add_connection(topic, msgtype, typestore=typestore)
+            topic, msgtype = _topic_of(kind, item, options)
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
             msg = _build(messages, stamp, kind, item, options)
-            writer.write(connections[kind], stamp, typestore.serialize_cdr(msg, msgtype))
+            writer.write(connections[topic], stamp, typestore.serialize_cdr(msg, msgtype))

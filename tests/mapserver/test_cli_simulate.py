@@ -52,7 +52,7 @@ def test_process_picks_the_preset_named_in_scenario_json(tmp_path: Path, capsys:
         (
             ["moon"],
             "unknown scenario 'moon' (valid: loop, figure8, ellipse, bridge, chain5, cave3d, aliased, "
-            "twin, twin-overlap, symmetric, symmetric-overlap, street, building, terrain)",
+            "twin, twin-overlap, symmetric, symmetric-overlap, street, building, terrain, seabed)",
         ),
         (["loop", "--param", "laps"], "expected NAME=VALUE"),
         (["loop", "--param", "laps=two"], "not a finite number"),

@@ -23,6 +23,7 @@ import numpy.typing as npt
 from mapserver.errors import InputError
 from mapserver.formats import write_tum
 from mapserver.ingest.simulator.drive import Drive, VehicleErrors, simulate_drive
+from mapserver.ingest.simulator.navsensors import nav_messages
 from mapserver.ingest.simulator.render import expose, expose_sonar, render, render_sonar
 from mapserver.ingest.simulator.scenarios import SCENARIOS, Plan, SessionPlan
 from mapserver.ingest.writer import SUFFIXES, LogFormat, write_log
@@ -261,10 +262,15 @@ def _write_session(
     drive, seed, index = run
     log_name = f"{session.name}{SUFFIXES[fmt]}"
     gt_name = f"{session.name}.tum"
-    write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick), drive.odometry,
-              drive.ground_truth, sonar=render_sonar_frames(plan, drive, seed, index),
+    extra = []
+    if plan.navigation is not None:
+        end_s = (drive.odometry[-1].stamp_ns - session.t0_ns) * 1e-9
+        extra = nav_messages(plan.navigation, session.spec, session.t0_ns, plan.noise, end_s, seed, index)
+    write_log(temp / log_name, fmt, render_frames(plan, drive, seed, index, tick),
+              drive.odometry if plan.odometry else (), drive.ground_truth,
+              sonar=render_sonar_frames(plan, drive, seed, index),
               sonar_topic=plan.sonar_topic, image_encoding=plan.image_encoding,
-              jpeg_quality=plan.jpeg_quality)  # fmt: skip
+              jpeg_quality=plan.jpeg_quality, extra=extra)  # fmt: skip
     write_ground_truth(temp / gt_name, drive)
     return {
         "name": session.name,
@@ -312,6 +318,8 @@ def _scenario_document(
             "topic": plan.sonar_topic, "beams": plan.sonar.beams, "bins": plan.sonar.bins,
             "hfov_deg": plan.sonar.hfov_deg, "max_range_m": plan.sonar.max_range}}),
         "vehicle_odometry_errors": dataclasses.asdict(plan_vehicle(plan, seed)),
+        **({} if plan.navigation is None else {"navigation": plan.navigation.info()}),
+        **({} if plan.odometry else {"odometry": None}),
         **plan.info,
     }  # fmt: skip
 

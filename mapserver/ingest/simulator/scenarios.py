@@ -36,6 +36,7 @@ import numpy.typing as npt
 from mapserver.errors import InputError
 from mapserver.ingest.simulator import routes
 from mapserver.ingest.simulator.drive import DriveSpec, Noise, Rates
+from mapserver.ingest.simulator.navsensors import NavSensors
 from mapserver.ingest.simulator.render import Camera, Lighting, Sonar
 from mapserver.ingest.simulator.routes import Route
 from mapserver.ingest.simulator.world import World, WorldBuilder
@@ -118,6 +119,8 @@ class Plan:
         image_encoding: how camera frames are written (``mono8``, or ``jpeg`` compressed frames).
         jpeg_quality: JPEG quality of ``jpeg`` frames.
         lighting: how the light changes during a session, or None for a steady light.
+        navigation: the AUV navigation sensors (DVL, IMU, pressure, ``/tf_static``) written besides, or None.
+        odometry: whether the ``nav_msgs/Odometry`` topic is written.
 
     """
 
@@ -136,6 +139,8 @@ class Plan:
     image_encoding: ImageEncoding = "mono8"
     jpeg_quality: int = 95
     lighting: Lighting | None = None
+    navigation: NavSensors | None = None
+    odometry: bool = True
 
 
 @dataclass(frozen=True)
@@ -413,6 +418,18 @@ def build_aliased(seed: int, scale: float, params: dict[str, float]) -> Plan:
     return _ground_plan("aliased", seed, params, [region_a, region_b], sessions, None, scale, info, builder)
 
 
+def check_switches(params: Mapping[str, float], names: tuple[str, ...]) -> None:
+    """Refuse a switch parameter that is not 0 or 1.
+
+    Raises:
+        InputError: one of ``names`` is neither 0 nor 1.
+    """
+    for name in names:
+        if params[name] not in (0.0, 1.0):
+            msg = f"{name} must be 0 or 1, got {params[name]!r}"
+            raise InputError(msg)
+
+
 def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
     """An underwater cave loop (ellipse 3 m × 1.8 m semi-axes) whose depth changes along the way (4-DoF).
 
@@ -423,6 +440,7 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
     route = routes.ellipse((0.0, 0.0), 3.0 * scale, 1.8 * scale, start_deg=0.0)
     length = route.length
     amplitude = params["depth_amplitude_m"]
+    check_switches(params, ("nav", "odometry"))
     if params["sonar"] not in (0.0, 1.0) or not params["turbidity"] >= 0.0:
         msg = f"sonar must be 0 or 1 and turbidity ≥ 0, got {params['sonar']!r} and {params['turbidity']!r}"
         raise InputError(msg)
@@ -460,6 +478,8 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
         single=single,
         params=params,
         sonar=Sonar() if params["sonar"] == 1.0 else None,
+        navigation=NavSensors() if params["nav"] == 1.0 else None,
+        odometry=params["odometry"] == 1.0,
     )
 
 
@@ -467,6 +487,7 @@ def build_cave3d(seed: int, scale: float, params: dict[str, float]) -> Plan:
 # lookalike finds them defined when it imports them.
 from mapserver.ingest.simulator import building as _building  # noqa: E402
 from mapserver.ingest.simulator import lookalike as _lookalike  # noqa: E402
+from mapserver.ingest.simulator import seabed as _seabed  # noqa: E402
 from mapserver.ingest.simulator import street as _street  # noqa: E402
 
 SCENARIOS: Mapping[str, ScenarioDef] = {
@@ -486,12 +507,13 @@ SCENARIOS: Mapping[str, ScenarioDef] = {
         ScenarioDef("chain5", "four inner loops and one outer loop touching them", {"laps": 1.1}, build_chain5),
         ScenarioDef("cave3d", "underwater cave loop with depth changes, two overlapping sessions (4-DoF)",
                     {"single_laps": 2.0, "session1_laps": 1.5, "session2_laps": 1.5, "depth_amplitude_m": 0.4,
-                     "sonar": 0.0, "turbidity": 0.0},
+                     "sonar": 0.0, "turbidity": 0.0, "nav": 0.0, "odometry": 1.0},
                     build_cave3d),
         ScenarioDef("aliased", "two distinct places that look alike for a short stretch",
                     {"laps": 1.1, "alias_length_m": 0.25}, build_aliased),
         *_lookalike.DEFINITIONS,
         *_street.DEFINITIONS,
         *_building.DEFINITIONS,
+        *_seabed.DEFINITIONS,
     )
 }

@@ -242,8 +242,8 @@ def test_auto_mapping_and_overrides_on_a_real_log(tmp_path: Path) -> None:
         assert log.count_frames() == 4
         assert all(f.motion is None for f in log.frames())
         assert [g.x for g in log.ground_truth()] == [1.0, 1.0, 1.0]
-    with pytest.raises(IngestError, match="unknown topic key 'imu'"):
-        open_log(path, {"imu": "/imu"})
+    with pytest.raises(IngestError, match="unknown topic key 'lidar'"):
+        open_log(path, {"lidar": "/lidar"})
     with pytest.raises(IngestError, match="'/nope' given for 'odometry' is not in the log"):
         open_log(path, {"odometry": "/nope"})
     with pytest.raises(IngestError, match="'/robot/pose' given for 'image' has type"):

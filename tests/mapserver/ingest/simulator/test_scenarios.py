@@ -34,6 +34,7 @@ EXPECTED = {
     "street": ("forward", ["single"], True),
     "building": ("neuroslam", ["single", "floor1", "floor2", "stairs"], True),
     "terrain": ("neuroslam", ["single"], True),
+    "seabed": ("poseidon-lvc", ["session1", "session2"], True),
 }
 
 
@@ -50,7 +51,7 @@ def test_every_scenario_plans_with_clear_routes() -> None:
         pts = np.vstack([s.spec.route.points(0.1) for s in plans])
         walls = np.vstack([np.linspace(a, b, 20) for a, b in zip(plan.world.p0, plan.world.p1, strict=True)])
         nearest, _ = cKDTree(walls).query(pts)
-        assert nearest.min() > {"cave3d": 0.5, "building": 1.25}.get(name, 1.45), name
+        assert nearest.min() > {"cave3d": 0.5, "seabed": 0.5, "building": 1.25}.get(name, 1.45), name
 
 
 def test_ellipse_split_is_the_virtual_tour() -> None:
