@@ -394,7 +394,7 @@ def _scoring_kernel() -> Callable[..., tuple[int, float, bool]]:
                      "_fill_columns", "_invert", "_axpy", "_woodbury", "_update_fields", "_turned_sums",
                      "_update_positions", "_run_scores", "_state_cost", "_score_state"):  # fmt: skip
             module[name] = njit(cache=True, nogil=True)(module[name])
-        return module["_score_state"]  # type: ignore[no-any-return]
+        return module["_score_state"]
 
 
 def _score_state(
