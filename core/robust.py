@@ -150,14 +150,15 @@ outside the test hook :func:`false_loop_links`).
 Scoring. Each set of switches the search tries is scored without a factorisation of its own
 (:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
 that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
-exactly), each run of odometry links between two closures as one link; its per-link step and the update's products
-are compiled loops on large graphs (:mod:`core._switched_kernel`, the same bits as their numpy versions), and each
-run's ``z`` is taken once for its links (:meth:`_Problem.state`). Its residuals agree with the full
-solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z``. Where rounding could make the choice —
-two ``z`` that the search orders within ``ROUNDING`` of each other (links in series through experiences with two
-links carry the same ``z`` exactly, and the full solve's rounding has always ordered them), a ``z`` at a
-threshold, two costs at the edge of a comparison — that state is solved in full, so the search makes the full
-solve's choices, state by state; the answer is solved in full too.
+exactly), each run of odometry links between two closures as one link, and each run's ``z`` is taken once for its
+links (:meth:`_Problem.state`). From ``COMPILED_FROM`` links of the 2-core on, a state is scored in one compiled call
+(:class:`core._switched_kernel.CompiledScoring`: the update, the residuals, ``z`` and the cost; on the ``light`` log
+a check scores up to 1,200 states, and their Python calls were most of its time). Its residuals agree with the full
+solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z`` (up to 2.5e-7 on the ``matching`` log).
+Where rounding could make the choice — two ``z`` that the search orders within ``ROUNDING`` of each other (links in
+series through experiences with two links carry the same ``z`` exactly, and the full solve's rounding has always
+ordered them), a ``z`` at a threshold, two costs at the edge of a comparison — that state is solved in full, so the
+search makes the full solve's choices, state by state; the answer is solved in full too.
 """
 
 from __future__ import annotations
@@ -806,7 +807,8 @@ class _Problem:
         The residuals come from :class:`core.relaxation.SwitchedRelaxation` (low-rank updates of one
         factorisation, the 2-core's links only; the others' are 0) where it applies: RatSLAM's fixed point
         (not ``joint``) and a set of switches that keeps every part whole; otherwise from a full solve
-        (:meth:`exact`). The two agree to rounding (about 1e-10 m on the bench's maps).
+        (:meth:`exact`). The two agree to rounding (about 1e-10 m on the bench's maps). On large graphs the state
+        is scored, ``z`` and cost, by one compiled call (:meth:`_compiled`), the same steps to rounding.
         """
         self.solves += 1
         switched = None if self.joint else self._prepared()[1]

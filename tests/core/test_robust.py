@@ -1071,14 +1071,14 @@ def _scored_by(path: str) -> Iterator[list[int]]:
         used[0] += found is not None
         return found
 
-    robust.COMPILED_FROM = 0 if path == "compiled" else 10**9  # type: ignore[misc]
+    robust.COMPILED_FROM = 0 if path == "compiled" else 10**9
     CompiledScoring.score = counted  # type: ignore[method-assign]
     if path == "full":
         SwitchedRelaxation.run_residuals = lambda _self, _active: None  # type: ignore[method-assign,assignment]
     try:
         yield used
     finally:
-        robust.COMPILED_FROM = compiled_from  # type: ignore[misc]
+        robust.COMPILED_FROM = compiled_from
         CompiledScoring.score = score  # type: ignore[method-assign]
         SwitchedRelaxation.run_residuals = low_rank  # type: ignore[method-assign]
 
