@@ -298,8 +298,8 @@ class CompiledScoring:
     """
 
     #: runs changed since the reference beyond which the reference moves to the state scored (a factorisation here
-    #: costs about what scoring a state does). Measured on the ``light`` log's checks (CPU per check): 8 and 32
-    #: within 3 % of 16, 64 13 % more (the capacitance's inverse grows as its cube).
+    #: costs about what scoring a state does). Measured on the ``light`` log's checks (CPU of all nine): 4 to 32
+    #: within the noise of one another (0.33-0.40 s), 64 0.54 s (the capacitance's inverse grows as its cube).
     REBASE = 16
 
     def __init__(self, switched: SwitchedRelaxation, terms: ScoreTerms, links: int) -> None:
