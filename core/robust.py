@@ -150,14 +150,15 @@ outside the test hook :func:`false_loop_links`).
 Scoring. Each set of switches the search tries is scored without a factorisation of its own
 (:meth:`_Problem.state`): :class:`core.relaxation.SwitchedRelaxation` updates one factorisation by the links
 that differ (Sherman–Morrison–Woodbury) and solves the graph's 2-core only (the trees hanging from it fit
-exactly), each run of odometry links between two closures as one link; its per-link step and the update's products
-are compiled loops on large graphs (:mod:`core._switched_kernel`, the same bits as their numpy versions), and each
-run's ``z`` is taken once for its links (:meth:`_Problem.state`). Its residuals agree with the full
-solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z``. Where rounding could make the choice —
-two ``z`` that the search orders within ``ROUNDING`` of each other (links in series through experiences with two
-links carry the same ``z`` exactly, and the full solve's rounding has always ordered them), a ``z`` at a
-threshold, two costs at the edge of a comparison — that state is solved in full, so the search makes the full
-solve's choices, state by state; the answer is solved in full too.
+exactly), each run of odometry links between two closures as one link, and each run's ``z`` is taken once for its
+links (:meth:`_Problem.state`). From ``COMPILED_FROM`` links of the 2-core on, a state is scored in one compiled call
+(:class:`core._switched_kernel.CompiledScoring`: the update, the residuals, ``z`` and the cost; on the ``light`` log
+a check scores up to 1,200 states, and their Python calls were most of its time). Its residuals agree with the full
+solve's (:func:`core.relaxation.solve`) to rounding, about 3e-9 of ``z`` (up to 2.5e-7 on the ``matching`` log).
+Where rounding could make the choice — two ``z`` that the search orders within ``ROUNDING`` of each other (links in
+series through experiences with two links carry the same ``z`` exactly, and the full solve's rounding has always
+ordered them), a ``z`` at a threshold, two costs at the edge of a comparison — that state is solved in full, so the
+search makes the full solve's choices, state by state; the answer is solved in full too.
 """
 
 from __future__ import annotations
@@ -174,6 +175,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 if TYPE_CHECKING:
     from core.config import Params
 
+from core._switched_kernel import CompiledScoring, ScoreTerms
 from core.links import SWITCHABLE_KINDS, LinkKind
 from core.pcm import (
     MAX_LINKS,
@@ -188,6 +190,7 @@ from core.pcm import (
     turn_allowance,
 )
 from core.relaxation import (
+    COMPILED_FROM,
     LinkComponents,
     SwitchedRelaxation,
     length_weights,
@@ -315,13 +318,24 @@ def _normalise(
     A view link (``view``) expects ``√((drift·s)² + view_m²)`` metres and ``√((yaw_drift·s)² + view_rad²)``
     radians: a view match says the robot stood near the matched place, within the closure gate, not at it.
     """
+    scale_t, scale_y = _scales(length, drift, view)
+    return np.hypot(distance / scale_t, turn / scale_y)
+
+
+def _scales(
+    length: float, drift: Drift, view: np.ndarray | None = None
+) -> tuple[float, float] | tuple[np.ndarray, np.ndarray]:
+    """Return the translation (m) and heading (rad) residuals one link is expected to carry: ``z``'s denominators.
+
+    Two numbers, or per link where ``view`` marks view links and the view match has an uncertainty of its own
+    (:func:`_normalise`).
+    """
     scale_t = max(drift.drift * length, 1e-12)
     scale_y = max(drift.yaw_drift * length, 1e-12)
     if view is None or not (drift.view_m > 0.0 or drift.view_rad > 0.0):
-        return np.hypot(distance / scale_t, turn / scale_y)
-    view_t = np.where(view, math.hypot(scale_t, drift.view_m), scale_t)
-    view_y = np.where(view, math.hypot(scale_y, drift.view_rad), scale_y)
-    return np.hypot(distance / view_t, turn / view_y)
+        return scale_t, scale_y
+    return (np.where(view, math.hypot(scale_t, drift.view_m), scale_t),
+            np.where(view, math.hypot(scale_y, drift.view_rad), scale_y))  # fmt: skip
 
 
 def switch_off_outliers(
@@ -719,6 +733,7 @@ class _Problem:
         # the 2-core's never-switched links, their runs, and the runs of its switchable ones (:meth:`_core_cost`)
         self._core_runs = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
         self._run_view: np.ndarray | None = None  # per run of the 2-core: view links (None: a run mixes them)
+        self._scorer: CompiledScoring | None = None  # a state's score in one compiled call (:meth:`_compiled`)
         self._exact: dict[bytes, _State] = {}  # states solved in full, by their switches
 
     def fresh_budget(self) -> None:
@@ -792,10 +807,15 @@ class _Problem:
         The residuals come from :class:`core.relaxation.SwitchedRelaxation` (low-rank updates of one
         factorisation, the 2-core's links only; the others' are 0) where it applies: RatSLAM's fixed point
         (not ``joint``) and a set of switches that keeps every part whole; otherwise from a full solve
-        (:meth:`exact`). The two agree to rounding (about 1e-10 m on the bench's maps).
+        (:meth:`exact`). The two agree to rounding (about 1e-10 m on the bench's maps). On large graphs the state
+        is scored, ``z`` and cost, by one compiled call (:meth:`_compiled`), the same steps to rounding.
         """
         self.solves += 1
         switched = None if self.joint else self._prepared()[1]
+        scored = None if self._scorer is None else self._scorer.score(active)
+        if scored is not None:
+            z, cost, near = scored
+            return self.exact(_State(active, z, 0.0, self)) if near else _State(active, z, cost, self)
         found = None if switched is None else switched.run_residuals(active)
         if switched is None or found is None:
             return self.exact(_State(active, np.zeros(0), 0.0, self))
@@ -913,7 +933,25 @@ class _Problem:
             self._run_view[switched.run] = view
             if not np.array_equal(self._run_view[switched.run], view):
                 self._run_view = None
+            self._scorer = self._compiled(switched)
         return self._solver
+
+    def _compiled(self, switched: SwitchedRelaxation) -> CompiledScoring | None:
+        """Return the compiled scoring of states (:class:`core._switched_kernel.CompiledScoring`) where it applies.
+
+        From ``COMPILED_FROM`` links of the 2-core on (below, numba's import and the kernel's load outweigh what it
+        saves), on RatSLAM's fixed point (not ``joint``), where every link of a run is a view link or none is.
+        """
+        if self.joint or self._run_view is None or switched.links.size < COMPILED_FROM:
+            return None
+        runs = switched.length.size
+        scale = np.empty((2, runs))
+        scale[0], scale[1] = _scales(self.length, self.drift, self._run_view)
+        fixed_links, fixed_runs, can_runs = self._core_runs
+        terms = ScoreTerms(scale, np.stack([fixed_links, fixed_runs]), can_runs, self._held, self._held_prior,
+                           self.standby[0], self.standby_scale, self.drift.threshold, 1.0 / self.drift.drift,
+                           ROUNDING, ODOMETRY_WEIGHT)  # fmt: skip
+        return CompiledScoring(switched, terms, self.src.size)
 
     def overreached(self, active: np.ndarray, z: np.ndarray) -> int:
         """Return how many reckoning links left on standby miss the map by more than their own length.

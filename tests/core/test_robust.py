@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core import pcm, robust
+from core._switched_kernel import CompiledScoring
 from core.config import Params
 from core.experience_map import ExperienceMap, LinkKind
 from core.motion import Motion
@@ -1049,6 +1050,136 @@ def test_the_low_rank_solve_unfolds_a_relocalisation_as_the_full_solve(false: bo
     """Standby reckoning links (a relocalisation's fold) through the low-rank solve: the same map bit for bit."""
     assert _same_answer(lambda: _settled(_fold_map(departing(), false=false)[0])) > 0
     assert _same_answer(lambda: _settled(_twice_relocalised_map(first_false=false)[0])) > 0
+
+
+# ---------------------------------------------------------------- the compiled scoring decides as the numpy one
+
+
+@contextmanager
+def _scored_by(path: str) -> Iterator[list[int]]:
+    """Score every state by one path, and count the states the compiled one answered.
+
+    ``compiled``: :class:`core._switched_kernel.CompiledScoring` on any graph (in use from ``COMPILED_FROM`` links of
+    the 2-core on); ``numpy``: the low-rank numpy path (:meth:`SwitchedRelaxation.run_residuals`); ``full``: every
+    state solved in full.
+    """
+    compiled_from, low_rank, score = robust.COMPILED_FROM, SwitchedRelaxation.run_residuals, CompiledScoring.score
+    used = [0]
+
+    def counted(self: CompiledScoring, active: np.ndarray) -> tuple[np.ndarray, float, bool] | None:
+        found = score(self, active)
+        used[0] += found is not None
+        return found
+
+    robust.COMPILED_FROM = 0 if path == "compiled" else 10**9
+    CompiledScoring.score = counted  # type: ignore[method-assign]
+    if path == "full":
+        SwitchedRelaxation.run_residuals = lambda _self, _active: None  # type: ignore[method-assign,assignment]
+    try:
+        yield used
+    finally:
+        robust.COMPILED_FROM = compiled_from
+        CompiledScoring.score = score  # type: ignore[method-assign]
+        SwitchedRelaxation.run_residuals = low_rank  # type: ignore[method-assign]
+
+
+def _same_answer_compiled(run: Callable[[], tuple[np.ndarray, ...]]) -> int:
+    """Assert that ``run`` answers bit for bit the same by the compiled, the numpy and the full scoring; return the
+    states the compiled one answered."""
+    answers = {}
+    for path in ("compiled", "numpy", "full"):
+        with _scored_by(path) as used:
+            answers[path] = run()
+        if path == "compiled":
+            compiled = used[0]
+        else:
+            assert used[0] == 0
+    for path in ("numpy", "full"):
+        assert len(answers[path]) == len(answers["compiled"])
+        for a, b in zip(answers["compiled"], answers[path], strict=True):
+            assert np.array_equal(a, b), path
+    return compiled
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 25), st.sampled_from([0.5, 1.0, 2.0, 3.0, 5.0, 8.0]), st.integers(0, 2**16),
+       st.integers(1, 3), st.floats(0.0, 0.01), st.floats(0.95, 1.05), st.floats(0.0, 0.3))  # fmt: skip
+def test_the_compiled_scoring_switches_what_the_numpy_and_full_solves_switch_on_random_maps(
+    count: int, separation: float, seed: int, laps: int, yaw_bias: float, scale: float, dz: float
+) -> None:
+    """Differential: random circles (climbing or flat) with random wrong links; the search's answer bit for bit the
+    same whichever path scores its states, and the compiled one scored some of them."""
+    graph, _ = _with_false(_circle_graph(laps=laps, yaw_bias=yaw_bias, scale=scale, dz=dz), count, separation, seed)
+    assert _same_answer_compiled(lambda: _answer(graph)) > 0
+
+
+@pytest.mark.parametrize("false", [True, False])
+def test_the_compiled_scoring_unfolds_a_relocalisation_as_the_full_solve(false: bool) -> None:
+    """Standby reckoning links and their reach (the cost's overreach term) through the compiled scoring."""
+    assert _same_answer_compiled(lambda: _settled(_fold_map(departing(), false=false)[0])) > 0
+    assert _same_answer_compiled(lambda: _settled(_twice_relocalised_map(first_false=false)[0])) > 0
+
+
+def _problems(graph) -> tuple[_Problem, _Problem]:
+    """Two problems over one graph, the first scored by the compiled path, the second by the numpy one."""
+    truth, src, dst, transform, kind, distance = graph
+    can = switchable(kind)
+    anchor = component_anchors(truth.shape[0], src, dst)
+    start = truth.copy()
+    start[:, 3] = chain_headings(truth[:, 3], src, dst, transform, can, anchor)
+    out = []
+    for path in ("compiled", "numpy"):
+        problem = _Problem(start, src, dst, transform, can, anchor, link_length(distance, kind), DRIFT, 400)
+        with _scored_by(path):
+            problem._prepared()
+        out.append(problem)
+    return out[0], out[1]
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**16), st.integers(0, 20), st.floats(0.0, 0.3))
+def test_the_compiled_scoring_gives_the_numpy_scores_on_random_switches(seed: int, count: int, dz: float) -> None:
+    """Each state's ``z`` and cost from the compiled path against the numpy path's, on random sets of switches (a
+    new reference every so often, up to 40 links changed at once): equal to 1e-9 (the search decides outside 1e-6).
+    """
+    graph, _ = _with_false(_circle_graph(laps=2, dz=dz), count, 3.0, seed)
+    compiled, numpy_path = _problems(graph)
+    assert compiled._scorer is not None and numpy_path._scorer is None
+    rng = np.random.default_rng(seed)
+    can = np.flatnonzero(compiled.can)
+    scored = 0
+    for _ in range(30):
+        active = np.ones(compiled.src.size, dtype=bool)
+        active[rng.choice(can, size=rng.integers(0, min(40, can.size) + 1), replace=False)] = False
+        active = compiled.couple(active)
+        fast, slow = compiled.state(active), numpy_path.state(active)
+        assert (fast.solved is None) == (slow.solved is None)
+        if fast.solved is None:  # both low-rank: the compiled answer is the numpy one to rounding
+            scored += 1
+            assert np.allclose(fast.z, slow.z, rtol=1e-9, atol=1e-9)
+            assert fast.cost == pytest.approx(slow.cost, rel=1e-9, abs=1e-9)
+        else:
+            assert np.array_equal(fast.z, slow.z)
+    assert scored > 0
+
+
+def test_the_compiled_scoring_scores_a_wrong_link_as_the_numpy_path_does() -> None:
+    """One wrong link of 3 m on a clean double lap: with it on, its ``z`` exceeds c̄ and the cost charges it an
+    outlier's worth; switched off, every ``z`` falls back within c̄ — by both paths alike."""
+    clean = _circle_graph()
+    graph, injected = _with_false(clean, 1, 3.0, seed=1)
+    assert injected == 1
+    compiled, numpy_path = _problems(graph)
+    wrong = graph[1].size - 1
+    for active in (np.ones(graph[1].size, dtype=bool), np.r_[np.ones(graph[1].size - 1, dtype=bool), False]):
+        fast, slow = compiled.state(active), numpy_path.state(active)
+        assert np.allclose(fast.z, slow.z, rtol=1e-9, atol=1e-9)
+        assert fast.cost == pytest.approx(slow.cost, rel=1e-9)
+        if active[wrong]:
+            assert fast.z[wrong] > DRIFT.threshold
+            assert fast.cost > DRIFT.threshold**2
+        else:  # the paired must-still-happen: without it the map fits
+            assert fast.z[active].max() < DRIFT.threshold
 
 
 def _series_problem() -> tuple[_Problem, int, int, int]:
