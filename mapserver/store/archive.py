@@ -6,7 +6,7 @@ Template pixels are *not* copied when the template is already stored as a ``temp
 same identity, shape and mean (templates are immutable): the archive keeps a reference and the row's
 blob is reused on restore. Template rows are never deleted while their session exists, so references
 stay valid. ``sdr-htm`` view cells are the exception: a merge re-expresses a view cell's prototype in the
-stored map's cortex and the store rewrites its row (``state._rewrite_reexpressed_templates``), often at the
+stored map's cortex and the store rewrites its row (``state_templates.rewrite_reexpressed_templates``), often at the
 same size (its "mean"), so their archives keep every prototype inline (a few hundred bytes each).
 
 Unmerge recipe (what ``mapserver unmerge`` does, issue 5)::

@@ -9,7 +9,7 @@ import pytest
 
 from mapserver import pipeline
 from mapserver.store import Database, NewSession, UnknownMapError, load_map, save_map
-from mapserver.store import state as state_module
+from mapserver.store import state_rows_write as rows_module
 from tests.mapserver.store.conftest import (
     assert_same_arrays,
     drive_engine,
@@ -33,7 +33,7 @@ def _session(name: str) -> NewSession:
 def _crash_after_experiences(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """Make the link inserts fail after templates, pose-cell links and experiences were inserted."""
     seen: list[int] = []
-    real = state_module._insert_experiences
+    real = rows_module._insert_experiences
 
     def insert_then_remember(conn, map_id, snapshot, *args):  # type: ignore[no-untyped-def]
         real(conn, map_id, snapshot, *args)
@@ -42,8 +42,8 @@ def _crash_after_experiences(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     def crash(*_args, **_kwargs):  # type: ignore[no-untyped-def]
         raise InjectedCrashError("simulated crash halfway through the inserts")
 
-    monkeypatch.setattr(state_module, "_insert_experiences", insert_then_remember)
-    monkeypatch.setattr(state_module, "_insert_links", crash)
+    monkeypatch.setattr(rows_module, "_insert_experiences", insert_then_remember)
+    monkeypatch.setattr(rows_module, "_insert_links", crash)
     return seen
 
 
