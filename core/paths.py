@@ -13,6 +13,7 @@ from typing import Literal
 
 import numpy as np
 
+from core.arrays import FloatArray, IntArray
 from core.contraction import Chains, ContractedGraph
 
 Weight = Literal["time", "distance"]
@@ -24,7 +25,7 @@ class PathResult:
     """A shortest path: experience ids, their poses (N, 4: x, y, z, yaw) and the total cost."""
 
     nodes: list[int]
-    poses: np.ndarray
+    poses: FloatArray
     cost: float
     weight: Weight
 
@@ -54,11 +55,11 @@ class ExperienceGraph:
 
     def __init__(
         self,
-        poses: np.ndarray,
-        link_from: np.ndarray,
-        link_to: np.ndarray,
-        link_dt: np.ndarray,
-        link_distance: np.ndarray,
+        poses: FloatArray,
+        link_from: IntArray,
+        link_to: IntArray,
+        link_dt: FloatArray,
+        link_distance: FloatArray,
     ) -> None:
         self.poses = np.asarray(poses, dtype=np.float64)
         n = self.poses.shape[0]
@@ -99,8 +100,8 @@ class ExperienceGraph:
 
 
 def _simple_links(
-    n: int, link_from: np.ndarray, link_to: np.ndarray, weights: dict[str, np.ndarray]
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    n: int, link_from: IntArray, link_to: IntArray, weights: dict[str, FloatArray]
+) -> tuple[IntArray, IntArray, dict[str, FloatArray]]:
     """Return the distinct undirected links ``lo < hi`` and, per weight, the cheapest finite cost of each.
 
     Costs are raised to at least ``1e-9``; a pair whose links all have a non-finite cost gets NaN or inf.
