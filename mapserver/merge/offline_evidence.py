@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from core.angles import wrap_angle
+from core.arrays import BoolArray, FloatArray, IntArray
 from core.se3 import alignment, compose, inverse
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
@@ -280,7 +281,7 @@ class _OfflineTest:
 
 
 def _probation_window(
-    steps: np.ndarray, outcomes: np.ndarray, seen: np.ndarray, probation_m: float, rule: EvidenceRule
+    steps: FloatArray, outcomes: IntArray, seen: FloatArray, probation_m: float, rule: EvidenceRule
 ) -> tuple[float, float, float]:
     """Return (metres, longest miss run, score) of A's trials after the anchor that a probation would see.
 
@@ -314,7 +315,7 @@ def _probation_window(
 
 
 def _loop_closed_at(
-    travelled: np.ndarray, hit: np.ndarray, seen: np.ndarray, probation_m: float, tolerance: float
+    travelled: FloatArray, hit: BoolArray, seen: FloatArray, probation_m: float, tolerance: float
 ) -> float:
     """Return the metres travelled at the first hit that closes a loop on B (infinity: none does).
 
@@ -338,14 +339,14 @@ def _loop_closed_at(
     return float(metres[np.argmax(closes)]) if closes.any() else float("inf")
 
 
-def _miss_metres_since_hit(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> np.ndarray:
+def _miss_metres_since_hit(steps: FloatArray, hit: BoolArray, miss: BoolArray) -> FloatArray:
     """Return, at each trial, the miss metres since the newest hit up to it (the online ``miss_run_m``)."""
     missed = np.cumsum(np.where(miss, steps, 0.0))
     at_hit = np.maximum.accumulate(np.where(hit, missed, 0.0)) if missed.size else missed
     return missed - at_hit
 
 
-def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> float:
+def _longest_miss_run(steps: FloatArray, hit: BoolArray, miss: BoolArray) -> float:
     """Return the most miss metres along A's chain between two hits (unmapped trials neither add nor break)."""
     if not miss.any():
         return 0.0
@@ -353,7 +354,7 @@ def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> f
     return float(np.bincount(run, weights=np.where(miss, steps, 0.0)).max())
 
 
-def _chain_ends(steps: np.ndarray, outcomes: np.ndarray, pose: np.ndarray, seen: np.ndarray) -> tuple[ChainEnd, ...]:
+def _chain_ends(steps: FloatArray, outcomes: IntArray, pose: FloatArray, seen: FloatArray) -> tuple[ChainEnd, ...]:
     """Return the chain's two ends of agreement (none without a hit).
 
     Each: the metres of failing views in a row right past the outermost hit (before the first, after the last; up
@@ -369,12 +370,12 @@ def _chain_ends(steps: np.ndarray, outcomes: np.ndarray, pose: np.ndarray, seen:
     return tuple(ChainEnd(m, _xyz(pose[e]), _xyz(seen[e])) for m, e in zip(past, (first, last), strict=True))
 
 
-def _xyz(row: np.ndarray) -> tuple[float, float, float]:
+def _xyz(row: FloatArray) -> tuple[float, float, float]:
     """Return a pose row's position as plain floats."""
     return (float(row[0]), float(row[1]), float(row[2]))
 
 
-def _run(steps: np.ndarray, miss: np.ndarray) -> float:
+def _run(steps: FloatArray, miss: BoolArray) -> float:
     """Return the metres of the misses in a row at the start of ``miss`` (0 when it starts otherwise)."""
     length = int(np.argmin(miss)) if not miss.all() else miss.size
     return float(steps[:length].sum())

@@ -51,6 +51,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from core import Engine, LinkKind, StepResult
+from core.arrays import FloatArray, IntArray, UInt8Array
 from core.localview import LocalViewCells
 from core.se3 import compose, relative
 from mapserver.merge.confirm import Observation
@@ -109,9 +110,9 @@ class MergeEvent:
     absorbed: tuple[object, ...] = ()
     match: Match | None = None
     partial: Mapping[str, np.ndarray] | None = field(default=None, repr=False)
-    odometry: np.ndarray | None = field(default=None, repr=False)
+    odometry: FloatArray | None = field(default=None, repr=False)
     evidence: dict[str, Any] = field(default_factory=dict, repr=False)
-    session_pose: np.ndarray | None = field(default=None, repr=False)
+    session_pose: FloatArray | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,10 +145,10 @@ class _Unread:
 class _Candidate:
     stored: StoredMap
     cells: LocalViewCells | CortexReader  # CortexReader for sdr-htm maps
-    order: np.ndarray
-    starts: np.ndarray
+    order: IntArray
+    starts: IntArray
     hypotheses: HypothesisSet
-    anchors: np.ndarray
+    anchors: IntArray
     """Per place of ``hypotheses.places``: the stored experience a merge anchors on (places are the
     experiences, and for sdr-htm maps also the view cells' places, :mod:`mapserver.merge.places`)."""
 
@@ -298,7 +299,7 @@ class OnlineMerger:
 
     def _matcher(
         self, engine: Engine, state: Mapping[str, np.ndarray], key: object, far_m: float,
-        views: tuple[np.ndarray, np.ndarray] | None = None,
+        views: tuple[FloatArray, IntArray] | None = None,
     ) -> Any:
         """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader.
 
@@ -377,7 +378,7 @@ class OnlineMerger:
                 for reader in self._readers:
                     reader.remember(template, view)
 
-    def _read(self, frame: Any, code: np.ndarray) -> np.ndarray:
+    def _read(self, frame: Any, code: UInt8Array) -> IntArray:
         """Step every reader's cortex on the frame (its SDR ``code``); return their rows, stacked."""
         sonar = getattr(frame, "sonar", None)
         return np.stack([reader.read(frame.image, sonar, code) for reader in self._readers])
@@ -485,7 +486,7 @@ class OnlineMerger:
             packet=engine.pose_cells.best.copy(), seen=seen,
         )  # fmt: skip
 
-    def _robot_pose(self, engine: Engine, odometry_then: np.ndarray) -> np.ndarray:
+    def _robot_pose(self, engine: Engine, odometry_then: FloatArray) -> FloatArray:
         """Return the robot's pose at an earlier frame (or frames, (N, 4)) in the session map's frame."""
         return compose(engine.map.robot_pose(), relative(self._odometry, odometry_then))
 
@@ -656,13 +657,13 @@ class OnlineMerger:
         return MergerState(self._odometry.copy(), tuple(self.absorbed), hypotheses, track, readers)
 
 
-def _heading(rad: float) -> np.ndarray:
+def _heading(rad: float) -> FloatArray:
     return np.array([0.0, 0.0, 0.0, rad])
 
 
 def _predicting_places(
-    state: Mapping[str, np.ndarray], views: tuple[np.ndarray, np.ndarray] | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    state: Mapping[str, np.ndarray], views: tuple[FloatArray, IntArray] | None
+) -> tuple[FloatArray, IntArray, IntArray]:
     """Return (poses (P, 4), templates (P,), anchor experiences (P,)) of the places a stored map predicts views at.
 
     The experiences; with ``views`` (sdr-htm maps: every view cell's own place and the experience it was made

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from core.arrays import FloatArray
 from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import Hypothesis, Track
 
@@ -19,13 +20,13 @@ _HYPOTHESIS_COLUMNS_BEFORE_HELD = 13  # states stored before ``Hypothesis.held_p
 _SUPPORT_COLUMNS = 15  # hypothesis row, frame, template, experience, error, relative, partial template, odometry, seen
 
 
-def _observation_row(row: int, o: Observation) -> np.ndarray:
+def _observation_row(row: int, o: Observation) -> FloatArray:
     head = [float(row), float(o.frame), float(o.stored_template), float(o.stored_experience), o.error,
             o.relative_rad, float(o.partial_template)]  # fmt: skip
     return np.concatenate([head, o.odometry, o.seen, o.packet]).astype(np.float64)
 
 
-def _observation(row: np.ndarray) -> Observation:
+def _observation(row: FloatArray) -> Observation:
     return Observation(
         frame=int(row[1]), stored_template=int(row[2]), stored_experience=int(row[3]), error=float(row[4]),
         relative_rad=float(row[5]), partial_template=int(row[6]), odometry=row[7:11].copy(),
@@ -44,7 +45,7 @@ class MergerState:
         track: the session's recent frames (None: none yet).
     """
 
-    odometry: np.ndarray
+    odometry: FloatArray
     absorbed: tuple[object, ...] = ()
     hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = field(default_factory=dict)
     track: Track | None = None
@@ -168,7 +169,7 @@ def _copy(h: Hypothesis) -> Hypothesis:
     )  # fmt: skip
 
 
-def _place_row(place: np.ndarray | None) -> list[float]:
+def _place_row(place: FloatArray | None) -> list[float]:
     return [math.nan] * 4 if place is None else [float(v) for v in place]
 
 

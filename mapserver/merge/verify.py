@@ -54,8 +54,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from core import Action, Engine, StepResult
+from core.arrays import FloatArray
 from core.se3 import alignment, compose
-from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
+from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, EvidenceRule, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
 FOLLOW_LINKS = True
@@ -428,7 +429,7 @@ class Probation:
             self.disagreeing.append((np.asarray(stored, dtype=np.float64), np.asarray(odometry, dtype=np.float64)))
             self.links_consensus = link_consensus(self.disagreeing, 2.0 * self.hset.rule.position_tolerance)
 
-    def _follow_link(self, stored: np.ndarray, predicted: np.ndarray, odometry: np.ndarray, distance: float) -> None:
+    def _follow_link(self, stored: FloatArray, predicted: FloatArray, odometry: FloatArray, distance: float) -> None:
         """Put the prediction where an agreeing loop link put the robot, and count the link as a match.
 
         The engine closed a loop onto the stored experience at ``stored`` within twice the position tolerance of
@@ -477,7 +478,7 @@ class Probation:
         }  # fmt: skip
 
 
-def cap_metres(rule: Any, probation_m: float, cap: float) -> float:
+def cap_metres(rule: EvidenceRule, probation_m: float, cap: float) -> float:
     """Return the metres at which a probation of ``probation_m`` ends whatever its matches do (unless held open).
 
     ``rule.probation_max_m`` (``Params.merge_probation_max_m``) when set, never below ``probation_m``; else
@@ -494,7 +495,7 @@ def image_bytes(frame: Any) -> int:
     return int(np.asarray(frame.image).nbytes) + (0 if sonar is None else int(np.asarray(sonar).nbytes))
 
 
-def link_consensus(links: list[tuple[np.ndarray, np.ndarray]], tolerance: float) -> int:
+def link_consensus(links: list[tuple[FloatArray, FloatArray]], tolerance: float) -> int:
     """Return the most loop links that agree on one alignment of the session's odometry onto the stored map.
 
     Each link (the stored experience's pose ``q``, the session's odometry ``o`` when it closed) implies the
