@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -44,6 +45,9 @@ from core.arrays import FloatArray, IntArray
 from core.localview import LocalViewCells
 from core.se3 import alignment, compose, relative
 from mapserver.merge.confirm import Observation
+
+if TYPE_CHECKING:
+    from mapserver.merge.cortex import CortexReader
 
 MISS_WEIGHT = 2.0
 """A miss on mapped ground outweighs a hit (see the module docstring)."""
@@ -177,7 +181,7 @@ class StoredPlaces:
 
     def __init__(
         self,
-        cells: LocalViewCells,
+        cells: LocalViewCells | CortexReader,
         poses: FloatArray,
         templates: IntArray,
         threshold: float,

@@ -22,7 +22,7 @@ nothing of A can be compared with B.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +31,8 @@ from mapserver.merge.snapshot import experiences_by_template
 
 if TYPE_CHECKING:
     from core import Params
+    from core.localview import LocalViewCells
+    from mapserver.merge.cortex import CortexReader
     from mapserver.merge.engines import StoredMap
 
 
@@ -54,7 +56,7 @@ class PartialViews:
 class StoredViews:
     """Map B as a predictor of views: its matcher, and the places it says each of its views is at."""
 
-    matcher: Any
+    matcher: LocalViewCells | CortexReader
     """``LocalViewCells`` or :class:`~mapserver.merge.cortex.CortexReader`: ``match``/``match_among``/``count``."""
     poses: np.ndarray
     """(P, 4) B's places: its experiences, then (``sdr-htm``) its view cells' places."""
@@ -144,6 +146,7 @@ def stored_views(loaded: StoredMap, params: Params, far_m: float) -> StoredViews
     templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
     experiences = np.arange(poses.shape[0], dtype=np.int64)
     n = int(np.shape(state["lv_means"])[0])
+    matcher: LocalViewCells | CortexReader
     if uses_codes(loaded):
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm maps
 
@@ -152,7 +155,7 @@ def stored_views(loaded: StoredMap, params: Params, far_m: float) -> StoredViews
         poses = np.concatenate([poses, view_poses[placed]])
         templates = np.concatenate([templates, placed])
         experiences = np.concatenate([experiences, view_anchor[placed]])
-        matcher: Any = CortexReader(params, state, row=0, key=loaded.key, far_m=far_m, places=view_poses)
+        matcher = CortexReader(params, state, row=0, key=loaded.key, far_m=far_m, places=view_poses)
     else:
         from core.localview import LocalViewCells
 

@@ -5,13 +5,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Protocol, cast
 
 import numpy as np
 
 from core.arrays import FloatArray
 from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import Hypothesis, Track
+
+if TYPE_CHECKING:
+    from mapserver.merge.online import _Candidate
 
 _HYPOTHESIS_COLUMNS = 22  # key, born, hit_m, miss_m, post_hit_m, post_miss_m, alignment (4), turn (3), held (5),
 # anchor place (4)
@@ -63,7 +66,7 @@ class MergerState:
         kept = {k: v for k, v in self.hypotheses.items() if k not in gone}
         return MergerState(self.odometry, self.absorbed, kept, self.track, self.readers)
 
-    def restore_into(self, candidates: Sequence[Any], track: Track) -> None:
+    def restore_into(self, candidates: Sequence[_Candidate], track: Track) -> None:
         """Put the hypotheses back into the candidates' sets and the frames into ``track``."""
         for candidate in candidates:
             live, banned = self.hypotheses.get(candidate.stored.key, ((), ()))
@@ -90,17 +93,17 @@ class MergerState:
         hits: list[list[float]] = []
         for key, (live, bans) in self.hypotheses.items():
             for h in live:
-                rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
+                rows.append([float(int(cast(int, key))), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,
                              *h.alignment, *h.turn, *_held_row(h), *_place_row(h.anchor_place)])  # fmt: skip
                 support.extend(_observation_row(len(rows) - 1, o) for o in h.support)
                 hits.extend([float(len(rows) - 1), *odometry, *place] for odometry, place in h.hits)
-            banned.extend([float(int(key)), *b] for b in bans)  # type: ignore[call-overload]
+            banned.extend([float(int(cast(int, key))), *b] for b in bans)
         width = max((r.size for r in support), default=_SUPPORT_COLUMNS)
         frames = list(self.track.frames) if self.track is not None else []
         views = np.stack([f[3] for f in frames]) if frames else np.zeros((0, 0, 0), dtype=np.float32)
         return {
             "odometry": np.asarray(self.odometry, dtype=np.float64).reshape(4).copy(),
-            "absorbed": np.asarray([int(k) for k in self.absorbed], dtype=np.int64),  # type: ignore[call-overload]
+            "absorbed": np.asarray([int(cast(int, k)) for k in self.absorbed], dtype=np.int64),
             "hypotheses": np.asarray(rows, dtype=np.float64).reshape(-1, _HYPOTHESIS_COLUMNS),
             "support": np.vstack(support) if support else np.zeros((0, width), dtype=np.float64),
             "banned": np.asarray(banned, dtype=np.float64).reshape(-1, 5),
@@ -111,7 +114,7 @@ class MergerState:
             "track_views": views.astype(np.float32),
             "track_means": np.asarray([f[4] for f in frames], dtype=np.float64),
             "track_total": np.asarray([0.0 if self.track is None else self.track.distance], dtype=np.float64),
-            "readers": np.asarray([int(k) for k, _ in self.readers], dtype=np.int64),  # type: ignore[call-overload]
+            "readers": np.asarray([int(cast(int, k)) for k, _ in self.readers], dtype=np.int64),
             **{f"reader{r}_{name}": v for r, (_, state) in enumerate(self.readers) for name, v in state.items()},
         }
 
@@ -181,7 +184,25 @@ MERGER_PREFIX = "mg_"
 """Snapshot keys of the merge driver's state (stored with a partial session's map)."""
 
 
-def resume_merger_state(stored: Any, session_id: int, candidates: Sequence[Any]) -> MergerState | None:
+class VersionedMap(Protocol):
+    """A stored map as the resume reads it (``mapserver.atlas.AtlasMap``): its id, version and engine snapshot."""
+
+    @property
+    def id(self) -> int:
+        """Return the map's id in the store."""
+
+    @property
+    def version(self) -> int:
+        """Return the map's version (raised by every write)."""
+
+    @property
+    def snapshot(self) -> Mapping[str, np.ndarray]:
+        """Return the map's engine snapshot (its ``mg_*`` keys: the driver's state)."""
+
+
+def resume_merger_state(
+    stored: VersionedMap, session_id: int, candidates: Sequence[VersionedMap]
+) -> MergerState | None:
     """Return the merge driver's state a partial session left in its map (None: none stored).
 
     Hypotheses are kept only when the map is still at the version the session wrote and the candidate
@@ -196,12 +217,12 @@ def resume_merger_state(stored: Any, session_id: int, candidates: Sequence[Any])
         return state.without(list(state.hypotheses))
     versions = {int(k): int(v) for k, v in np.asarray(snap.get("mg_versions", np.zeros((0, 2))), np.int64)}
     current = {c.id: c.version for c in candidates}
-    stale = [k for k in state.hypotheses if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
+    stale = [k for k in state.hypotheses if versions.get(int(cast(int, k))) != current.get(int(cast(int, k)))]
     return state.without(stale)
 
 
 def merger_keys(
-    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[Any]
+    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[VersionedMap]
 ) -> dict[str, np.ndarray]:
     """Return the ``mg_*`` snapshot keys that let a partial session resume its merge driver."""
     arrays = state.to_arrays()

@@ -48,13 +48,13 @@ evidence. Passing the probation drops the shadow and its frames.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from core import Action, Engine, StepResult
-from core.arrays import FloatArray
+from core import Action, Engine, Motion, StepResult
+from core.arrays import FloatArray, UInt8Array
 from core.se3 import alignment, compose
 from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, EvidenceRule, Hypothesis, HypothesisSet, Track
 
@@ -97,6 +97,22 @@ cost a second engine per frame (``cave3d`` session 2 with ``poseidon-sdr``: 1.7 
 long probation of large images (16 probation distances of 640 × 480 RGB frames: ~1.8 GB) in memory's reach."""
 CUSUM_EVIDENCE = 3.0
 """A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
+
+
+class SessionFrame(Protocol):
+    """A session's frame as a merge reads it (``mapserver.ingest.frames.Frame``; ``sonar`` read where it has one)."""
+
+    @property
+    def stamp_ns(self) -> int:
+        """Return the image's stamp, nanoseconds."""
+
+    @property
+    def image(self) -> UInt8Array:
+        """Return the camera image (H, W) or (H, W, 3)."""
+
+    @property
+    def motion(self) -> Motion | None:
+        """Return the motion since the previous frame (None: visual odometry)."""
 
 
 @dataclass(eq=False)
@@ -143,17 +159,17 @@ class Probation:
     cusum_m: float = 0.0
     """Page's CUSUM against the merge, in miss metres (front-ends with weak misses, :meth:`_cusum`)."""
     reason: str = ""
-    created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
+    created: list[tuple[int, float, UInt8Array]] = field(default_factory=list, repr=False)
     """Experiences the shadow made (id, stamp, camera image): their evidence if the merge is rolled back."""
     seen: list[tuple[float, int, bool]] = field(default_factory=list, repr=False)
     """The shadow's active template per frame (stamp, template, created): the session's timeline on a rollback."""
-    pending: list[tuple[Any, Any]] = field(default_factory=list, repr=False)
+    pending: list[tuple[SessionFrame, object]] = field(default_factory=list, repr=False)
     """Frames not yet stepped through the shadow, each with the caller's note for it (:meth:`catch_up`)."""
     pending_bytes: int = 0
-    stepped: list[tuple[Any, Any, int, bool]] = field(default_factory=list, repr=False)
+    stepped: list[tuple[SessionFrame, object, int, bool]] = field(default_factory=list, repr=False)
     """Frames the shadow stepped while catching up, (frame, its note, template, created): drained by the caller."""
 
-    def step(self, track: Track, result: StepResult, frame: Any, note: Any = None) -> str | None:
+    def step(self, track: Track, result: StepResult, frame: SessionFrame, note: object = None) -> str | None:
         """Verify the newest frame (``result``: the merged engine's step); return PASSED, REJECTED or None.
 
         ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is held for the shadow engine (:meth:`catch_up`),
@@ -489,7 +505,7 @@ def cap_metres(rule: EvidenceRule, probation_m: float, cap: float) -> float:
     return cap * probation_m
 
 
-def image_bytes(frame: Any) -> int:
+def image_bytes(frame: SessionFrame) -> int:
     """Return the bytes of a frame's images (camera, and sonar when it has one)."""
     sonar = getattr(frame, "sonar", None)
     return int(np.asarray(frame.image).nbytes) + (0 if sonar is None else int(np.asarray(sonar).nbytes))
