@@ -26,7 +26,7 @@ import functools
 import math
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -80,7 +80,7 @@ def _compile() -> Callable[..., Any]:
     module = globals()
     module["_fma"] = intrinsic(typed)
     module["_run_sums"] = njit(cache=True, nogil=True)(_run_sums)
-    return module["_run_sums"]
+    return cast("Callable[..., Any]", module["_run_sums"])  # numba's dispatcher: untyped
 
 
 def _fma(a: float, b: float, c: float) -> float:
