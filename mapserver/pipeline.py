@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,6 +34,15 @@ from mapserver.run import (  # re-exported: the pipeline is where callers find t
     run_engine,
 )
 from mapserver.store import utcnow
+
+if TYPE_CHECKING:
+    from mapserver.atlas import AtlasMap
+    from mapserver.ingest.frames import IngestReport
+    from mapserver.live import PendingMerge
+    from mapserver.merge import OnlineMerger
+    from mapserver.merge.identity import RowIdentities
+    from mapserver.store import SessionRecord
+    from mapserver.store.evidence import EvidenceCollector
 
 logger = logging.getLogger(__name__)
 
@@ -242,11 +251,11 @@ class _AtlasRead:
     """What a run starts from: the session stored already (resumed) and its map, and the merge candidates."""
 
     session: Any = None
-    own: Any = None  # the resumed session's map (mapserver.atlas.AtlasMap)
+    own: AtlasMap | None = None  # the resumed session's map
     rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # stored dead reckoning
     pose: Any = None  # its final pose
     activations: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 4)))  # None: stored before 0005
-    candidates: list[Any] = field(default_factory=list)
+    candidates: list[AtlasMap] = field(default_factory=list)
 
 
 def _read_atlas(
@@ -352,20 +361,20 @@ def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, i
 class _RunOutcome:
     """What a run of the log leaves to store: the session and map it ran in, its engine, merges and records."""
 
-    session: Any  # the stored session it continued (None: a new session)
-    own: Any  # that session's map (mapserver.atlas.AtlasMap)
+    session: SessionRecord | None  # the stored session it continued (None: a new session)
+    own: AtlasMap | None  # that session's map
     name: str  # the new map's name when the session joined none
     engine: Engine
-    ids: Any  # row identities (mapserver.merge.identity.RowIdentities)
-    pending: list[Any]  # its merges, applied or rejected (mapserver.live.PendingMerge)
-    merger: Any  # the online merger whose state a resume needs (None: none, or the session is complete)
-    candidates: list[Any]  # the maps it was matched against (mapserver.atlas.AtlasMap)
+    ids: RowIdentities  # row identities
+    pending: list[PendingMerge]  # its merges, applied or rejected
+    merger: OnlineMerger | None  # the online merger whose state a resume needs (None: none, or the session is complete)
+    candidates: list[AtlasMap]  # the maps it was matched against
     progress: _Progress
-    collector: Any  # the evidence collector (mapserver.store.evidence.EvidenceCollector)
+    collector: EvidenceCollector  # the evidence collector
     frames_run: int
     activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
     relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
-    dropped: Any = None  # what reading the log dropped (mapserver.ingest.frames.IngestReport)
+    dropped: IngestReport | None = None  # what reading the log dropped
 
 
 def _store_session(
