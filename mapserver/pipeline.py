@@ -10,7 +10,7 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -250,10 +250,10 @@ def _process_session(
 class _AtlasRead:
     """What a run starts from: the session stored already (resumed) and its map, and the merge candidates."""
 
-    session: Any = None
+    session: SessionRecord | None = None
     own: AtlasMap | None = None  # the resumed session's map
     rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # stored dead reckoning
-    pose: Any = None  # its final pose
+    pose: tuple[float, ...] | None = None  # its final pose
     activations: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 4)))  # None: stored before 0005
     candidates: list[AtlasMap] = field(default_factory=list)
 
@@ -372,7 +372,8 @@ class _RunOutcome:
     progress: _Progress
     collector: EvidenceCollector  # the evidence collector
     frames_run: int
-    activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
+    activations: tuple[np.ndarray | None, Callable[[dict[int, int]], np.ndarray]]
+    """The stored timeline (None: stored before it existed), and the live rows (``LiveSession.activation_rows``)."""
     relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
     dropped: IngestReport | None = None  # what reading the log dropped
 
