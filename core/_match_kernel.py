@@ -116,10 +116,10 @@ def _compiled() -> Callable[..., tuple[int, int, int]]:
 
 
 def _best_pair(
-    templates: np.ndarray,
-    rows: np.ndarray,
-    view: np.ndarray,
-    offsets: np.ndarray,
+    templates: Int32Array,
+    rows: IntArray,
+    view: Int32Array,
+    offsets: IntArray,
     width: int,
     start: int,
     limit_sum: int,
