@@ -293,7 +293,7 @@ def landmark_distances(indptr: IntArray, indices: IntArray, data: FloatArray, co
         return np.zeros((0, max(m, 1)))
     graph = sp.csr_matrix((data, indices, indptr), shape=(m, m))
     nearest = dijkstra(graph, directed=True, indices=[0])[0]
-    rows: list[np.ndarray] = []
+    rows: list[FloatArray] = []
     for _ in range(min(count, m)):
         finite = np.isfinite(nearest)
         far = int(np.argmax(~finite)) if not finite.all() else int(np.argmax(nearest))

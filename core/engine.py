@@ -99,7 +99,7 @@ class Engine:
         self.lv_origin: list[int] = []
         self.lv_place: list[int] = []
         """Per template: the experience current when it was made (−1: none yet)."""
-        self.lv_place_offset: list[np.ndarray] = []
+        self.lv_place_offset: list[FloatArray] = []
         """Per template: the odometry accumulated since that experience then (x, y, z in the map frame, heading)."""
         self.lv_place_yaw: list[float] = []
         """Per template: that experience's heading then, so that its place turns as relaxation turns it."""
@@ -109,7 +109,7 @@ class Engine:
 
     # ------------------------------------------------------------------ step
     def step(
-        self, image: UInt8Array, motion: Motion | None, stamp: float, sonar: np.ndarray | None = None
+        self, image: UInt8Array, motion: Motion | None, stamp: float, sonar: UInt8Array | None = None
     ) -> StepResult:
         """Process one camera frame with the motion since the previous one.
 

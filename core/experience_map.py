@@ -195,7 +195,7 @@ class ExperienceMap:
         return self._lever.view
 
     @property
-    def templates(self) -> np.ndarray:
+    def templates(self) -> IntArray:
         """Return each experience's template id (E,) (view)."""
         return self._template.view
 
@@ -850,7 +850,7 @@ def per_experience_array(state: Mapping[str, object], key: str, n: int) -> Float
     return out
 
 
-def _clamp(correction: FloatArray, step_cap: float, norm_cap: float, total: np.ndarray | None) -> None:
+def _clamp(correction: FloatArray, step_cap: float, norm_cap: float, total: FloatArray | None) -> None:
     """Apply the thesis clamps in place: per-iteration translation ≤ ``step_cap``, running total ≤ ``norm_cap``."""
     if step_cap > 0:
         norms = np.sqrt(np.einsum("ij,ij->i", correction[:, :3], correction[:, :3]))

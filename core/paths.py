@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from core.arrays import FloatArray, IntArray
+from core.arrays import BoolArray, FloatArray, IntArray
 from core.contraction import Chains, ContractedGraph
 
 Weight = Literal["time", "distance"]
@@ -66,7 +66,7 @@ class ExperienceGraph:
         self.size = n
         lo, hi, costs = _simple_links(n, link_from, link_to, {"time": link_dt, "distance": link_distance})
         self._graphs: dict[str, ContractedGraph] = {}
-        shared: tuple[np.ndarray, Chains] | None = None
+        shared: tuple[BoolArray, Chains] | None = None
         for name, cost in costs.items():
             usable = np.isfinite(cost)
             if shared is None or not np.array_equal(shared[0], usable):

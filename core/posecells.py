@@ -82,7 +82,7 @@ def worth_compiling(shape: tuple[int, ...], updates: int) -> bool:
     """Return whether ``updates`` updates of a lattice of ``shape`` reach ``COMPILED_AFTER`` cell updates."""
     return updates * math.prod(shape) >= COMPILED_AFTER
 
-Taps = tuple[np.ndarray, np.ndarray]
+Taps = tuple[IntArray, FloatArray]
 """One separable factor of a kernel along one axis: (offsets o_k ascending, weights w_k)."""
 _NO_SHIFT = np.zeros(4)
 _NO_CORNERS = np.zeros((0, 5))

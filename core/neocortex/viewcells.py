@@ -80,7 +80,7 @@ class NeocortexViewCells:
         self.last_view: np.ndarray | None = None
         self.last_mean = 0.0
         self.last_match: Match | None = None
-        self.last_code: np.ndarray | None = None
+        self.last_code: UInt8Array | None = None
         """The packed fused SDR (L/8 uint8) of the last frame processed or read."""
 
     @property
@@ -111,7 +111,7 @@ class NeocortexViewCells:
         self._codes = np.concatenate([self._codes, packed])
 
     # ------------------------------------------------------------------ step
-    def sdr(self, image: UInt8Array, sonar: np.ndarray | None = None) -> torch.Tensor:
+    def sdr(self, image: UInt8Array, sonar: UInt8Array | None = None) -> torch.Tensor:
         """Return the fused SDR (lsbh_bits,) bool of ``image`` and ``sonar`` (Eqs 4.1–4.3).
 
         Each modality has its own fixed projection P_m (the sonar's seeded ``lsbh_seed`` + ``SONAR_SEED``,
@@ -126,7 +126,7 @@ class NeocortexViewCells:
             bits.append(lsbh_bits((self.encoder(sonar) @ self.sonar_projection)[0], self.k))
         return fuse(bits)
 
-    def _keep_code(self, image: UInt8Array, sonar: np.ndarray | None) -> torch.Tensor:
+    def _keep_code(self, image: UInt8Array, sonar: UInt8Array | None) -> torch.Tensor:
         """Return the frame's SDR (:meth:`sdr`) and keep it packed as :attr:`last_code`."""
         code = self.sdr(image, sonar)
         self.last_code = np.packbits(code.cpu().numpy())
@@ -145,7 +145,7 @@ class NeocortexViewCells:
         span = interval_length(self.run, p.sv_tm_window, p.theta_rho, p.interval_mode)
         return cap_topk(self.history[-span:], p.sv_tm_topk)
 
-    def process(self, image: UInt8Array, sonar: np.ndarray | None = None) -> tuple[int, float, bool]:
+    def process(self, image: UInt8Array, sonar: UInt8Array | None = None) -> tuple[int, float, bool]:
         """Encode, pool, sequence and match ``image`` (and ``sonar``); return (view cell id, 0.0, created)."""
         columns = self.sp.compute(self._keep_code(image, sonar), learn=self.params.sp_learn)
         _, winners = self.tm.compute(columns, learn=True)
@@ -164,7 +164,7 @@ class NeocortexViewCells:
         self.current = self.count - 1
         return self.current, 0.0, True
 
-    def read(self, image: UInt8Array, sonar: np.ndarray | None = None, code: UInt8Array | None = None) -> IntArray:
+    def read(self, image: UInt8Array, sonar: UInt8Array | None = None, code: UInt8Array | None = None) -> IntArray:
         """Return D_t of ``image`` through this cortex without learning and without making a view cell.
 
         Inference only (spatial pooler and temporal memory with learning off): a stored map's cortex reads
@@ -190,7 +190,7 @@ class NeocortexViewCells:
         """Return the best prototype for ``descriptor`` with the Eq. 4.9 verdict (no state change)."""
         return best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes, self._sizes, self.gates)
 
-    def match_among(self, descriptor: np.ndarray, ids: np.ndarray) -> Match | None:
+    def match_among(self, descriptor: IntArray, ids: IntArray) -> Match | None:
         """Return :meth:`match`'s answer restricted to the prototypes ``ids`` (``index`` is a prototype id)."""
         ids = np.unique(np.asarray(ids, dtype=np.int64))
         found = best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes[ids], self._sizes[ids], self.gates)
