@@ -41,7 +41,8 @@ if TYPE_CHECKING:
     from mapserver.live import PendingMerge
     from mapserver.merge import OnlineMerger
     from mapserver.merge.identity import RowIdentities
-    from mapserver.store import SessionRecord
+    from mapserver.merge.resume import MergerState
+    from mapserver.store import Connection, Database, SessionRecord
     from mapserver.store.evidence import EvidenceCollector
 
 logger = logging.getLogger(__name__)
@@ -63,7 +64,9 @@ def _log_stem(log_path: str | Path) -> str:
     return Path(log_path).name.split(".")[0] or "map"
 
 
-def _existing_result(db: Any, session: Any, map_id: int, started: float, out: str | Path | None) -> ProcessResult:
+def _existing_result(
+    db: Database, session: SessionRecord, map_id: int, started: float, out: str | Path | None
+) -> ProcessResult:
     """Answer with a stored session (no processing); write ``out`` from the stored map."""
     from mapserver.store import load_map
     from mapserver.store.export import map_document
@@ -190,7 +193,7 @@ class _Options:
 
 
 def _process_session(
-    db: Any, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
+    db: Database, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
 ) -> ProcessResult:
     """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
     from mapserver.live import Holder, LiveSession
@@ -259,7 +262,7 @@ class _AtlasRead:
 
 
 def _read_atlas(
-    db: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, name: str
+    db: Database, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, name: str
 ) -> _AtlasRead | ProcessResult:
     """Read the stored session of this log (if any), its map and the merge candidates, in one read.
 
@@ -308,7 +311,7 @@ def _read_atlas(
     return read
 
 
-def _check_stored_session(log_path: str | Path, params: Params, session: Any) -> int:
+def _check_stored_session(log_path: str | Path, params: Params, session: SessionRecord) -> int:
     """Check that a stored session can be continued with ``params``; return its map's id.
 
     A parameter the stored session does not name (it was stored before the parameter existed) takes its
@@ -334,7 +337,9 @@ def _check_stored_session(log_path: str | Path, params: Params, session: Any) ->
     return int(session.map_id)
 
 
-def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, int, DeadReckoning, Any]:
+def _start_engine(
+    params: Params, read: _AtlasRead
+) -> tuple[Engine, RowIdentities, int, int, DeadReckoning, MergerState | None]:
     """Return (engine, row identities, origin tag, first frame, dead reckoning, merge driver state) to run from.
 
     A resumed session continues its map's stored engine from its next frame; a new one starts empty.
@@ -379,7 +384,7 @@ class _RunOutcome:
 
 
 def _store_session(
-    db: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, run: _RunOutcome
+    db: Database, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, run: _RunOutcome
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
@@ -432,7 +437,7 @@ def _store_session(
 
 
 def _merges_to_write(
-    conn: Any, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
+    conn: Connection, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
 ) -> tuple[list[Any], list[Any]]:
     """Return the session's applied and rejected merges as the store writes them (with every session's frames)."""
     from mapserver.live import merge_to_write
@@ -461,7 +466,7 @@ class _Progress:
 
 
 def _write_session_row(
-    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome,
+    conn: Connection, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome,
     started_at: datetime,
 ) -> int:
     """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
@@ -496,7 +501,9 @@ def _write_session_row(
     return session_id
 
 
-def _claim_host(conn: Any, session_id: int, run: _RunOutcome, params: Params) -> tuple[dict[int, int], int, list[int]]:
+def _claim_host(
+    conn: Connection, session_id: int, run: _RunOutcome, params: Params
+) -> tuple[dict[int, int], int, list[int]]:
     """Return the maps this write claims (id → version read), the host map and the map's sessions.
 
     The host is the oldest map involved; a new map (named ``name``) when the session joined none.
