@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 
 from core import Engine, LinkKind
-from core.arrays import Float32Array
+from core.arrays import Float32Array, IntArray
 from mapserver.errors import MergeError
 from mapserver.merge.offline_views import offline_incompatibility
 from mapserver.merge.places import merged_template_codes, merged_template_places
@@ -207,7 +207,7 @@ def merge_snapshots(
     return merged, record
 
 
-def _close_loops(engine: Engine, n_loaded: int, experience_map: np.ndarray, closures: Sequence[Sequence[int]]) -> int:
+def _close_loops(engine: Engine, n_loaded: int, experience_map: IntArray, closures: Sequence[Sequence[int]]) -> int:
     """Add a loop closure for every place where the partial map's views matched the loaded map's; return how many.
 
     An offline merge joins the partial map to the loaded one where it identified experiences (the

@@ -217,7 +217,7 @@ class _OfflineTest:
         )  # fmt: skip
         self.loaded = loaded
         mine = partial_views(partial)
-        self.unit_of_view: np.ndarray | None = None
+        self.unit_of_view: IntArray | None = None
         """``sdr-htm``: A's view → its trial (−1: none); LVC: None (a match's anchor is its experience)."""
         if uses_codes(partial):  # A's trials are its placed view cells, in creation order
             seen = np.flatnonzero(mine.experiences >= 0)
@@ -237,7 +237,7 @@ class _OfflineTest:
         """Return A's trial where ``match``'s view was seen (the walk starts there): :meth:`unit_of` its view."""
         return self.unit_of(match.partial_template, np.asarray(match.partial_pose, dtype=np.float64))
 
-    def unit_of(self, view: int, pose: np.ndarray) -> int:
+    def unit_of(self, view: int, pose: FloatArray) -> int:
         """Return this map's trial for its own view ``view`` seen at ``pose`` (its map frame).
 
         ``sdr-htm``: the view cell itself when it has a place (a match's pose is moved onto the other map's
@@ -252,7 +252,7 @@ class _OfflineTest:
         """Walk A's chain both ways from the match's anchor under its alignment; return the evidence."""
         return self.walk(offline_alignment(self.loaded, match), self.anchor(match))
 
-    def walk(self, transform: np.ndarray, anchor: int) -> OfflineEvidence:
+    def walk(self, transform: FloatArray, anchor: int) -> OfflineEvidence:
         """Walk A's chain both ways from its trial ``anchor`` under ``transform`` (A's frame → B's); the evidence."""
         a_pose, steps = self.a_pose, self.steps
         outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
@@ -381,7 +381,7 @@ def _run(steps: FloatArray, miss: BoolArray) -> float:
     return float(steps[:length].sum())
 
 
-def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
+def offline_alignment(loaded: StoredMap, match: Match) -> FloatArray:
     """Return the alignment (4,) taking A's map frame onto B's that ``match`` proposes (Eqs. 13–14)."""
     b_pose = np.asarray(loaded.state["em_pose"], dtype=np.float64).reshape(-1, 4)
     seen = compose(b_pose[match.stored_experience], np.array([0.0, 0.0, 0.0, match.relative_rad]))
@@ -390,12 +390,12 @@ def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
 
 def _walk(
     places: StoredPlaces,
-    transform: np.ndarray,
-    a_pose: np.ndarray,
-    views: tuple[np.ndarray, np.ndarray, np.ndarray],
-    chain: np.ndarray,
-    outcomes: np.ndarray,
-    record: tuple[np.ndarray, np.ndarray],
+    transform: FloatArray,
+    a_pose: FloatArray,
+    views: tuple[np.ndarray, FloatArray, IntArray],
+    chain: IntArray,
+    outcomes: IntArray,
+    record: tuple[IntArray, FloatArray],
 ) -> None:
     """Test A's experiences along ``chain`` from the anchor, re-anchoring the alignment at every hit.
 

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core.arrays import FloatArray, IntArray, UInt8Array
 from mapserver.merge.places import template_places
 from mapserver.merge.snapshot import experiences_by_template
 
@@ -42,13 +43,13 @@ class PartialViews:
 
     views: np.ndarray
     """(N, ...) each view as B's matcher takes it: a template, or a code row (no descriptor, the packed SDR)."""
-    means: np.ndarray
+    means: FloatArray
     """(N,) each view's mean intensity (0 for codes)."""
-    poses: np.ndarray
+    poses: FloatArray
     """(N, 4) where A saw each view; rows of views seen nowhere are not used (``experiences`` −1)."""
-    packets: np.ndarray
+    packets: FloatArray
     """(N, D) A's pose-cell packet there (its experience's)."""
-    experiences: np.ndarray
+    experiences: IntArray
     """(N,) the A experience each view is seen at (LVC) or placed after (``sdr-htm``); −1: none."""
 
 
@@ -58,15 +59,15 @@ class StoredViews:
 
     matcher: LocalViewCells | CortexReader
     """``LocalViewCells`` or :class:`~mapserver.merge.cortex.CortexReader`: ``match``/``match_among``/``count``."""
-    poses: np.ndarray
+    poses: FloatArray
     """(P, 4) B's places: its experiences, then (``sdr-htm``) its view cells' places."""
-    templates: np.ndarray
+    templates: IntArray
     """(P,) the view of each place."""
-    experiences: np.ndarray
+    experiences: IntArray
     """(P,) the experience each place belongs to (an experience's own id, or a view cell's)."""
-    order: np.ndarray
+    order: IntArray
     """Places of view u are ``order[starts[u]:starts[u + 1]]``."""
-    starts: np.ndarray
+    starts: IntArray
     loose: bool
     """Views are placed loosely (``sdr-htm``: :meth:`~mapserver.merge.hypotheses.StoredPlaces._placed_near`)."""
 
@@ -75,7 +76,7 @@ class StoredViews:
         """Return the number of B's views."""
         return int(self.matcher.count)
 
-    def places_of(self, view: int) -> np.ndarray:
+    def places_of(self, view: int) -> IntArray:
         """Return the place indices of B's view ``view``."""
         return self.order[self.starts[view] : self.starts[view + 1]]
 
@@ -128,7 +129,7 @@ def partial_views(partial: StoredMap) -> PartialViews:
     return PartialViews(views, means, poses, packets, experiences)
 
 
-def code_rows(codes: np.ndarray, topk: int) -> np.ndarray:
+def code_rows(codes: UInt8Array, topk: int) -> IntArray:
     """Return (N, 1, topk + bytes) rows that carry each packed code and no descriptor (−1): read by codes only."""
     rows = np.full((codes.shape[0], 1, topk + codes.shape[1]), -1, dtype=np.int64)
     rows[:, 0, topk:] = codes
