@@ -144,7 +144,7 @@ class LocalViewCells:
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
-        self.last_view: np.ndarray | None = None
+        self.last_view: Float32Array | None = None
         self.last_mean = 0.0
         self.last_error = math.inf
         self._column_rad = self._full_width_column_rad()  # heading per template column (vt_shift_heading)

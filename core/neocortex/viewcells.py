@@ -77,7 +77,7 @@ class NeocortexViewCells:
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
-        self.last_view: np.ndarray | None = None
+        self.last_view: IntArray | None = None
         self.last_mean = 0.0
         self.last_match: Match | None = None
         self.last_code: UInt8Array | None = None

@@ -103,7 +103,7 @@ class Streak:
         turn = abs(float(wrap_angle(predicted[3] - later.seen[3])))
         return gap <= self.position_tolerance and turn <= self.yaw_tolerance
 
-    def predict(self, odometry: np.ndarray) -> np.ndarray | None:
+    def predict(self, odometry: FloatArray) -> FloatArray | None:
         """Return where the latest entry's alignment puts the robot in the stored map (None: no entry)."""
         if not self.entries:
             return None

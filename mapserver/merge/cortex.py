@@ -139,7 +139,7 @@ class CortexReader:
         self.row = row
         self.topk = params.sv_tm_topk
         self.limit = params.vt_match_threshold
-        self.translations: dict[int, np.ndarray] = {}
+        self.translations: dict[int, IntArray] = {}
         codes = unpack_codes(self.cells.codes, params.lsbh_bits)
         self.codes = codes.astype(np.float32) if codes.any() else None
         """(N, L) the view cells' codes as 0/1, or None: the map has none (made before ``lv_sdr``)."""
@@ -205,7 +205,7 @@ class CortexReader:
             return self._code_answer(view, np.unique(ids), limit)
         return self._answer(self.cells.match_among(self._descriptor(view), ids), limit)
 
-    def _descriptor(self, view: np.ndarray) -> np.ndarray:
+    def _descriptor(self, view: IntArray) -> IntArray:
         row = np.asarray(view)[self.row, : self.topk].astype(np.int64)
         return row[row >= 0]
 

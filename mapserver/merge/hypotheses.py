@@ -201,7 +201,7 @@ class StoredPlaces:
         self.placed = np.zeros(cells.count, dtype=bool)  # templates with a stored experience (a place)
         self.placed[self.templates[(self.templates >= 0) & (self.templates < cells.count)]] = True
 
-    def row_at(self, pose: np.ndarray) -> int:
+    def row_at(self, pose: FloatArray) -> int:
         """Return the stored place nearest to ``pose`` (its position; −1 when there is none): a hit's place."""
         return -1 if self._tree is None else int(self._tree.query(pose[:3])[1])
 
@@ -419,7 +419,7 @@ class HypothesisSet:
         self.places = places
         self.rule = rule
         self.hypotheses: list[Hypothesis] = []
-        self.banned: list[np.ndarray] = []  # alignments rolled back by their verification
+        self.banned: list[FloatArray] = []  # alignments rolled back by their verification
 
     def update(self, track: Track, observation: Observation | None, matched: int = -1) -> None:
         """Test every hypothesis on the newest frame of ``track``, then add the frame's match.
@@ -459,7 +459,7 @@ class HypothesisSet:
             return
         rule = self.rule
         ranked = sorted(self.hypotheses, key=lambda h: (-h.score(rule.miss_weight), h.born))
-        kept: list[tuple[Hypothesis, np.ndarray]] = []
+        kept: list[tuple[Hypothesis, FloatArray]] = []
         for hypothesis in ranked:
             p = hypothesis.predict(odometry)
             if not any(

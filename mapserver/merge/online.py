@@ -138,7 +138,7 @@ class Rollback:
 class _Unread:
     """A frame the ``sdr-htm`` readers have not read yet: its packed SDR, read when a merge, resume or rollback asks."""
 
-    code: np.ndarray
+    code: UInt8Array
 
 
 @dataclass(eq=False)
@@ -644,7 +644,7 @@ class OnlineMerger:
             msg = "a merge is on probation: run on until it concludes (or call finish()) before exporting the state"
             raise RuntimeError(msg)
         self._read_unread()
-        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[FloatArray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:
                 hset = c.hypotheses

@@ -50,7 +50,7 @@ class MergerState:
 
     odometry: FloatArray
     absorbed: tuple[object, ...] = ()
-    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = field(default_factory=dict)
+    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[FloatArray, ...]]] = field(default_factory=dict)
     track: Track | None = None
     readers: tuple[tuple[object, Mapping[str, np.ndarray]], ...] = ()
     """sdr-htm sessions: every candidate's cortex reader (key, :meth:`CortexReader.state`), in view-row order."""
@@ -88,7 +88,7 @@ class MergerState:
         a state stored before them has none); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
         """
         rows: list[list[float]] = []
-        support: list[np.ndarray] = []
+        support: list[FloatArray] = []
         banned: list[list[float]] = []
         hits: list[list[float]] = []
         for key, (live, bans) in self.hypotheses.items():
@@ -138,12 +138,12 @@ class MergerState:
             made[int(row[0])].support.append(_observation(row))
         for row in np.asarray(arrays.get("hits", np.zeros((0, 9))), dtype=np.float64).reshape(-1, 9):
             made[int(row[0])].hits.append((row[1:5].copy(), row[5:9].copy()))
-        grouped: dict[int, tuple[list[Hypothesis], list[np.ndarray]]] = {}
+        grouped: dict[int, tuple[list[Hypothesis], list[FloatArray]]] = {}
         for r, h in zip(table, made, strict=True):
             grouped.setdefault(int(r[0]), ([], []))[0].append(h)
         for r in np.asarray(arrays["banned"], dtype=np.float64).reshape(-1, 5):
             grouped.setdefault(int(r[0]), ([], []))[1].append(r[1:].copy())
-        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[FloatArray, ...]]] = {
             k: (tuple(v[0]), tuple(v[1])) for k, v in sorted(grouped.items())
         }
         track = Track(0.0)

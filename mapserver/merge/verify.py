@@ -145,7 +145,7 @@ class Probation:
     links_consensus: int = 0
     """The most disagreeing loop links that agree with one another's alignment (:func:`link_consensus`)."""
     worst_link_m: float = 0.0
-    disagreeing: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
+    disagreeing: list[tuple[FloatArray, FloatArray]] = field(default_factory=list, repr=False)
     """Each disagreeing loop link's (stored experience's pose, the session's odometry then)."""
     hit_places: list[tuple[float, float, float, float]] = field(default_factory=list, repr=False)
     """The stored place (x, y, z) of each hit and the track distance then (:meth:`_note_revisit`)."""
