@@ -23,6 +23,7 @@ from mapserver.merge import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.identity import RowIdentities
 from mapserver.merge.provenance import match_to_dict, record_summary
 from mapserver.merge.relevance import ViewLog
+from mapserver.merge.verify import SessionFrame
 
 if TYPE_CHECKING:
     from mapserver.atlas import AtlasMap
@@ -106,7 +107,7 @@ class LiveSession:
         """Return the merges that stand."""
         return [m for m in self.pending if m.status == "applied"]
 
-    def on_step(self, frame: Any, result: StepResult) -> Engine | None:
+    def on_step(self, frame: SessionFrame, result: StepResult) -> Engine | None:
         """Book one frame; return the engine to continue in when a merge or a rollback changed it."""
         holder = self.holder
         holder.ids.extend(holder.engine.template_count, holder.engine.experience_count, self.tag)
