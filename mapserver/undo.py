@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from mapserver.store.merge_events import get_merge_event, list_merge_events, set
 from mapserver.store.sessions import get_reckoning, get_sessions, sessions_of_map, update_session
 from mapserver.store.state import write_map_state
 
+if TYPE_CHECKING:
+    from mapserver.store.merge_events import MergeEventRecord
+
 
 @dataclass(frozen=True)
 class UnmergeOutcome:
@@ -38,7 +41,7 @@ class UnmergeOutcome:
     frames: int | None = None
 
 
-def _event_sessions(event: Any) -> set[int]:
+def _event_sessions(event: MergeEventRecord) -> set[int]:
     return {int(s) for s in event.sessions}
 
 
@@ -72,7 +75,7 @@ def unmerge(db: Database, *, event_id: int) -> UnmergeOutcome:
     return UnmergeOutcome(event_id, [a.map_name for a in archives], rewound, None if at is None else int(at))
 
 
-def _undoable_event(conn: Connection, event_id: int) -> Any:
+def _undoable_event(conn: Connection, event_id: int) -> MergeEventRecord:
     """Return the merge event if it can be undone now: applied, and no later applied event shares its sessions."""
     event = get_merge_event(conn=conn, event_id=event_id)
     if event.status != "applied":
@@ -90,7 +93,9 @@ def _undoable_event(conn: Connection, event_id: int) -> Any:
     return event
 
 
-def _refuse_if_maps_moved_on(conn: Connection, event: Any, names: set[str], frames: Mapping[int, int]) -> None:
+def _refuse_if_maps_moved_on(
+    conn: Connection, event: MergeEventRecord, names: set[str], frames: Mapping[int, int]
+) -> None:
     """Refuse (ConflictError) when restoring the event's archives would lose work done since.
 
     That is, a map it involved holds a session that joined after it, or a session processed past its frame
@@ -192,7 +197,7 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
 
 
 def _restored_maps_and_archives(
-    conn: Connection, event_id: int, undo: Mapping[str, Any], event: Any
+    conn: Connection, event_id: int, undo: Mapping[str, Any], event: MergeEventRecord
 ) -> tuple[dict[str, Any], ArchivedState, ArchivedState]:
     """Return the maps the undo restored (name → row; refused if changed since) and the event's two archives."""
     current: dict[str, Any] = {}
