@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import FloatArray, IntArray, UInt8Array
 from core.config import Departure
 from core.experience_map import ExperienceMap, LinkKind
 from core.gate import EventGate
@@ -104,7 +105,7 @@ class Engine:
         self.lv_origin: list[int] = []
         self.lv_place: list[int] = []
         """Per template: the experience current when it was made (−1: none yet)."""
-        self.lv_place_offset: list[np.ndarray] = []
+        self.lv_place_offset: list[FloatArray] = []
         """Per template: the odometry accumulated since that experience then (x, y, z in the map frame, heading)."""
         self.lv_place_yaw: list[float] = []
         """Per template: that experience's heading then, so that its place turns as relaxation turns it."""
@@ -114,7 +115,7 @@ class Engine:
 
     # ------------------------------------------------------------------ step
     def step(
-        self, image: np.ndarray, motion: Motion | None, stamp: float, sonar: np.ndarray | None = None
+        self, image: UInt8Array, motion: Motion | None, stamp: float, sonar: UInt8Array | None = None
     ) -> StepResult:
         """Process one camera frame with the motion since the previous one.
 
@@ -328,7 +329,7 @@ def template_rows(
     return out
 
 
-def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> np.ndarray:
+def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> FloatArray:
     """Return (n,) the heading of each template's experience when the template was made (``lv_place_yaw``).
 
     NaN where unknown (templates past the key's end, or all of them in snapshots made before it): their
@@ -337,7 +338,7 @@ def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> np.ndarray:
     return template_rows(state, "lv_place_yaw", n, np.nan, np.float64)
 
 
-def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[IntArray, FloatArray]:
     """Return (place (n,), offset (n, 4)) of a snapshot's first n templates (``lv_place``/``lv_place_offset``).
 
     The keys are optional: templates past their end, or all of them in snapshots made before the keys

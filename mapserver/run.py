@@ -118,7 +118,7 @@ class EngineRun:
     info: dict[str, Any]
 
 
-StepHook = Callable[[Any, "StepResult"], "Engine | None"]
+StepHook = Callable[[Frame, "StepResult"], "Engine | None"]
 """``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
 
 
@@ -218,7 +218,7 @@ def process_log(
     name = Path(log_path).name.split(".")[0] or "map"
     frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
 
-    def record(frame: Any, result: StepResult) -> None:
+    def record(frame: Frame, result: StepResult) -> None:
         frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
 
     engine = _new_engine(params) if params.frontend != "lvc" else None  # torch's front-end checks its settings first
