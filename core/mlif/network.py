@@ -173,7 +173,8 @@ class MlifNetwork:
         v_all, x_all = v_all.copy(), x_all.copy()
         v_all[index], x_all[index] = state.v.numpy(), state.x.numpy()
         self.state = MlifState(torch.from_numpy(v_all), torch.from_numpy(x_all))
-        total = float(activity.numpy().sum())  # numpy's pairwise sum: the same order whatever torch's threads
+        values = activity.numpy()
+        total = math.fsum(values[values > 0.0].tolist())  # exact: the same whatever the box, order or threads
         if not total > 0.0:
             restart = torch.zeros_like(self.activity)
             restart.view(-1)[int(torch.argmax(self.activity))] = 1.0
