@@ -185,8 +185,10 @@ class MlifNetwork:
         self.activity = torch.from_numpy(cells)
 
     def box(self) -> list[np.ndarray]:
-        """Return per axis the cells an update must compute: the shortest wrapped run over every cell with
-        activity or potential, widened by the kernels' reach on both sides (the whole axis when that covers it).
+        """Return per axis the cells an update must compute.
+
+        That is the shortest wrapped run over every cell with activity or potential, widened by the kernels'
+        reach on both sides (the whole axis when that covers it).
         """
         support = (self.activity.numpy() != 0.0) | (self.state.v.numpy() != 0.0)
         reach = self.reach
@@ -220,17 +222,18 @@ class MlifNetwork:
     def shift_layers(self, forward_cells: float, cos: list[float], sin: list[float], dthird: float) -> None:
         """Move each third-axis layer k by ``forward_cells·(cos_k, sin_k)`` in (x, y), then all by ``dthird``.
 
-        This is Eqs 9–12 for the heading network: layer k holds heading θ_k and moves along it.
+        This is Eqs 9–12 for the heading network: layer k holds heading θ_k and moves along it. Layers without
+        activity or potential are left as they are (a moved zero is zero).
         """
+        support = (self.activity != 0.0) | (self.state.v != 0.0)
+        occupied = torch.nonzero(support.any(dim=1).any(dim=0)).flatten().tolist()
         for name in ("activity", "v"):
             cells = self.activity if name == "activity" else self.state.v
             if forward_cells != 0.0:
-                layers = []
-                for k in range(self.shape[2]):
-                    layer = cells[:, :, k]
-                    layer = shift_axis(layer, forward_cells * cos[k], 0)
-                    layers.append(shift_axis(layer, forward_cells * sin[k], 1))
-                cells = torch.stack(layers, dim=2)
+                cells = cells.clone()
+                for k in occupied:
+                    layer = shift_axis(cells[:, :, k], forward_cells * cos[k], 0)
+                    cells[:, :, k] = shift_axis(layer, forward_cells * sin[k], 1)
             cells = shift_axis(cells, dthird, 2)
             if name == "activity":
                 self.activity = cells

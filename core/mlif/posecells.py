@@ -24,10 +24,12 @@ and network constants are in :mod:`core.mlif.neuron` and :mod:`core.mlif.network
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from core.config import Departure
 from core.lattice import wrapped_distance
@@ -35,6 +37,22 @@ from core.mlif.network import KernelSpec, MlifNetwork
 
 if TYPE_CHECKING:
     from core.config import Params
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Run torch's CPU operations on one thread inside the block, then restore the thread count.
+
+    The networks' tensors are small (a box around the packet) or cheap passes over the lattice: split over
+    threads they ran 6× slower on a loaded 2-core machine (``mapserver process``, 57.6 against 9.1 frames/s on
+    the ``loop`` log), and no result depends on the thread count (every sum is exact or elementwise).
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 class MlifPoseCells:
@@ -77,8 +95,13 @@ class MlifPoseCells:
 
         The position network moves ``forward/pc_cell_x_size`` cells along the heading network's decoded heading
         (after its attractor step, before the turn, as each CAN layer moves along its heading before the θ
-        shift) and ``dz/pc_cell_z_size`` cells in z; the heading network as the CAN lattice.
+        shift) and ``dz/pc_cell_z_size`` cells in z; the heading network as the CAN lattice. torch runs on one
+        thread meanwhile (:func:`one_thread`).
         """
+        with one_thread():
+            return self._on_odo(forward_m, dyaw_rad, dz_m)
+
+    def _on_odo(self, forward_m: float, dyaw_rad: float, dz_m: float) -> np.ndarray:
         p = self.params
         self.position.attract()
         self.heading.attract()

@@ -54,7 +54,7 @@ def test_one_euler_step_is_eq_2() -> None:
 
 
 def test_fig2_a_step_of_1_5_microamps_fires_every_21_ms() -> None:
-    v, spikes, m = simulate(step_current(200))
+    v, spikes, _ = simulate(step_current(200))
     fired = torch.nonzero(spikes).flatten().tolist()
     # closed form of the Euler recursion V_n = I·M·(1 − (1 − Δt/τ)^n): first n with V_n ≥ v_th
     n = math.ceil(math.log(1 - 0.02 / (1.5e-6 * M0)) / math.log(1 - 1e-3 / (M0 * 9e-7)))
