@@ -41,6 +41,7 @@ from core.visual_odometry import VisualOdometry
 
 if TYPE_CHECKING:
     from core.config import Params
+    from core.mlif import MlifPoseCells
     from core.neocortex import NeocortexViewCells
 
 
@@ -53,9 +54,20 @@ def view_cells_class(params: Params) -> type[LocalViewCells] | type[NeocortexVie
     return LocalViewCells
 
 
-def pose_cells_class(params: Params) -> type[PoseCellNetwork] | type[NeuroslamPoseCells]:
-    """Return the pose cells of ``params.engine``: RatSLAM's lattice, or NeuroSLAM's grid and head-direction cells."""
-    return NeuroslamPoseCells if params.engine == "neuroslam" else PoseCellNetwork
+def pose_cells_class(
+    params: Params,
+) -> type[PoseCellNetwork] | type[NeuroslamPoseCells] | type[MlifPoseCells]:
+    """Return the pose cells of ``params.engine``: RatSLAM's lattice, or NeuroSLAM's grid and head-direction cells.
+
+    ``pc_model = mlif`` (ratslam engine) gives the PC-MLIF spiking networks (torch, lazy import).
+    """
+    if params.engine == "neuroslam":
+        return NeuroslamPoseCells
+    if params.pc_model == "mlif":
+        from core.mlif import MlifPoseCells
+
+        return MlifPoseCells
+    return PoseCellNetwork
 
 
 class Action(IntEnum):
@@ -99,7 +111,7 @@ class Engine:
         self.origin = origin
         self.local_view = view_cells_class(params)(params) if local_view is None else local_view
         self.odometry = VisualOdometry(params)
-        self.pose_cells: PoseCellNetwork | NeuroslamPoseCells = pose_cells_class(params)(params)
+        self.pose_cells: PoseCellNetwork | NeuroslamPoseCells | MlifPoseCells = pose_cells_class(params)(params)
         self.map = ExperienceMap(params, self.pose_cells.rank)
         self.gate = EventGate(params)
         self.lv_origin: list[int] = []
