@@ -1,4 +1,4 @@
-"""Running one job: the uploaded log through :func:`mapserver.pipeline.process_into_store`.
+"""Running one job: the uploaded log through :func:`mapserver.processing.pipeline.process_into_store`.
 
 This is the whole unit of work a job engine executes (the embedded thread pool today, a distributed
 worker later): given the job's record it resolves the parameters, picks the map name, runs the
@@ -17,12 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from core.config import ConfigError
-from mapserver import pipeline
 from mapserver.api.requestid import internal_error_detail, new_request_id
 from mapserver.errors import MapServerError
 from mapserver.ingest import open_log
 from mapserver.names import default_map_name
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store import Database, StaleMapError, find_map, find_session
 from mapserver.store.admission import pending_map_creator
 from mapserver.store.jobs import JobRecord, set_job_progress

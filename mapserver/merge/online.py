@@ -34,7 +34,7 @@ Resume: :meth:`OnlineMerger.export_state` returns what the driver carries from f
 (the session's odometry, the maps absorbed, the recent track, the hypotheses) as a
 :class:`MergerState`; ``OnlineMerger(..., resume=state)`` continues from it, so a session
 stopped after frame k and continued gives the merges of one run. ``process --stop-after`` runs on
-past k while a probation runs (``mapserver.run.run_engine``'s ``overrun``), so a stored merge is
+past k while a probation runs (``mapserver.processing.run.run_engine``'s ``overrun``), so a stored merge is
 always verified; a probation still running when the log ends is judged there on what it saw
 (:meth:`OnlineMerger.finish`): its merge stays when the probation's own evidence confirms it, and is
 rolled back otherwise.

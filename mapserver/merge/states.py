@@ -64,7 +64,7 @@ def _check_id(value: int, count: int, what: str, allow_none: bool = False) -> No
 def _template_map(match: Match, n_loaded: int, n_partial: int) -> IntArray:
     """Return (P,) merged template ids: identified ones → loaded ids, the rest appended in order.
 
-    A match whose ``partial_template`` is −1 (a manual link, :mod:`mapserver.manual_links`) identifies none.
+    A match whose ``partial_template`` is −1 (a manual link, :mod:`mapserver.atlas.manual_links`) identifies none.
     """
     identified: dict[int, int] = {} if match.partial_template < 0 else {match.partial_template: match.stored_template}
     for z, u in match.pairs:

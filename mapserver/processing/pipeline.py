@@ -1,7 +1,7 @@
 """The one place that runs a mission log through the engine, the store and the merger.
 
 Both faces (``mapserver process`` and the REST API's jobs) call :func:`process_log` (from
-:mod:`mapserver.run`), or :func:`process_into_store` to keep the session in a database.
+:mod:`mapserver.processing.run`), or :func:`process_into_store` to keep the session in a database.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import MissionLog, open_log
 from mapserver.names import check_map_name, default_map_name
-from mapserver.reckoning import DeadReckoning
-from mapserver.run import (  # re-exported: the pipeline is where callers find them
+from mapserver.processing.reckoning import DeadReckoning
+from mapserver.processing.run import (  # re-exported: the pipeline is where callers find them
     EngineRun,
     ProcessResult,
     ProgressCallback,
@@ -38,10 +38,10 @@ from mapserver.store import utcnow
 if TYPE_CHECKING:
     from mapserver.atlas import AtlasMap
     from mapserver.ingest.frames import IngestReport
-    from mapserver.live import PendingMerge
     from mapserver.merge import OnlineMerger
     from mapserver.merge.identity import RowIdentities
     from mapserver.merge.resume import MergerState
+    from mapserver.processing.live import PendingMerge
     from mapserver.store import Connection, Database, SessionRecord
     from mapserver.store.evidence import EvidenceCollector
 
@@ -152,7 +152,7 @@ def process_into_store(
         ConflictError: concurrent writers changed the maps this session reads or may merge into during
             each of ``STALE_ATTEMPTS`` runs.
     """
-    from mapserver.live import LiveSession  # noqa: F401  (with the store: loaded before the clock starts)
+    from mapserver.processing.live import LiveSession  # noqa: F401  (with the store: loaded before the clock starts)
     from mapserver.store import StaleMapError, open_database
     from mapserver.store.db import commit_gate
     from mapserver.store.evidence import EvidenceCollector  # noqa: F401
@@ -230,9 +230,9 @@ def _process_session(
     db: Database, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
 ) -> ProcessResult:
     """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
-    from mapserver.live import Holder, LiveSession
     from mapserver.merge import OnlineMerger
     from mapserver.merge.relevance import ViewLog
+    from mapserver.processing.live import Holder, LiveSession
     from mapserver.store.evidence import EvidenceCollector
 
     name = opts.map_name or default_map_name(log_path)
@@ -507,7 +507,7 @@ def _merges_to_write(
     conn: Connection, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
 ) -> tuple[list[Any], list[Any]]:
     """Return the session's applied and rejected merges as the store writes them (with every session's frames)."""
-    from mapserver.live import merge_to_write
+    from mapserver.processing.live import merge_to_write
     from mapserver.store.sessions import get_sessions
 
     frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}

@@ -1,6 +1,6 @@
 """A session being mapped with online merging: the per-frame bookkeeping between engine, merger and store.
 
-:func:`mapserver.pipeline.process_into_store` feeds every frame to :meth:`LiveSession.on_step`.
+:func:`mapserver.processing.pipeline.process_into_store` feeds every frame to :meth:`LiveSession.on_step`.
 It keeps what the store will need when the session is written: the map the session is in at the
 moment (its own, or the stored map it merged into), the stable row identities of that map, the
 merges made (:class:`PendingMerge`, each ``applied`` or ``rejected``), the frames' stamps, the
@@ -27,7 +27,7 @@ from mapserver.merge.verify import SessionFrame
 
 if TYPE_CHECKING:
     from mapserver.atlas import AtlasMap
-    from mapserver.reckoning import DeadReckoning
+    from mapserver.processing.reckoning import DeadReckoning
 
 logger = logging.getLogger(__name__)
 
@@ -200,7 +200,7 @@ class LiveSession:
 
 
 def merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
-    """Return the store's view of one online merge (:class:`mapserver.live.PendingMerge`) with its provenance."""
+    """Return the store's view of one online merge (:class:`PendingMerge`) with its provenance."""
     from mapserver import atlas
 
     ev = m.event

@@ -327,7 +327,7 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
             msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
             raise ConflictError(msg)
         if event.merged_archive is None:
-            if event.mode == "manual":  # mapserver.manual_links.MANUAL_MODE: no view match to replay
+            if event.mode == "manual":  # mapserver.atlas.manual_links.MANUAL_MODE: no view match to replay
                 msg = (f"merge event {event_id} is a manual link undone without an archive of its map; add it "
                        "again to redo it (mapserver link, POST /v1/maps/{name}/links)")
                 raise ConflictError(msg)

@@ -1,7 +1,7 @@
 """Running a mission log through the engine alone: frames in, the map out (no store, no merging).
 
 :func:`run_engine` feeds a log's frames to an engine (the per-frame hook is where the pipeline books a
-live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.pipeline`
+live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.processing.pipeline`
 re-exports both.
 
 Importing this module loads the log reader but not the engine (scipy and the rest load on first use):
@@ -27,7 +27,7 @@ from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
 from mapserver.ingest import Frame, MissionLog, open_log
 from mapserver.ingest.frames import IngestReport
-from mapserver.reckoning import DeadReckoning
+from mapserver.processing.reckoning import DeadReckoning
 
 if TYPE_CHECKING:
     from core.engine import Engine, StepResult

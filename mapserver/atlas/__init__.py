@@ -3,7 +3,7 @@
 The glue between :mod:`mapserver.merge` (pure merging of engine states) and :mod:`mapserver.store`
 (rows, archives, merge events). ``pipeline.process_into_store`` writes the merges a session makes
 online through :func:`write_merges`; ``mapserver merge`` calls :func:`merge_stored_maps`; undo and redo
-(``mapserver unmerge``, ``mapserver merge --redo``) are :mod:`mapserver.undo`.
+(``mapserver unmerge``, ``mapserver merge --redo``) are :mod:`mapserver.atlas.undo`.
 
 One merge event, in one write transaction (docs/architecture.md, "Merge", "Unmerge"): every stored
 map involved is claimed at the version it was read (a concurrent writer → ``StaleMapError``, nothing
