@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +25,11 @@ from mapserver.merge import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.identity import RowIdentities
 from mapserver.merge.provenance import match_to_dict, record_summary
 from mapserver.merge.relevance import ViewLog
+from mapserver.merge.verify import SessionFrame
+
+if TYPE_CHECKING:
+    from mapserver.atlas import AtlasMap
+    from mapserver.reckoning import DeadReckoning
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +54,7 @@ class PendingMerge:
     """
 
     event: MergeEvent
-    target: Any  # mapserver.atlas.AtlasMap
+    target: AtlasMap
     before: Holder  # the map the session was in before the merge (partial side; restored by a rollback)
     frames_at: int
     reckoning_pose: list[float]
@@ -89,9 +94,9 @@ class LiveSession:
     tag: int
     start: int
     merger: OnlineMerger | None
-    targets: dict[int, Any]  # stored map id → AtlasMap (the merge candidates)
+    targets: dict[int, AtlasMap]  # stored map id → the merge candidates
     collector: Any  # mapserver.store.evidence.EvidenceCollector
-    reckoning: Any  # mapserver.reckoning.DeadReckoning: the run's, read here (run_engine integrates each frame)
+    reckoning: DeadReckoning  # the run's, read here (run_engine integrates each frame)
     stamps: list[float] = field(default_factory=list)
     pending: list[PendingMerge] = field(default_factory=list)
     activations: list[tuple[float, int, int, float]] = field(default_factory=list)
@@ -104,7 +109,7 @@ class LiveSession:
         """Return the merges that stand."""
         return [m for m in self.pending if m.status == "applied"]
 
-    def on_step(self, frame: Any, result: StepResult) -> Engine | None:
+    def on_step(self, frame: SessionFrame, result: StepResult) -> Engine | None:
         """Book one frame; return the engine to continue in when a merge or a rollback changed it."""
         holder = self.holder
         holder.ids.extend(holder.engine.template_count, holder.engine.experience_count, self.tag)

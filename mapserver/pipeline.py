@@ -10,11 +10,11 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,6 +35,16 @@ from mapserver.run import (  # re-exported: the pipeline is where callers find t
 )
 from mapserver.store import Database, utcnow
 
+if TYPE_CHECKING:
+    from mapserver.atlas import AtlasMap
+    from mapserver.ingest.frames import IngestReport
+    from mapserver.live import PendingMerge
+    from mapserver.merge import OnlineMerger
+    from mapserver.merge.identity import RowIdentities
+    from mapserver.merge.resume import MergerState
+    from mapserver.store import Connection, Database, SessionRecord
+    from mapserver.store.evidence import EvidenceCollector
+
 logger = logging.getLogger(__name__)
 
 STALE_ATTEMPTS = 3
@@ -50,7 +60,9 @@ runs with its session id. The store maps tag 0 to the new session's id when it s
 """
 
 
-def _existing_result(db: Any, session: Any, map_id: int, started: float, out: str | Path | None) -> ProcessResult:
+def _existing_result(
+    db: Database, session: SessionRecord, map_id: int, started: float, out: str | Path | None
+) -> ProcessResult:
     """Answer with a stored session (no processing); write ``out`` from the stored map."""
     from mapserver.store import load_map
     from mapserver.store.export import map_document
@@ -229,7 +241,7 @@ def _require_merged_into(into: str | None, holder_id: int | None, candidates: li
 
 
 def _process_session(
-    db: Any, log_path: str | Path, log: MissionLog, params: Params, identity: LogIdentity, opts: _Options
+    db: Database, log_path: str | Path, log: MissionLog, params: Params, identity: LogIdentity, opts: _Options
 ) -> ProcessResult:
     """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
     from mapserver.live import Holder, LiveSession
@@ -310,16 +322,16 @@ def log_ground_truth_rows(log: MissionLog) -> np.ndarray | None:
 class _AtlasRead:
     """What a run starts from: the session stored already (resumed) and its map, and the merge candidates."""
 
-    session: Any = None
-    own: Any = None  # the resumed session's map (mapserver.atlas.AtlasMap)
+    session: SessionRecord | None = None
+    own: AtlasMap | None = None  # the resumed session's map
     rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # stored dead reckoning
-    pose: Any = None  # its final pose
+    pose: tuple[float, ...] | None = None  # its final pose
     activations: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 4)))  # None: stored before 0005
-    candidates: list[Any] = field(default_factory=list)
+    candidates: list[AtlasMap] = field(default_factory=list)
 
 
 def _read_atlas(
-    db: Any, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, name: str
+    db: Database, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, name: str
 ) -> _AtlasRead | ProcessResult:
     """Read the stored session of this log (if any), its map and the merge candidates, in one read.
 
@@ -382,7 +394,7 @@ def _read_atlas(
     return read
 
 
-def _check_stored_session(log_path: str | Path, params: Params, session: Any) -> int:
+def _check_stored_session(log_path: str | Path, params: Params, session: SessionRecord) -> int:
     """Check that a stored session can be continued with ``params``; return its map's id.
 
     A parameter the stored session does not name (it was stored before the parameter existed) takes its
@@ -408,7 +420,9 @@ def _check_stored_session(log_path: str | Path, params: Params, session: Any) ->
     return int(session.map_id)
 
 
-def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, int, DeadReckoning, Any]:
+def _start_engine(
+    params: Params, read: _AtlasRead
+) -> tuple[Engine, RowIdentities, int, int, DeadReckoning, MergerState | None]:
     """Return (engine, row identities, origin tag, first frame, dead reckoning, merge driver state) to run from.
 
     A resumed session continues its map's stored engine from its next frame; a new one starts empty.
@@ -432,25 +446,26 @@ def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, i
 class _RunOutcome:
     """What a run of the log leaves to store: the session and map it ran in, its engine, merges and records."""
 
-    session: Any  # the stored session it continued (None: a new session)
-    own: Any  # that session's map (mapserver.atlas.AtlasMap)
+    session: SessionRecord | None  # the stored session it continued (None: a new session)
+    own: AtlasMap | None  # that session's map
     name: str  # the new map's name when the session joined none
     engine: Engine
-    ids: Any  # row identities (mapserver.merge.identity.RowIdentities)
-    pending: list[Any]  # its merges, applied or rejected (mapserver.live.PendingMerge)
-    merger: Any  # the online merger whose state a resume needs (None: none, or the session is complete)
-    candidates: list[Any]  # the maps it was matched against (mapserver.atlas.AtlasMap)
+    ids: RowIdentities  # row identities
+    pending: list[PendingMerge]  # its merges, applied or rejected
+    merger: OnlineMerger | None  # the online merger whose state a resume needs (None: none, or the session is complete)
+    candidates: list[AtlasMap]  # the maps it was matched against
     progress: _Progress
-    collector: Any  # the evidence collector (mapserver.store.evidence.EvidenceCollector)
+    collector: EvidenceCollector  # the evidence collector
     frames_run: int
-    activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
+    activations: tuple[np.ndarray | None, Callable[[dict[int, int]], np.ndarray]]
+    """The stored timeline (None: stored before it existed), and the live rows (``LiveSession.activation_rows``)."""
     relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
-    dropped: Any = None  # what reading the log dropped (mapserver.ingest.frames.IngestReport)
+    dropped: IngestReport | None = None  # what reading the log dropped
     ground_truth: np.ndarray | None = None  # the log's ground-truth rows, kept with the session once it is complete
 
 
 def _store_session(
-    db: Any, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, run: _RunOutcome
+    db: Database, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, run: _RunOutcome
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
@@ -503,7 +518,7 @@ def _store_session(
 
 
 def _merges_to_write(
-    conn: Any, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
+    conn: Connection, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
 ) -> tuple[list[Any], list[Any]]:
     """Return the session's applied and rejected merges as the store writes them (with every session's frames)."""
     from mapserver.live import merge_to_write
@@ -532,7 +547,7 @@ class _Progress:
 
 
 def _write_session_row(
-    conn: Any, log_path: str | Path, params: Params, identity: LogIdentity, run: _RunOutcome,
+    conn: Connection, log_path: str | Path, params: Params, identity: LogIdentity, run: _RunOutcome,
     started_at: datetime,
 ) -> int:
     """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
@@ -571,7 +586,9 @@ def _write_session_row(
     return session_id
 
 
-def _claim_host(conn: Any, session_id: int, run: _RunOutcome, params: Params) -> tuple[dict[int, int], int, list[int]]:
+def _claim_host(
+    conn: Connection, session_id: int, run: _RunOutcome, params: Params
+) -> tuple[dict[int, int], int, list[int]]:
     """Return the maps this write claims (id → version read), the host map and the map's sessions.
 
     The host is the oldest map involved; a new map (named ``name``) when the session joined none.

@@ -123,7 +123,7 @@ class EngineRun:
     dropped: IngestReport
 
 
-StepHook = Callable[[Any, "StepResult"], "Engine | None"]
+StepHook = Callable[[Frame, "StepResult"], "Engine | None"]
 """``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
 
 
@@ -229,7 +229,7 @@ def process_log(
     name = log_stem(log_path)
     frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
 
-    def record(frame: Any, result: StepResult) -> None:
+    def record(frame: Frame, result: StepResult) -> None:
         frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
 
     engine = _new_engine(params) if params.frontend != "lvc" else None  # torch's front-end checks its settings first

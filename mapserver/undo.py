@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -54,6 +54,9 @@ from mapserver.store.sessions import (
 )
 from mapserver.store.state import write_map_state
 
+if TYPE_CHECKING:
+    from mapserver.store.merge_events import MergeEventRecord
+
 
 @dataclass(frozen=True)
 class UnmergeOutcome:
@@ -81,7 +84,7 @@ class MoveOutcome:
     frames: int | None = None
 
 
-def _event_sessions(event: Any) -> set[int]:
+def _event_sessions(event: MergeEventRecord) -> set[int]:
     return {int(s) for s in event.sessions}
 
 
