@@ -135,7 +135,7 @@ def _run_one(db: Database, lock: MapLock, job: JobRecord, owner: str, config: Wo
     heartbeat.start()
     try:
         for rerun in range(STALE_RERUNS + 1):
-            outcome = execute_job(job, db=db, db_url=config.db_url, interval_s=config.progress_interval_s,
+            outcome = execute_job(job, db=db, interval_s=config.progress_interval_s,
                                   should_stop=heartbeat.lost.is_set)  # fmt: skip
             if not outcome.stale or rerun == STALE_RERUNS:
                 break

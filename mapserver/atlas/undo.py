@@ -25,7 +25,7 @@ from mapserver.merge.identity import RowIdentities
 from mapserver.merge.places import merged_template_places
 from mapserver.merge.provenance import match_from_dict
 from mapserver.merge.resume import MergerState, merger_keys
-from mapserver.names import check_map_name, default_map_name
+from mapserver.names import check_map_name, default_map_name, unique_map_name
 from mapserver.store import Connection, Database, drop_map, find_map, get_map_by_id
 from mapserver.store.archive import (
     ArchivedState,
@@ -303,10 +303,7 @@ def _free_map_name(conn: Connection, wanted: str | None, default: str) -> str:
             msg = f"a map named {wanted!r} already exists"
             raise ConflictError(msg)
         return wanted
-    name, k = default, 2
-    while find_map(conn=conn, name=name) is not None:
-        name, k = f"{default[:56]}-{k}", k + 1
-    return name
+    return unique_map_name(default, lambda name: find_map(conn=conn, name=name) is not None)
 
 
 def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:

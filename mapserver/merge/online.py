@@ -226,6 +226,12 @@ class OnlineMerger:
         self.rollbacks: list[Rollback] = []
         self.probation: Probation | None = None
         self._probation_event: MergeEvent | None = None
+        # The driver's odometry (x, y, z, yaw): a frame of its own, not the session's dead reckoning
+        # (mapserver.processing.reckoning.DeadReckoning, integrated by run_engine). It starts at the identity when the
+        # merger starts (or at its stored state on resume), wraps the heading (core.se3.compose) and is kept
+        # with the merger's state; the dead reckoning starts at the preset's initial heading, sums the heading
+        # unwrapped (core.se3.compose_step) and goes on across resumes. The hypotheses' predictions and
+        # stored merge records are in this frame, so it is integrated here (:meth:`observe`).
         self._odometry = np.zeros(4)
         self._track = Track(0.0)
         self._resume: MergerState | None = resume

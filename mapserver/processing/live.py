@@ -3,10 +3,12 @@
 :func:`mapserver.processing.pipeline.process_into_store` feeds every frame to :meth:`LiveSession.on_step`.
 It keeps what the store will need when the session is written: the map the session is in at the
 moment (its own, or the stored map it merged into), the stable row identities of that map, the
-merges made (:class:`PendingMerge`, each ``applied`` or ``rejected``), the frames' stamps, the
-dead reckoning and the evidence images. A merge swaps the engine for the merged one; a merge
-rolled back by its verification swaps it back for the session's own engine, restores the map
-it was in before and keeps the merge as ``rejected`` with its evidence.
+merges made (:class:`PendingMerge`, each ``applied`` or ``rejected``), the frames' stamps and the
+evidence images. The dead reckoning is the run's: :func:`mapserver.processing.run.run_engine` integrates each
+frame's motion into it before the frame is booked here, and a merge records the pose it has reached.
+A merge swaps the engine for the merged one; a merge rolled back by its verification swaps it back
+for the session's own engine, restores the map it was in before and keeps the merge as ``rejected``
+with its evidence.
 """
 
 from __future__ import annotations
@@ -94,7 +96,7 @@ class LiveSession:
     merger: OnlineMerger | None
     targets: dict[int, AtlasMap]  # stored map id → the merge candidates
     collector: Any  # mapserver.store.evidence.EvidenceCollector
-    reckoning: DeadReckoning
+    reckoning: DeadReckoning  # the run's, read here (run_engine integrates each frame)
     stamps: list[float] = field(default_factory=list)
     pending: list[PendingMerge] = field(default_factory=list)
     activations: list[tuple[float, int, int, float]] = field(default_factory=list)
@@ -117,7 +119,6 @@ class LiveSession:
         self.collector.observe(stamp, frame.image)
         if result.action == Action.CREATE_NODE:
             self.collector.experience(holder.ids.experience_identity(result.experience)[1], stamp)
-        self.reckoning.add(stamp, result.motion)
         if self.views is not None:
             self.views.add(holder.engine.local_view.last_view)
         if self.merger is None:

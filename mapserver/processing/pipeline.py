@@ -10,7 +10,7 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -21,8 +21,8 @@ import numpy as np
 from core import ConfigError, Engine, Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
-from mapserver.ingest import MissionLog, open_log
-from mapserver.names import check_map_name, default_map_name
+from mapserver.ingest import LogIdentity, MissionLog, open_log
+from mapserver.names import check_map_name, default_map_name, log_stem
 from mapserver.processing.reckoning import DeadReckoning
 from mapserver.processing.run import (  # re-exported: the pipeline is where callers find them
     EngineRun,
@@ -33,7 +33,7 @@ from mapserver.processing.run import (  # re-exported: the pipeline is where cal
     process_log,
     run_engine,
 )
-from mapserver.store import utcnow
+from mapserver.store import Database, utcnow
 
 if TYPE_CHECKING:
     from mapserver.atlas import AtlasMap
@@ -58,10 +58,6 @@ NEW_SESSION_ORIGIN = 0
 The engine stamps rows with its origin tag (``Engine(params, origin=tag)``); a resumed session's engine
 runs with its session id. The store maps tag 0 to the new session's id when it saves (``origins``).
 """
-
-
-def _log_stem(log_path: str | Path) -> str:
-    return Path(log_path).name.split(".")[0] or "map"
 
 
 def _existing_result(
@@ -100,6 +96,8 @@ def process_into_store(
     params: Params,
     *,
     db_url: str | None,
+    db: Database | None = None,
+    identity: LogIdentity | None = None,
     map_name: str | None = None,
     topics: Mapping[str, str] | None = None,
     merge: bool = True,
@@ -127,7 +125,11 @@ def process_into_store(
     Args:
         log_path: the mission log.
         params: engine parameters (a continued session must use the ones it was stored with).
-        db_url: SQLAlchemy URL (None: the default SQLite file); an empty database gets the schema.
+        db_url: SQLAlchemy URL (None: the default SQLite file); an empty database gets the schema. Opened
+            here, unless ``db`` is given.
+        db: the process's open database (the server's or a worker's), used instead of opening ``db_url``.
+        identity: the log's identity read when it was first opened (the upload's check); None reads it
+            here (hashing the log).
         map_name: name of the new map when the session connects to none (an error if it breaks the map
             name rule, :func:`mapserver.names.check_map_name`, or a map of that name exists and the log is
             not one of its sessions).
@@ -153,7 +155,7 @@ def process_into_store(
             each of ``STALE_ATTEMPTS`` runs.
     """
     from mapserver.processing.live import LiveSession  # noqa: F401  (with the store: loaded before the clock starts)
-    from mapserver.store import StaleMapError, open_database
+    from mapserver.store import StaleMapError
     from mapserver.store.db import commit_gate
     from mapserver.store.evidence import EvidenceCollector  # noqa: F401
 
@@ -169,19 +171,31 @@ def process_into_store(
     load_frontend(params)
     started = time.perf_counter()
     options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice, utcnow(), into)
-    with open_log(log_path, topics) as log, open_database(db_url) as db:
-        identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
+    with open_log(log_path, topics) as log, _database(db, db_url) as store:
+        known = LogIdentity.of(log) if identity is None else identity
         for attempt in range(1, STALE_ATTEMPTS + 1):
             try:
                 if attempt < STALE_ATTEMPTS:
-                    return _process_session(db, log_path, log, params, identity, options)
-                with commit_gate(db):  # the last try: no session of this process commits meanwhile
-                    return _process_session(db, log_path, log, params, identity, options)
+                    return _process_session(store, log_path, log, params, known, options)
+                with commit_gate(store):  # the last try: no session of this process commits meanwhile
+                    return _process_session(store, log_path, log, params, known, options)
             except StaleMapError as err:
                 if attempt == STALE_ATTEMPTS:
                     raise
                 logger.warning("%s; processing the log again", err)
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+@contextlib.contextmanager
+def _database(db: Database | None, db_url: str | None) -> Iterator[Database]:
+    """Yield ``db`` as it is (its owner closes it), or the database at ``db_url``, opened and closed here."""
+    if db is not None:
+        yield db
+        return
+    from mapserver.store import open_database
+
+    with open_database(db_url) as opened:
+        yield opened
 
 
 @dataclass(frozen=True)
@@ -227,7 +241,7 @@ def _require_merged_into(into: str | None, holder_id: int | None, candidates: li
 
 
 def _process_session(
-    db: Database, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
+    db: Database, log_path: str | Path, log: MissionLog, params: Params, identity: LogIdentity, opts: _Options
 ) -> ProcessResult:
     """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
     from mapserver.merge import OnlineMerger
@@ -236,7 +250,7 @@ def _process_session(
     from mapserver.store.evidence import EvidenceCollector
 
     name = opts.map_name or default_map_name(log_path)
-    total = int(identity["total"])
+    total = identity.frames
     read = _read_atlas(db, log_path, params, identity, opts, name)
     if isinstance(read, ProcessResult):
         return read
@@ -259,7 +273,7 @@ def _process_session(
     )  # fmt: skip
     on_probation = None if merger is None or opts.stop_after is None else lambda: merger.probation is not None
     run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step,
-                     overrun=on_probation)  # fmt: skip
+                     overrun=on_probation, identity=identity, reckoning=reckoning)  # fmt: skip
     if run.frames == 0 and own is None:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
@@ -282,7 +296,7 @@ def _process_session(
         session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
         merger=merger if not complete else None, candidates=candidates, progress=progress, collector=live.collector,
         frames_run=run.frames, activations=(read.activations, live.activation_rows),
-        relevance=(set() if merger is None else merger.observed, live.views), dropped=run.info["dropped"],
+        relevance=(set() if merger is None else merger.observed, live.views), dropped=run.dropped,
         ground_truth=truth,
     ))  # fmt: skip
 
@@ -317,7 +331,7 @@ class _AtlasRead:
 
 
 def _read_atlas(
-    db: Database, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, name: str
+    db: Database, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, name: str
 ) -> _AtlasRead | ProcessResult:
     """Read the stored session of this log (if any), its map and the merge candidates, in one read.
 
@@ -333,7 +347,7 @@ def _read_atlas(
 
     read = _AtlasRead()
     with db.read() as conn:
-        session = find_session(conn=conn, log_sha256=identity["sha256"], topics=identity["mapping"])
+        session = find_session(conn=conn, log_sha256=identity.sha256, topics=identity.mapping)
         if session is not None:
             record = get_map_by_id(conn=conn, map_id=_check_stored_session(log_path, params, session))
             if record.archived_at is not None:
@@ -349,7 +363,7 @@ def _read_atlas(
                     f"it cannot be stored in map {wanted!r}"
                 )
                 raise InputError(msg)
-            done, total = session.frames_processed, int(identity["total"])
+            done, total = session.frames_processed, identity.frames
             if session.complete or (opts.stop_after is not None and done >= opts.stop_after):
                 logger.warning(
                     "%s is stored already as session %r of map %r (%d of %d frames): answering with it",
@@ -451,7 +465,7 @@ class _RunOutcome:
 
 
 def _store_session(
-    db: Database, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, run: _RunOutcome
+    db: Database, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, run: _RunOutcome
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
@@ -533,7 +547,7 @@ class _Progress:
 
 
 def _write_session_row(
-    conn: Connection, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome,
+    conn: Connection, log_path: str | Path, params: Params, identity: LogIdentity, run: _RunOutcome,
     started_at: datetime,
 ) -> int:
     """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
@@ -552,8 +566,8 @@ def _write_session_row(
         created = create_session(
             conn=conn,
             spec=NewSession(
-                name=_log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity["sha256"],
-                topics=identity["mapping"], params=plain_params(params), status=progress.status,
+                name=log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity.sha256,
+                topics=identity.mapping, params=plain_params(params), status=progress.status,
                 frames_processed=progress.processed, frames_total=progress.total,
                 first_stamp=stamps[0] if stamps else None, last_stamp=stamps[-1] if stamps else None,
                 origin=NEW_SESSION_ORIGIN, reckoning=progress.rows, reckoning_pose=progress.pose,  # type: ignore[arg-type]
