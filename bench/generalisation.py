@@ -64,7 +64,7 @@ from mapserver.ingest.reader import open_log
 from mapserver.ingest.simulator.output import plan_scenario, render_frames, simulate_session, write_ground_truth
 from mapserver.ingest.simulator.sensors import Sensors, fit_sensors
 from mapserver.ingest.writer import write_log
-from mapserver.run import run_engine
+from mapserver.processing.run import run_engine
 
 HELD_OUT_FAMILY = "park"
 FIRST_HELD_OUT_SEED = 14

@@ -50,7 +50,7 @@ from mapserver.evaluation import interpolate_poses, place_recognition
 from mapserver.formats import Trajectory, read_tum
 from mapserver.ingest.simulator.output import simulate
 from mapserver.params import with_settings
-from mapserver.pipeline import run_engine
+from mapserver.processing.pipeline import run_engine
 
 D_THR = 5.0
 VARIANTS: dict[str, dict[str, Any]] = {

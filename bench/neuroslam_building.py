@@ -57,7 +57,7 @@ from core import preset
 from mapserver.evaluation import evaluate_map, interpolate_poses
 from mapserver.formats import read_map_json, read_tum
 from mapserver.ingest.simulator import simulate
-from mapserver.run import process_log
+from mapserver.processing.run import process_log
 
 ENGINES = ("neuroslam", "poseidon-lvc", "circle")
 SMALL = {"scale": 0.75, "params": {"laps": 1.0}}

@@ -34,7 +34,7 @@ from core.se3 import yaw_from_quaternion
 from mapserver.ingest.simulator.output import simulate
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
-from mapserver.run import run_engine
+from mapserver.processing.run import run_engine
 from tests.mapserver.merge.scenario_metrics import true_alignment
 
 

@@ -31,7 +31,7 @@ from mapserver.formats import read_tum
 from mapserver.ingest import open_log
 from mapserver.ingest.simulator import simulate
 from mapserver.params import resolve_params
-from mapserver.run import process_log
+from mapserver.processing.run import process_log
 
 ROWS: dict[str, tuple[str, dict[str, float], str]] = {
     "seabed": ("seabed", {}, "navigation"),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import Float32Array
+
 
 class GrowBuffer:
     """A row buffer of fixed trailing shape whose capacity doubles when full.
@@ -85,12 +87,12 @@ class SharedRows:
         return sum(len(block) for block in self._blocks) + len(self._tail)
 
     @property
-    def blocks(self) -> tuple[np.ndarray, ...]:
+    def blocks(self) -> tuple[Float32Array, ...]:
         """Return the shared blocks (read-only arrays, in row order; the appended rows follow them)."""
         return tuple(self._blocks)
 
     @property
-    def view(self) -> np.ndarray:
+    def view(self) -> Float32Array:
         """Return every row as one read-only array: no copy when the rows are one block, else a new array."""
         parts = [*self._blocks, self._tail.view] if len(self._tail) else list(self._blocks)
         if not parts:

@@ -24,6 +24,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from core.arrays import Float32Array, Int32Array, IntArray
+
 MAX_BITS = 24
 """Fixed-point bits when the values allow it (float32's precision at 1.0)."""
 COMPILED_FROM = 100_000
@@ -37,7 +39,7 @@ def fixed_point_bits(width: int, peak: float) -> int:
     return max(0, min(MAX_BITS, math.floor(math.log2((2**31 - 1) / span))))
 
 
-def quantise(values: np.ndarray, bits: int) -> np.ndarray:
+def quantise(values: Float32Array, bits: int) -> Int32Array:
     """Return ``round(values · 2^bits)`` (half to even) as int32 (the kernel's fixed point).
 
     float32 values are scaled and rounded in float32, anything else in float64: the same integers either
@@ -52,10 +54,10 @@ def quantise(values: np.ndarray, bits: int) -> np.ndarray:
 
 
 def best_pair(
-    templates: np.ndarray,
-    rows: np.ndarray,
-    view: np.ndarray,
-    offsets: np.ndarray,
+    templates: Int32Array,
+    rows: IntArray,
+    view: Int32Array,
+    offsets: IntArray,
     width: int,
     start: int,
     limit_sum: int,
@@ -74,10 +76,10 @@ def best_pair(
 
 
 def _best_pair_numpy(
-    templates: np.ndarray,
-    rows: np.ndarray,
-    view: np.ndarray,
-    offsets: np.ndarray,
+    templates: Int32Array,
+    rows: IntArray,
+    view: Int32Array,
+    offsets: IntArray,
     width: int,
     start: int,
     limit_sum: int,
@@ -114,10 +116,10 @@ def _compiled() -> Callable[..., tuple[int, int, int]]:
 
 
 def _best_pair(
-    templates: np.ndarray,
-    rows: np.ndarray,
-    view: np.ndarray,
-    offsets: np.ndarray,
+    templates: Int32Array,
+    rows: IntArray,
+    view: Int32Array,
+    offsets: IntArray,
     width: int,
     start: int,
     limit_sum: int,

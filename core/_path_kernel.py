@@ -13,12 +13,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from core.arrays import FloatArray, IntArray
+
 _DONE = -2  # pos[node] of a settled node; -1: not reached yet
 _LANDMARK_MARGIN = 1.0 - 1e-9  # a landmark's bound, lowered for the rounding of its distances
 
 
 @njit(cache=True, nogil=True)
-def _place(key: np.ndarray, node: np.ndarray, pos: np.ndarray, i: int, d: float, v: int) -> None:
+def _place(key: FloatArray, node: IntArray, pos: IntArray, i: int, d: float, v: int) -> None:
     """Move the hole at heap entry ``i`` towards the root until (``d``, ``v``) fits there, and put it there."""
     while i > 0:
         parent = (i - 1) >> 1
@@ -34,7 +36,7 @@ def _place(key: np.ndarray, node: np.ndarray, pos: np.ndarray, i: int, d: float,
 
 
 @njit(cache=True, nogil=True)
-def _offer(key: np.ndarray, node: np.ndarray, pos: np.ndarray, size: int, v: int, d: float) -> int:
+def _offer(key: FloatArray, node: IntArray, pos: IntArray, size: int, v: int, d: float) -> int:
     """Put node ``v`` in the heap at distance ``d``, or lower its entry to ``d``; return the heap's size."""
     i = pos[v]
     if i < 0:
@@ -45,7 +47,7 @@ def _offer(key: np.ndarray, node: np.ndarray, pos: np.ndarray, size: int, v: int
 
 
 @njit(cache=True, nogil=True)
-def _pop(key: np.ndarray, node: np.ndarray, pos: np.ndarray, size: int) -> int:
+def _pop(key: FloatArray, node: IntArray, pos: IntArray, size: int) -> int:
     """Remove the first entry (its node is settled) and return the heap's size."""
     pos[node[0]] = _DONE
     size -= 1
@@ -72,20 +74,20 @@ def _pop(key: np.ndarray, node: np.ndarray, pos: np.ndarray, size: int) -> int:
 
 @njit(cache=True, nogil=True)
 def settle(
-    indptr: np.ndarray,
-    indices: np.ndarray,
-    data: np.ndarray,
-    start_nodes: np.ndarray,
-    start_costs: np.ndarray,
-    end_nodes: np.ndarray,
-    end_costs: np.ndarray,
+    indptr: IntArray,
+    indices: IntArray,
+    data: FloatArray,
+    start_nodes: IntArray,
+    start_costs: FloatArray,
+    end_nodes: IntArray,
+    end_costs: FloatArray,
     bound: float,
-    points: np.ndarray,
-    goal: np.ndarray,
+    points: FloatArray,
+    goal: FloatArray,
     scale: float,
-    landmarks: np.ndarray,
-    landmark_goal: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+    landmarks: FloatArray,
+    landmark_goal: FloatArray,
+) -> tuple[FloatArray, IntArray]:
     """Return (dist, pred) of an A* search over the CSR graph that stops once the target's cost is known.
 
     The search starts at ``start_nodes`` at ``start_costs`` (``pred`` −1 there unless a cheaper way through
@@ -132,7 +134,7 @@ def settle(
 
 @njit(cache=True, nogil=True)
 def _left(
-    points: np.ndarray, goal: np.ndarray, scale: float, landmarks: np.ndarray, landmark_goal: np.ndarray, v: int
+    points: FloatArray, goal: FloatArray, scale: float, landmarks: FloatArray, landmark_goal: FloatArray, v: int
 ) -> float:
     """Return the search's lower bound of the cost from node ``v`` to the goal (see :func:`settle`)."""
     bound = 0.0
@@ -149,7 +151,7 @@ def _left(
 
 
 @njit(cache=True, nogil=True)
-def hops(pred: np.ndarray, end: int) -> np.ndarray:
+def hops(pred: IntArray, end: int) -> IntArray:
     """Return the nodes of the search's path to ``end``, from its way in (``pred`` −1) to ``end``."""
     count = 1
     node = end
@@ -166,8 +168,8 @@ def hops(pred: np.ndarray, end: int) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def through_chains(
-    nodes: np.ndarray, chains: np.ndarray, order: np.ndarray, start: np.ndarray, a: np.ndarray
-) -> np.ndarray:
+    nodes: IntArray, chains: IntArray, order: IntArray, start: IntArray, a: IntArray
+) -> IntArray:
     """Return the graph nodes of a junction path: ``nodes[k]``, chain ``chains[k]`` (when ≥ 0), ``nodes[k + 1]``, ….
 
     A chain runs from its ``a`` junction: it is walked forwards when it is left from ``a``, else backwards.

@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from core.arrays import BoolArray, FloatArray, IntArray
+
 _use_compiled = False
 
 
@@ -96,7 +98,7 @@ def _compile_once() -> dict[str, Callable[..., Any]]:
 # ----------------------------------------------------------------------------------------------- helpers
 
 
-def _rows(region: np.ndarray, dims: np.ndarray, out: np.ndarray) -> int:
+def _rows(region: BoolArray, dims: IntArray, out: IntArray) -> int:
     """Write the rows of the product of ``region``'s x, y and z masks into ``out`` in C order; return their count."""
     ny, nz = dims[1], dims[2]
     count = 0
@@ -111,7 +113,7 @@ def _rows(region: np.ndarray, dims: np.ndarray, out: np.ndarray) -> int:
     return count
 
 
-def _occupancy(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, dirty: np.ndarray) -> bool:
+def _occupancy(cells: FloatArray, dims: IntArray, masks: BoolArray, dirty: BoolArray) -> bool:
     """Set ``masks`` to the slices of every axis that hold a non-zero cell (exactly); return whether one is < 0.
 
     The rows holding one are marked in ``dirty`` (whatever wrote them).
@@ -137,7 +139,7 @@ def _occupancy(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, dirty: np
     return negative
 
 
-def _clear(cells: np.ndarray, dirty: np.ndarray) -> None:
+def _clear(cells: FloatArray, dirty: BoolArray) -> None:
     """Zero the rows of ``cells`` marked in ``dirty`` (every other row is 0 already) and unmark them."""
     for row in range(cells.shape[0]):
         if dirty[row]:
@@ -145,7 +147,7 @@ def _clear(cells: np.ndarray, dirty: np.ndarray) -> None:
             dirty[row] = False
 
 
-def _widen(mask: np.ndarray, dim: int, offsets: np.ndarray, count: int) -> None:
+def _widen(mask: BoolArray, dim: int, offsets: IntArray, count: int) -> None:
     """Add to ``mask`` the slices ``(i + o) mod dim`` a spread's taps reach from its slices i."""
     old = mask[:dim].copy()
     for i in range(dim):
@@ -154,7 +156,7 @@ def _widen(mask: np.ndarray, dim: int, offsets: np.ndarray, count: int) -> None:
                 mask[(i + offsets[k]) % dim] = True
 
 
-def _window(mask: np.ndarray, dim: int, out: np.ndarray) -> None:
+def _window(mask: BoolArray, dim: int, out: IntArray) -> None:
     """Set ``out`` to (start, length) of the shortest cyclic run of slices that covers ``mask``'s.
 
     The whole axis (no empty slice) is (0, dim); an empty mask (0, 0).
@@ -173,7 +175,7 @@ def _window(mask: np.ndarray, dim: int, out: np.ndarray) -> None:
     out[1] = dim - gap
 
 
-def _lattice_order(start: int, length: int, dim: int) -> np.ndarray:
+def _lattice_order(start: int, length: int, dim: int) -> IntArray:
     """Return the window's block indices in the order of their lattice slices, ascending."""
     order = np.empty(length, np.int64)
     n = 0
@@ -185,13 +187,13 @@ def _lattice_order(start: int, length: int, dim: int) -> np.ndarray:
     return order
 
 
-def _add_scaled(out: np.ndarray, w: float, seen: np.ndarray) -> None:
+def _add_scaled(out: FloatArray, w: float, seen: FloatArray) -> None:
     """``out[t] += w·seen[t]`` for every t (one tap of a spread on one contiguous run)."""
     for t in range(out.size):
         out[t] += w * seen[t]
 
 
-def _pass_first(src: np.ndarray, dst: np.ndarray, signed: np.ndarray, weights: np.ndarray, cyclic: bool) -> None:
+def _pass_first(src: FloatArray, dst: FloatArray, signed: IntArray, weights: FloatArray, cyclic: bool) -> None:
     """Spread along the first axis of (L, B) arrays: ``dst[i] = Σ_k w_k·src[i − o_k]``, taps in order.
 
     Sources outside [0, L) are zeros (skipped) unless ``cyclic`` (the window is the whole axis: they wrap).
@@ -212,9 +214,9 @@ def _pass_first(src: np.ndarray, dst: np.ndarray, signed: np.ndarray, weights: n
 
 
 def _spread_block(
-    block: np.ndarray, lengths: np.ndarray, cyclic: np.ndarray, signed: np.ndarray, weights: np.ndarray,
-    counts: np.ndarray,
-) -> np.ndarray:  # fmt: skip
+    block: FloatArray, lengths: IntArray, cyclic: BoolArray, signed: IntArray, weights: FloatArray,
+    counts: IntArray,
+) -> FloatArray:  # fmt: skip
     """Return one separable kernel applied to ``block`` (a window, (L_x, L_y, L_z, L_θ)) along x, y, [z] then θ."""
     lx, ly, lz, lt = block.shape
     src = block
@@ -236,7 +238,7 @@ def _spread_block(
 
 
 def _block_window(
-    masks: np.ndarray, dims: np.ndarray, signed: np.ndarray, counts: np.ndarray, windows: np.ndarray
+    masks: BoolArray, dims: IntArray, signed: IntArray, counts: IntArray, windows: IntArray
 ) -> None:
     """Set ``windows`` (4, 2) to the (start, length) of x, y, z, θ covering ``masks`` widened by the taps ``signed``."""
     for axis in range(4):
@@ -245,7 +247,7 @@ def _block_window(
         _window(masks[axis], dims[axis], windows[axis])
 
 
-def _gather(cells: np.ndarray, dims: np.ndarray, windows: np.ndarray) -> np.ndarray:
+def _gather(cells: FloatArray, dims: IntArray, windows: IntArray) -> FloatArray:
     """Return the window of ``cells`` as a (L_x, L_y, L_z, L_θ) block."""
     ny, nz, nt = dims[1], dims[2], dims[3]
     block = np.empty((windows[0, 1], windows[1, 1], windows[2, 1], windows[3, 1]))
@@ -263,8 +265,8 @@ def _gather(cells: np.ndarray, dims: np.ndarray, windows: np.ndarray) -> np.ndar
 
 
 def _combine(
-    excited: np.ndarray, inhibited: np.ndarray, out: np.ndarray, dirty: np.ndarray, dims: np.ndarray,
-    windows: np.ndarray, inhibition: float, masks: np.ndarray,
+    excited: FloatArray, inhibited: FloatArray, out: FloatArray, dirty: BoolArray, dims: IntArray,
+    windows: IntArray, inhibition: float, masks: BoolArray,
 ) -> float:  # fmt: skip
     """Write ``max(E − I − φ, 0)`` of the window into ``out`` (0 elsewhere); return the sum in lattice C order.
 
@@ -305,9 +307,9 @@ def _combine(
 
 
 def attractor(
-    pool: np.ndarray, dirty: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray,
-    e_signed: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray,
-    i_signed: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, inhibition: float, best: np.ndarray,
+    pool: FloatArray, dirty: BoolArray, source: int, dims: IntArray, masks: BoolArray,
+    e_signed: IntArray, e_weights: FloatArray, e_counts: IntArray,
+    i_signed: IntArray, i_weights: FloatArray, i_counts: IntArray, inhibition: float, best: FloatArray,
 ) -> tuple[int, float]:  # fmt: skip
     """One attractor step of ``pool[source]`` (Menezes et al. Eq. 3); return (the result's slot, the pre-scale sum).
 
@@ -345,7 +347,7 @@ def attractor(
     return out, total
 
 
-def _restart(cells: np.ndarray, dirty: np.ndarray, dims: np.ndarray, masks: np.ndarray, best: np.ndarray) -> None:
+def _restart(cells: FloatArray, dirty: BoolArray, dims: IntArray, masks: BoolArray, best: FloatArray) -> None:
     """Set ``cells`` to one cell of 1 at ``best`` truncated to integers (x, y, [z,] θ), ``masks`` to its slices."""
     _clear(cells, dirty)
     masks[:, :] = False
@@ -371,8 +373,8 @@ def _layer_shift(shift: float, one_cell: bool) -> tuple[int, float, float]:
 
 
 def _translate(
-    src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, dims: np.ndarray, masks: np.ndarray, v: float,
-    cos: np.ndarray, sin: np.ndarray, one_cell: bool, moved: np.ndarray,
+    src: FloatArray, dst: FloatArray, dirty: BoolArray, dims: IntArray, masks: BoolArray, v: float,
+    cos: FloatArray, sin: FloatArray, one_cell: bool, moved: BoolArray,
 ) -> None:  # fmt: skip
     """Move every heading layer t by ``v`` cells along (cos_t, sin_t) within its (x, y) plane: x then y, wrapping.
 
@@ -408,7 +410,7 @@ def _translate(
     moved[2, :] = masks[2]
 
 
-def _corner_loss(src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, masks: np.ndarray, corners: np.ndarray) -> None:
+def _corner_loss(src: FloatArray, dst: FloatArray, dirty: BoolArray, masks: BoolArray, corners: FloatArray) -> None:
     """OpenRatSLAM's translation loss (``openratslam_compat``): ``dst[to] −= src[a]·w_a + src[b]·w_b`` per layer.
 
     ``corners[t]`` = (row a, w_a, row b, w_b, row to) of layer t (3-DoF lattice).
@@ -422,7 +424,7 @@ def _corner_loss(src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, masks: np.
 
 
 def _shift_outer(
-    src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, dims: np.ndarray, masks: np.ndarray, whole: int,
+    src: FloatArray, dst: FloatArray, dirty: BoolArray, dims: IntArray, masks: BoolArray, whole: int,
     keep: float, frac: float,
 ) -> None:  # fmt: skip
     """Shift along z: ``dst[z] = src[z − whole]·keep + src[z − whole − 1]·frac`` (wrapping) on ``masks``' x, y rows."""
@@ -448,7 +450,7 @@ def _shift_outer(
 
 
 def _shift_heading(
-    src: np.ndarray, dst: np.ndarray, dirty: np.ndarray, rows: np.ndarray, n_rows: int, whole: int, keep: float,
+    src: FloatArray, dst: FloatArray, dirty: BoolArray, rows: IntArray, n_rows: int, whole: int, keep: float,
     frac: float,
 ) -> None:  # fmt: skip
     """Shift along θ on ``rows``: ``dst[t] = src[t − whole]·keep + src[t − whole − 1]·frac`` (wrapping)."""
@@ -466,10 +468,10 @@ def _shift_heading(
 
 
 def path_integrate(
-    pool: np.ndarray, dirty: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
+    pool: FloatArray, dirty: BoolArray, source: int, dims: IntArray, masks: BoolArray, rows: IntArray,
     known: bool,
-    v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool, corners: np.ndarray, z_shift: np.ndarray,
-    th_shift: np.ndarray,
+    v: float, cos: FloatArray, sin: FloatArray, one_cell: bool, corners: FloatArray, z_shift: FloatArray,
+    th_shift: FloatArray,
 ) -> int:  # fmt: skip
     """Translate by ``v`` cells (when ≠ 0), then shift z, then θ, ``pool[source]``; return the result's slot.
 
@@ -504,12 +506,12 @@ def path_integrate(
 
 
 def on_odo(
-    pool: np.ndarray, dirty: np.ndarray, source: int, dims: np.ndarray, masks: np.ndarray, rows: np.ndarray,
-    e_signed: np.ndarray, e_weights: np.ndarray, e_counts: np.ndarray,
-    i_signed: np.ndarray, i_weights: np.ndarray, i_counts: np.ndarray, inhibition: float,
-    best: np.ndarray, v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool, corners: np.ndarray,
-    z_shift: np.ndarray, th_shift: np.ndarray, x_first: bool,
-) -> tuple[int, np.ndarray]:  # fmt: skip
+    pool: FloatArray, dirty: BoolArray, source: int, dims: IntArray, masks: BoolArray, rows: IntArray,
+    e_signed: IntArray, e_weights: FloatArray, e_counts: IntArray,
+    i_signed: IntArray, i_weights: FloatArray, i_counts: IntArray, inhibition: float,
+    best: FloatArray, v: float, cos: FloatArray, sin: FloatArray, one_cell: bool, corners: FloatArray,
+    z_shift: FloatArray, th_shift: FloatArray, x_first: bool,
+) -> tuple[int, IntArray]:  # fmt: skip
     """:func:`attractor`, :func:`path_integrate` and :func:`peak` in one call; return (the result's slot, its peak)."""
     slot, _ = attractor(pool, dirty, source, dims, masks, e_signed, e_weights, e_counts, i_signed, i_weights,
                         i_counts, inhibition, best)
@@ -518,7 +520,7 @@ def on_odo(
     return slot, peak(pool[slot], dims, masks[0], x_first)
 
 
-def peak(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, x_first: bool) -> np.ndarray:
+def peak(cells: FloatArray, dims: IntArray, masks: BoolArray, x_first: bool) -> IntArray:
     """Return (x, y, z, θ) of the first maximum scanning θ outermost, then z, y, x (or x, y, z when ``x_first``).
 
     Only the slices in ``masks`` are visited (every other cell is 0); an all-zero lattice gives (0, 0, 0, 0).
@@ -544,7 +546,7 @@ def peak(cells: np.ndarray, dims: np.ndarray, masks: np.ndarray, x_first: bool) 
     return best
 
 
-def openratslam_axis_centre(flat: np.ndarray, cells: np.ndarray, sines: np.ndarray, cosines: np.ndarray) -> float:
+def openratslam_axis_centre(flat: FloatArray, cells: IntArray, sines: FloatArray, cosines: FloatArray) -> float:
     """Return one axis of OpenRatSLAM's ``find_best`` centre, as :meth:`core.posecells.PoseCellNetwork` decodes it.
 
     ``flat`` is the packet's box with that axis last, the others in OpenRatSLAM's loop order, as (rows, n):

@@ -31,7 +31,7 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -88,7 +88,7 @@ def _compile() -> Callable[..., Any]:
     module = globals()
     module["_fma"] = intrinsic(typed)
     module["_run_sums"] = njit(cache=True, nogil=True)(_run_sums)
-    return module["_run_sums"]
+    return cast("Callable[..., Any]", module["_run_sums"])  # numba's dispatcher: untyped
 
 
 def _fma(a: float, b: float, c: float) -> float:
@@ -402,7 +402,7 @@ def _scoring_kernel() -> Callable[..., tuple[int, float, bool]]:
                      "_update_positions", "_run_scores", "_state_cost", "_score_state"):  # fmt: skip
             if not hasattr(module[name], "py_func"):  # not compiled yet (two threads may both get here)
                 module[name] = njit(cache=True, nogil=True)(module[name])
-        return module["_score_state"]
+        return cast("Callable[..., tuple[int, float, bool]]", module["_score_state"])
 
 
 def _score_state(
@@ -470,7 +470,7 @@ def _changed_runs(active: np.ndarray, switch_index: np.ndarray, flags: np.ndarra
     return count
 
 
-def _rebase(factor: tuple, run_index: np.ndarray, run_data: np.ndarray, switch_index: np.ndarray,
+def _rebase(factor: tuple[np.ndarray, ...], run_index: np.ndarray, run_data: np.ndarray, switch_index: np.ndarray,
             flags: np.ndarray, fields: np.ndarray, slot: np.ndarray, counters: np.ndarray, run_work: np.ndarray,
             node_work: np.ndarray) -> bool:  # fmt: skip
     """Make the state's switches the reference: factorise its normal matrix, solve its headings and heights.

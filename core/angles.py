@@ -22,11 +22,13 @@ import math
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import FloatArray
+
 TWO_PI = 2.0 * math.pi
 """One turn, 2π (rad)."""
 
 
-def wrap_angle(angle: npt.ArrayLike) -> np.ndarray:
+def wrap_angle(angle: npt.ArrayLike) -> FloatArray:
     """Return angles wrapped to (−π, π] as float64: ``remainder(a + π, 2π) − π``, −π given as π."""
     a = np.asarray(angle, dtype=np.float64)
     wrapped = np.remainder(a + math.pi, TWO_PI) - math.pi
@@ -46,7 +48,7 @@ def wrap_angle_scalar(angle: float) -> float:
     return math.pi if wrapped == -math.pi else wrapped
 
 
-def wrap_angle_below_pi(angle: npt.ArrayLike) -> np.ndarray:
+def wrap_angle_below_pi(angle: npt.ArrayLike) -> FloatArray:
     """Return angles wrapped to [−π, π) as float64: ``remainder(a + π, 2π) − π``, π given as −π."""
     return np.remainder(np.asarray(angle, dtype=np.float64) + math.pi, TWO_PI) - math.pi
 

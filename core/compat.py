@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from core.angles import TWO_PI
+from core.arrays import FloatArray, IntArray
 
 
 def clip_rad_180(angle: float) -> float:
@@ -47,16 +48,16 @@ def signed_delta_rad(angle1: float, angle2: float) -> float:
     return delta if direction > 0.0 else -delta
 
 
-def sweep_order(src: np.ndarray) -> np.ndarray:
+def sweep_order(src: IntArray) -> IntArray:
     """Return link indices in OpenRatSLAM's sweep order: by source id, then by creation."""
     return np.argsort(src, kind="stable")
 
 
 def iterate(
-    poses: np.ndarray,
-    src: np.ndarray,
-    dst: np.ndarray,
-    transform: np.ndarray,
+    poses: FloatArray,
+    src: IntArray,
+    dst: IntArray,
+    transform: FloatArray,
     loops: int,
     correction: float,
 ) -> None:

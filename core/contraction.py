@@ -37,10 +37,14 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from types import ModuleType
+from typing import cast
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
+
+from core.arrays import BoolArray, FloatArray, Int32Array, IntArray, ScalarT
 
 LANDMARKS = 8  # landmarks of each contracted graph: 8 distances per junction, 8 bounds per settled junction
 _Way = tuple[int, float, int]  # (junction index, cost, side): side 0 at a junction, -1 via the a end, +1 via b
@@ -59,21 +63,21 @@ class Chains:
     """
 
     n: int
-    chain: np.ndarray
-    order: np.ndarray
-    start: np.ndarray
-    position: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    first_link: np.ndarray
-    last_link: np.ndarray
-    inner_links: np.ndarray
-    junctions: np.ndarray
-    junction_id: np.ndarray
-    component: np.ndarray
+    chain: IntArray
+    order: IntArray
+    start: IntArray
+    position: IntArray
+    a: IntArray
+    b: IntArray
+    first_link: IntArray
+    last_link: IntArray
+    inner_links: IntArray
+    junctions: IntArray
+    junction_id: IntArray
+    component: Int32Array
 
     @classmethod
-    def build(cls, n: int, lo: np.ndarray, hi: np.ndarray) -> Chains:
+    def build(cls, n: int, lo: IntArray, hi: IntArray) -> Chains:
         """Decompose the graph of links ``lo[k]``–``hi[k]`` (``lo < hi``, each pair once) into chains."""
         degree = np.bincount(lo, minlength=n) + np.bincount(hi, minlength=n)
         inner = degree == 2
@@ -140,7 +144,7 @@ class ContractedGraph:
     """
 
     def __init__(
-        self, chains: Chains, lo: np.ndarray, hi: np.ndarray, weight: np.ndarray, points: np.ndarray | None = None
+        self, chains: Chains, lo: IntArray, hi: IntArray, weight: FloatArray, points: FloatArray | None = None
     ) -> None:
         self.chains = c = chains
         n, count = c.n, c.start.size - 1
@@ -211,13 +215,13 @@ class ContractedGraph:
             return best, self._along(source, target)
         return None
 
-    def _goal(self, target: int) -> np.ndarray:
+    def _goal(self, target: int) -> FloatArray:
         """Return the target's position, the point the search's lower bound measures to (zeros: no bound)."""
         if self.scale > 0 and self.points is not None:
             return np.asarray(self.points[target, :3], dtype=np.float64)
         return np.zeros(3)
 
-    def _landmark_goal(self, target: int) -> np.ndarray:
+    def _landmark_goal(self, target: int) -> FloatArray:
         """Return each landmark's distance to ``target``: through the nearer of its ways in when on a chain."""
         c = self.chains
         chain = int(c.chain[target])
@@ -251,9 +255,9 @@ class ContractedGraph:
         """Return the nodes from ``source`` to ``target`` along their shared chain."""
         i, j = int(self.chains.position[source]), int(self.chains.position[target])
         order = self.chains.order
-        return order[i : j + 1].tolist() if i <= j else order[j : i + 1][::-1].tolist()
+        return cast(list[int], order[i : j + 1].tolist() if i <= j else order[j : i + 1][::-1].tolist())
 
-    def _expand(self, source: int, target: int, starts: list[_Way], end: _Way, pred: np.ndarray) -> list[int]:
+    def _expand(self, source: int, target: int, starts: list[_Way], end: _Way, pred: IntArray) -> list[int]:
         """Return the node ids of the contracted path to ``end`` (``pred``: −1 at a way in), with the chain ends."""
         c = self.chains
         m = c.junctions.size
@@ -266,9 +270,9 @@ class ContractedGraph:
             pieces.insert(0, self._to_end(source, side))
         if end[2] != 0:
             pieces.append(self._to_end(target, end[2])[::-1])
-        return np.concatenate(pieces).tolist()
+        return cast(list[int], np.concatenate(pieces).tolist())
 
-    def _to_end(self, node: int, side: int) -> np.ndarray:
+    def _to_end(self, node: int, side: int) -> IntArray:
         """Return the chain nodes from ``node`` to its chain's ``a`` end (side -1) or ``b`` end (+1), inclusive."""
         c = self.chains
         chain, i = int(c.chain[node]), int(c.position[node])
@@ -277,7 +281,7 @@ class ContractedGraph:
         return c.order[i : c.start[chain + 1]]
 
 
-def landmark_distances(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, count: int) -> np.ndarray:
+def landmark_distances(indptr: IntArray, indices: IntArray, data: FloatArray, count: int) -> FloatArray:
     """Return (k, m) distances from ``k ≤ count`` landmarks to every node of the CSR graph (inf: not connected).
 
     Landmarks are chosen farthest first (Goldberg and Harrelson 2005): the first is the node farthest from
@@ -289,7 +293,7 @@ def landmark_distances(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray
         return np.zeros((0, max(m, 1)))
     graph = sp.csr_matrix((data, indices, indptr), shape=(m, m))
     nearest = dijkstra(graph, directed=True, indices=[0])[0]
-    rows: list[np.ndarray] = []
+    rows: list[FloatArray] = []
     for _ in range(min(count, m)):
         finite = np.isfinite(nearest)
         far = int(np.argmax(~finite)) if not finite.all() else int(np.argmax(nearest))
@@ -299,7 +303,7 @@ def landmark_distances(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray
     return np.ascontiguousarray(np.vstack(rows))
 
 
-def cost_per_metre(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray, points: np.ndarray | None) -> float:
+def cost_per_metre(lo: IntArray, hi: IntArray, weight: FloatArray, points: FloatArray | None) -> float:
     """Return a scale ``s`` with ``weight[k] ≥ s · ‖points[lo[k]] − points[hi[k]]‖`` for every link (0: none).
 
     ``s`` is the least cost per metre of straight line over the links, lowered by one part in 10⁶ for
@@ -320,18 +324,18 @@ def cost_per_metre(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray, points: n
     return scale if np.isfinite(scale) and scale > 0 else 0.0
 
 
-def _pattern(n: int, lo: np.ndarray, hi: np.ndarray) -> sp.csr_matrix:
+def _pattern(n: int, lo: IntArray, hi: IntArray) -> sp.csr_matrix:
     """Return the (n, n) adjacency pattern (ones) of links ``lo``–``hi``."""
     return sp.csr_matrix((np.ones(lo.size), (lo, hi)), shape=(n, n))
 
 
-def _inner_components(n: int, lo: np.ndarray, hi: np.ndarray, inner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _inner_components(n: int, lo: IntArray, hi: IntArray, inner: BoolArray) -> tuple[Int32Array, IntArray]:
     """Return component labels of the subgraph induced by the ``inner`` nodes, and its links (indices)."""
     links = np.flatnonzero(inner[lo] & inner[hi])
     return connected_components(_pattern(n, lo[links], hi[links]), directed=False)[1], links
 
 
-def _frozen(array: np.ndarray) -> np.ndarray:
+def _frozen(array: npt.NDArray[ScalarT]) -> npt.NDArray[ScalarT]:
     """Return ``array`` made read-only: a built graph is shared by concurrent queries and never written."""
     array.setflags(write=False)
     return array

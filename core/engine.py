@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import FloatArray, IntArray, UInt8Array
 from core.config import Departure
 from core.experience_map import ExperienceMap, LinkKind
 from core.gate import EventGate
@@ -40,6 +41,7 @@ from core.visual_odometry import VisualOdometry
 
 if TYPE_CHECKING:
     from core.config import Params
+    from core.mlif import MlifPoseCells
     from core.neocortex import NeocortexViewCells
 
 
@@ -52,9 +54,20 @@ def view_cells_class(params: Params) -> type[LocalViewCells] | type[NeocortexVie
     return LocalViewCells
 
 
-def pose_cells_class(params: Params) -> type[PoseCellNetwork] | type[NeuroslamPoseCells]:
-    """Return the pose cells of ``params.engine``: RatSLAM's lattice, or NeuroSLAM's grid and head-direction cells."""
-    return NeuroslamPoseCells if params.engine == "neuroslam" else PoseCellNetwork
+def pose_cells_class(
+    params: Params,
+) -> type[PoseCellNetwork] | type[NeuroslamPoseCells] | type[MlifPoseCells]:
+    """Return the pose cells of ``params.engine``: RatSLAM's lattice, or NeuroSLAM's grid and head-direction cells.
+
+    ``pc_model = mlif`` (ratslam engine) gives the PC-MLIF spiking networks (torch, lazy import).
+    """
+    if params.engine == "neuroslam":
+        return NeuroslamPoseCells
+    if params.pc_model == "mlif":
+        from core.mlif import MlifPoseCells
+
+        return MlifPoseCells
+    return PoseCellNetwork
 
 
 class Action(IntEnum):
@@ -98,13 +111,13 @@ class Engine:
         self.origin = origin
         self.local_view = view_cells_class(params)(params) if local_view is None else local_view
         self.odometry = VisualOdometry(params)
-        self.pose_cells: PoseCellNetwork | NeuroslamPoseCells = pose_cells_class(params)(params)
+        self.pose_cells: PoseCellNetwork | NeuroslamPoseCells | MlifPoseCells = pose_cells_class(params)(params)
         self.map = ExperienceMap(params, self.pose_cells.rank)
         self.gate = EventGate(params)
         self.lv_origin: list[int] = []
         self.lv_place: list[int] = []
         """Per template: the experience current when it was made (−1: none yet)."""
-        self.lv_place_offset: list[np.ndarray] = []
+        self.lv_place_offset: list[FloatArray] = []
         """Per template: the odometry accumulated since that experience then (x, y, z in the map frame, heading)."""
         self.lv_place_yaw: list[float] = []
         """Per template: that experience's heading then, so that its place turns as relaxation turns it."""
@@ -114,7 +127,7 @@ class Engine:
 
     # ------------------------------------------------------------------ step
     def step(
-        self, image: np.ndarray, motion: Motion | None, stamp: float, sonar: np.ndarray | None = None
+        self, image: UInt8Array, motion: Motion | None, stamp: float, sonar: UInt8Array | None = None
     ) -> StepResult:
         """Process one camera frame with the motion since the previous one.
 
@@ -328,7 +341,7 @@ def template_rows(
     return out
 
 
-def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> np.ndarray:
+def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> FloatArray:
     """Return (n,) the heading of each template's experience when the template was made (``lv_place_yaw``).
 
     NaN where unknown (templates past the key's end, or all of them in snapshots made before it): their
@@ -337,7 +350,7 @@ def template_place_yaws(state: Mapping[str, np.ndarray], n: int) -> np.ndarray:
     return template_rows(state, "lv_place_yaw", n, np.nan, np.float64)
 
 
-def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+def template_place_rows(state: Mapping[str, np.ndarray], n: int) -> tuple[IntArray, FloatArray]:
     """Return (place (n,), offset (n, 4)) of a snapshot's first n templates (``lv_place``/``lv_place_offset``).
 
     The keys are optional: templates past their end, or all of them in snapshots made before the keys

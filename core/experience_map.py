@@ -75,7 +75,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -85,6 +85,7 @@ from core import compat
 from core._buffers import GrowBuffer
 from core.angles import wrap_angle, wrap_angle_below_pi
 from core.angles import wrap_angle_scalar as wrap_scalar
+from core.arrays import BoolArray, FloatArray, Int8Array, Int32Array, IntArray
 from core.config import Departure
 from core.links import SWITCHABLE_KINDS
 from core.links import LinkKind as LinkKind
@@ -112,12 +113,12 @@ if TYPE_CHECKING:
 class _Standby:
     """Reckoning links on standby for one robust check (:meth:`ExperienceMap._standby`)."""
 
-    src: np.ndarray  # (M,) the last experience created before a relocalisation
-    dst: np.ndarray  # (M,) the experience created after it
-    link: np.ndarray  # (M, 6) dead reckoning between them: dx, dy, dz, dyaw (src frame), dt, distance
-    partner: np.ndarray  # (M,) the odometry link each stands in for
-    switchable: np.ndarray  # (K,) odometry links made switchable by a reckoning link
-    closure: np.ndarray  # (M,) the loop link from src made before the partner (the relocalisation's), or −1
+    src: IntArray  # (M,) the last experience created before a relocalisation
+    dst: IntArray  # (M,) the experience created after it
+    link: FloatArray  # (M, 6) dead reckoning between them: dx, dy, dz, dyaw (src frame), dt, distance
+    partner: IntArray  # (M,) the odometry link each stands in for
+    switchable: BoolArray  # (K,) odometry links made switchable by a reckoning link
+    closure: IntArray  # (M,) the loop link from src made before the partner (the relocalisation's), or −1
 
 
 class ExperienceMap:
@@ -174,17 +175,17 @@ class ExperienceMap:
         return len(self._from)
 
     @property
-    def poses(self) -> np.ndarray:
+    def poses(self) -> FloatArray:
         """Return experience poses (E, 4): x, y, z, yaw (view)."""
         return self._pose.view
 
     @property
-    def lattice_coords(self) -> np.ndarray:
+    def lattice_coords(self) -> FloatArray:
         """Return experience lattice coordinates (E, D) (view)."""
         return self._pc.view
 
     @property
-    def lattice_levers(self) -> np.ndarray:
+    def lattice_levers(self) -> FloatArray:
         """Return (E,) each experience's lattice lever arm: cells from the anchors of the merges that moved it.
 
         A merge moves a session's lattice coordinates by one rigid lattice transform about its anchor
@@ -194,12 +195,12 @@ class ExperienceMap:
         return self._lever.view
 
     @property
-    def templates(self) -> np.ndarray:
+    def templates(self) -> IntArray:
         """Return each experience's template id (E,) (view)."""
         return self._template.view
 
     @property
-    def links(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def links(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray, Int8Array]:
         """Return (from, to, transform (K,4), dt, distance, kind) views."""
         return (
             self._from.view,
@@ -211,7 +212,7 @@ class ExperienceMap:
         )
 
     @property
-    def link_active(self) -> np.ndarray:
+    def link_active(self) -> BoolArray:
         """Return each link's status (K,) bool: False when the robust check switched it off (view)."""
         return self._active.view
 
@@ -228,13 +229,13 @@ class ExperienceMap:
             self._work.push(np.flatnonzero(self._incidence.degree > 0))
 
     @property
-    def relax_queue(self) -> np.ndarray:
+    def relax_queue(self) -> IntArray:
         """Return the experiences waiting for relaxation, in order (a copy)."""
         return self._work.items()
 
-    def anchors(self) -> np.ndarray:
+    def anchors(self) -> BoolArray:
         """Return a boolean mask (E,) of the experiences relaxation never moves (one per connected part)."""
-        return roots(self._parent.view) == np.arange(self.count)
+        return cast(BoolArray, roots(self._parent.view) == np.arange(self.count))
 
     def experiences_of_template(self, template: int) -> list[int]:
         """Return the experiences created with ``template`` (OpenRatSLAM ``PosecellVisualTemplate.exps``)."""
@@ -270,7 +271,7 @@ class ExperienceMap:
             acc[4] += motion.dt
             acc[5] += step
 
-    def robot_pose(self) -> np.ndarray:
+    def robot_pose(self) -> FloatArray:
         """Return where the robot is now (4,): the current experience plus the odometry accumulated since.
 
         Menezes et al. Eq. 7's p_i + Δp_ij, facing the accumulated (absolute) heading; before the first
@@ -281,7 +282,7 @@ class ExperienceMap:
             pose[:3] += self._pose.view[self.current, :3]
         return pose
 
-    def create_experience(self, template: int, lattice: np.ndarray, stamp: float, origin: int) -> int:
+    def create_experience(self, template: int, lattice: FloatArray, stamp: float, origin: int) -> int:
         """Create an experience at the current one plus the accumulated odometry; link and select it.
 
         Menezes et al. Eq. 7 / OpenRatSLAM2 Eq. 7: p_j = p_i + Δp_ij, facing the
@@ -349,7 +350,7 @@ class ExperienceMap:
         self,
         source: int,
         target: int,
-        transform: np.ndarray,
+        transform: FloatArray,
         dt: float,
         distance: float,
         kind: LinkKind,
@@ -370,7 +371,7 @@ class ExperienceMap:
         return True
 
     def _append_link(
-        self, source: int, target: int, transform: tuple[float, ...] | np.ndarray, dt: float, distance: float, kind: int
+        self, source: int, target: int, transform: tuple[float, ...] | FloatArray, dt: float, distance: float, kind: int
     ) -> None:
         link = self._from.append(source)
         self._to.append(target)
@@ -515,8 +516,8 @@ class ExperienceMap:
         return self._operator
 
     def _active_links_of(
-        self, ids: np.ndarray, links: np.ndarray, owner: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, ids: IntArray, links: Int32Array, owner: IntArray
+    ) -> tuple[IntArray, Int32Array, IntArray]:
         """Drop switched-off links from a gathered block, and the block members left without a link."""
         keep = self._active.view[links]
         links, owner = links[keep], owner[keep]
@@ -569,7 +570,7 @@ class ExperienceMap:
         self._adopt(result.pose)
         return True
 
-    def _adopt(self, pose: np.ndarray) -> None:
+    def _adopt(self, pose: FloatArray) -> None:
         """Move every experience to ``pose`` (the check's fixed point over the active links; turns the accumulator).
 
         The check solved with the heading windings dead-reckoned along the odometry
@@ -584,7 +585,7 @@ class ExperienceMap:
             self._turn_accumulator(wrap_scalar(float(current[self.current, 3]) - start_yaw))
         self._work.clear()
 
-    def _standby(self, src: np.ndarray, dst: np.ndarray, kind: np.ndarray) -> _Standby:
+    def _standby(self, src: IntArray, dst: IntArray, kind: Int8Array) -> _Standby:
         """Return the reckoning links not yet in the map, and which odometry links they stand in for.
 
         Each reckoning link (a → n) pairs with the odometry link into ``n`` from the experience a
@@ -622,7 +623,7 @@ class ExperienceMap:
             self._turn_accumulator(wrap_scalar(float(pose[self.current, 3]) - start_yaw))
         self._work.clear()
 
-    def full_corrections(self) -> np.ndarray:
+    def full_corrections(self) -> FloatArray:
         """Return every experience's relaxation correction (E, 4) under the current poses (no clamps)."""
         src, dst, transform = self._from.view, self._to.view, self._transform.view
         return self._relaxation_operator() @ residuals(self._pose.view, src, dst, transform)
@@ -694,7 +695,7 @@ class ExperienceMap:
         return run
 
     @property
-    def origins(self) -> np.ndarray:
+    def origins(self) -> IntArray:
         """Return each experience's origin tag (the session that created it; a view, not a copy)."""
         return self._origin.view
 
@@ -831,7 +832,7 @@ class ExperienceMap:
         return em
 
 
-def per_experience_array(state: Mapping[str, object], key: str, n: int) -> np.ndarray:
+def per_experience_array(state: Mapping[str, object], key: str, n: int) -> FloatArray:
     """Return the optional per-experience float array ``key`` of a snapshot fitted to ``n`` experiences.
 
     Experiences past the end of the stored array (or all, when the state lacks it) get 0; entries past the
@@ -843,7 +844,7 @@ def per_experience_array(state: Mapping[str, object], key: str, n: int) -> np.nd
     return out
 
 
-def _clamp(correction: np.ndarray, step_cap: float, norm_cap: float, total: np.ndarray | None) -> None:
+def _clamp(correction: FloatArray, step_cap: float, norm_cap: float, total: FloatArray | None) -> None:
     """Apply the thesis clamps in place: per-iteration translation ≤ ``step_cap``, running total ≤ ``norm_cap``."""
     if step_cap > 0:
         norms = np.sqrt(np.einsum("ij,ij->i", correction[:, :3], correction[:, :3]))
@@ -860,7 +861,7 @@ def _clamp(correction: np.ndarray, step_cap: float, norm_cap: float, total: np.n
         total[:] = proposed
 
 
-def _component_minimum(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def _component_minimum(n: int, src: IntArray, dst: IntArray) -> IntArray:
     """Return, for every experience, the lowest id of its connected component (a flat union-find parent)."""
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -871,7 +872,7 @@ def _component_minimum(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return first[labels]
 
 
-def _last_loop_from(src: np.ndarray, kind: np.ndarray, start: np.ndarray, before: np.ndarray) -> np.ndarray:
+def _last_loop_from(src: IntArray, kind: Int8Array, start: IntArray, before: IntArray) -> IntArray:
     """Return, per pair, the index of the last loop link leaving ``start[i]`` below ``before[i]``, or −1.
 
     Links are numbered in the order they were made, so this is the closure the robot made from the

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import FloatArray
 
-def wrapped_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
+
+def wrapped_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> FloatArray:
     """Return per-axis minimum distances |a-b| on a periodic lattice of size ``dims``.
 
     Multisession RatSLAM Eq. 2: distances respect the network's periodic boundaries.
@@ -17,13 +21,13 @@ def wrapped_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np
     return np.minimum(d, dims_f - d)
 
 
-def wrapped_distance(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
+def wrapped_distance(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> FloatArray:
     """Return the wrapped Euclidean lattice distance (OpenRatSLAM ``get_delta_pc``), last axis summed."""
     d = wrapped_delta(a, b, dims)
-    return np.sqrt(np.sum(d * d, axis=-1))
+    return cast(FloatArray, np.sqrt(np.sum(d * d, axis=-1)))
 
 
-def gaussian_kernel_1d(size: int, var: float) -> np.ndarray:
+def gaussian_kernel_1d(size: int, var: float) -> FloatArray:
     """Return a normalised 1-D Gaussian of odd ``size`` and width ``var``.
 
     OpenRatSLAM builds its excitatory/inhibitory weights as
@@ -33,10 +37,10 @@ def gaussian_kernel_1d(size: int, var: float) -> np.ndarray:
     centre = size // 2
     offsets = np.arange(size, dtype=np.float64) - centre
     k = np.exp(-(offsets * offsets) / (2.0 * var * var))
-    return k / k.sum()
+    return cast(FloatArray, k / k.sum())
 
 
-def circulant_kernel(dim: int, size: int, var: float) -> np.ndarray:
+def circulant_kernel(dim: int, size: int, var: float) -> FloatArray:
     """Return the (dim, dim) matrix of a circular convolution with the 1-D Gaussian of ``size`` cells.
 
     ``C[i, j] = k[(i − j) mod dim]``: the kernel's centre sits on the diagonal and
@@ -49,4 +53,4 @@ def circulant_kernel(dim: int, size: int, var: float) -> np.ndarray:
     wrapped = np.zeros(dim, dtype=np.float64)
     np.add.at(wrapped, (np.arange(size) - size // 2) % dim, k1)
     index = np.arange(dim)
-    return wrapped[(index[:, None] - index[None, :]) % dim]
+    return cast(FloatArray, wrapped[(index[:, None] - index[None, :]) % dim])

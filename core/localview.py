@@ -37,13 +37,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from core._buffers import GrowBuffer, SharedRows
 from core._match_kernel import best_pair, fixed_point_bits, quantise
 from core._match_kernel import load_compiled as load_compiled  # re-exported: callers load the kernel early
+from core.arrays import Float32Array, FloatArray, Int32Array, IntArray, UInt8Array
 from core.config import Departure
 
 if TYPE_CHECKING:
@@ -59,18 +60,18 @@ class ImageError(ValueError):
     """An image cannot be turned into a template with these parameters (shape, crop or size)."""
 
 
-def greyscale(image: np.ndarray) -> np.ndarray:
+def greyscale(image: UInt8Array) -> FloatArray:
     """Return float64 grey values 0..255: the mean of the colour channels (OpenRatSLAM, RGB averaged)."""
     pixels = np.asarray(image)
     if pixels.ndim == 3:
-        return pixels[..., :3].astype(np.float64).mean(axis=2)
+        return cast(FloatArray, pixels[..., :3].astype(np.float64).mean(axis=2))
     if pixels.ndim != 2:
         msg = f"image must be (H, W) or (H, W, 3), got shape {pixels.shape}"
         raise ImageError(msg)
     return pixels.astype(np.float64)
 
 
-def crop(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np.ndarray:
+def crop(grey: FloatArray, x_min: int, x_max: int, y_min: int, y_max: int) -> FloatArray:
     """Return ``grey[y_min:y_max, x_min:x_max]`` where −1 means "to the end" (OpenRatSLAM image_crop_*)."""
     h, w = grey.shape
     x1 = w if x_max < 0 else min(x_max, w)
@@ -82,7 +83,7 @@ def crop(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np
     return region
 
 
-def block_average(region: np.ndarray, ty: int, tx: int, *, integral: bool = False) -> np.ndarray:
+def block_average(region: FloatArray, ty: int, tx: int, *, integral: bool = False) -> FloatArray:
     """Average ``region`` into ty × tx blocks of integer size; leftover rows/columns are dropped.
 
     With ``integral`` (every value a whole number, as a mono image's grey levels) each block's sum is exact
@@ -96,17 +97,17 @@ def block_average(region: np.ndarray, ty: int, tx: int, *, integral: bool = Fals
         raise ImageError(msg)
     region = region[: by * ty, : bx * tx]
     if not integral:
-        return region.reshape(ty, by, tx, bx).mean(axis=(1, 3))
+        return cast(FloatArray, region.reshape(ty, by, tx, bx).mean(axis=(1, 3)))
     columns = region[:, 0::bx].copy()
     for k in range(1, bx):
         columns += region[:, k::bx]
     blocks = columns[0::by].copy()
     for k in range(1, by):
         blocks += columns[k::by]
-    return blocks / (by * bx)
+    return cast(FloatArray, blocks / (by * bx))
 
 
-def patch_normalise(values: np.ndarray, radius: int, min_std: float, flat: float = 0.5) -> np.ndarray:
+def patch_normalise(values: FloatArray, radius: int, min_std: float, flat: float = 0.5) -> FloatArray:
     """Patch normalisation: ``clip(((v − μ)/σ + 3)/6, 0, 1)`` over the (2r+1)² neighbourhood.
 
     As OpenRatSLAM's ``convert_view_to_view_template``: positions outside the
@@ -143,7 +144,7 @@ class LocalViewCells:
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
-        self.last_view: np.ndarray | None = None
+        self.last_view: Float32Array | None = None
         self.last_mean = 0.0
         self.last_error = math.inf
         self._column_rad = self._full_width_column_rad()  # heading per template column (vt_shift_heading)
@@ -176,16 +177,16 @@ class LocalViewCells:
         return len(self._means)
 
     @property
-    def templates(self) -> np.ndarray:
+    def templates(self) -> Float32Array:
         """Return the stored templates (N, ty, tx) float32, read-only: a view of one block, else the blocks joined."""
         return self._templates.view
 
     @property
-    def means(self) -> np.ndarray:
+    def means(self) -> FloatArray:
         """Return the template means (N,) (view)."""
         return self._means.view
 
-    def add_templates(self, templates: np.ndarray, means: np.ndarray, share: bool = False) -> None:
+    def add_templates(self, templates: Float32Array, means: np.ndarray, share: bool = False) -> None:
         """Append templates with their means and fixed-point copies (new views, merge, restore, benchmarks).
 
         ``share`` (before any template is made): the float32 templates are kept as given, read-only, not
@@ -207,7 +208,7 @@ class LocalViewCells:
                 self._extend_fixed(everything[: len(everything) - len(stored)])
         self._extend_fixed(stored)
 
-    def _extend_fixed(self, templates: np.ndarray) -> None:
+    def _extend_fixed(self, templates: Float32Array) -> None:
         """Append templates (n, ty, tx) to the fixed-point store, ``QUANTISE_ROWS`` at a time.
 
         The store is filled in blocks so that a restore of a large map needs temporaries of one block only.
@@ -218,7 +219,7 @@ class LocalViewCells:
         for first in range(0, len(templates), QUANTISE_ROWS):
             self._fixed.extend(self._to_fixed(templates[first : first + QUANTISE_ROWS]))
 
-    def _to_fixed(self, templates: np.ndarray) -> np.ndarray:
+    def _to_fixed(self, templates: Float32Array) -> Int32Array:
         """Return templates (n, ty, tx) in the matcher's fixed point, panoramic ones widened to wrap."""
         fixed = quantise(templates, self._bits)
         if self._span > fixed.shape[-1]:
@@ -226,7 +227,7 @@ class LocalViewCells:
         return fixed
 
     # ------------------------------------------------------------- templates
-    def make_template(self, image: np.ndarray) -> tuple[np.ndarray, float]:
+    def make_template(self, image: UInt8Array) -> tuple[Float32Array, float]:
         """Build the template of ``image``: (float32 (ty, tx) in [0, 1], mean).
 
         OpenRatSLAM ``convert_view_to_view_template``: crop, greyscale, block
@@ -249,7 +250,7 @@ class LocalViewCells:
         template = values.astype(np.float32)
         return template, float(template.mean(dtype=np.float64))
 
-    def match(self, template: np.ndarray, mean: float, limit: float | None = None) -> tuple[int, float, float]:
+    def match(self, template: Float32Array, mean: float, limit: float | None = None) -> tuple[int, float, float]:
         """Return (best template id or −1, error, relative_rad) without creating a template.
 
         OpenRatSLAM ``compare``: templates whose mean differs by more than
@@ -276,7 +277,7 @@ class LocalViewCells:
         return self._best_of(template, np.flatnonzero(np.abs(self._means.view - mean) <= prefilter), limit)
 
     def match_among(
-        self, template: np.ndarray, mean: float, ids: np.ndarray, limit: float | None = None
+        self, template: Float32Array, mean: float, ids: IntArray, limit: float | None = None
     ) -> tuple[int, float, float]:
         """Return :meth:`match`'s answer restricted to the templates ``ids`` (same prefilter, bounds, ties).
 
@@ -287,7 +288,7 @@ class LocalViewCells:
         prefilter = self.params.vt_match_threshold + self.params.vt_mean_prefilter_epsilon
         return self._best_of(template, ids[np.abs(self._means.view[ids] - mean) <= prefilter], limit)
 
-    def _best_of(self, template: np.ndarray, candidates: np.ndarray, limit: float | None) -> tuple[int, float, float]:
+    def _best_of(self, template: Float32Array, candidates: IntArray, limit: float | None) -> tuple[int, float, float]:
         """Return (best of the sorted, prefiltered template ids ``candidates`` or −1, error, relative_rad)."""
         p = self.params
         if candidates.size == 0:
@@ -323,7 +324,7 @@ class LocalViewCells:
             relative = -float(self._view_shift(fixed_view, int(candidates[row]), width, start)) * self._column_rad
         return int(candidates[row]), error, relative
 
-    def view_heading(self, template: int, view: np.ndarray | None = None) -> float:
+    def view_heading(self, template: int, view: Float32Array | None = None) -> float:
         """Return a view's heading relative to ``template`` in radians, from its column shift.
 
         The robot's heading minus the template's, as ``vt_shift_heading`` gives it with every match
@@ -341,7 +342,7 @@ class LocalViewCells:
         fixed_view = quantise(np.asarray(view, dtype=np.float32), self._bits)
         return -float(self._view_shift(fixed_view, template, tx - 2 * start, start)) * self._column_rad
 
-    def _view_shift(self, fixed_view: np.ndarray, template: int, width: int, start: int) -> float:
+    def _view_shift(self, fixed_view: Int32Array, template: int, width: int, start: int) -> float:
         """Return the view's column shift against ``template`` to a fraction of a column (``vt_shift_heading``).
 
         The summed |difference| at every whole offset 0..2·start, then the vertex of the parabola through the
@@ -359,7 +360,7 @@ class LocalViewCells:
                 fraction = 0.5 * (sums[best - 1] - sums[best + 1]) / curvature
         return best + fraction - start
 
-    def process(self, image: np.ndarray) -> tuple[int, float, bool]:
+    def process(self, image: UInt8Array) -> tuple[int, float, bool]:
         """Match ``image`` or store it as a new template; return (id, relative_rad, created)."""
         template, mean = self.make_template(image)
         best, error, relative = self.match(template, mean, limit=self.params.vt_match_threshold)

@@ -13,6 +13,7 @@ from typing import Literal
 
 import numpy as np
 
+from core.arrays import BoolArray, FloatArray, IntArray
 from core.contraction import Chains, ContractedGraph
 
 Weight = Literal["time", "distance"]
@@ -24,7 +25,7 @@ class PathResult:
     """A shortest path: experience ids, their poses (N, 4: x, y, z, yaw) and the total cost."""
 
     nodes: list[int]
-    poses: np.ndarray
+    poses: FloatArray
     cost: float
     weight: Weight
 
@@ -54,18 +55,18 @@ class ExperienceGraph:
 
     def __init__(
         self,
-        poses: np.ndarray,
-        link_from: np.ndarray,
-        link_to: np.ndarray,
-        link_dt: np.ndarray,
-        link_distance: np.ndarray,
+        poses: FloatArray,
+        link_from: IntArray,
+        link_to: IntArray,
+        link_dt: FloatArray,
+        link_distance: FloatArray,
     ) -> None:
         self.poses = np.asarray(poses, dtype=np.float64)
         n = self.poses.shape[0]
         self.size = n
         lo, hi, costs = _simple_links(n, link_from, link_to, {"time": link_dt, "distance": link_distance})
         self._graphs: dict[str, ContractedGraph] = {}
-        shared: tuple[np.ndarray, Chains] | None = None
+        shared: tuple[BoolArray, Chains] | None = None
         for name, cost in costs.items():
             usable = np.isfinite(cost)
             if shared is None or not np.array_equal(shared[0], usable):
@@ -99,8 +100,8 @@ class ExperienceGraph:
 
 
 def _simple_links(
-    n: int, link_from: np.ndarray, link_to: np.ndarray, weights: dict[str, np.ndarray]
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    n: int, link_from: IntArray, link_to: IntArray, weights: dict[str, FloatArray]
+) -> tuple[IntArray, IntArray, dict[str, FloatArray]]:
     """Return the distinct undirected links ``lo < hi`` and, per weight, the cheapest finite cost of each.
 
     Costs are raised to at least ``1e-9``; a pair whose links all have a non-finite cost gets NaN or inf.

@@ -29,12 +29,14 @@ place are consistent with one another.
 from __future__ import annotations
 
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, dijkstra
 
 from core.angles import wrap_angle
+from core.arrays import BoolArray, FloatArray, IntArray
 from core.relaxation import sums_to_root
 from core.se3 import compose, inverse, relative
 
@@ -87,7 +89,7 @@ COMPILED_PAIRS = 4096
 class TreePaths:
     """Path lengths between experiences along a spanning forest (lowest common ancestor by binary lifting)."""
 
-    def __init__(self, n: int, src: np.ndarray, dst: np.ndarray, length: np.ndarray, roots: np.ndarray) -> None:
+    def __init__(self, n: int, src: IntArray, dst: IntArray, length: FloatArray, roots: BoolArray) -> None:
         graph = sp.csr_matrix((np.abs(length) + 1e-12, (src, dst)), shape=(n, n))
         graph = graph.maximum(graph.T).tocsr()
         parent = np.arange(n)
@@ -111,7 +113,7 @@ class TreePaths:
         for k in range(1, levels):
             self.up[k] = self.up[k - 1][self.up[k - 1]]
 
-    def distance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def distance(self, a: IntArray, b: IntArray) -> FloatArray:
         """Return the path length between ``a[k]`` and ``b[k]`` (inf where no path joins them).
 
         Through their lowest common ancestor: from ``COMPILED_PAIRS`` pairs on by the compiled loop
@@ -127,7 +129,7 @@ class TreePaths:
         joined = (self.component[a] == self.component[b]) & (self.component[a] >= 0)
         return np.where(joined, out, np.inf)
 
-    def ancestors(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def ancestors(self, a: IntArray, b: IntArray) -> IntArray:
         """Return the lowest common ancestor of each pair (a[k], b[k]) by binary lifting, every pair at once."""
         a, b = a.copy(), b.copy()
         swap = self.depth[a] < self.depth[b]
@@ -144,7 +146,7 @@ class TreePaths:
         return np.where(x == y, x, self.up[0][x])
 
     @cached_property
-    def travelled(self) -> np.ndarray:
+    def travelled(self) -> FloatArray:
         """Return (n,) the metres from each tree's root counted along the links' direction (made when first asked)."""
         n, src, dst = self._links
         way = sp.csr_matrix((np.ones(src.size), (src, dst)), shape=(n, n))
@@ -155,7 +157,7 @@ class TreePaths:
             signed[child] = self._step[child] * np.sign(np.asarray(way[parent[child], child]).ravel())
         return sums_to_root(parent, signed)[0]
 
-    def along(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def along(self, a: IntArray, b: IntArray) -> FloatArray:
         """Return the metres from ``a[k]`` to ``b[k]`` counted along the links' direction (inf: no path).
 
         A link walked against its direction counts negative: what a heading drift per metre of
@@ -166,11 +168,11 @@ class TreePaths:
 
 
 def single_consistency(
-    pose: np.ndarray,
-    links: tuple[np.ndarray, np.ndarray, np.ndarray],
+    pose: FloatArray,
+    links: tuple[IntArray, IntArray, FloatArray],
     paths: TreePaths,
     scale: tuple[float, float, float],
-) -> np.ndarray:
+) -> FloatArray:
     """Return ``z`` (K,) of the cycle each link closes with the odometry between its own ends (inf: no path).
 
     ``links`` is (src, dst, transform) and ``scale`` (link length ``s``, drift, yaw drift), as for
@@ -214,7 +216,7 @@ def single_consistency(
     return np.where(np.isfinite(travelled), z, np.inf)
 
 
-def heading_bias(turn: np.ndarray, along: np.ndarray) -> float | None:
+def heading_bias(turn: FloatArray, along: FloatArray) -> float | None:
     """Return the odometry's heading drift per metre of travel (rad/m) that the closures' cycles show (None: unknown).
 
     A heading bias b (a gyro's or a visual odometry's, per metre driven) turns the dead-reckoned
@@ -245,8 +247,8 @@ def heading_bias(turn: np.ndarray, along: np.ndarray) -> float | None:
 
 
 def heading_consistency(
-    pose: np.ndarray, links: tuple[np.ndarray, np.ndarray, np.ndarray], paths: TreePaths
-) -> tuple[np.ndarray, np.ndarray]:
+    pose: FloatArray, links: tuple[IntArray, IntArray, FloatArray], paths: TreePaths
+) -> tuple[FloatArray, FloatArray]:
     """Return (E_ψ, L) (K,): the heading each link's cycle with the tree turns, and the tree path it takes.
 
     E = (X_i⁻¹ X_j) · T⁻¹ as in :func:`single_consistency` (its heading only), L = path(i, j) (inf: no path).
@@ -255,27 +257,27 @@ def heading_consistency(
     return _cycles(pose, links)[:, 3], paths.distance(src, dst)
 
 
-def turn_allowance(travelled: np.ndarray) -> np.ndarray:
+def turn_allowance(travelled: FloatArray) -> FloatArray:
     """Return the radians a cycle over L = ``travelled`` metres may turn: BRIDGED_TURN + BRIDGED_TURN_DRIFT·L."""
     return BRIDGED_TURN + BRIDGED_TURN_DRIFT * travelled
 
 
-def _cycles(pose: np.ndarray, links: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+def _cycles(pose: FloatArray, links: tuple[IntArray, IntArray, FloatArray]) -> FloatArray:
     """Return E = (X_i⁻¹ X_j) · T⁻¹ (K, 4) of each link (i → j, T): where its cycle with the poses misses."""
     src, dst, transform = links
     return compose(relative(pose[src], pose[dst]), inverse(transform))
 
 
 def pair_consistency(
-    pose: np.ndarray,
-    src: np.ndarray,
-    dst: np.ndarray,
-    transform: np.ndarray,
+    pose: FloatArray,
+    src: IntArray,
+    dst: IntArray,
+    transform: FloatArray,
     paths: TreePaths,
     length: float,
     drift: float,
     yaw_drift: float,
-) -> np.ndarray:
+) -> FloatArray:
     """Return ``z`` (K, K) of every pair of links (module docstring); the diagonal is 0."""
     k = src.size
     p, q = np.triu_indices(k, 1)
@@ -295,14 +297,14 @@ def pair_consistency(
 
 
 def _pair_z(
-    pose: np.ndarray,
-    links: tuple[np.ndarray, np.ndarray, np.ndarray],
+    pose: FloatArray,
+    links: tuple[IntArray, IntArray, FloatArray],
     paths: TreePaths,
     scale: tuple[float, float, float],
-    p: np.ndarray,
-    q: np.ndarray,
-    frames: tuple[np.ndarray, np.ndarray, np.ndarray],
-) -> np.ndarray:
+    p: IntArray,
+    q: IntArray,
+    frames: tuple[FloatArray, FloatArray, FloatArray],
+) -> FloatArray:
     """Return the cycle error ``z`` of link pairs (p[k], q[k]), with q's link taken the way round of shorter paths.
 
     ``links`` is (src, dst, transform) and ``scale`` (link length, drift, yaw drift), as for
@@ -329,7 +331,7 @@ def _pair_z(
     return best
 
 
-def greedy_clique(consistent: np.ndarray) -> np.ndarray:
+def greedy_clique(consistent: BoolArray) -> BoolArray:
     """Return a mask of mutually consistent links: by decreasing degree, each kept when it agrees with all kept."""
     degree = consistent.sum(axis=1)
     order = np.lexsort((np.arange(degree.size), -degree))
@@ -341,11 +343,11 @@ def greedy_clique(consistent: np.ndarray) -> np.ndarray:
 
 
 def map_consistency(
-    pose: np.ndarray,
-    links: tuple[np.ndarray, np.ndarray, np.ndarray],
-    graph: tuple[np.ndarray, np.ndarray, np.ndarray],
+    pose: FloatArray,
+    links: tuple[IntArray, IntArray, FloatArray],
+    graph: tuple[IntArray, IntArray, FloatArray],
     scale: tuple[float, float],
-) -> np.ndarray:
+) -> FloatArray:
     """Return ``z_map`` (K,) per link: its miss in the map as it stood over what the path between its ends allows.
 
     The translation part of :func:`single_consistency` with the map as it stood in place of the dead reckoning:
@@ -375,4 +377,4 @@ def map_consistency(
     matrix = sp.csr_matrix((w[first], (a[first], b[first])), shape=(n, n))
     starts, row = np.unique(src, return_inverse=True)
     path = dijkstra(matrix, indices=starts, limit=reach)[row, dst]
-    return miss / (drift * (path + s) + UNARY_REACH * s)
+    return cast(FloatArray, miss / (drift * (path + s) + UNARY_REACH * s))

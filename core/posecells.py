@@ -64,6 +64,7 @@ import numpy as np
 
 from core import _posecell_kernel as kernels
 from core._buffers import GrowBuffer
+from core.arrays import FloatArray, IntArray
 from core.config import Departure
 from core.lattice import circulant_kernel, wrapped_distance
 
@@ -81,7 +82,7 @@ def worth_compiling(shape: tuple[int, ...], updates: int) -> bool:
     """Return whether ``updates`` updates of a lattice of ``shape`` reach ``COMPILED_AFTER`` cell updates."""
     return updates * math.prod(shape) >= COMPILED_AFTER
 
-Taps = tuple[np.ndarray, np.ndarray]
+Taps = tuple[IntArray, FloatArray]
 """One separable factor of a kernel along one axis: (offsets o_k ascending, weights w_k)."""
 _NO_SHIFT = np.zeros(4)
 _NO_CORNERS = np.zeros((0, 5))
@@ -99,9 +100,9 @@ class Move:
 
     v: float
     one_cell: bool
-    corners: np.ndarray
-    z: np.ndarray
-    th: np.ndarray
+    corners: FloatArray
+    z: FloatArray
+    th: FloatArray
 
 
 _STILL = Move(0.0, False, _NO_CORNERS, _NO_SHIFT, _NO_SHIFT)
@@ -196,7 +197,7 @@ class PoseCellNetwork:
         )  # fmt: skip
         self.activity = b.views[out]
 
-    def _restart(self, cells: np.ndarray) -> None:
+    def _restart(self, cells: FloatArray) -> None:
         """Everything was inhibited (OpenRatSLAM asserts): restart from one cell at the decoded packet centre."""
         cells[...] = 0.0
         cells[tuple(int(b) % d for b, d in zip(self.best, self.shape, strict=True))] = 1.0
@@ -249,7 +250,7 @@ class PoseCellNetwork:
         )  # fmt: skip
         self.activity = b.views[out]
 
-    def decode(self) -> np.ndarray:
+    def decode(self) -> FloatArray:
         """Return the packet centre by population vector around the peak (OpenRatSLAM ``find_best``).
 
         The peak is the first maximum in OpenRatSLAM's scan order (θ outermost, x
@@ -276,7 +277,7 @@ class PoseCellNetwork:
             peak[axis] = int(index)
         return peak
 
-    def _decode_at(self, peak: list[int]) -> np.ndarray:
+    def _decode_at(self, peak: list[int]) -> FloatArray:
         """Decode the packet centre around ``peak`` (see :meth:`decode`)."""
         if self.params.follows_openratslam(Departure.DECODE):
             return self._decode_openratslam(peak)
@@ -298,7 +299,7 @@ class PoseCellNetwork:
         self.best = best
         return best
 
-    def _decode_openratslam(self, peak: list[int]) -> np.ndarray:
+    def _decode_openratslam(self, peak: list[int]) -> FloatArray:
         """``find_best`` as OpenRatSLAM's code computes it, to the last bit where it can (part ``decode``).
 
         OpenRatSLAM's lattice is ours transposed in x and y (its heading-0 layer moves along its second
@@ -338,7 +339,7 @@ class PoseCellNetwork:
         self.best = best
         return best
 
-    def on_odo(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> np.ndarray:
+    def on_odo(self, forward_m: float, dyaw_rad: float, dz_m: float = 0.0) -> FloatArray:
         """Run one OpenRatSLAM ``on_odo`` update and return the decoded packet centre.
 
         The attractor step, path integration (:meth:`motion`) and the peak search run in one call on the
@@ -362,7 +363,7 @@ class PoseCellNetwork:
         self.activity = b.views[slot]
         return self._decode_at(b.lattice_peak(peak))
 
-    def inject(self, coords: np.ndarray, energy: float) -> None:
+    def inject(self, coords: FloatArray, energy: float) -> None:
         """Add ``energy`` to the cell at ``coords`` truncated to integers (OpenRatSLAM ``inject``)."""
         cell = tuple(int(c) % d for c, d in zip(coords, self.shape, strict=True))
         self.activity[cell] += energy
@@ -373,7 +374,7 @@ class PoseCellNetwork:
         """Return the number of LVC→pose-cell links."""
         return len(self._links_template)
 
-    def add_link(self, template: int, coords: np.ndarray, strength: float = 1.0, decay: float | None = None) -> int:
+    def add_link(self, template: int, coords: FloatArray, strength: float = 1.0, decay: float | None = None) -> int:
         """Add a link β from ``template`` to lattice ``coords`` (Menezes Eq. 4) and return its index."""
         index = self._links_template.append(template)
         self._links_coords.append(coords)
@@ -433,7 +434,7 @@ class PoseCellNetwork:
         self.prev_vt = self.current_vt
         self.current_vt = template
 
-    def delta_to(self, coords: np.ndarray) -> np.ndarray | np.float64:
+    def delta_to(self, coords: FloatArray) -> FloatArray | np.float64:
         """Return wrapped lattice distances from the heading-corrected packet centre to ``coords`` (…, D).
 
         OpenRatSLAM ``get_delta_pc``: the current θ is corrected by the view's
@@ -500,7 +501,7 @@ class _Buffers:
     SLOTS = 3
 
     def __init__(
-        self, shape: tuple[int, ...], excite: list[Taps], inhibit: list[Taps], cos: np.ndarray, sin: np.ndarray
+        self, shape: tuple[int, ...], excite: list[Taps], inhibit: list[Taps], cos: FloatArray, sin: FloatArray
     ) -> None:
         self.shape = shape
         self.cos, self.sin = np.ascontiguousarray(cos), np.ascontiguousarray(sin)
@@ -516,7 +517,7 @@ class _Buffers:
         self.excite = _tap_arrays(excite, shape)
         self.inhibit = _tap_arrays(inhibit, shape)
 
-    def slot_of(self, activity: np.ndarray) -> int:
+    def slot_of(self, activity: FloatArray) -> int:
         """Return the slot holding ``activity``, copying it into slot 0 when it is held elsewhere.
 
         An activity held elsewhere was set from outside (a restore, a test), which may have written into the
@@ -529,28 +530,28 @@ class _Buffers:
         self.dirty[...] = True
         return 0
 
-    def rows_view(self, activity: np.ndarray) -> np.ndarray:
+    def rows_view(self, activity: FloatArray) -> FloatArray:
         """Return ``activity`` as the kernels' (rows, n_θ) array (a view when it is C-contiguous)."""
         return np.ascontiguousarray(activity, dtype=np.float64).reshape(self.pool.shape[1:])
 
-    def peak(self, cells: np.ndarray, openratslam_order: bool) -> list[int]:
+    def peak(self, cells: FloatArray, openratslam_order: bool) -> list[int]:
         """Return the first maximum's cell of ``cells`` (its slices in masks[0]) in the lattice's axes."""
         return self.lattice_peak(kernels.kernel("peak")(cells, self.dims, self.masks[0], openratslam_order))
 
-    def lattice_peak(self, peak: np.ndarray) -> list[int]:
+    def lattice_peak(self, peak: IntArray) -> list[int]:
         """Return a kernel's (x, y, z, θ) cell in the lattice's axes (no z on the 3-DoF lattice)."""
         x, y, z, t = peak.tolist()
         return [x, y, z, t] if len(self.shape) == 4 else [x, y, t]
 
 
-def _taps(matrix: np.ndarray) -> Taps:
+def _taps(matrix: FloatArray) -> Taps:
     """Return the taps of a circulant matrix ``C[i, j] = k[(i − j) mod d]``: the offsets o with k[o] ≠ 0, and k[o]."""
     column = matrix[:, 0]
     offsets = np.flatnonzero(column)
     return offsets, column[offsets]
 
 
-def _tap_arrays(taps: list[Taps], shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _tap_arrays(taps: list[Taps], shape: tuple[int, ...]) -> tuple[IntArray, FloatArray, IntArray]:
     """Return one kernel's taps as the compiled path takes them: (signed offsets, weights, counts).
 
     Offsets and weights are (4, K) with rows x, y, z, θ (a 3-DoF lattice has no z taps), in the taps' order;
@@ -569,7 +570,7 @@ def _tap_arrays(taps: list[Taps], shape: tuple[int, ...]) -> tuple[np.ndarray, n
     return signed, weights, counts
 
 
-def spread_reference(cells: np.ndarray, taps: list[Taps]) -> np.ndarray:
+def spread_reference(cells: FloatArray, taps: list[Taps]) -> FloatArray:
     """Apply a separable wrapped kernel: along each axis in turn, ``Σ_k w_k·roll(cells, o_k)`` in tap order."""
     for axis, (offsets, weights) in enumerate(taps):
         acc = np.zeros_like(cells)
@@ -580,8 +581,8 @@ def spread_reference(cells: np.ndarray, taps: list[Taps]) -> np.ndarray:
 
 
 def attractor_reference(
-    cells: np.ndarray, excite: list[Taps], inhibit: list[Taps], inhibition: float
-) -> tuple[np.ndarray, float]:
+    cells: FloatArray, excite: list[Taps], inhibit: list[Taps], inhibition: float
+) -> tuple[FloatArray, float]:
     """Return the attractor step of ``cells`` and its pre-scale total (Menezes et al. Eq. 3; the reference path).
 
     ``max(E − I − φ, 0)`` with E the excitatory spread and I the inhibitory spread of E, scaled to sum 1 when
@@ -597,7 +598,7 @@ def attractor_reference(
     return out, total
 
 
-def path_reference(activity: np.ndarray, move: Move, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+def path_reference(activity: FloatArray, move: Move, cos: FloatArray, sin: FloatArray) -> FloatArray:
     """Return ``activity`` moved by one frame's path integration (the reference path; see :class:`Move`)."""
     cells = np.moveaxis(np.asarray(activity, dtype=np.float64), -1, 0).copy()  # heading first: (θ, x, y, [z])
     th_dim = cells.shape[0]
@@ -614,7 +615,7 @@ def path_reference(activity: np.ndarray, move: Move, cos: np.ndarray, sin: np.nd
     return np.ascontiguousarray(np.moveaxis(cells, 0, -1))
 
 
-def _lose_corners(cells: np.ndarray, before: np.ndarray, layers: np.ndarray, corners: np.ndarray) -> None:
+def _lose_corners(cells: FloatArray, before: FloatArray, layers: IntArray, corners: FloatArray) -> None:
     """Subtract OpenRatSLAM's translation loss of each moved layer (:func:`_openratslam_corners`), heading first."""
     for plane, k in zip(before, layers.tolist(), strict=True):
         a, w_a, b, w_b, to = corners[k]
@@ -623,7 +624,7 @@ def _lose_corners(cells: np.ndarray, before: np.ndarray, layers: np.ndarray, cor
             cells[k].flat[int(to)] -= lost
 
 
-def layer_moves(v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool) -> np.ndarray:
+def layer_moves(v: float, cos: FloatArray, sin: FloatArray, one_cell: bool) -> FloatArray:
     """Return (n_θ, 6) per heading layer: (whole_x, keep_x, frac_x, whole_y, keep_y, frac_y) of a move by ``v`` cells.
 
     Layer t moves ``v·cos_t`` cells along x and ``v·sin_t`` along y (:func:`_shift_weights`; keep = 1 − frac).
@@ -633,7 +634,7 @@ def layer_moves(v: float, cos: np.ndarray, sin: np.ndarray, one_cell: bool) -> n
     return np.stack([whole_x, 1.0 - frac_x, frac_x, whole_y, 1.0 - frac_y, frac_y], axis=1)
 
 
-def _translate_layers(layers: np.ndarray, moves: np.ndarray) -> np.ndarray:
+def _translate_layers(layers: FloatArray, moves: FloatArray) -> FloatArray:
     """Move each (x, y, [z]) plane of ``layers`` x then y: ``keep·P[i − whole] + frac·P[i − whole − 1]`` per axis."""
     out = layers
     for axis, (whole, keep, frac) in ((1, moves[:, 0:3].T), (2, moves[:, 3:6].T)):
@@ -648,7 +649,7 @@ def _translate_layers(layers: np.ndarray, moves: np.ndarray) -> np.ndarray:
     return out
 
 
-def _shift_weights(shifts: np.ndarray, one_cell: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _shift_weights(shifts: FloatArray, one_cell: bool = False) -> tuple[FloatArray, FloatArray]:
     """Return (whole, frac) of moves of ``shifts`` cells: cell i goes to ``i + whole`` (1 − frac) and ``i + whole + 1``.
 
     ``whole = ⌊s⌋``; with ``one_cell`` (OpenRatSLAM's four-neighbour weights, the same for |s| ≤ 1) ``whole`` is
@@ -658,7 +659,7 @@ def _shift_weights(shifts: np.ndarray, one_cell: bool = False) -> tuple[np.ndarr
     return whole, shifts - whole
 
 
-def _axis_shift(shift: float) -> np.ndarray:
+def _axis_shift(shift: float) -> FloatArray:
     """Return (1, whole, keep, frac) of a shift along z or θ by ``shift`` cells: floor and ceiling, linear weights."""
     whole = math.floor(shift)
     frac = shift - whole
@@ -666,7 +667,7 @@ def _axis_shift(shift: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _openratslam_rot90(dim: int, rot: int) -> np.ndarray:
+def _openratslam_rot90(dim: int, rot: int) -> IntArray:
     """Return ``r`` with ``r[j, i]`` = the flat index of the cell OpenRatSLAM's ``rot90_square`` moves to (j, i).
 
     Its in-place four-cycle rotation (float centre, truncating casts) run on an index grid.
@@ -712,7 +713,7 @@ def _openratslam_lookups(dim: int) -> tuple[list[float], list[float]]:
 
 
 @functools.lru_cache(maxsize=16)
-def _openratslam_tables(dim: int) -> tuple[np.ndarray, np.ndarray]:
+def _openratslam_tables(dim: int) -> tuple[FloatArray, FloatArray]:
     """Return :func:`_openratslam_lookups` as read-only arrays, for the compiled decoding."""
     sines, cosines = (np.array(table, dtype=np.float64) for table in _openratslam_lookups(dim))
     sines.setflags(write=False)
@@ -720,7 +721,7 @@ def _openratslam_tables(dim: int) -> tuple[np.ndarray, np.ndarray]:
     return sines, cosines
 
 
-def _openratslam_corners(dim: int, th_dim: int, v: float) -> np.ndarray:
+def _openratslam_corners(dim: int, th_dim: int, v: float) -> FloatArray:
     """Return per heading layer what OpenRatSLAM's translation loses at its rotated corner (part ``translation``).
 
     OpenRatSLAM rotates layer k by ⌊2·dir/π⌋ quarter turns (dir = k·2π/n_θ, + π when moving backwards),
@@ -758,7 +759,7 @@ def _corner_layers(dim: int, th_dim: int, backwards: bool) -> tuple[tuple[float,
     return tuple(layers)
 
 
-def _shift_axis(cells: np.ndarray, whole: int, keep: float, frac: float, axis: int) -> np.ndarray:
+def _shift_axis(cells: FloatArray, whole: int, keep: float, frac: float, axis: int) -> FloatArray:
     """Return ``cells`` shifted along ``axis`` (wrapping): ``P[k − whole]·keep + P[k − whole − 1]·frac``.
 
     OpenRatSLAM's θ shift with ``whole = ⌊s⌋``, ``frac = s − ⌊s⌋``, ``keep = 1 − frac``.

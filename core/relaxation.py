@@ -62,8 +62,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.linalg import LinAlgError
 from scipy.linalg.lapack import dpotrf, dpotrs
@@ -72,9 +74,10 @@ from scipy.sparse.linalg import SuperLU, splu
 
 from core._buffers import GrowBuffer
 from core.angles import TWO_PI, wrap_angle_below_pi
+from core.arrays import BoolArray, ComplexArray, FloatArray, IndexT, Int32Array, IntArray, SumT
 
 
-def residuals(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray) -> np.ndarray:
+def residuals(pose: FloatArray, src: IntArray, dst: IntArray, transform: FloatArray) -> FloatArray:
     """Return link residuals (K, 4): ``p_dst − (p_src ⊕ t)`` in the map frame, heading wrapped to [−π, π)."""
     source = pose[src]
     out = pose[dst] - source
@@ -89,7 +92,7 @@ def residuals(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.
     return out
 
 
-def roots(parent: np.ndarray) -> np.ndarray:
+def roots(parent: npt.NDArray[IndexT]) -> npt.NDArray[IndexT]:
     """Return the union-find root of every node (pointer jumping over a parent array)."""
     root = parent.copy()
     while True:
@@ -99,7 +102,9 @@ def roots(parent: np.ndarray) -> np.ndarray:
         root = nxt
 
 
-def sums_to_root(parent: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sums_to_root(
+    parent: npt.NDArray[IndexT], step: npt.NDArray[SumT]
+) -> tuple[npt.NDArray[SumT], npt.NDArray[IndexT]]:
     """Return, for every node of a forest, the sum of ``step`` from it up to its root, and the root.
 
     ``parent[i]`` is i's parent (a root is its own parent, with step 0); ``step`` is (n,) or (n, k), the
@@ -113,7 +118,7 @@ def sums_to_root(parent: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.n
     return total, up
 
 
-def _movable(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> np.ndarray | None:
+def _movable(n: int, src: IntArray, dst: IntArray, anchor: BoolArray) -> BoolArray | None:
     """Return the mask (n,) of experiences a solve may move: linked and not anchored (None: there are none)."""
     if src.size == 0:
         return None
@@ -125,8 +130,8 @@ def _movable(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> np
 
 
 def solve(
-    pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, anchor: np.ndarray, passes: int = 8
-) -> np.ndarray:
+    pose: FloatArray, src: IntArray, dst: IntArray, transform: FloatArray, anchor: BoolArray, passes: int = 8
+) -> FloatArray:
     """Return the poses at the fixed point of full relaxation (see the module docstring).
 
     Headings first: with the integer winding of every link taken from the current
@@ -154,7 +159,7 @@ def solve(
     l_fa = laplacian[free_idx][:, fixed_idx]
     factor = splu(l_ff)
 
-    def solve_field(measured: np.ndarray, fixed_values: np.ndarray) -> np.ndarray:
+    def solve_field(measured: FloatArray, fixed_values: FloatArray) -> FloatArray:
         rhs = (incidence.T @ measured)[free_idx] - l_fa @ fixed_values
         return factor.solve(np.ascontiguousarray(rhs))
 
@@ -183,13 +188,13 @@ def solve(
 
 
 def solve_block(
-    pose: np.ndarray,
-    ids: np.ndarray,
-    owner: np.ndarray,
-    src: np.ndarray,
-    dst: np.ndarray,
-    transform: np.ndarray,
-) -> tuple[np.ndarray, bool]:
+    pose: FloatArray,
+    ids: IntArray,
+    owner: IntArray,
+    src: IntArray,
+    dst: IntArray,
+    transform: FloatArray,
+) -> tuple[FloatArray, bool]:
     """Return the fixed point of relaxation for experiences ``ids`` with every other experience held fixed.
 
     ``ids`` are distinct, non-anchored experiences that each have a link; the links
@@ -240,7 +245,7 @@ def solve_block(
     return out, changed
 
 
-def sorted_unique(ids: np.ndarray) -> np.ndarray:
+def sorted_unique(ids: IntArray) -> IntArray:
     """Return the distinct values of an integer array in increasing order (``np.unique`` without its overhead)."""
     ordered = np.sort(ids)
     if ordered.size < 2:
@@ -251,13 +256,13 @@ def sorted_unique(ids: np.ndarray) -> np.ndarray:
     return ordered[keep]
 
 
-def member_of(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+def member_of(values: IntArray, sorted_set: IntArray) -> BoolArray:
     """Return a mask: is each of ``values`` in ``sorted_set`` (increasing, non-empty)? ``np.isin`` by bisection."""
     slot = np.minimum(np.searchsorted(sorted_set, values), sorted_set.size - 1)
-    return sorted_set[slot] == values
+    return cast(BoolArray, sorted_set[slot] == values)
 
 
-def _cholesky(matrix: np.ndarray) -> np.ndarray:
+def _cholesky(matrix: FloatArray) -> FloatArray:
     """Return the lower Cholesky factor of a symmetric positive definite matrix (LAPACK ``dpotrf``).
 
     The LAPACK routine scipy's ``cho_factor`` wraps, called directly: on the
@@ -267,16 +272,16 @@ def _cholesky(matrix: np.ndarray) -> np.ndarray:
     if info != 0:
         msg = f"relaxation block is not positive definite (dpotrf info {info})"
         raise LinAlgError(msg)
-    return factor
+    return cast(FloatArray, factor)
 
 
-def _cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+def _cho_solve(factor: FloatArray, rhs: FloatArray) -> FloatArray:
     """Solve ``L·Lᵀ·x = rhs`` for the lower factor of :func:`_cholesky` (LAPACK ``dpotrs``)."""
     solution, info = dpotrs(factor, rhs, lower=1)
     if info != 0:
         msg = f"dpotrs failed (info {info})"
         raise LinAlgError(msg)
-    return solution
+    return cast(FloatArray, solution)
 
 
 class PairSet:
@@ -287,13 +292,13 @@ class PairSet:
     a set of tuples ~32 MB.
     """
 
-    def __init__(self, source: np.ndarray | None = None, target: np.ndarray | None = None) -> None:
+    def __init__(self, source: IntArray | None = None, target: IntArray | None = None) -> None:
         keys = np.zeros(0, dtype=np.int64) if source is None or target is None else self.keys(source, target)
         self._sorted = np.sort(keys)
         self._added: set[int] = set()
 
     @staticmethod
-    def keys(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    def keys(source: IntArray, target: IntArray) -> IntArray:
         """Return the key of every pair (source[i], target[i])."""
         return (np.asarray(source, dtype=np.int64) << 32) | np.asarray(target, dtype=np.int64)
 
@@ -318,7 +323,7 @@ class Incidence:
         self._n = 0
 
     @property
-    def degree(self) -> np.ndarray:
+    def degree(self) -> IntArray:
         """Return the number of links of every experience (view)."""
         return self._degree[: self._n]
 
@@ -345,7 +350,7 @@ class Incidence:
             self._table[node, slot] = link
             self._degree[node] = slot + 1
 
-    def gather(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def gather(self, ids: IntArray) -> tuple[Int32Array, IntArray]:
         """Return (links, owner): the links (int32) of ``ids`` by experience, and each one's place in ``ids``."""
         width = int(self._degree[ids].max()) if ids.size else 0
         rows = self._table[:, :width][ids]
@@ -354,7 +359,7 @@ class Incidence:
         return rows[mask], owner
 
     @classmethod
-    def from_links(cls, n: int, src: np.ndarray, dst: np.ndarray) -> Incidence:
+    def from_links(cls, n: int, src: IntArray, dst: IntArray) -> Incidence:
         """Build the table of ``n`` experiences from link endpoints (links listed in id order at each end)."""
         k = src.size
         ends = np.concatenate([src, dst]).astype(np.int64, copy=False)
@@ -392,7 +397,7 @@ class Worklist:
             grown[: self._queued.shape[0]] = self._queued
             self._queued = grown
 
-    def push(self, ids: np.ndarray) -> None:
+    def push(self, ids: IntArray) -> None:
         """Append the ids not queued yet (each once, in increasing order)."""
         if ids.size == 0:
             return
@@ -403,7 +408,7 @@ class Worklist:
             self._queued[new] = True
             self._items.extend(new)
 
-    def extend_ordered(self, ids: np.ndarray) -> None:
+    def extend_ordered(self, ids: IntArray) -> None:
         """Append distinct ids in the given order (restoring a saved queue)."""
         ids = np.asarray(ids, dtype=np.int64)
         if ids.size == 0:
@@ -413,7 +418,7 @@ class Worklist:
         self._queued[new] = True
         self._items.extend(new)
 
-    def pop(self, count: int) -> np.ndarray:
+    def pop(self, count: int) -> IntArray:
         """Remove and return up to ``count`` ids from the front."""
         stop = min(self._head + count, len(self._items))
         out = self._items.view[self._head : stop].copy()
@@ -427,7 +432,7 @@ class Worklist:
             self._head = 0
         return out
 
-    def items(self) -> np.ndarray:
+    def items(self) -> IntArray:
         """Return the queued ids in order (a copy)."""
         return self._items.view[self._head :].copy()
 
@@ -438,7 +443,7 @@ class Worklist:
         self._head = 0
 
 
-def length_weights(distance: np.ndarray, length: float) -> np.ndarray:
+def length_weights(distance: FloatArray, length: float) -> FloatArray:
     """Return each link's weight in :func:`refine_jointly`: ``√(s / max(d, s))`` for a link of ``d`` metres.
 
     Odometry's error grows with the distance driven (its variance about linearly), so a link that
@@ -452,15 +457,15 @@ def length_weights(distance: np.ndarray, length: float) -> np.ndarray:
 
 
 def refine_jointly(
-    pose: np.ndarray,
-    src: np.ndarray,
-    dst: np.ndarray,
-    transform: np.ndarray,
-    anchor: np.ndarray,
+    pose: FloatArray,
+    src: IntArray,
+    dst: IntArray,
+    transform: FloatArray,
+    anchor: BoolArray,
     heading_weight: float = 1.0,
     iterations: int = 3,
-    weight: np.ndarray | None = None,
-) -> np.ndarray:
+    weight: FloatArray | None = None,
+) -> FloatArray:
     """Return ``pose`` moved by Gauss–Newton steps on the joint least squares over positions and headings.
 
     Minimises ``Σ_l w_l²·(‖r_l,xyz‖² + (heading_weight · r_l,ψ)²)`` (``weight`` w, 1 when None; see
@@ -519,7 +524,7 @@ def refine_jointly(
     return out
 
 
-def subtree_sums(parent: np.ndarray, value: np.ndarray) -> np.ndarray:
+def subtree_sums(parent: npt.NDArray[IndexT], value: FloatArray) -> FloatArray:
     """Return, for every node of a forest, the sum of ``value`` over its subtree (itself and its descendants).
 
     ``parent[i]`` is i's parent (a root is its own parent). Doubling: with ``T_k(v)`` the sum over the
@@ -537,7 +542,7 @@ def subtree_sums(parent: np.ndarray, value: np.ndarray) -> np.ndarray:
     return total
 
 
-def cycle_links(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def cycle_links(n: int, src: IntArray, dst: IntArray) -> BoolArray:
     """Return a mask (K,) of the links in the 2-core of the graph: on a cycle, or on a path between two cycles.
 
     The rest are trees hanging from it (or joining an anchor to it), whose links every least-squares
@@ -587,7 +592,7 @@ class LinkComponents:
     directions of each link sorted by their first end, so that a set's graph is a mask of one array.
     """
 
-    def __init__(self, n: int, src: np.ndarray, dst: np.ndarray, fixed: np.ndarray) -> None:
+    def __init__(self, n: int, src: IntArray, dst: IntArray, fixed: BoolArray) -> None:
         fixed = np.asarray(fixed, dtype=bool)
         on = np.flatnonzero(fixed)
         self.size, self.node = connected_components(
@@ -605,7 +610,7 @@ class LinkComponents:
         self.parts = int(np.max(every, initial=-1)) + 1  # the whole graph's
         self._known: dict[bytes, bool] = {}  # the last sets tested
 
-    def labels(self, active: np.ndarray) -> np.ndarray | None:
+    def labels(self, active: BoolArray) -> Int32Array | None:
         """Return each fixed part's component over ``active`` (None when a fixed link is off)."""
         if not active[self.fixed].all():
             return None
@@ -616,7 +621,7 @@ class LinkComponents:
         graph = sp.csr_matrix((np.ones(indices.size), indices, indptr), shape=(self.size, self.size))
         return connected_components(graph, directed=True, connection="weak")[1]
 
-    def whole(self, active: np.ndarray, known: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
+    def whole(self, active: BoolArray, known: tuple[BoolArray, FloatArray] | None = None) -> bool:
         """Return whether ``active`` joins every part the whole graph joins.
 
         ``known``: a set of switches found whole and its links' residuals ``z`` at the least-squares fixed point
@@ -635,7 +640,7 @@ class LinkComponents:
         self._remember(key, found)
         return found
 
-    def remember(self, active: np.ndarray) -> None:
+    def remember(self, active: BoolArray) -> None:
         """Record that ``active`` is whole (a set Kruskal's rule has just joined)."""
         self._remember(active.tobytes(), True)
 
@@ -685,7 +690,7 @@ class SwitchedRelaxation:
     REBASE = 24
 
     def __init__(
-        self, pose: np.ndarray, src: np.ndarray, dst: np.ndarray, transform: np.ndarray, anchor: np.ndarray,
+        self, pose: FloatArray, src: IntArray, dst: IntArray, transform: FloatArray, anchor: BoolArray,
         parts: LinkComponents,
     ) -> None:  # fmt: skip
         n = pose.shape[0]
@@ -727,7 +732,7 @@ class SwitchedRelaxation:
         self._columns = np.zeros((0, nf + 1))
         self._filled = 0
 
-    def residuals(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def residuals(self, active: BoolArray) -> tuple[FloatArray, FloatArray] | None:
         """Return the 2-core's links' residuals at the fixed point over ``active``: translation norms and headings.
 
         The heading residuals are wrapped to [−π, π) as :func:`residuals` wraps them. None when ``active`` splits
@@ -740,7 +745,7 @@ class SwitchedRelaxation:
             return None
         return found[0][self.run], self.sign * found[1][self.run]
 
-    def run_residuals(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def run_residuals(self, active: BoolArray) -> tuple[FloatArray, FloatArray] | None:
         """Return each run's per-link residuals at the fixed point over ``active``: translation norms and headings.
 
         Every link of a run takes the same residual, 1/m of the run's misclosure: the translation norm, and the
@@ -764,7 +769,7 @@ class SwitchedRelaxation:
             ends = self.local_src[runs], self.local_dst[runs]
             sign = np.where(changed[d], 1.0, -1.0)
             inverse = np.linalg.inv(np.diag(sign) + columns[:, ends[1]].T - columns[:, ends[0]].T)  # the capacitance's
-            update = columns, ends, inverse
+            update = columns, ends, cast(FloatArray, inverse)
             fields = self.low_rank(fields, self.linear[:, runs] * sign, update)
         src, dst = self.local_src, self.local_dst
         miss, planar, rhs = self.run_sums(fields, on * self.weight)
@@ -781,8 +786,8 @@ class SwitchedRelaxation:
         return distance / self.length, turn
 
     def low_rank(
-        self, values: np.ndarray, measured: np.ndarray | None,
-        update: tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray] | None,
+        self, values: FloatArray, measured: FloatArray | None,
+        update: tuple[FloatArray, tuple[IntArray, IntArray], FloatArray] | None,
     ) -> np.ndarray:  # fmt: skip
         """Return R's solution ``values`` moved to A's by the Woodbury identity (class docstring).
 
@@ -815,7 +820,7 @@ class SwitchedRelaxation:
         values = values + _sequential(measured, columns)
         return values - _sequential(_sequential(values[:, ends[1]] - values[:, ends[0]], inverse.T), columns)
 
-    def run_sums(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def run_sums(self, fields: FloatArray, weight: FloatArray) -> tuple[FloatArray, ComplexArray, FloatArray]:
         """Return each run's misclosure (2, R), what it measures in the plane (R,) and the position solve's rhs.
 
         ``fields``: the headings and heights at the terminals; ``weight``: each run's weight, 0 where it is off.
@@ -831,7 +836,7 @@ class SwitchedRelaxation:
         return run_sums(fields, self.linear, (self.local_src, self.local_dst), self._link_terms, self._member_csr,
                         weight, self._incidence_csr)  # fmt: skip
 
-    def run_sums_numpy(self, fields: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def run_sums_numpy(self, fields: FloatArray, weight: FloatArray) -> tuple[FloatArray, ComplexArray, FloatArray]:
         """Return :meth:`run_sums` by whole-array numpy passes (the reference of the compiled loop)."""
         src, dst = self.local_src, self.local_dst
         miss = fields[:, dst] - fields[:, src] - self.linear  # each run's misclosure: headings, heights
@@ -843,7 +848,7 @@ class SwitchedRelaxation:
         rhs = np.asarray(self._incidence_c @ (planar * weight))
         return miss, planar, rhs.view(np.float64).reshape(-1, 2)
 
-    def _rebase(self, changed: np.ndarray) -> None:
+    def _rebase(self, changed: BoolArray) -> None:
         """Factorise the normal matrix over the runs with the switched links ``changed`` on: the new reference."""
         on = np.ones(self.length.size)
         on[self.switched[0]] = changed
@@ -858,7 +863,7 @@ class SwitchedRelaxation:
         self._slot[:] = -1
         self._filled = 0
 
-    def _solved_columns(self, runs: np.ndarray) -> np.ndarray:
+    def _solved_columns(self, runs: IntArray) -> FloatArray:
         """Return ``W_D`` as rows (|D|, free + 1; the gauge's entry 0): ``L_R⁻¹ b_r`` of each run, solved once."""
         missing = runs[self._slot[runs] < 0]
         if missing.size:
@@ -879,12 +884,12 @@ class SwitchedRelaxation:
         return self._columns[self._slot[runs]]
 
 
-def _csr_arrays(matrix: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _csr_arrays(matrix: sp.csr_matrix) -> tuple[Int32Array, Int32Array, FloatArray]:
     """Return a CSR matrix's (indptr, indices, real values), in its stored order (the compiled loop's sums)."""
     return matrix.indptr, matrix.indices, np.ascontiguousarray(matrix.data.real, dtype=np.float64)
 
 
-def _sequential(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _sequential(a: FloatArray, b: FloatArray) -> FloatArray:
     """Return ``a @ b`` (matrices), each entry summed over the inner index in order from its first term.
 
     The order the compiled loops of :mod:`core._switched_kernel` sum in, so the two give the same bits (einsum's
@@ -895,25 +900,25 @@ def _sequential(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = a[:, 0, None] * b[0]
     for k in range(1, a.shape[1]):
         out = out + a[:, k, None] * b[k]
-    return out
+    return cast(FloatArray, out)
 
 
 @dataclass(frozen=True, slots=True)
 class _Runs:
     """Links grouped into runs (:func:`_chains`): per run and per link."""
 
-    start: np.ndarray  # (R,) the experience a run starts from
-    end: np.ndarray  # (R,) the experience it ends at
-    length: np.ndarray  # (R,) its links, m
-    heading: np.ndarray  # (R,) the headings it measures from start to end (windings taken)
-    switched: tuple[np.ndarray, np.ndarray]  # the runs that are one switched link, and that link (position)
-    run: np.ndarray  # (K,) each link's run
-    offset: np.ndarray  # (K,) the headings measured along its run from the start to the link's source
-    along: np.ndarray  # (K,) k/m: how far along its run the link's source lies
-    sign: np.ndarray  # (K,) +1 where the link points along its run, −1 against
+    start: IntArray  # (R,) the experience a run starts from
+    end: IntArray  # (R,) the experience it ends at
+    length: IntArray  # (R,) its links, m
+    heading: FloatArray  # (R,) the headings it measures from start to end (windings taken)
+    switched: tuple[IntArray, IntArray]  # the runs that are one switched link, and that link (position)
+    run: IntArray  # (K,) each link's run
+    offset: FloatArray  # (K,) the headings measured along its run from the start to the link's source
+    along: FloatArray  # (K,) k/m: how far along its run the link's source lies
+    sign: FloatArray  # (K,) +1 where the link points along its run, −1 against
 
 
-def _chains(n: int, src: np.ndarray, dst: np.ndarray, switched: np.ndarray, heading: np.ndarray) -> _Runs:
+def _chains(n: int, src: IntArray, dst: IntArray, switched: BoolArray, heading: FloatArray) -> _Runs:
     """Return the links grouped into runs between terminals: each switched link alone, fixed links in chains.
 
     Terminals: experiences with other than two links, or with a switched one, and each part's lowest experience.
@@ -943,7 +948,7 @@ def _chains(n: int, src: np.ndarray, dst: np.ndarray, switched: np.ndarray, head
     )  # fmt: skip
 
 
-def _walk(n: int, ends: np.ndarray, terminal: np.ndarray, heading: np.ndarray) -> _Runs:
+def _walk(n: int, ends: IntArray, terminal: BoolArray, heading: FloatArray) -> _Runs:
     """Return the chains of the links ``ends`` (f, 2): fixed links whose inner experiences are not ``terminal``.
 
     A link's end at a terminal gets a node of its own (n + 2·link + end), so that the links form paths, the
@@ -984,7 +989,7 @@ def _walk(n: int, ends: np.ndarray, terminal: np.ndarray, heading: np.ndarray) -
     )  # fmt: skip
 
 
-def _one_anchor_each(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarray) -> bool:
+def _one_anchor_each(n: int, src: IntArray, dst: IntArray, anchor: BoolArray) -> bool:
     """Return whether every connected part of the graph holds exactly one anchor among its linked experiences."""
     if src.size == 0:
         return True
@@ -996,7 +1001,7 @@ def _one_anchor_each(n: int, src: np.ndarray, dst: np.ndarray, anchor: np.ndarra
     return bool(np.all(count[parts] == 1))
 
 
-def _local_indices(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def _local_indices(src: IntArray, dst: IntArray) -> tuple[IntArray, IntArray, int]:
     """Return the links' ends as indices among the free experiences of their graph, and their number.
 
     Each connected part's lowest experience is its gauge, held at the origin: its index is the number of free

@@ -166,7 +166,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -176,6 +176,7 @@ if TYPE_CHECKING:
     from core.config import Params
 
 from core._switched_kernel import CompiledScoring, ScoreTerms
+from core.arrays import BoolArray, IntArray
 from core.links import SWITCHABLE_KINDS, LinkKind
 from core.pcm import (
     MAX_LINKS,
@@ -1194,7 +1195,7 @@ def false_loop_links(
     return src, dst, transform
 
 
-def component_anchors(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def component_anchors(n: int, src: IntArray, dst: IntArray) -> BoolArray:
     """Return a mask (n,) of each connected component's lowest-id experience (the relaxation anchors)."""
     parent = np.arange(n, dtype=np.int64)
     if src.size:
@@ -1203,4 +1204,4 @@ def component_anchors(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         first = np.full(int(labels.max()) + 1, n, dtype=np.int64)
         np.minimum.at(first, labels, np.arange(n, dtype=np.int64))
         parent = first[labels]
-    return roots(parent) == np.arange(n)
+    return cast(BoolArray, roots(parent) == np.arange(n))

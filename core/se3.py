@@ -24,12 +24,13 @@ import numpy as np
 import numpy.typing as npt
 
 from core.angles import wrap_angle
+from core.arrays import FloatArray
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
 
-def _as_poses(poses: npt.ArrayLike) -> np.ndarray:
+def _as_poses(poses: npt.ArrayLike) -> FloatArray:
     p = np.asarray(poses, dtype=np.float64)
     if p.shape[-1:] != (4,):
         msg = f"poses must have shape (..., 4) as (x, y, z, yaw), got {p.shape}"
@@ -37,7 +38,7 @@ def _as_poses(poses: npt.ArrayLike) -> np.ndarray:
     return p
 
 
-def compose(a: npt.ArrayLike, b: npt.ArrayLike, turn: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def compose(a: npt.ArrayLike, b: npt.ArrayLike, turn: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
     """Return ``a ⊕ b``: the pose ``b`` (expressed in frame ``a``) in the frame ``a`` is expressed in.
 
     Args:
@@ -58,7 +59,7 @@ def compose(a: npt.ArrayLike, b: npt.ArrayLike, turn: tuple[np.ndarray, np.ndarr
     return out
 
 
-def inverse(a: npt.ArrayLike) -> np.ndarray:
+def inverse(a: npt.ArrayLike) -> FloatArray:
     """Return ``a⁻¹`` (..., 4): ``a ⊕ a⁻¹ = a⁻¹ ⊕ a = identity``."""
     pa = _as_poses(a)
     c, s = np.cos(pa[..., 3]), np.sin(pa[..., 3])
@@ -70,12 +71,12 @@ def inverse(a: npt.ArrayLike) -> np.ndarray:
     return out
 
 
-def relative(a: npt.ArrayLike, b: npt.ArrayLike) -> np.ndarray:
+def relative(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
     """Return ``a⁻¹ ⊕ b``: pose ``b`` in the frame of ``a`` (an experience link's transform, ``from`` = a)."""
     return compose(inverse(a), b)
 
 
-def alignment(loaded: npt.ArrayLike, partial: npt.ArrayLike) -> np.ndarray:
+def alignment(loaded: npt.ArrayLike, partial: npt.ArrayLike) -> FloatArray:
     """Return ``T = T_loaded ⊕ T_partial⁻¹``, the transform taking the partial pose onto the loaded one.
 
     Generalises Menezes et al. Eqs. 13–14 (Δθ = θ_l − θ_p, rotation about the matched
@@ -84,7 +85,7 @@ def alignment(loaded: npt.ArrayLike, partial: npt.ArrayLike) -> np.ndarray:
     return compose(loaded, inverse(partial))
 
 
-def to_matrix(pose: npt.ArrayLike) -> np.ndarray:
+def to_matrix(pose: npt.ArrayLike) -> FloatArray:
     """Return the homogeneous 4×4 matrix (..., 4, 4) of poses (..., 4)."""
     p = _as_poses(pose)
     c, s = np.cos(p[..., 3]), np.sin(p[..., 3])
@@ -96,7 +97,7 @@ def to_matrix(pose: npt.ArrayLike) -> np.ndarray:
     return m
 
 
-def from_matrix(matrix: npt.ArrayLike, atol: float = 1e-9) -> np.ndarray:
+def from_matrix(matrix: npt.ArrayLike, atol: float = 1e-9) -> FloatArray:
     """Return the pose (x, y, z, yaw) of a homogeneous 4×4 matrix whose rotation is about z only.
 
     Raises:
@@ -164,7 +165,7 @@ def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
     return 0.0, 0.0, math.sin(half), math.cos(half)
 
 
-def quaternions_from_yaws(yaw: npt.ArrayLike) -> np.ndarray:
+def quaternions_from_yaws(yaw: npt.ArrayLike) -> FloatArray:
     """Return the quaternions (..., 4) ``(0, 0, sin(yaw/2), cos(yaw/2))`` of yaws (...) with numpy's sin and cos."""
     half = 0.5 * np.asarray(yaw, dtype=np.float64)
     out = np.zeros((*half.shape, 4), dtype=np.float64)

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
+from core.arrays import FloatArray, UInt8Array
 from core.config import Departure
 from core.localview import crop, greyscale
 
@@ -32,15 +33,15 @@ if TYPE_CHECKING:
     from core.config import Params
 
 
-def column_profile(grey: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np.ndarray:
+def column_profile(grey: FloatArray, x_min: int, x_max: int, y_min: int, y_max: int) -> FloatArray:
     """Return the column means (/255) of the cropped window."""
-    return crop(grey, x_min, x_max, y_min, y_max).mean(axis=0) / 255.0
+    return cast(FloatArray, crop(grey, x_min, x_max, y_min, y_max).mean(axis=0) / 255.0)
 
 
 MAX_SHIFT = 40  #: OpenRatSLAM ``visual_odo``: offsets 0..39 pixels each way
 
 
-def best_shift(current: np.ndarray, previous: np.ndarray, max_shift: int = MAX_SHIFT) -> tuple[int, float]:
+def best_shift(current: FloatArray, previous: FloatArray, max_shift: int = MAX_SHIFT) -> tuple[int, float]:
     """Return (shift, mean abs difference) minimising the mean |current[k+s] − previous[k]| over the overlap.
 
     Shifts −s compare ``current[k]`` with ``previous[k+s]``. Positive shifts mean the
@@ -70,7 +71,7 @@ class VisualOdometry:
         self.prev_vtrans = np.zeros(0)
         self.prev_vrot = np.zeros(0)
 
-    def process(self, image: np.ndarray, dt: float) -> tuple[float, float]:
+    def process(self, image: UInt8Array, dt: float) -> tuple[float, float]:
         """Return (vtrans m/s, vrot rad/s) for ``image``; (0, 0) on the first frame."""
         p = self.params
         grey = greyscale(image)
@@ -91,7 +92,7 @@ class VisualOdometry:
         self.prev_vrot = vrot_profile
         return vtrans, vrot
 
-    def snapshot(self) -> dict[str, np.ndarray]:
+    def snapshot(self) -> dict[str, FloatArray]:
         """Return the previous profiles (keys ``vo_*``)."""
         return {"vo_prev_vtrans": self.prev_vtrans.copy(), "vo_prev_vrot": self.prev_vrot.copy()}
 

@@ -2,7 +2,7 @@
 
 One owner for the bounds of issue 61's validation at the edge: the odometry check of a log
 (:mod:`mapserver.ingest.odometry`), map imports (:mod:`mapserver.store.import_msr`,
-:mod:`mapserver.formats_g2o`), the map JSON and TUM files ``evaluate`` reads (:mod:`mapserver.formats`) and the
+:mod:`mapserver.formats.g2o`), the map JSON and TUM files ``evaluate`` reads (:mod:`mapserver.formats`) and the
 REST API's query values (``mapserver.api``) all take their limits from here, and ``GET /v1/limits`` lists them.
 
 * :data:`MAX_POSITION_M`: a coordinate (|x|, |y|, |z|) of a pose, and the length of a link (1e8 m; the

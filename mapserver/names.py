@@ -9,6 +9,7 @@ under other names before the rule existed stay readable; only new names are chec
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 from mapserver.errors import InputError
@@ -16,7 +17,7 @@ from mapserver.errors import InputError
 MAP_NAME_MAX = 64
 MAP_NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}"
 DERIVED_NAME_MAX = 56
-"""A name derived from a log keeps room for a ``-N`` suffix (``mapserver.api.worker`` makes it unique)."""
+"""A name derived from a log keeps room for a ``-N`` suffix (:func:`unique_map_name` makes it unique)."""
 
 _VALID = re.compile(MAP_NAME_PATTERN)
 _INVALID_RUN = re.compile(r"[^A-Za-z0-9._-]+")
@@ -53,3 +54,25 @@ def default_map_name(log_path: str | Path) -> str:
     cleaned = _INVALID_RUN.sub("_", stem)
     cleaned = re.sub(r"^[^A-Za-z0-9]+", "", cleaned)[:DERIVED_NAME_MAX]
     return cleaned or "map"
+
+
+def unique_map_name(base: str, taken: Callable[[str], bool]) -> str:
+    """Return ``base``, or the first of ``base-2``, ``base-3``, ... that is not ``taken``.
+
+    ``base`` is cut to ``DERIVED_NAME_MAX`` characters before the suffix, so a valid base gives a valid
+    name. ``taken(name)`` says whether a map (or a pending request) holds the name; the caller decides
+    which maps count (live only, or archived ones too).
+    """
+    name, k = base, 2
+    while taken(name):
+        name, k = f"{base[:DERIVED_NAME_MAX]}-{k}", k + 1
+    return name
+
+
+def log_stem(log_path: str | Path) -> str:
+    """Return the name a log gives its session (and the map of ``process`` without a database).
+
+    That is its file name up to the first dot, ``map`` when that is empty; unlike :func:`default_map_name`
+    nothing in it is replaced.
+    """
+    return Path(log_path).name.split(".")[0] or "map"

@@ -96,12 +96,17 @@ def with_settings(params: Params, settings: str | None) -> Params:
 
 
 def require_storable(params: Params) -> Params:
-    """Return ``params`` if the store can keep the maps they make; the ``neuroslam`` engine's it cannot yet.
+    """Return ``params`` if the store can keep the maps they make; not the neuroslam engine's, nor PC-MLIF's.
 
     Raises:
-        ConfigError: ``engine = neuroslam`` (its grid and head-direction cells have no tables in the store).
+        ConfigError: ``engine = neuroslam`` (its grid and head-direction cells have no tables in the store), or
+            ``pc_model = mlif`` (the store's ``map_states.pc_activity`` holds one CAN lattice; the two spiking
+            networks' activities, potentials and memristor states have no columns).
     """
     if params.engine != "ratslam":
         msg = f"maps of the {params.engine} engine cannot be stored in a database yet: process with --out MAP.json"
+        raise ConfigError(msg)
+    if params.pc_model != "can":
+        msg = "maps of the mlif pose cells cannot be stored in a database yet: process with --out MAP.json"
         raise ConfigError(msg)
     return params

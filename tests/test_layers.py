@@ -1,7 +1,9 @@
 """The package graph is one-way: every import between the units of ``core`` and ``mapserver`` is in a table.
 
 A *unit* is ``core`` (one unit: its inner structure is its own), the ``mapserver`` package itself (its
-``__init__``: the version) and each package or top-level module directly under ``mapserver``. :data:`ALLOWED`
+``__init__``: the version), each package or top-level module directly under ``mapserver``, and the modules of a
+package that :data:`ALLOWED` names on their own (``mapserver.processing.run``, ``mapserver.atlas.undo``, …: the
+modules of ``processing``, ``atlas``, ``formats`` and ``evaluation.rpe`` keep their own rows). :data:`ALLOWED`
 names, for every unit, the units it may import; imports inside a unit are free. Relative imports are resolved
 against the importing module's package, and ``from pkg import name`` counts as an import of ``pkg.name`` when
 that is a module. Two more rules: :data:`PRIVATE` modules are imported only inside their own unit (the store's
@@ -27,18 +29,19 @@ BASE = frozenset({"core", "mapserver", "mapserver.errors", "mapserver.bounds"})
 """What every unit of mapserver may import: the engine, the package's version, the exception family, the bounds
 of values from outside."""
 
-SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats_csv",
-                    "mapserver.formats_g2o", "mapserver.plotting"})  # fmt: skip
+SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats.csv",
+                    "mapserver.formats.g2o", "mapserver.plotting"})  # fmt: skip
 """Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats, figures."""
 
-HELPERS = SHARED | {"mapserver.params", "mapserver.reckoning", "mapserver.evaluation"}
+HELPERS = SHARED | {"mapserver.params", "mapserver.processing.reckoning", "mapserver.evaluation"}
 """Every leaf module: the shared ones, choosing parameters, dead reckoning, evaluation against ground truth."""
 
 DOMAIN = frozenset({"mapserver.ingest", "mapserver.store", "mapserver.merge"})
 """Reading logs, keeping maps, merging engine states: they never import each other."""
 
-ORCHESTRATION = frozenset({"mapserver.run", "mapserver.live", "mapserver.atlas", "mapserver.undo", "mapserver.report",
-                           "mapserver.pipeline", "mapserver.manual_links"})  # fmt: skip
+ORCHESTRATION = frozenset({"mapserver.processing.run", "mapserver.processing.live", "mapserver.atlas",
+                           "mapserver.atlas.undo", "mapserver.report", "mapserver.processing.pipeline",
+                           "mapserver.atlas.manual_links"})  # fmt: skip
 """The modules that run the domain packages together (each row below says which ones it uses)."""
 
 FACES = ("mapserver.api", "mapserver.cli")
@@ -50,28 +53,30 @@ ALLOWED: dict[str, frozenset[str]] = {
     "mapserver": frozenset(),
     "mapserver.errors": frozenset(),
     "mapserver.bounds": frozenset(),
+    "mapserver.processing": BASE,
     "mapserver.names": BASE,
     "mapserver.pairs": BASE,
     "mapserver.formats": BASE,
-    "mapserver.formats_csv": BASE | {"mapserver.formats"},
-    "mapserver.formats_g2o": BASE | {"mapserver.formats"},
+    "mapserver.formats.csv": BASE | {"mapserver.formats"},
+    "mapserver.formats.g2o": BASE | {"mapserver.formats"},
     "mapserver.params": BASE | {"mapserver.pairs"},
-    "mapserver.reckoning": BASE,
-    "mapserver.rpe": BASE,
+    "mapserver.processing.reckoning": BASE,
+    "mapserver.evaluation.rpe": BASE,
     "mapserver.plotting": BASE,
-    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.rpe", "mapserver.plotting"},
+    "mapserver.evaluation": BASE | {"mapserver.formats", "mapserver.evaluation.rpe", "mapserver.plotting"},
     # domain packages
     "mapserver.ingest": BASE | SHARED,
     "mapserver.store": BASE | SHARED,
     "mapserver.merge": BASE | SHARED,
     # orchestration
-    "mapserver.run": BASE | HELPERS | {"mapserver.ingest"},
+    "mapserver.processing.run": BASE | HELPERS | {"mapserver.ingest"},
     "mapserver.atlas": BASE | HELPERS | {"mapserver.store", "mapserver.merge"},
-    "mapserver.undo": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
-    "mapserver.manual_links": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
-    "mapserver.live": BASE | HELPERS | {"mapserver.merge", "mapserver.atlas"},
+    "mapserver.atlas.undo": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
+    "mapserver.atlas.manual_links": BASE | HELPERS | {"mapserver.store", "mapserver.merge", "mapserver.atlas"},
+    "mapserver.processing.live": BASE | HELPERS | {"mapserver.merge", "mapserver.atlas"},
     "mapserver.report": BASE | HELPERS | {"mapserver.ingest", "mapserver.store"},
-    "mapserver.pipeline": BASE | HELPERS | DOMAIN | {"mapserver.run", "mapserver.live", "mapserver.atlas"},
+    "mapserver.processing.pipeline": BASE | HELPERS | DOMAIN | {"mapserver.processing.run", "mapserver.processing.live",
+                                                                "mapserver.atlas"},
     # faces
     "mapserver.api": BASE | HELPERS | DOMAIN | ORCHESTRATION,
     "mapserver.cli": BASE | HELPERS | DOMAIN | ORCHESTRATION | {"mapserver.api"},
@@ -79,15 +84,16 @@ ALLOWED: dict[str, frozenset[str]] = {
 
 SIDEWAYS: frozenset[tuple[str, str]] = frozenset({
     *((a, b) for a in DOMAIN for b in DOMAIN if a != b),
-    ("mapserver.run", "mapserver.store"),  # a log through the engine alone
-    ("mapserver.run", "mapserver.merge"),
-    ("mapserver.live", "mapserver.store"),  # the running session's store view goes through atlas
-    ("mapserver.atlas", "mapserver.undo"),  # undo is built on atlas
-    ("mapserver.atlas", "mapserver.live"),
+    ("mapserver.processing.run", "mapserver.store"),  # a log through the engine alone
+    ("mapserver.processing.run", "mapserver.merge"),
+    ("mapserver.processing.live", "mapserver.store"),  # the running session's store view goes through atlas
+    ("mapserver.atlas", "mapserver.atlas.undo"),  # undo is built on atlas
+    ("mapserver.atlas", "mapserver.processing.live"),
     ("mapserver.report", "mapserver.merge"),
     ("mapserver.api", "mapserver.cli"),
     *((unit, face) for unit in set(ALLOWED) - set(FACES) for face in FACES),
-    *((unit, "mapserver.pipeline") for unit in set(ALLOWED) - {"mapserver.pipeline", *FACES}),
+    *((unit, "mapserver.processing.pipeline")
+      for unit in set(ALLOWED) - {"mapserver.processing.pipeline", *FACES}),
 })  # fmt: skip
 """Imports the table must never allow (checked against :data:`ALLOWED`)."""
 
@@ -222,12 +228,14 @@ def imports_of(path: Path, root: Path) -> Iterator[Edge]:
 
 
 def unit_of(module: str) -> str | None:
-    """Return the unit of a module of core or mapserver (None for any other module)."""
+    """Return the unit of a module of core or mapserver (None for any other module): a module of a package that has
+    a row of its own in :data:`ALLOWED` is its own unit, any other module belongs to its top package."""
     parts = module.split(".")
     if parts[0] == "core":
         return "core"
     if parts[0] == "mapserver":
-        return ".".join(parts[:2])
+        own = ".".join(parts[:3])
+        return own if own in ALLOWED else ".".join(parts[:2])
     return None
 
 
@@ -292,7 +300,7 @@ def test_the_architecture_page_draws_the_table() -> None:
 
 
 def test_the_architecture_page_lists_every_unit() -> None:
-    """The page's first block names every unit's file or folder (``mapserver/store/``, ``mapserver/rpe.py``)."""
+    """The page's first block names every unit's file or folder (``mapserver/store/``, ``mapserver/params.py``)."""
     listing = ARCHITECTURE.read_text(encoding="utf-8").split("```", 2)[1]
     paths = {line.split()[0] for line in listing.splitlines() if line.strip()}
     for unit in ALLOWED:
@@ -313,7 +321,7 @@ def test_walker_sees_real_imports() -> None:
     assert any(e.importer.startswith("core") and e.imported == "numpy" for e in edges)
     assert any(e.importer.startswith("mapserver.store") and e.imported.startswith("sqlalchemy") for e in edges)
     # ``from mapserver import atlas`` is an import of the module mapserver.atlas
-    assert any(e.importer == "mapserver.live" and e.imported == "mapserver.atlas" for e in edges)
+    assert any(e.importer == "mapserver.processing.live" and e.imported == "mapserver.atlas" for e in edges)
 
 
 # ------------------------------------------------------------------------- the checks fail on a bad import
@@ -341,14 +349,18 @@ def _tree(root: Path, sources: dict[str, str]) -> Path:
          "mapserver.merge.sub.a imports mapserver.store: mapserver.merge may not import mapserver.store"),
         ({"mapserver/api/a.py": "from mapserver.store.models import Job\n", "mapserver/store/models.py": ""},
          "mapserver.store.models is private to mapserver.store"),
-        ({"mapserver/atlas.py": "def f():\n    from sqlalchemy import select\n"},
+        ({"mapserver/atlas/__init__.py": "def f():\n    from sqlalchemy import select\n"},
          "only mapserver.store may import sqlalchemy"),
         ({"mapserver/plotting.py": "def f():\n    import matplotlib.pyplot as plt\n"},
          "mapserver.plotting imports matplotlib.pyplot: pyplot keeps global state"),
         ({"mapserver/store/export.py": "def f():\n    from matplotlib.figure import Figure\n"},
          "only mapserver.plotting may import matplotlib"),
-        ({"mapserver/report.py": "from mapserver import pipeline\n", "mapserver/pipeline.py": ""},
-         "mapserver.report imports mapserver.pipeline: mapserver.report may not import mapserver.pipeline"),
+        ({"mapserver/report.py": "from mapserver.processing import pipeline\n",
+          "mapserver/processing/__init__.py": "", "mapserver/processing/pipeline.py": ""},
+         "mapserver.report imports mapserver.processing.pipeline: mapserver.report may not import "
+         "mapserver.processing.pipeline"),
+        ({"mapserver/processing/run.py": "from mapserver.store import maps\n", "mapserver/store/maps.py": ""},
+         "mapserver.processing.run may not import mapserver.store"),
     ],
 )
 def test_a_forbidden_import_is_found(tmp_path: Path, sources: dict[str, str], expected: str) -> None:
@@ -361,7 +373,7 @@ def test_allowed_and_relative_imports_pass(tmp_path: Path) -> None:
         "mapserver/store/maps.py": "from . import models\nfrom .models import Map\nimport sqlalchemy\n",
         "mapserver/store/models.py": "from mapserver.errors import StoreError\n",
         "mapserver/errors.py": "",
-        "mapserver/atlas.py": "from mapserver.store import maps\nfrom core import Params\n",
+        "mapserver/atlas/__init__.py": "from mapserver.store import maps\nfrom core import Params\n",
         "mapserver/api/routes/a.py": "from ..deps import x\nfrom mapserver import atlas\n",
         "mapserver/api/deps.py": "",
     })  # fmt: skip

@@ -92,6 +92,7 @@ class Params:
     pc_cell_z_size: float = 1.0
     pc_vt_restore: float = 0.05
     pc_cells_to_avg: int = 3
+    pc_model: str = "can"  # can: rate-coded attractor lattice; mlif: PC-MLIF spiking networks (core.mlif)
     # experience map
     exp_delta_pc_threshold: float = 2.0
     exp_correction: float = 0.5
@@ -369,6 +370,7 @@ def _validate(p: Params) -> None:
             fail(key, "must be ≥ 0 metres, or -1 for the map's scale")
     _validate_frontend(p, fail)
     _validate_neuroslam(p, fail)
+    _validate_pc_model(p, fail)
     parse_departures(p.openratslam_parts)
     for axis in ("x", "y"):
         lo, hi = getattr(p, f"image_crop_{axis}_min"), getattr(p, f"image_crop_{axis}_max")
@@ -397,6 +399,17 @@ def _validate_neuroslam(p: Params, fail: typing.Callable[[str, str], None]) -> N
             fail(key, "must be ≥ 0")
     if p.engine == "neuroslam" and p.frontend != "lvc":
         fail("frontend", "the neuroslam engine takes intensity templates (lvc)")
+
+
+PC_MODELS = ("can", "mlif")
+
+
+def _validate_pc_model(p: Params, fail: typing.Callable[[str, str], None]) -> None:
+    """The pose-cell model: the CAN lattice or PC-MLIF spiking networks (the latter only for the ratslam engine)."""
+    if p.pc_model not in PC_MODELS:
+        fail("pc_model", f"must be one of {', '.join(PC_MODELS)}")
+    if p.pc_model == "mlif" and p.engine != "ratslam":
+        fail("pc_model", "mlif pose cells belong to the ratslam engine")
 
 
 FRONTENDS = ("lvc", "sdr-htm")

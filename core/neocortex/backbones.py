@@ -15,12 +15,14 @@ centre crop 224, ImageNet mean/std.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional
 
+from core.arrays import UInt8Array
 from core.config import ConfigError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -99,7 +101,7 @@ class ShuffleNetV2(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Return the ImageNet logits (the full torchvision forward)."""
         x = self.conv5(self.stage4(self.stage3(self.stage2(self.maxpool(self.conv1(x))))))
-        return self.fc(x.mean([2, 3]))
+        return cast(torch.Tensor, self.fc(x.mean([2, 3])))
 
 
 class AlexNet(nn.Module):
@@ -126,7 +128,7 @@ class AlexNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Return the ImageNet logits (the full torchvision forward)."""
-        return self.classifier(torch.flatten(self.avgpool(self.features(x)), 1))
+        return cast(torch.Tensor, self.classifier(torch.flatten(self.avgpool(self.features(x)), 1)))
 
 
 ARCHITECTURES: dict[str, type[ShuffleNetV2] | type[AlexNet]] = {"shufflenetv2": ShuffleNetV2, "alexnet": AlexNet}
@@ -168,7 +170,7 @@ def build_backbone(name: str, weights: str | Path, device: torch.device) -> Shuf
     return model.eval().to(device)
 
 
-def preprocess(image: np.ndarray, device: torch.device, size: int = 224, resize: int = 256) -> torch.Tensor:
+def preprocess(image: UInt8Array, device: torch.device, size: int = 224, resize: int = 256) -> torch.Tensor:
     """Return the (1, 3, size, size) ImageNet-normalised tensor of a uint8 (H, W) or (H, W, 3) image."""
     pixels = torch.from_numpy(np.array(image, dtype=np.float32)) / 255.0
     if pixels.ndim == 2:

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.arrays import IntArray
+
 
 @dataclass(frozen=True)
 class MatchGates:
@@ -52,7 +54,7 @@ def interval_length(run: int, window: int, theta_rho: int, interval_mode: bool) 
     return min(window, max(theta_rho, run))
 
 
-def cap_topk(history: list[np.ndarray], topk: int) -> np.ndarray:
+def cap_topk(history: list[IntArray], topk: int) -> IntArray:
     """Return the sorted ``topk`` most frequent cells of ``history`` (oldest first); ties: most recent, lower id."""
     if not history:
         return np.empty(0, dtype=np.int64)
@@ -67,7 +69,7 @@ def cap_topk(history: list[np.ndarray], topk: int) -> np.ndarray:
     return np.sort(ids[order[:topk]])
 
 
-def overlap_scores(descriptor: np.ndarray, prototypes: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, ...]:
+def overlap_scores(descriptor: IntArray, prototypes: IntArray, sizes: IntArray) -> tuple[np.ndarray, ...]:
     """Return (I, R, F1, IoU) of ``descriptor`` against every prototype row (−1 padded, ``sizes`` entries each)."""
     n = descriptor.size
     inter = np.isin(prototypes, descriptor).sum(axis=1).astype(np.int64) if n else np.zeros(len(prototypes), np.int64)
@@ -80,7 +82,7 @@ def overlap_scores(descriptor: np.ndarray, prototypes: np.ndarray, sizes: np.nda
     return inter, recall, f1, iou
 
 
-def best_match(descriptor: np.ndarray, prototypes: np.ndarray, sizes: np.ndarray, gates: MatchGates) -> Match | None:
+def best_match(descriptor: IntArray, prototypes: IntArray, sizes: IntArray, gates: MatchGates) -> Match | None:
     """Return ℓ* (Eq. 4.8) with its scores and the Eq. 4.9 verdict, or None without prototypes."""
     if len(prototypes) == 0:
         return None

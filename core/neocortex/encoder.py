@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from core.arrays import UInt8Array
 from core.config import ConfigError
 from core.localview import LocalViewCells
 from core.neocortex.backbones import AlexNet, ShuffleNetV2, build_backbone, preprocess
@@ -57,7 +58,7 @@ class Encoder:
                 probe = torch.zeros((1, 3, CNN_INPUT, CNN_INPUT), device=device)
                 self.dims = int(self.backbone.embed(probe).shape[1])
 
-    def __call__(self, image: np.ndarray) -> torch.Tensor:
+    def __call__(self, image: UInt8Array) -> torch.Tensor:
         """Return the embedding y of ``image`` (uint8 (H, W) or (H, W, 3))."""
         if self.backbone is None:
             template, _ = self._templates.make_template(image)

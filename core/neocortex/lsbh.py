@@ -15,6 +15,8 @@ import hashlib
 import numpy as np
 import torch
 
+from core.arrays import UInt8Array
+
 
 def projection(dims: int, half: int, seed: int) -> torch.Tensor:
     """Return the (dims, half) float32 LSBH matrix: N(0, 1) from a CPU generator seeded ``seed``, unit columns.
@@ -24,13 +26,13 @@ def projection(dims: int, half: int, seed: int) -> torch.Tensor:
     return _drawn_projection(int(dims), int(half), int(seed))[0].clone()
 
 
-def projection_digest(dims: int, half: int, seed: int) -> np.ndarray:
+def projection_digest(dims: int, half: int, seed: int) -> UInt8Array:
     """Return :func:`digest` of :func:`projection` ``(dims, half, seed)`` (computed once per argument set)."""
     return _drawn_projection(int(dims), int(half), int(seed))[1].copy()
 
 
 @functools.lru_cache(maxsize=2)
-def _drawn_projection(dims: int, half: int, seed: int) -> tuple[torch.Tensor, np.ndarray]:
+def _drawn_projection(dims: int, half: int, seed: int) -> tuple[torch.Tensor, UInt8Array]:
     """Return the projection of one argument set and its digest (cached: never modify them)."""
     generator = torch.Generator(device="cpu").manual_seed(seed)
     matrix = torch.randn(dims, half, generator=generator, dtype=torch.float32)
@@ -38,7 +40,7 @@ def _drawn_projection(dims: int, half: int, seed: int) -> tuple[torch.Tensor, np
     return matrix, digest(matrix)
 
 
-def digest(matrix: torch.Tensor | np.ndarray) -> np.ndarray:
+def digest(matrix: torch.Tensor | np.ndarray) -> UInt8Array:
     """Return the SHA-256 of the matrix's float32 bytes as a (32,) uint8 array (checks a regenerated projection)."""
     data = matrix.detach().cpu().numpy() if isinstance(matrix, torch.Tensor) else np.asarray(matrix)
     return np.frombuffer(hashlib.sha256(np.ascontiguousarray(data, dtype=np.float32).tobytes()).digest(), np.uint8)

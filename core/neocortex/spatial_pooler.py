@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Mapping
+from typing import cast
 
 import numpy as np
 import torch
 
+from core.arrays import BoolArray, IntArray, UInt8Array, UInt64Array
 from core.neocortex.lsbh import digest
 
 
@@ -175,7 +177,7 @@ class SpatialPooler:
         self.iteration = int(state[prefix + "iteration"])
 
 
-def pack_rows(rows: np.ndarray) -> np.ndarray:
+def pack_rows(rows: BoolArray) -> UInt64Array:
     """Return bool rows (n, m) as bits, 64 to a word: (n, ⌈m/64⌉) uint64 (zero-padded; any fixed bit order)."""
     rows = np.asarray(rows, dtype=bool)
     pad = (-rows.shape[1]) % 64
@@ -187,11 +189,13 @@ def pack_rows(rows: np.ndarray) -> np.ndarray:
 _BYTE_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
 
-def popcount_rows(words: np.ndarray) -> np.ndarray:
+def popcount_rows(words: UInt64Array) -> IntArray:
     """Return the number of set bits of each row of (n, w) uint64 words, int64 (n,)."""
     if hasattr(np, "bitwise_count"):  # numpy ≥ 2
-        return np.bitwise_count(words).sum(axis=1, dtype=np.int64)
-    return _BYTE_POPCOUNT[words.view(np.uint8)].sum(axis=1, dtype=np.int64)  # pragma: no cover (numpy 1.26)
+        return cast(IntArray, np.bitwise_count(words).sum(axis=1, dtype=np.int64))
+    return cast(  # pragma: no cover (numpy 1.26)
+        IntArray, _BYTE_POPCOUNT[words.view(np.uint8)].sum(axis=1, dtype=np.int64)
+    )
 
 
 def initial_pools(
@@ -209,7 +213,7 @@ def initial_pools(
 @functools.lru_cache(maxsize=2)
 def _drawn_pools(
     inputs: int, columns: int, radius: int, pct: float, connected: float, seed: int
-) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, UInt8Array, torch.Tensor]:
     """Return (potential, permanence, the potential's digest, its flat ids) of one argument set.
 
     Cached: never modify them. The flat ids (int64, ascending) are the row-major order of

@@ -26,9 +26,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch
+
+from core.arrays import IntArray
 
 HASH_A = 2654435761  # Knuth's multiplicative hash constant
 HASH_B = 40503
@@ -108,7 +111,7 @@ class SynapseIndex:
         if self.recent_count:
             recent = self._recent[: self.recent_count]
             found = torch.cat([found, recent[torch.take(padded, pre[recent])]])
-        return torch.unique(found)  # a slot rewritten since may be listed twice
+        return cast(torch.Tensor, torch.unique(found))  # a slot rewritten since may be listed twice
 
 
 class TemporalMemory:
@@ -347,7 +350,7 @@ class TemporalMemory:
         self.index = SynapseIndex(self.cells, self.device)
         self.load_sequence(state, prefix)
 
-    def sequence_snapshot(self, prefix: str = "tm_") -> dict[str, np.ndarray]:
+    def sequence_snapshot(self, prefix: str = "tm_") -> dict[str, IntArray]:
         """Return the sequence state alone (a′, the previous winners, the step), not the learnt segments."""
         return {
             prefix + "prev_active": torch.nonzero(self.prev_active).flatten().cpu().numpy().astype(np.int64),

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from core.arrays import IntArray, UInt8Array
 from core.neocortex.descriptor import Match, MatchGates, best_match, cap_topk, interval_length
 from core.neocortex.encoder import Encoder, resolve_device
 from core.neocortex.lsbh import digest, fuse, lsbh_bits, projection, projection_digest
@@ -76,10 +77,10 @@ class NeocortexViewCells:
         self.current = -1
         self.previous = -1
         self.relative_rad = 0.0
-        self.last_view: np.ndarray | None = None
+        self.last_view: IntArray | None = None
         self.last_mean = 0.0
         self.last_match: Match | None = None
-        self.last_code: np.ndarray | None = None
+        self.last_code: UInt8Array | None = None
         """The packed fused SDR (L/8 uint8) of the last frame processed or read."""
 
     @property
@@ -88,16 +89,16 @@ class NeocortexViewCells:
         return int(self._sizes.size)
 
     @property
-    def prototypes(self) -> tuple[np.ndarray, np.ndarray]:
+    def prototypes(self) -> tuple[IntArray, IntArray]:
         """Return (cells (N, topk) int64 padded −1, sizes (N,))."""
         return self._prototypes, self._sizes
 
     @property
-    def codes(self) -> np.ndarray:
+    def codes(self) -> UInt8Array:
         """Return every view cell's code: (N, L/8) uint8, the packed SDR of the frame that made it (0: unknown)."""
         return self._codes
 
-    def add_prototypes(self, cells: np.ndarray, sizes: np.ndarray, codes: np.ndarray | None = None) -> None:
+    def add_prototypes(self, cells: IntArray, sizes: np.ndarray, codes: UInt8Array | None = None) -> None:
         """Append prototypes (−1 padded rows of ``sv_tm_topk`` cell ids) with their sizes and codes (0: unknown)."""
         rows = np.asarray(cells, dtype=np.int64).reshape(-1, self.params.sv_tm_topk)
         width = code_bytes(self.params.lsbh_bits)
@@ -110,7 +111,7 @@ class NeocortexViewCells:
         self._codes = np.concatenate([self._codes, packed])
 
     # ------------------------------------------------------------------ step
-    def sdr(self, image: np.ndarray, sonar: np.ndarray | None = None) -> torch.Tensor:
+    def sdr(self, image: UInt8Array, sonar: UInt8Array | None = None) -> torch.Tensor:
         """Return the fused SDR (lsbh_bits,) bool of ``image`` and ``sonar`` (Eqs 4.1–4.3).
 
         Each modality has its own fixed projection P_m (the sonar's seeded ``lsbh_seed`` + ``SONAR_SEED``,
@@ -125,13 +126,13 @@ class NeocortexViewCells:
             bits.append(lsbh_bits((self.encoder(sonar) @ self.sonar_projection)[0], self.k))
         return fuse(bits)
 
-    def _keep_code(self, image: np.ndarray, sonar: np.ndarray | None) -> torch.Tensor:
+    def _keep_code(self, image: UInt8Array, sonar: UInt8Array | None) -> torch.Tensor:
         """Return the frame's SDR (:meth:`sdr`) and keep it packed as :attr:`last_code`."""
         code = self.sdr(image, sonar)
         self.last_code = np.packbits(code.cpu().numpy())
         return code
 
-    def descriptor(self, winners: np.ndarray) -> np.ndarray:
+    def descriptor(self, winners: IntArray) -> IntArray:
         """Push this step's winner cells and return D_t (see :mod:`core.neocortex.descriptor`)."""
         p = self.params
         if self.history and winners.size:
@@ -144,7 +145,7 @@ class NeocortexViewCells:
         span = interval_length(self.run, p.sv_tm_window, p.theta_rho, p.interval_mode)
         return cap_topk(self.history[-span:], p.sv_tm_topk)
 
-    def process(self, image: np.ndarray, sonar: np.ndarray | None = None) -> tuple[int, float, bool]:
+    def process(self, image: UInt8Array, sonar: UInt8Array | None = None) -> tuple[int, float, bool]:
         """Encode, pool, sequence and match ``image`` (and ``sonar``); return (view cell id, 0.0, created)."""
         columns = self.sp.compute(self._keep_code(image, sonar), learn=self.params.sp_learn)
         _, winners = self.tm.compute(columns, learn=True)
@@ -163,7 +164,7 @@ class NeocortexViewCells:
         self.current = self.count - 1
         return self.current, 0.0, True
 
-    def read(self, image: np.ndarray, sonar: np.ndarray | None = None, code: np.ndarray | None = None) -> np.ndarray:
+    def read(self, image: UInt8Array, sonar: UInt8Array | None = None, code: UInt8Array | None = None) -> IntArray:
         """Return D_t of ``image`` through this cortex without learning and without making a view cell.
 
         Inference only (spatial pooler and temporal memory with learning off): a stored map's cortex reads
@@ -185,11 +186,11 @@ class NeocortexViewCells:
         self.last_view, self.last_mean = d, float(d.size)
         return d
 
-    def match(self, descriptor: np.ndarray) -> Match | None:
+    def match(self, descriptor: IntArray) -> Match | None:
         """Return the best prototype for ``descriptor`` with the Eq. 4.9 verdict (no state change)."""
         return best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes, self._sizes, self.gates)
 
-    def match_among(self, descriptor: np.ndarray, ids: np.ndarray) -> Match | None:
+    def match_among(self, descriptor: IntArray, ids: IntArray) -> Match | None:
         """Return :meth:`match`'s answer restricted to the prototypes ``ids`` (``index`` is a prototype id)."""
         ids = np.unique(np.asarray(ids, dtype=np.int64))
         found = best_match(np.asarray(descriptor, dtype=np.int64), self._prototypes[ids], self._sizes[ids], self.gates)
@@ -218,7 +219,7 @@ class NeocortexViewCells:
         state.update(self.tm.snapshot("nc_tm_"))
         return state
 
-    def sequence_state(self) -> dict[str, np.ndarray]:
+    def sequence_state(self) -> dict[str, IntArray]:
         """Return the state that changes from frame to frame in a cortex that does not learn.
 
         The TM's sequence state and the descriptor window: ``nc_tm_prev_*``, ``nc_tm_step``, ``nc_history*``,
@@ -281,7 +282,7 @@ def code_bytes(bits: int) -> int:
     return (int(bits) + 7) // 8
 
 
-def unpack_codes(packed: np.ndarray, bits: int) -> np.ndarray:
+def unpack_codes(packed: UInt8Array, bits: int) -> UInt8Array:
     """Return packed SDRs (…, ``code_bytes(bits)``) as 0/1 uint8 (…, ``bits``): the inverse of ``np.packbits``."""
     return np.unpackbits(np.asarray(packed, dtype=np.uint8), axis=-1)[..., : int(bits)]
 

@@ -135,7 +135,7 @@ def _run_one(db: Database, lock: MapLock, job: JobRecord, owner: str, config: Wo
     heartbeat.start()
     try:
         for rerun in range(STALE_RERUNS + 1):
-            outcome = execute_job(job, db=db, db_url=config.db_url, interval_s=config.progress_interval_s,
+            outcome = execute_job(job, db=db, interval_s=config.progress_interval_s,
                                   should_stop=heartbeat.lost.is_set)  # fmt: skip
             if not outcome.stale or rerun == STALE_RERUNS:
                 break
@@ -163,7 +163,7 @@ def one_core_per_job() -> None:
     """Limit this process's numeric libraries (BLAS, OpenMP, OpenCV, torch) to one thread each.
 
     A worker runs ``--concurrency`` jobs at once, one per core: library thread pools on top of that
-    would oversubscribe the cores. The engine's own frame loop already limits BLAS (``mapserver.run``);
+    would oversubscribe the cores. The engine's own frame loop already limits BLAS (``mapserver.processing.run``);
     this covers the rest of a job (store, merge, relaxation) and the other libraries. (Measured with
     ``bench/cluster.py``, 2 workers on 2 cores: within the noise on its own; the slowdown of jobs under 2
     workers came mostly from the bench's own polling, docs/scaling.md.)

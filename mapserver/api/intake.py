@@ -23,7 +23,7 @@ from typing import Any
 from mapserver.api.archives import ARCHIVE_SUFFIXES, ArchiveLimits, archive_suffix, extract_archive
 from mapserver.api.uploads import ReceivedUpload
 from mapserver.errors import InputError, LimitError
-from mapserver.ingest import LOG_SUFFIXES, open_log, parse_topics_arg
+from mapserver.ingest import LOG_SUFFIXES, LogIdentity, open_log, parse_topics_arg
 from mapserver.names import check_map_name, default_map_name
 from mapserver.params import DEFAULT_PRESET, require_storable, resolve_params
 
@@ -125,15 +125,13 @@ class StoredLog:
         path: the log (file or ROS 2 bag directory) to process.
         folder: the upload's own folder (holds ``path``; delete it to drop the upload).
         name: the default name of the log's map (:func:`mapserver.names.default_map_name`).
-        frames: camera frames in the log.
-        mapping: the topic mapping that processing will use.
+        identity: the log's SHA-256, topic mapping and frame count, read here once and handed on to the job.
     """
 
     path: Path
     folder: Path
     name: str
-    frames: int
-    mapping: dict[str, Any]
+    identity: LogIdentity
 
     def discard(self) -> None:
         """Delete the upload's folder."""
@@ -165,6 +163,9 @@ def store_log(
 ) -> StoredLog:
     """Move (or unpack) a staged upload into its own folder and check that it is a usable log.
 
+    The log's identity is read here: a log kept as it was uploaded is identified by the upload's SHA-256
+    (the same bytes, hashed while they streamed in); an unpacked log is hashed once, here.
+
     Raises:
         LimitError: the archive passes one of ``limits``, or the first camera frame passes the pixel limit.
         InputError: unsupported file type, unsafe or unreadable archive, not a bag, truncated or
@@ -191,17 +192,16 @@ def store_log(
             raise InputError(msg)
         try:
             with open_log(path, topics) as log:
-                frames = log.count_frames()
-                mapping = log.mapping.as_dict()
+                identity = LogIdentity.of(log, sha256=upload.sha256 if kind is None else None)
                 log.verify()  # every stream reads through as its index says; the odometry is usable
         except InputError as err:  # the message names the server's path: show the upload's name instead
             text = str(err).replace(str(path), upload.filename).replace(str(folder), "")
             raise (LimitError(text, limit=err.limit) if isinstance(err, LimitError) else type(err)(text)) from err
-        if frames == 0:
+        if identity.frames == 0:
             msg = f"{upload.filename!r}: the camera topic has no frames"
             raise InputError(msg)
     except BaseException:
         upload.discard()
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    return StoredLog(path=path, folder=folder, name=default_map_name(path), frames=frames, mapping=mapping)
+    return StoredLog(path=path, folder=folder, name=default_map_name(path), identity=identity)

@@ -84,8 +84,7 @@ class EmbeddedJobEngine:
     """The default engine: a pool of threads in the server process (see the module docstring).
 
     Args:
-        db: the map store (jobs are claimed and updated through it).
-        db_url: its URL (the pipeline opens its own connection pool).
+        db: the map store (jobs are claimed and updated through it; the pipeline writes the sessions through it).
         workers: number of threads.
         progress_interval_s: progress is written at most this often per job.
         max_attempts: interruptions after which a job is failed instead of rerun.
@@ -95,11 +94,10 @@ class EmbeddedJobEngine:
     """
 
     def __init__(
-        self, db: Database, *, db_url: str, workers: int, progress_interval_s: float = 0.5, max_attempts: int = 3,
+        self, db: Database, *, workers: int, progress_interval_s: float = 0.5, max_attempts: int = 3,
         lease_s: float = 30.0, exclusive: bool = False,
     ) -> None:  # fmt: skip
         self.db = db
-        self.db_url = db_url
         self.workers = workers
         self.progress_interval_s = progress_interval_s
         self.max_attempts = max_attempts
@@ -218,7 +216,7 @@ class EmbeddedJobEngine:
         token = job.lease_token
         try:
             outcome = execute_job(
-                job, db=self.db, db_url=self.db_url, interval_s=self.progress_interval_s,
+                job, db=self.db, interval_s=self.progress_interval_s,
                 should_stop=lambda: self._stopping.is_set() or lost.is_set(),
             )  # fmt: skip
         except JobInterrupted as stop:

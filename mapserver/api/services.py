@@ -20,7 +20,6 @@ from mapserver.api.settings import Settings
 from mapserver.api.uploads import ReceivedUpload
 from mapserver.atlas import merge_target_problem
 from mapserver.errors import ConflictError, MapServerError
-from mapserver.ingest import open_log
 from mapserver.params import resolve_params
 from mapserver.store import Connection, Database, open_database
 from mapserver.store.admission import UploadClaim, admission_refusal, lock_admission
@@ -40,7 +39,7 @@ def _job_engine(settings: Settings, db: Database, *, exclusive: bool) -> JobEngi
 
         return CeleryJobEngine(db, broker_url=settings.broker_url, queue=settings.job_queue, lease_s=settings.lease_s)
     return EmbeddedJobEngine(
-        db, db_url=settings.db_url, workers=settings.workers,
+        db, workers=settings.workers,
         progress_interval_s=settings.progress_interval_s, max_attempts=settings.max_job_attempts,
         lease_s=settings.lease_s, exclusive=exclusive,
     )  # fmt: skip
@@ -157,8 +156,9 @@ class Services:
         Raises:
             ConflictError: the job would fail for a reason known now (the message says which).
         """
-        identity = _log_sha256(upload, log, options)
-        claim = UploadClaim(upload.sha256, options.topics, options.map_name, identity, log.mapping, options.into)
+        identity = log.identity
+        claim = UploadClaim(upload.sha256, options.topics, options.map_name, identity.sha256, identity.mapping,
+                            options.into)  # fmt: skip
         with self.db.write() as conn:
             lock_admission(conn=conn)
             lock_upload(conn=conn, upload_sha256=upload.sha256)
@@ -179,8 +179,9 @@ class Services:
                 map_name=options.into or options.map_name or log.name,
                 preset=options.preset,
                 topics=options.topics,
-                options={**self.job_options(options), "frames": log.frames, "attempts": 0, "request_id": request_id},
-            )
+                options={**self.job_options(options), "frames": identity.frames, "attempts": 0,
+                         "request_id": request_id, "log": identity.as_dict()},
+            )  # fmt: skip
         return job, False
 
     # -- tokens ----------------------------------------------------------------------------------------
@@ -208,11 +209,3 @@ def _into_params_refusal(conn: Connection, options: UploadOptions) -> ConflictEr
         return None
     problem = merge_target_problem(conn, name=options.into, params=resolve_params(options.preset))
     return None if problem is None else ConflictError(f"map {options.into!r} cannot take this session: {problem}")
-
-
-def _log_sha256(upload: ReceivedUpload, log: StoredLog, options: UploadOptions) -> str:
-    """Return the log's identity: the upload's SHA-256 for a log uploaded as it is, else the unpacked log's."""
-    if log.path == log.folder / upload.filename:
-        return upload.sha256
-    with open_log(log.path, options.topics) as opened:
-        return opened.sha256

@@ -1,4 +1,4 @@
-"""Running one job: the uploaded log through :func:`mapserver.pipeline.process_into_store`.
+"""Running one job: the uploaded log through :func:`mapserver.processing.pipeline.process_into_store`.
 
 This is the whole unit of work a job engine executes (the embedded thread pool today, a distributed
 worker later): given the job's record it resolves the parameters, picks the map name, runs the
@@ -17,12 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from core.config import ConfigError
-from mapserver import pipeline
 from mapserver.api.requestid import internal_error_detail, new_request_id
 from mapserver.errors import MapServerError
-from mapserver.ingest import open_log
-from mapserver.names import default_map_name
+from mapserver.ingest import LogIdentity, open_log
+from mapserver.names import default_map_name, unique_map_name
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store import Database, StaleMapError, find_map, find_session
 from mapserver.store.admission import pending_map_creator
 from mapserver.store.jobs import JobRecord, set_job_progress
@@ -96,7 +96,19 @@ class ProgressReporter:
         self.writes += 1
 
 
-def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
+def job_identity(job: JobRecord, log_path: Path) -> LogIdentity:
+    """Return the log identity the job's upload recorded (``options["log"]``, read when the upload was checked).
+
+    A job queued without one (by an older server) has its log opened and hashed here, once.
+    """
+    recorded = LogIdentity.from_dict((job.options or {}).get("log"))
+    if recorded is not None:
+        return recorded
+    with open_log(log_path, job.topics) as log:
+        return LogIdentity.of(log)
+
+
+def _map_name(db: Database, job: JobRecord, log_path: Path, identity: LogIdentity) -> str | None:
     """Return the map name to pass to the pipeline.
 
     An explicit ``map`` is passed as given; a job sent ``into`` a map names none. Without either, the log's
@@ -110,17 +122,17 @@ def _map_name(db: Database, job: JobRecord, log_path: Path) -> str | None:
     if options.get("into") is not None:  # merged into that map: no new map is named
         return None
     base = job.map_name or default_map_name(log_path)
-    with open_log(log_path, job.topics) as log:
-        sha256, mapping = log.sha256, log.mapping.as_dict()
     with db.read() as conn:
-        if find_session(conn=conn, log_sha256=sha256, topics=mapping) is not None:
+        if find_session(conn=conn, log_sha256=identity.sha256, topics=identity.mapping) is not None:
             return None
-        name, k = base, 2
-        while find_map(conn=conn, name=name, archived=None) is not None or pending_map_creator(
-            conn=conn, name=name, except_job=job.id
-        ) is not None:
-            name, k = f"{base}-{k}", k + 1
-    return name
+
+        def taken(name: str) -> bool:
+            return (
+                find_map(conn=conn, name=name, archived=None) is not None
+                or pending_map_creator(conn=conn, name=name, except_job=job.id) is not None
+            )
+
+        return unique_map_name(base, taken)
 
 
 def _internal_error(job: JobRecord, err: Exception) -> str:
@@ -131,9 +143,11 @@ def _internal_error(job: JobRecord, err: Exception) -> str:
 
 
 def execute_job(
-    job: JobRecord, *, db: Database, db_url: str, interval_s: float, should_stop: Callable[[], bool] | None = None
+    job: JobRecord, *, db: Database, interval_s: float, should_stop: Callable[[], bool] | None = None
 ) -> JobOutcome:
     """Process a job's log into the store; return the outcome (errors become ``JobOutcome.error``).
+
+    ``db`` is the process's database (the server's, or the worker's): the pipeline writes through it too.
 
     Raises:
         JobInterrupted: ``should_stop`` turned True while the log was being processed (nothing stored).
@@ -147,11 +161,14 @@ def execute_job(
             msg = f"the uploaded log is gone from the server ({log_path.name!r}); upload it again"
             return JobOutcome(error=msg)
         params = resolve_params(job.preset)
+        identity = job_identity(job, log_path)
         result = pipeline.process_into_store(
             log_path,
             params,
-            db_url=db_url,
-            map_name=_map_name(db, job, log_path),
+            db_url=None,
+            db=db,
+            identity=identity,
+            map_name=_map_name(db, job, log_path, identity),
             topics=job.topics,
             merge=bool((job.options or {}).get("merge", True)),
             progress=reporter,

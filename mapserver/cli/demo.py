@@ -15,10 +15,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mapserver import pipeline
 from mapserver.cli._output import emit_json, info
 from mapserver.cli._progress import progress_bar
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store import DEFAULT_DB_URL, list_maps, open_database
 
 DEMO_SCENARIO = "ellipse"

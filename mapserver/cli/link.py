@@ -2,7 +2,7 @@
 
 Joins two experiences as the same place (or with the stated transform: the pose of ``--to`` in ``--from``'s
 frame). Within one map the link is added and checked by the robust relaxation; with ``--to-map B`` map B is
-merged into map A through it (:mod:`mapserver.manual_links`). Undo it with ``mapserver unmerge --event ID``.
+merged into map A through it (:mod:`mapserver.atlas.manual_links`). Undo it with ``mapserver unmerge --event ID``.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import argparse
 import getpass
 import math
 
+from mapserver.atlas.manual_links import LinkRequest, link_experiences
 from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
-from mapserver.manual_links import LinkRequest, link_experiences
 from mapserver.store import DEFAULT_DB_URL, open_database
 
 

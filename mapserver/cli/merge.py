@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import argparse
 
-from mapserver import atlas, undo
+from mapserver import atlas
+from mapserver.atlas import undo
 from mapserver.cli._output import emit_json, info
 from mapserver.errors import InputError
 from mapserver.store import DEFAULT_DB_URL, open_database

@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     update, close = progress_bar(f"processing {log.name}")
     try:
         if args.db:
-            from mapserver import pipeline
+            from mapserver.processing import pipeline
 
             result = pipeline.process_into_store(
                 log,
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
             if args.confirm is not None or args.merge_no_shift:
                 msg = "--confirm and --merge-no-shift need --db (merging is into stored maps)"
                 raise InputError(msg)
-            from mapserver.run import process_log
+            from mapserver.processing.run import process_log
 
             result = process_log(log, params, topics=topics, out=args.out, progress=update)
     finally:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from mapserver import undo
+from mapserver.atlas import undo
 from mapserver.cli._output import emit_json, info
 from mapserver.store import DEFAULT_DB_URL, open_database
 

@@ -5,7 +5,7 @@ Everything here is a re-implementation on numpy/scipy (no evo, which is GPL), on
 * :mod:`~mapserver.evaluation.ape`: association by stamp, Umeyama alignment, the translation APE
   (Umeyama 1991) and the Hausdorff distance (OpenRatSLAM2 Eq. 9);
 * :mod:`~mapserver.evaluation.maps`: a map JSON document against ground truth (:func:`evaluate_map`:
-  the experiences' and the odometry's APE, the RPE of :mod:`mapserver.rpe`, the Hausdorff distance);
+  the experiences' and the odometry's APE, the RPE of :mod:`mapserver.evaluation.rpe`, the Hausdorff distance);
 * :mod:`~mapserver.evaluation.recognition`: place-recognition rates from the map's per-frame record;
 * :mod:`~mapserver.evaluation.plots`: the map drawn over the ground truth.
 

@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from mapserver.errors import InputError
 from mapserver.evaluation.ape import APEResult, ape_positions, hausdorff, interpolate_poses
+from mapserver.evaluation.rpe import DELTAS_M, RPEResult, reference_at, relative_pose_error, yaw_rotations
 from mapserver.formats import Trajectory, odometry_trajectory
-from mapserver.rpe import DELTAS_M, RPEResult, reference_at, relative_pose_error, yaw_rotations
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -268,7 +268,7 @@ def evaluate_map(
 def map_rpe(
     ground_truth: Trajectory, stamps: FloatArray, xyz: FloatArray, yaw: FloatArray, dims: int
 ) -> list[dict[str, float | int | None]]:
-    """Return the RPE (:mod:`mapserver.rpe`) of poses ``xyz``, ``yaw`` at ``stamps`` over 1 m and 10 m of ground truth.
+    """Return the RPE (:mod:`mapserver.evaluation.rpe`) of poses ``xyz``, ``yaw`` at ``stamps``, over 1 m and 10 m.
 
     Only the stamps inside the ground truth's span count. The reference's orientation is reduced to its
     yaw (a 4-DoF map holds no roll or pitch), and planar maps (``dims`` 2) are compared in xy.

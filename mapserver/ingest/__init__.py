@@ -2,6 +2,7 @@
 
 from mapserver.ingest.decode import decode_image
 from mapserver.ingest.frames import Frame, PoseSample
+from mapserver.ingest.identity import LogIdentity
 from mapserver.ingest.odometry import OdometryState, OdometryTrack, integrate_twist
 from mapserver.ingest.reader import LOG_SUFFIXES, MissionLog, open_log
 from mapserver.ingest.topics import TopicInfo, TopicMapping, map_topics, parse_topics_arg
@@ -10,6 +11,7 @@ from mapserver.ingest.writer import OdomSample, write_log
 __all__ = [
     "LOG_SUFFIXES",
     "Frame",
+    "LogIdentity",
     "MissionLog",
     "OdomSample",
     "OdometryState",

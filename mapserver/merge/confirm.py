@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.angles import wrap_angle
+from core.arrays import FloatArray
 from core.se3 import alignment, compose
 
 
@@ -56,9 +57,9 @@ class Observation:
     error: float
     relative_rad: float
     partial_template: int
-    odometry: np.ndarray
-    packet: np.ndarray
-    seen: np.ndarray
+    odometry: FloatArray
+    packet: FloatArray
+    seen: FloatArray
 
     @property
     def has_geometry(self) -> bool:
@@ -66,7 +67,7 @@ class Observation:
         return self.stored_experience >= 0
 
     @property
-    def alignment(self) -> np.ndarray:
+    def alignment(self) -> FloatArray:
         """Return A = seen ⊕ odometry⁻¹ (4,): odometry frame → stored map frame."""
         return alignment(self.seen, self.odometry)
 
@@ -102,7 +103,7 @@ class Streak:
         turn = abs(float(wrap_angle(predicted[3] - later.seen[3])))
         return gap <= self.position_tolerance and turn <= self.yaw_tolerance
 
-    def predict(self, odometry: np.ndarray) -> np.ndarray | None:
+    def predict(self, odometry: FloatArray) -> FloatArray | None:
         """Return where the latest entry's alignment puts the robot in the stored map (None: no entry)."""
         if not self.entries:
             return None

@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core.arrays import Float32Array, FloatArray, IntArray, UInt8Array
 from core.neocortex.viewcells import NeocortexViewCells, code_bytes, unpack_codes
 from mapserver.merge.places import template_places
 
@@ -81,7 +82,7 @@ NULL_SAMPLE = 1024  # view cells (evenly spaced ids) whose codes estimate a map'
 NULL_MIN_CELLS = 16  # fewer placed view cells than this: no estimate (the gate stays as given)
 
 
-def null_overlap(codes: np.ndarray, places: np.ndarray, far_m: float, quantile: float) -> float:
+def null_overlap(codes: Float32Array, places: FloatArray, far_m: float, quantile: float) -> float:
     """Return the ``quantile`` of a map's look-alike overlaps: how well its views match places elsewhere in it.
 
     For each view cell i (up to :data:`NULL_SAMPLE`, evenly spaced ids, with a place), the best overlap
@@ -129,7 +130,7 @@ class CortexReader:
         row: int,
         key: object = None,
         far_m: float = math.inf,
-        places: np.ndarray | None = None,
+        places: FloatArray | None = None,
     ) -> None:
         gates = {"sv_min_intersection": min(params.merge_sv_min_intersection, params.sv_tm_topk),
                  "sv_enable_f1_gate": params.merge_sv_enable_f1_gate}  # fmt: skip
@@ -138,7 +139,7 @@ class CortexReader:
         self.row = row
         self.topk = params.sv_tm_topk
         self.limit = params.vt_match_threshold
-        self.translations: dict[int, np.ndarray] = {}
+        self.translations: dict[int, IntArray] = {}
         codes = unpack_codes(self.cells.codes, params.lsbh_bits)
         self.codes = codes.astype(np.float32) if codes.any() else None
         """(N, L) the view cells' codes as 0/1, or None: the map has none (made before ``lv_sdr``)."""
@@ -162,7 +163,7 @@ class CortexReader:
         """Return the length of this reader's row in a frame's views: ``sv_tm_topk`` + the packed SDR's bytes."""
         return self.topk + code_bytes(self.cells.params.lsbh_bits)
 
-    def read(self, image: np.ndarray, sonar: np.ndarray | None = None, code: np.ndarray | None = None) -> np.ndarray:
+    def read(self, image: np.ndarray, sonar: np.ndarray | None = None, code: UInt8Array | None = None) -> IntArray:
         """Step the cortex on ``image`` (and ``sonar``; no learning); return its row: descriptor, then packed SDR.
 
         ``code``: the frame's packed SDR as the running session encoded it. The reader's encoder and projection
@@ -177,24 +178,24 @@ class CortexReader:
         out[self.topk :] = self.cells.last_code
         return out
 
-    def code_row(self, code: np.ndarray) -> np.ndarray:
+    def code_row(self, code: UInt8Array) -> IntArray:
         """Return a row that carries the frame's packed SDR ``code`` and no descriptor (−1): read by codes only."""
         out = np.full(self.width, -1, dtype=np.int64)
         out[self.topk :] = np.asarray(code, dtype=np.uint8)
         return out
 
-    def remember(self, template: int, view: np.ndarray) -> None:
+    def remember(self, template: int, view: IntArray) -> None:
         """Keep this frame's descriptor as the map-cell prototype of the session's new view cell ``template``."""
         self.translations.setdefault(int(template), np.asarray(view)[self.row, : self.topk].astype(np.int64))
 
-    def match(self, view: np.ndarray, mean: float, limit: float | None = None) -> tuple[int, float, float]:
+    def match(self, view: IntArray, mean: float, limit: float | None = None) -> tuple[int, float, float]:
         """Return (best accepted view cell or −1, an error ≤ ``limit`` when accepted else inf, 0.0) for a frame."""
         if self.codes is not None:
             return self._code_answer(view, None, limit)
         return self._answer(self.cells.match(self._descriptor(view)), limit)
 
     def match_among(
-        self, view: np.ndarray, mean: float, ids: np.ndarray, limit: float | None = None
+        self, view: IntArray, mean: float, ids: IntArray, limit: float | None = None
     ) -> tuple[int, float, float]:
         """Return :meth:`match`'s answer restricted to the view cells ``ids``."""
         ids = np.asarray(ids, dtype=np.int64)
@@ -204,11 +205,11 @@ class CortexReader:
             return self._code_answer(view, np.unique(ids), limit)
         return self._answer(self.cells.match_among(self._descriptor(view), ids), limit)
 
-    def _descriptor(self, view: np.ndarray) -> np.ndarray:
+    def _descriptor(self, view: IntArray) -> IntArray:
         row = np.asarray(view)[self.row, : self.topk].astype(np.int64)
         return row[row >= 0]
 
-    def _code_answer(self, view: np.ndarray, ids: np.ndarray | None, limit: float | None) -> tuple[int, float, float]:
+    def _code_answer(self, view: IntArray, ids: IntArray | None, limit: float | None) -> tuple[int, float, float]:
         """Return the best code match: R = |c ∩ c_ℓ| / |c| ≥ ``merge_sdr_min_overlap``; error ``limit·(1−R)/(1−θ)``."""
         every = self._recall(np.asarray(view)[self.row, self.topk :].astype(np.uint8))
         recall = every if ids is None else every[ids]
@@ -221,7 +222,7 @@ class CortexReader:
         index = best if ids is None else int(ids[best])
         return index, scale * (1.0 - float(recall[best])) / max(1.0 - self.min_overlap, 1e-9), 0.0
 
-    def _recall(self, packed: np.ndarray) -> np.ndarray:
+    def _recall(self, packed: UInt8Array) -> Float32Array:
         """Return R of a packed SDR against every view cell's code (the last frame's, kept: one product a frame)."""
         assert self.codes is not None
         key = packed.tobytes()

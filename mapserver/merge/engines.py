@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 
 from core import Engine, LinkKind
+from core.arrays import Float32Array, IntArray
 from mapserver.errors import MergeError
 from mapserver.merge.offline_views import offline_incompatibility
 from mapserver.merge.places import merged_template_codes, merged_template_places
@@ -80,7 +81,7 @@ def _merged_state(
     shift_lattice: bool,
     identify_within: float | None,
     cortex: Mapping[str, np.ndarray] | None,
-) -> tuple[dict[str, np.ndarray], MergeRecord, np.ndarray]:
+) -> tuple[dict[str, np.ndarray], MergeRecord, Float32Array]:
     """Return the merged snapshot less ``lv_templates``, its record, and the partial's kept templates.
 
     ``merge_states_apart`` and the view cells' places; the merged templates are the loaded map's followed by
@@ -101,7 +102,7 @@ def _restore_sharing(
     params: Params,
     loaded: Mapping[str, np.ndarray],
     state: Mapping[str, np.ndarray],
-    appended: np.ndarray,
+    appended: Float32Array,
     record: MergeRecord,
     origin: int,
 ) -> Engine:
@@ -206,7 +207,7 @@ def merge_snapshots(
     return merged, record
 
 
-def _close_loops(engine: Engine, n_loaded: int, experience_map: np.ndarray, closures: Sequence[Sequence[int]]) -> int:
+def _close_loops(engine: Engine, n_loaded: int, experience_map: IntArray, closures: Sequence[Sequence[int]]) -> int:
     """Add a loop closure for every place where the partial map's views matched the loaded map's; return how many.
 
     An offline merge joins the partial map to the loaded one where it identified experiences (the

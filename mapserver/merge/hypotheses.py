@@ -35,14 +35,19 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from core.angles import wrap_angle
+from core.arrays import FloatArray, IntArray
 from core.localview import LocalViewCells
 from core.se3 import alignment, compose, relative
 from mapserver.merge.confirm import Observation
+
+if TYPE_CHECKING:
+    from mapserver.merge.cortex import CortexReader
 
 MISS_WEIGHT = 2.0
 """A miss on mapped ground outweighs a hit (see the module docstring)."""
@@ -141,10 +146,10 @@ class Track:
 
     def __init__(self, keep_m: float) -> None:
         self.keep_m = keep_m
-        self.frames: deque[tuple[int, np.ndarray, float, np.ndarray, float]] = deque()
+        self.frames: deque[tuple[int, FloatArray, float, np.ndarray, float]] = deque()
         self.distance = 0.0
 
-    def add(self, frame: int, odometry: np.ndarray, step_m: float, view: np.ndarray, mean: float) -> None:
+    def add(self, frame: int, odometry: FloatArray, step_m: float, view: np.ndarray, mean: float) -> None:
         """Append a frame (``step_m``: metres since the previous one) and forget frames beyond ``keep_m``."""
         self.distance += step_m
         self.frames.append((frame, odometry.copy(), self.distance, np.array(view, copy=True), float(mean)))
@@ -152,7 +157,7 @@ class Track:
             self.frames.popleft()
 
     @property
-    def last(self) -> tuple[int, np.ndarray, float, np.ndarray, float]:
+    def last(self) -> tuple[int, FloatArray, float, np.ndarray, float]:
         """Return the newest frame (frame, odometry, distance so far, view, mean)."""
         return self.frames[-1]
 
@@ -176,9 +181,9 @@ class StoredPlaces:
 
     def __init__(
         self,
-        cells: LocalViewCells,
-        poses: np.ndarray,
-        templates: np.ndarray,
+        cells: LocalViewCells | CortexReader,
+        poses: FloatArray,
+        templates: IntArray,
         threshold: float,
         panoramic: bool,
         rule: EvidenceRule,
@@ -196,18 +201,18 @@ class StoredPlaces:
         self.placed = np.zeros(cells.count, dtype=bool)  # templates with a stored experience (a place)
         self.placed[self.templates[(self.templates >= 0) & (self.templates < cells.count)]] = True
 
-    def row_at(self, pose: np.ndarray) -> int:
+    def row_at(self, pose: FloatArray) -> int:
         """Return the stored place nearest to ``pose`` (its position; −1 when there is none): a hit's place."""
         return -1 if self._tree is None else int(self._tree.query(pose[:3])[1])
 
-    def rows_at(self, poses: np.ndarray) -> np.ndarray:
+    def rows_at(self, poses: FloatArray) -> IntArray:
         """Return :meth:`row_at` for each of ``poses`` (N, 4) at once (−1 each when the map has no place)."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
         if self._tree is None:
             return np.full(poses.shape[0], -1, dtype=np.int64)
         return np.asarray(self._tree.query(poses[:, :3])[1], dtype=np.int64).reshape(-1)
 
-    def _near(self, pose: np.ndarray, radius: float) -> np.ndarray:
+    def _near(self, pose: FloatArray, radius: float) -> IntArray:
         """Return the stored experiences within ``radius`` of ``pose`` that face its way (forward views)."""
         if self._tree is None:
             return np.zeros(0, dtype=np.int64)
@@ -217,7 +222,7 @@ class StoredPlaces:
             near = near[turn <= self.rule.yaw_tolerance]
         return np.sort(near)
 
-    def _placed_near(self, template: int, pose: np.ndarray) -> bool:
+    def _placed_near(self, template: int, pose: FloatArray) -> bool:
         """Whether a matcher that places its views loosely (``loose``) has ``template`` near ``pose``.
 
         ``sdr-htm`` view cells sit at their experience plus the odometry since it (:mod:`mapserver.merge.places`),
@@ -238,8 +243,8 @@ class StoredPlaces:
         return self.cells.match(view, mean, limit=self.threshold)[0]
 
     def test_faced(
-        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
-    ) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+        self, pose: FloatArray, view: np.ndarray, mean: float, matched: int | None = None
+    ) -> tuple[int, FloatArray | None, FloatArray | None]:
         """Return :meth:`test`'s outcome and place, and on a hit where it says the robot faced (:meth:`_view_turn`).
 
         The facing costs a column search, so only a hit that is recorded asks for it.
@@ -250,8 +255,8 @@ class StoredPlaces:
         return outcome, seen, compose(seen, np.array([0.0, 0.0, 0.0, self._view_turn(template, view, relative)]))
 
     def test(
-        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None = None
-    ) -> tuple[int, np.ndarray | None]:
+        self, pose: FloatArray, view: np.ndarray, mean: float, matched: int | None = None
+    ) -> tuple[int, FloatArray | None]:
         """Return (HIT/MISS/UNMAPPED, where the matched stored place says the robot is (4,) on a hit).
 
         Mapped: a stored experience within ``coverage_radius`` facing the same way. Hit: the view
@@ -272,8 +277,8 @@ class StoredPlaces:
         return outcome, seen
 
     def _trial(
-        self, pose: np.ndarray, view: np.ndarray, mean: float, matched: int | None
-    ) -> tuple[int, np.ndarray | None, int, float]:
+        self, pose: FloatArray, view: np.ndarray, mean: float, matched: int | None
+    ) -> tuple[int, FloatArray | None, int, float]:
         """Return :meth:`test`'s outcome and place, the stored template hit (−1) and the match's offset."""
         if self._near(pose, self.rule.coverage_radius).size == 0:
             return UNMAPPED, None, -1, 0.0
@@ -325,26 +330,26 @@ class Hypothesis:
         post_hit_m, post_miss_m: the same after the merge (probation).
     """
 
-    alignment: np.ndarray
+    alignment: FloatArray
     born: int
     support: list[Observation] = field(default_factory=list)
     hit_m: float = 0.0
     miss_m: float = 0.0
     post_hit_m: float = 0.0
     post_miss_m: float = 0.0
-    turn: np.ndarray = field(default_factory=lambda: np.array([np.nan, 0.0, 0.0]))
+    turn: FloatArray = field(default_factory=lambda: np.array([np.nan, 0.0, 0.0]))
     """Odometry heading of the first hit, and the least and greatest heading of the hits relative to it."""
-    held_place: np.ndarray | None = None
+    held_place: FloatArray | None = None
     """The place (4,) of the newest hit (loosely placed views; None: none yet)."""
     held_m: float = 0.0
     """Metres of hits at ``held_place`` since a hit elsewhere (:data:`PLACE_EXTENT`)."""
-    anchor_place: np.ndarray | None = None
+    anchor_place: FloatArray | None = None
     """The stored place (4,) the alignment was last re-anchored on by a hit (:meth:`HypothesisSet.reanchor`)."""
-    hits: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    hits: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
     """(odometry, stored place) of every hit before the merge, history included: where a view put the robot, facing
     the way the view says (:meth:`StoredPlaces.test_faced`)."""
 
-    def record_hit(self, odometry: np.ndarray, seen: np.ndarray, metres: float) -> None:
+    def record_hit(self, odometry: FloatArray, seen: FloatArray, metres: float) -> None:
         """Count a hit before the merge: its metres, the heading it was seen at, and where it put the robot.
 
         At most :data:`MAX_HITS` hits are kept.
@@ -371,7 +376,7 @@ class Hypothesis:
         """Return the pre-merge score: hit metres − miss_weight · miss metres (Wald's log-likelihood ratio)."""
         return self.hit_m - miss_weight * self.miss_m
 
-    def predict(self, odometry: np.ndarray) -> np.ndarray:
+    def predict(self, odometry: FloatArray) -> FloatArray:
         """Return where this alignment puts the robot in the stored map: ``A ⊕ O``."""
         return compose(self.alignment, odometry)
 
@@ -414,7 +419,7 @@ class HypothesisSet:
         self.places = places
         self.rule = rule
         self.hypotheses: list[Hypothesis] = []
-        self.banned: list[np.ndarray] = []  # alignments rolled back by their verification
+        self.banned: list[FloatArray] = []  # alignments rolled back by their verification
 
     def update(self, track: Track, observation: Observation | None, matched: int = -1) -> None:
         """Test every hypothesis on the newest frame of ``track``, then add the frame's match.
@@ -443,7 +448,7 @@ class HypothesisSet:
         self.hypotheses.append(born)
         self._prune()
 
-    def _fold(self, odometry: np.ndarray) -> None:
+    def _fold(self, odometry: FloatArray) -> None:
         """Fold hypotheses that now put the robot at the same place (within the tolerances) into the best one.
 
         Re-anchoring at every hit can bring two hypotheses born apart onto one alignment: they are then one
@@ -454,7 +459,7 @@ class HypothesisSet:
             return
         rule = self.rule
         ranked = sorted(self.hypotheses, key=lambda h: (-h.score(rule.miss_weight), h.born))
-        kept: list[tuple[Hypothesis, np.ndarray]] = []
+        kept: list[tuple[Hypothesis, FloatArray]] = []
         for hypothesis in ranked:
             p = hypothesis.predict(odometry)
             if not any(
@@ -469,7 +474,7 @@ class HypothesisSet:
     def _test(
         self,
         hypothesis: Hypothesis,
-        odometry: np.ndarray,
+        odometry: FloatArray,
         view: np.ndarray,
         mean: float,
         step: float,
@@ -500,7 +505,7 @@ class HypothesisSet:
         return outcome
 
     @staticmethod
-    def reanchor(hypothesis: Hypothesis, seen: np.ndarray, odometry: np.ndarray, once: bool = True) -> None:
+    def reanchor(hypothesis: Hypothesis, seen: FloatArray, odometry: FloatArray, once: bool = True) -> None:
         """Re-anchor the alignment on a hit's place; with ``once``, only on the first hit at that place in a row.
 
         A hit says the robot is near ``seen``; the alignment is set so that it predicts the robot there
@@ -526,7 +531,7 @@ class HypothesisSet:
         hypothesis.alignment = alignment(seen, odometry)
         hypothesis.anchor_place = np.array(seen, dtype=np.float64)
 
-    def _held(self, hypothesis: Hypothesis, seen: np.ndarray, step: float) -> bool:
+    def _held(self, hypothesis: Hypothesis, seen: FloatArray, step: float) -> bool:
         """Whether a hit at ``seen`` is past its place's extent (:data:`PLACE_EXTENT`).
 
         Past it: hits there in a row, since one elsewhere, have covered more than ``PLACE_EXTENT`` position

@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import IntArray
 from mapserver.errors import MergeError
 from mapserver.merge.record import MergeRecord
 
 
-def _as_int64(values: npt.ArrayLike) -> np.ndarray:
+def _as_int64(values: npt.ArrayLike) -> IntArray:
     return np.asarray(values, dtype=np.int64).reshape(-1)
 
 
@@ -88,7 +89,7 @@ class RowIdentities:
         """Return the number of experience rows covered."""
         return len(self._e_index)
 
-    def template_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+    def template_arrays(self) -> tuple[IntArray, IntArray]:
         """Return (session tags, indices) of the template rows, int64."""
         return np.asarray(self._t_session, dtype=np.int64), np.asarray(self._t_index, dtype=np.int64)
 
@@ -104,7 +105,7 @@ class RowIdentities:
             return self._e_session[row], self._e_index[row]
         return -1, -1
 
-    def experience_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+    def experience_arrays(self) -> tuple[IntArray, IntArray]:
         """Return (session tags, indices) of the experience rows, int64."""
         return np.asarray(self._e_session, dtype=np.int64), np.asarray(self._e_index, dtype=np.int64)
 
@@ -189,7 +190,7 @@ class RowIdentities:
         )
 
     # ---------------------------------------------------------------- persistence
-    def next_table(self) -> np.ndarray:
+    def next_table(self) -> IntArray:
         """Return ``next_index`` as an (S, 3) int64 table: session, next template index, next experience index."""
         rows = [[k, v[0], v[1]] for k, v in sorted(self.next_index.items())]
         return np.asarray(rows, dtype=np.int64).reshape(-1, 3)

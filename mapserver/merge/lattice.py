@@ -26,19 +26,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
 
+from core.arrays import FloatArray
 
-def wrap_coords(coords: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
+
+def wrap_coords(coords: npt.ArrayLike, dims: npt.ArrayLike) -> FloatArray:
     """Return coordinates wrapped into [0, dim) per axis (Menezes et al. Eq. 11's ``mod``)."""
     d = np.asarray(dims, dtype=np.float64)
     out = np.mod(np.asarray(coords, dtype=np.float64), d)
     return np.where(out >= d, 0.0, out)  # fmod rounding can return dim itself
 
 
-def signed_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> np.ndarray:
+def signed_delta(a: npt.ArrayLike, b: npt.ArrayLike, dims: npt.ArrayLike) -> FloatArray:
     """Return the shortest wrapped displacement ``a − b`` per axis, in [−dim/2, dim/2)."""
     d = np.asarray(dims, dtype=np.float64)
     delta = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
@@ -77,7 +80,7 @@ class LatticeTransform:
         )
 
     @property
-    def offset(self) -> np.ndarray:
+    def offset(self) -> FloatArray:
         """Return the lattice offset ``target − source`` (D,) wrapped to [−dim/2, dim/2) (corrected Eq. 10)."""
         return signed_delta(self.target, self.source, self.dims)
 
@@ -91,7 +94,7 @@ class LatticeTransform:
         """Return the heading offset as an angle: ``Δθ·2π/n_th``."""
         return self.heading_cells * 2.0 * math.pi / self.dims[-1]
 
-    def apply(self, coords: npt.ArrayLike) -> np.ndarray:
+    def apply(self, coords: npt.ArrayLike) -> FloatArray:
         """Return ``f(coords)`` (..., D): Eq. 11 with the (x, y) displacement rotated by the heading offset.
 
         ``f(c) = wrap(target + R(Δθ)·δ(c − source))`` where δ is the shortest wrapped
@@ -123,7 +126,7 @@ class LatticeTransform:
         return LatticeTransform(self.dims, self.source, tuple(after.apply(self.target).tolist()))
 
 
-def splat(dims: tuple[int, ...], centre: npt.ArrayLike) -> np.ndarray:
+def splat(dims: tuple[int, ...], centre: npt.ArrayLike) -> FloatArray:
     """Return a unit activity whose mass sits at fractional ``centre`` (multilinear weights over 2^D cells).
 
     Operation (ii): the merged network's packet starts at one point; spreading the unit
@@ -141,4 +144,4 @@ def splat(dims: tuple[int, ...], centre: npt.ArrayLike) -> np.ndarray:
             cell = tuple(int((base[a] + bits[a]) % dims[a]) for a in range(rank))
             activity[cell] += weight
     total = activity.sum()
-    return activity / total
+    return cast(FloatArray, activity / total)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -33,6 +32,7 @@ from mapserver.merge.offline_views import (
 )
 from mapserver.merge.online import DEFAULT_YAW_TOLERANCE, default_position_tolerance
 from mapserver.merge.record import Match, MergeRecord
+from mapserver.merge.snapshot import State
 
 logger = logging.getLogger(__name__)
 
@@ -182,7 +182,7 @@ def _score(entries: list[Observation]) -> tuple[int, float]:
 
 
 def _match_of(
-    a: Any, mine: PartialViews, theirs: StoredViews, entries: list[Observation], pairs: tuple[tuple[int, int], ...]
+    a: State, mine: PartialViews, theirs: StoredViews, entries: list[Observation], pairs: tuple[tuple[int, int], ...]
 ) -> Match:
     """The match of one confirmed run, anchored at its best-matching (latest on ties) view.
 

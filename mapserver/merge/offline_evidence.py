@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from core.angles import wrap_angle
+from core.arrays import BoolArray, FloatArray, IntArray
 from core.se3 import alignment, compose, inverse
 from mapserver.errors import NoConfirmedMatchError
 from mapserver.merge.engines import StoredMap
@@ -216,7 +217,7 @@ class _OfflineTest:
         )  # fmt: skip
         self.loaded = loaded
         mine = partial_views(partial)
-        self.unit_of_view: np.ndarray | None = None
+        self.unit_of_view: IntArray | None = None
         """``sdr-htm``: A's view → its trial (−1: none); LVC: None (a match's anchor is its experience)."""
         if uses_codes(partial):  # A's trials are its placed view cells, in creation order
             seen = np.flatnonzero(mine.experiences >= 0)
@@ -236,7 +237,7 @@ class _OfflineTest:
         """Return A's trial where ``match``'s view was seen (the walk starts there): :meth:`unit_of` its view."""
         return self.unit_of(match.partial_template, np.asarray(match.partial_pose, dtype=np.float64))
 
-    def unit_of(self, view: int, pose: np.ndarray) -> int:
+    def unit_of(self, view: int, pose: FloatArray) -> int:
         """Return this map's trial for its own view ``view`` seen at ``pose`` (its map frame).
 
         ``sdr-htm``: the view cell itself when it has a place (a match's pose is moved onto the other map's
@@ -251,7 +252,7 @@ class _OfflineTest:
         """Walk A's chain both ways from the match's anchor under its alignment; return the evidence."""
         return self.walk(offline_alignment(self.loaded, match), self.anchor(match))
 
-    def walk(self, transform: np.ndarray, anchor: int) -> OfflineEvidence:
+    def walk(self, transform: FloatArray, anchor: int) -> OfflineEvidence:
         """Walk A's chain both ways from its trial ``anchor`` under ``transform`` (A's frame → B's); the evidence."""
         a_pose, steps = self.a_pose, self.steps
         outcomes = np.zeros(a_pose.shape[0], dtype=np.int64)
@@ -280,7 +281,7 @@ class _OfflineTest:
 
 
 def _probation_window(
-    steps: np.ndarray, outcomes: np.ndarray, seen: np.ndarray, probation_m: float, rule: EvidenceRule
+    steps: FloatArray, outcomes: IntArray, seen: FloatArray, probation_m: float, rule: EvidenceRule
 ) -> tuple[float, float, float]:
     """Return (metres, longest miss run, score) of A's trials after the anchor that a probation would see.
 
@@ -314,7 +315,7 @@ def _probation_window(
 
 
 def _loop_closed_at(
-    travelled: np.ndarray, hit: np.ndarray, seen: np.ndarray, probation_m: float, tolerance: float
+    travelled: FloatArray, hit: BoolArray, seen: FloatArray, probation_m: float, tolerance: float
 ) -> float:
     """Return the metres travelled at the first hit that closes a loop on B (infinity: none does).
 
@@ -338,14 +339,14 @@ def _loop_closed_at(
     return float(metres[np.argmax(closes)]) if closes.any() else float("inf")
 
 
-def _miss_metres_since_hit(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> np.ndarray:
+def _miss_metres_since_hit(steps: FloatArray, hit: BoolArray, miss: BoolArray) -> FloatArray:
     """Return, at each trial, the miss metres since the newest hit up to it (the online ``miss_run_m``)."""
     missed = np.cumsum(np.where(miss, steps, 0.0))
     at_hit = np.maximum.accumulate(np.where(hit, missed, 0.0)) if missed.size else missed
     return missed - at_hit
 
 
-def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> float:
+def _longest_miss_run(steps: FloatArray, hit: BoolArray, miss: BoolArray) -> float:
     """Return the most miss metres along A's chain between two hits (unmapped trials neither add nor break)."""
     if not miss.any():
         return 0.0
@@ -353,7 +354,7 @@ def _longest_miss_run(steps: np.ndarray, hit: np.ndarray, miss: np.ndarray) -> f
     return float(np.bincount(run, weights=np.where(miss, steps, 0.0)).max())
 
 
-def _chain_ends(steps: np.ndarray, outcomes: np.ndarray, pose: np.ndarray, seen: np.ndarray) -> tuple[ChainEnd, ...]:
+def _chain_ends(steps: FloatArray, outcomes: IntArray, pose: FloatArray, seen: FloatArray) -> tuple[ChainEnd, ...]:
     """Return the chain's two ends of agreement (none without a hit).
 
     Each: the metres of failing views in a row right past the outermost hit (before the first, after the last; up
@@ -369,18 +370,18 @@ def _chain_ends(steps: np.ndarray, outcomes: np.ndarray, pose: np.ndarray, seen:
     return tuple(ChainEnd(m, _xyz(pose[e]), _xyz(seen[e])) for m, e in zip(past, (first, last), strict=True))
 
 
-def _xyz(row: np.ndarray) -> tuple[float, float, float]:
+def _xyz(row: FloatArray) -> tuple[float, float, float]:
     """Return a pose row's position as plain floats."""
     return (float(row[0]), float(row[1]), float(row[2]))
 
 
-def _run(steps: np.ndarray, miss: np.ndarray) -> float:
+def _run(steps: FloatArray, miss: BoolArray) -> float:
     """Return the metres of the misses in a row at the start of ``miss`` (0 when it starts otherwise)."""
     length = int(np.argmin(miss)) if not miss.all() else miss.size
     return float(steps[:length].sum())
 
 
-def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
+def offline_alignment(loaded: StoredMap, match: Match) -> FloatArray:
     """Return the alignment (4,) taking A's map frame onto B's that ``match`` proposes (Eqs. 13–14)."""
     b_pose = np.asarray(loaded.state["em_pose"], dtype=np.float64).reshape(-1, 4)
     seen = compose(b_pose[match.stored_experience], np.array([0.0, 0.0, 0.0, match.relative_rad]))
@@ -389,12 +390,12 @@ def offline_alignment(loaded: StoredMap, match: Match) -> np.ndarray:
 
 def _walk(
     places: StoredPlaces,
-    transform: np.ndarray,
-    a_pose: np.ndarray,
-    views: tuple[np.ndarray, np.ndarray, np.ndarray],
-    chain: np.ndarray,
-    outcomes: np.ndarray,
-    record: tuple[np.ndarray, np.ndarray],
+    transform: FloatArray,
+    a_pose: FloatArray,
+    views: tuple[np.ndarray, FloatArray, IntArray],
+    chain: IntArray,
+    outcomes: IntArray,
+    record: tuple[IntArray, FloatArray],
 ) -> None:
     """Test A's experiences along ``chain`` from the anchor, re-anchoring the alignment at every hit.
 

@@ -22,15 +22,18 @@ nothing of A can be compared with B.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core.arrays import FloatArray, IntArray, UInt8Array
 from mapserver.merge.places import template_places
 from mapserver.merge.snapshot import experiences_by_template
 
 if TYPE_CHECKING:
     from core import Params
+    from core.localview import LocalViewCells
+    from mapserver.merge.cortex import CortexReader
     from mapserver.merge.engines import StoredMap
 
 
@@ -40,13 +43,13 @@ class PartialViews:
 
     views: np.ndarray
     """(N, ...) each view as B's matcher takes it: a template, or a code row (no descriptor, the packed SDR)."""
-    means: np.ndarray
+    means: FloatArray
     """(N,) each view's mean intensity (0 for codes)."""
-    poses: np.ndarray
+    poses: FloatArray
     """(N, 4) where A saw each view; rows of views seen nowhere are not used (``experiences`` −1)."""
-    packets: np.ndarray
+    packets: FloatArray
     """(N, D) A's pose-cell packet there (its experience's)."""
-    experiences: np.ndarray
+    experiences: IntArray
     """(N,) the A experience each view is seen at (LVC) or placed after (``sdr-htm``); −1: none."""
 
 
@@ -54,17 +57,17 @@ class PartialViews:
 class StoredViews:
     """Map B as a predictor of views: its matcher, and the places it says each of its views is at."""
 
-    matcher: Any
+    matcher: LocalViewCells | CortexReader
     """``LocalViewCells`` or :class:`~mapserver.merge.cortex.CortexReader`: ``match``/``match_among``/``count``."""
-    poses: np.ndarray
+    poses: FloatArray
     """(P, 4) B's places: its experiences, then (``sdr-htm``) its view cells' places."""
-    templates: np.ndarray
+    templates: IntArray
     """(P,) the view of each place."""
-    experiences: np.ndarray
+    experiences: IntArray
     """(P,) the experience each place belongs to (an experience's own id, or a view cell's)."""
-    order: np.ndarray
+    order: IntArray
     """Places of view u are ``order[starts[u]:starts[u + 1]]``."""
-    starts: np.ndarray
+    starts: IntArray
     loose: bool
     """Views are placed loosely (``sdr-htm``: :meth:`~mapserver.merge.hypotheses.StoredPlaces._placed_near`)."""
 
@@ -73,7 +76,7 @@ class StoredViews:
         """Return the number of B's views."""
         return int(self.matcher.count)
 
-    def places_of(self, view: int) -> np.ndarray:
+    def places_of(self, view: int) -> IntArray:
         """Return the place indices of B's view ``view``."""
         return self.order[self.starts[view] : self.starts[view + 1]]
 
@@ -126,7 +129,7 @@ def partial_views(partial: StoredMap) -> PartialViews:
     return PartialViews(views, means, poses, packets, experiences)
 
 
-def code_rows(codes: np.ndarray, topk: int) -> np.ndarray:
+def code_rows(codes: UInt8Array, topk: int) -> IntArray:
     """Return (N, 1, topk + bytes) rows that carry each packed code and no descriptor (−1): read by codes only."""
     rows = np.full((codes.shape[0], 1, topk + codes.shape[1]), -1, dtype=np.int64)
     rows[:, 0, topk:] = codes
@@ -144,6 +147,7 @@ def stored_views(loaded: StoredMap, params: Params, far_m: float) -> StoredViews
     templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
     experiences = np.arange(poses.shape[0], dtype=np.int64)
     n = int(np.shape(state["lv_means"])[0])
+    matcher: LocalViewCells | CortexReader
     if uses_codes(loaded):
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm maps
 
@@ -152,7 +156,7 @@ def stored_views(loaded: StoredMap, params: Params, far_m: float) -> StoredViews
         poses = np.concatenate([poses, view_poses[placed]])
         templates = np.concatenate([templates, placed])
         experiences = np.concatenate([experiences, view_anchor[placed]])
-        matcher: Any = CortexReader(params, state, row=0, key=loaded.key, far_m=far_m, places=view_poses)
+        matcher = CortexReader(params, state, row=0, key=loaded.key, far_m=far_m, places=view_poses)
     else:
         from core.localview import LocalViewCells
 

@@ -34,7 +34,7 @@ Resume: :meth:`OnlineMerger.export_state` returns what the driver carries from f
 (the session's odometry, the maps absorbed, the recent track, the hypotheses) as a
 :class:`MergerState`; ``OnlineMerger(..., resume=state)`` continues from it, so a session
 stopped after frame k and continued gives the merges of one run. ``process --stop-after`` runs on
-past k while a probation runs (``mapserver.run.run_engine``'s ``overrun``), so a stored merge is
+past k while a probation runs (``mapserver.processing.run.run_engine``'s ``overrun``), so a stored merge is
 always verified; a probation still running when the log ends is judged there on what it saw
 (:meth:`OnlineMerger.finish`): its merge stays when the probation's own evidence confirms it, and is
 rolled back otherwise.
@@ -50,7 +50,8 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core import Engine, LinkKind, StepResult
+from core import Engine, LinkKind, Params, StepResult
+from core.arrays import FloatArray, IntArray, UInt8Array
 from core.localview import LocalViewCells
 from core.se3 import compose, relative
 from mapserver.merge.confirm import Observation
@@ -60,7 +61,7 @@ from mapserver.merge.places import template_places
 from mapserver.merge.record import Match, MergeRecord
 from mapserver.merge.resume import MergerState
 from mapserver.merge.snapshot import experiences_by_template, params_incompatibility
-from mapserver.merge.verify import LAZY_SHADOW_BYTES, PASSED, REJECTED, Probation, image_bytes
+from mapserver.merge.verify import LAZY_SHADOW_BYTES, PASSED, REJECTED, Probation, SessionFrame, image_bytes
 
 if TYPE_CHECKING:
     from core.neocortex import NeocortexViewCells
@@ -109,9 +110,9 @@ class MergeEvent:
     absorbed: tuple[object, ...] = ()
     match: Match | None = None
     partial: Mapping[str, np.ndarray] | None = field(default=None, repr=False)
-    odometry: np.ndarray | None = field(default=None, repr=False)
+    odometry: FloatArray | None = field(default=None, repr=False)
     evidence: dict[str, Any] = field(default_factory=dict, repr=False)
-    session_pose: np.ndarray | None = field(default=None, repr=False)
+    session_pose: FloatArray | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,7 +130,7 @@ class Rollback:
     event: MergeEvent
     engine: Engine
     frame: int
-    created: tuple[tuple[int, float, Any], ...] = field(default=(), repr=False)
+    created: tuple[tuple[int, float, UInt8Array], ...] = field(default=(), repr=False)
     seen: tuple[tuple[float, int, bool], ...] = field(default=(), repr=False)
 
 
@@ -137,17 +138,17 @@ class Rollback:
 class _Unread:
     """A frame the ``sdr-htm`` readers have not read yet: its packed SDR, read when a merge, resume or rollback asks."""
 
-    code: np.ndarray
+    code: UInt8Array
 
 
 @dataclass(eq=False)
 class _Candidate:
     stored: StoredMap
     cells: LocalViewCells | CortexReader  # CortexReader for sdr-htm maps
-    order: np.ndarray
-    starts: np.ndarray
+    order: IntArray
+    starts: IntArray
     hypotheses: HypothesisSet
-    anchors: np.ndarray
+    anchors: IntArray
     """Per place of ``hypotheses.places``: the stored experience a merge anchors on (places are the
     experiences, and for sdr-htm maps also the view cells' places, :mod:`mapserver.merge.places`)."""
 
@@ -210,9 +211,9 @@ class OnlineMerger:
         self._evidence_m = evidence_m
         self._probation_m = probation_m
         self._candidates: list[_Candidate] | None = None
-        self._readers: list[Any] = []
+        self._readers: list[CortexReader] = []
         """sdr-htm maps: every prepared candidate's :class:`mapserver.merge.cortex.CortexReader` (rows of the views)."""
-        self._unread: list[tuple[Any, _Unread, int, bool]] = []
+        self._unread: list[tuple[SessionFrame, _Unread, int, bool]] = []
         """Frames the readers have not read yet (frame, its code, the session's view cell, made there)."""
         self._unread_bytes = 0
         self._before_merge: list[_Candidate] = []
@@ -225,6 +226,12 @@ class OnlineMerger:
         self.rollbacks: list[Rollback] = []
         self.probation: Probation | None = None
         self._probation_event: MergeEvent | None = None
+        # The driver's odometry (x, y, z, yaw): a frame of its own, not the session's dead reckoning
+        # (mapserver.processing.reckoning.DeadReckoning, integrated by run_engine). It starts at the identity when the
+        # merger starts (or at its stored state on resume), wraps the heading (core.se3.compose) and is kept
+        # with the merger's state; the dead reckoning starts at the preset's initial heading, sums the heading
+        # unwrapped (core.se3.compose_step) and goes on across resumes. The hypotheses' predictions and
+        # stored merge records are in this frame, so it is integrated here (:meth:`observe`).
         self._odometry = np.zeros(4)
         self._track = Track(0.0)
         self._resume: MergerState | None = resume
@@ -244,7 +251,7 @@ class OnlineMerger:
             return [s.key for s in self._stored if s.key not in self.skipped]
         return [c.stored.key for c in self._candidates]
 
-    def _rule(self, stored: StoredMap, params: Any, cells: Any) -> EvidenceRule:
+    def _rule(self, stored: StoredMap, params: Params, cells: LocalViewCells | CortexReader) -> EvidenceRule:
         """Return the evidence rule for ``stored``; a miss weighs as its matcher's observations say."""
         tolerance = self._tolerance(stored)
         evidence = params.merge_evidence_m if self._evidence_m is None else self._evidence_m
@@ -287,7 +294,7 @@ class OnlineMerger:
 
     def _restore_readers(self, state: MergerState) -> bool:
         """Continue the readers from a resumed state; False when its readers are not these (maps changed)."""
-        if [int(k) for k, _ in state.readers] != [int(r.key) for r in self._readers]:  # type: ignore[call-overload]
+        if [int(cast(int, k)) for k, _ in state.readers] != [int(cast(int, r.key)) for r in self._readers]:
             return False
         widths = {np.shape(f[3])[-1] for f in state.track.frames} if state.track is not None else set()
         if widths - {self._readers[0].width}:  # views of another layout (stopped before lv_sdr existed)
@@ -298,8 +305,8 @@ class OnlineMerger:
 
     def _matcher(
         self, engine: Engine, state: Mapping[str, np.ndarray], key: object, far_m: float,
-        views: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> Any:
+        views: tuple[FloatArray, IntArray] | None = None,
+    ) -> LocalViewCells | CortexReader:
         """Return the stored map's place matcher: its templates with the session's matcher, or its cortex's reader.
 
         ``far_m``: places further apart than this are different places to the reader's gate calibration;
@@ -318,7 +325,7 @@ class OnlineMerger:
         self._readers.append(reader)
         return reader
 
-    def _view(self, engine: Engine, result: StepResult, frame: Any) -> tuple[np.ndarray, float, Any]:
+    def _view(self, engine: Engine, result: StepResult, frame: SessionFrame | None) -> tuple[np.ndarray, float, object]:
         """Return the frame's view for the candidates, its mean, and what a probation keeps of it for the shadow.
 
         The view is the engine's template, or every reader's row; the probation keeps None (no readers), the rows,
@@ -365,19 +372,19 @@ class OnlineMerger:
         self._unread.clear()
         self._unread_bytes = 0
 
-    def _remember(self, frames: list[tuple[Any, Any, int, bool]]) -> None:
+    def _remember(self, frames: Sequence[tuple[SessionFrame, object, int, bool]]) -> None:
         """Keep the descriptors of the session's new view cells, frame by frame in order.
 
         Each entry is (frame, note, view cell, made there); the note is the readers' rows, or an :class:`_Unread`
         frame, which the readers read now (so that their sequence state is the one reading alongside gives).
         """
         for frame, note, template, created in frames:
-            view = self._read(frame, note.code) if isinstance(note, _Unread) else note
+            view = self._read(frame, note.code) if isinstance(note, _Unread) else cast("IntArray | None", note)  # rows
             if created and view is not None:
                 for reader in self._readers:
                     reader.remember(template, view)
 
-    def _read(self, frame: Any, code: np.ndarray) -> np.ndarray:
+    def _read(self, frame: SessionFrame, code: UInt8Array) -> IntArray:
         """Step every reader's cortex on the frame (its SDR ``code``); return their rows, stacked."""
         sonar = getattr(frame, "sonar", None)
         return np.stack([reader.read(frame.image, sonar, code) for reader in self._readers])
@@ -392,7 +399,9 @@ class OnlineMerger:
         self._remember(probation.stepped)
         probation.stepped.clear()
 
-    def observe(self, engine: Engine, result: StepResult, frame: Any = None) -> MergeEvent | Rollback | None:
+    def observe(
+        self, engine: Engine, result: StepResult, frame: SessionFrame | None = None
+    ) -> MergeEvent | Rollback | None:
         """Match the frame just processed against the candidates; merge, verify or roll back.
 
         Args:
@@ -425,7 +434,7 @@ class OnlineMerger:
         return self._decide(engine, result, frame, view, mean)
 
     def _decide(
-        self, engine: Engine, result: StepResult, frame: Any, view: np.ndarray, mean: float,
+        self, engine: Engine, result: StepResult, frame: SessionFrame | None, view: np.ndarray, mean: float,
         held: Probation | None = None,
     ) -> MergeEvent | None:
         """Update every candidate's hypotheses with the frame and merge when one clearly wins.
@@ -485,7 +494,7 @@ class OnlineMerger:
             packet=engine.pose_cells.best.copy(), seen=seen,
         )  # fmt: skip
 
-    def _robot_pose(self, engine: Engine, odometry_then: np.ndarray) -> np.ndarray:
+    def _robot_pose(self, engine: Engine, odometry_then: FloatArray) -> FloatArray:
         """Return the robot's pose at an earlier frame (or frames, (N, 4)) in the session map's frame."""
         return compose(engine.map.robot_pose(), relative(self._odometry, odometry_then))
 
@@ -512,7 +521,8 @@ class OnlineMerger:
         return tuple(ties)
 
     def _merge(
-        self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult, frame: Any
+        self, candidate: _Candidate, winner: Hypothesis, rival: float, engine: Engine, result: StepResult,
+        frame: SessionFrame | None,
     ) -> MergeEvent:
         """Apply Algorithm 1 with the winning hypothesis's anchor and pairs; start its probation."""
         self._read_unread()
@@ -578,7 +588,7 @@ class OnlineMerger:
             self._probation_event = event
         return event
 
-    def _verify(self, result: StepResult, frame: Any, note: Any) -> Rollback | None:
+    def _verify(self, result: StepResult, frame: SessionFrame | None, note: object) -> Rollback | None:
         """Step the probation (``note``: what the shadow keeps of the frame, :meth:`_view`); pass or roll back."""
         probation = self.probation
         assert probation is not None
@@ -640,7 +650,7 @@ class OnlineMerger:
             msg = "a merge is on probation: run on until it concludes (or call finish()) before exporting the state"
             raise RuntimeError(msg)
         self._read_unread()
-        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {}
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[FloatArray, ...]]] = {}
         if self._candidates is not None:
             for c in self._candidates:
                 hset = c.hypotheses
@@ -656,13 +666,13 @@ class OnlineMerger:
         return MergerState(self._odometry.copy(), tuple(self.absorbed), hypotheses, track, readers)
 
 
-def _heading(rad: float) -> np.ndarray:
+def _heading(rad: float) -> FloatArray:
     return np.array([0.0, 0.0, 0.0, rad])
 
 
 def _predicting_places(
-    state: Mapping[str, np.ndarray], views: tuple[np.ndarray, np.ndarray] | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    state: Mapping[str, np.ndarray], views: tuple[FloatArray, IntArray] | None
+) -> tuple[FloatArray, IntArray, IntArray]:
     """Return (poses (P, 4), templates (P,), anchor experiences (P,)) of the places a stored map predicts views at.
 
     The experiences; with ``views`` (sdr-htm maps: every view cell's own place and the experience it was made

@@ -26,6 +26,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from core.angles import wrap_angle
+from core.arrays import FloatArray, IntArray, UInt8Array
 from core.engine import template_place_rows, template_place_yaws, template_rows
 from core.se3 import compose
 from mapserver.merge.record import MergeRecord
@@ -33,12 +34,12 @@ from mapserver.merge.record import MergeRecord
 State = Mapping[str, np.ndarray]
 
 
-def _rows(state: State) -> tuple[np.ndarray, np.ndarray]:
+def _rows(state: State) -> tuple[IntArray, FloatArray]:
     """Return (place (N,), offset (N, 4)) of a snapshot's templates; rows without one: −1 and zeros."""
     return template_place_rows(state, int(np.shape(state["lv_means"])[0]))
 
 
-def template_places(state: State) -> tuple[np.ndarray, np.ndarray]:
+def template_places(state: State) -> tuple[FloatArray, IntArray]:
     """Return (pose (N, 4), experience (N,)) of every template's place; −1 where it has none.
 
     With t = the experience's heading now − its heading when the template was made (``lv_place_yaw``; 0
@@ -77,7 +78,7 @@ def merged_template_places(loaded: State, partial: State, record: MergeRecord) -
     }
 
 
-def merged_template_codes(loaded: State, partial: State, record: MergeRecord) -> dict[str, np.ndarray]:
+def merged_template_codes(loaded: State, partial: State, record: MergeRecord) -> dict[str, UInt8Array]:
     """Return ``lv_sdr`` of the merged snapshot: the loaded view cells' codes, then the partial's kept ones.
 
     ``sdr-htm`` view cells keep the packed SDR of the frame that made it (``core.neocortex``); a map made

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from core.arrays import FloatArray, IntArray
 from core.se3 import to_matrix
 
 
@@ -127,15 +128,15 @@ class MergeRecord:
     template_offset: int
     experience_offset: int
     link_offset: int
-    template_map: np.ndarray = field(repr=False)
-    experience_map: np.ndarray = field(repr=False)
-    merge_links: np.ndarray = field(repr=False)
+    template_map: IntArray = field(repr=False)
+    experience_map: IntArray = field(repr=False)
+    merge_links: IntArray = field(repr=False)
     templates: int = 0
     experiences: int = 0
     links: int = 0
 
     @property
-    def matrix(self) -> np.ndarray:
+    def matrix(self) -> FloatArray:
         """Return the SE(3) transform T as a homogeneous 4×4 matrix."""
         return to_matrix(np.asarray(self.transform))
 

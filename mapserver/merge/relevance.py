@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from core import Params
+from core.arrays import Float32Array
 from core.localview import LocalViewCells
 
 QUANTUM = 1.0 / 255.0
@@ -68,7 +69,7 @@ class ViewLog:
         self._views.clear()
         self._bytes = 0
 
-    def any_match(self, templates: np.ndarray, params: Params) -> bool:
+    def any_match(self, templates: Float32Array, params: Params) -> bool:
         """Return whether some kept view may match one of ``templates`` (True when the views are not all known).
 
         ``params``: the session's (template geometry, shift, threshold). The threshold is widened by half a

@@ -5,12 +5,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Protocol, cast
 
 import numpy as np
 
+from core.arrays import FloatArray
 from mapserver.merge.confirm import Observation
 from mapserver.merge.hypotheses import Hypothesis, Track
+
+if TYPE_CHECKING:
+    from mapserver.merge.online import _Candidate
 
 _HYPOTHESIS_COLUMNS = 22  # key, born, hit_m, miss_m, post_hit_m, post_miss_m, alignment (4), turn (3), held (5),
 # anchor place (4)
@@ -19,13 +23,13 @@ _HYPOTHESIS_COLUMNS_BEFORE_HELD = 13  # states stored before ``Hypothesis.held_p
 _SUPPORT_COLUMNS = 15  # hypothesis row, frame, template, experience, error, relative, partial template, odometry, seen
 
 
-def _observation_row(row: int, o: Observation) -> np.ndarray:
+def _observation_row(row: int, o: Observation) -> FloatArray:
     head = [float(row), float(o.frame), float(o.stored_template), float(o.stored_experience), o.error,
             o.relative_rad, float(o.partial_template)]  # fmt: skip
     return np.concatenate([head, o.odometry, o.seen, o.packet]).astype(np.float64)
 
 
-def _observation(row: np.ndarray) -> Observation:
+def _observation(row: FloatArray) -> Observation:
     return Observation(
         frame=int(row[1]), stored_template=int(row[2]), stored_experience=int(row[3]), error=float(row[4]),
         relative_rad=float(row[5]), partial_template=int(row[6]), odometry=row[7:11].copy(),
@@ -44,9 +48,9 @@ class MergerState:
         track: the session's recent frames (None: none yet).
     """
 
-    odometry: np.ndarray
+    odometry: FloatArray
     absorbed: tuple[object, ...] = ()
-    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = field(default_factory=dict)
+    hypotheses: Mapping[object, tuple[tuple[Hypothesis, ...], tuple[FloatArray, ...]]] = field(default_factory=dict)
     track: Track | None = None
     readers: tuple[tuple[object, Mapping[str, np.ndarray]], ...] = ()
     """sdr-htm sessions: every candidate's cortex reader (key, :meth:`CortexReader.state`), in view-row order."""
@@ -62,7 +66,7 @@ class MergerState:
         kept = {k: v for k, v in self.hypotheses.items() if k not in gone}
         return MergerState(self.odometry, self.absorbed, kept, self.track, self.readers)
 
-    def restore_into(self, candidates: Sequence[Any], track: Track) -> None:
+    def restore_into(self, candidates: Sequence[_Candidate], track: Track) -> None:
         """Put the hypotheses back into the candidates' sets and the frames into ``track``."""
         for candidate in candidates:
             live, banned = self.hypotheses.get(candidate.stored.key, ((), ()))
@@ -84,22 +88,22 @@ class MergerState:
         a state stored before them has none); ``banned`` (B, 5): key, alignment; ``track_*``: the recent frames.
         """
         rows: list[list[float]] = []
-        support: list[np.ndarray] = []
+        support: list[FloatArray] = []
         banned: list[list[float]] = []
         hits: list[list[float]] = []
         for key, (live, bans) in self.hypotheses.items():
             for h in live:
-                rows.append([float(int(key)), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,  # type: ignore[call-overload]
+                rows.append([float(int(cast(int, key))), float(h.born), h.hit_m, h.miss_m, h.post_hit_m, h.post_miss_m,
                              *h.alignment, *h.turn, *_held_row(h), *_place_row(h.anchor_place)])  # fmt: skip
                 support.extend(_observation_row(len(rows) - 1, o) for o in h.support)
                 hits.extend([float(len(rows) - 1), *odometry, *place] for odometry, place in h.hits)
-            banned.extend([float(int(key)), *b] for b in bans)  # type: ignore[call-overload]
+            banned.extend([float(int(cast(int, key))), *b] for b in bans)
         width = max((r.size for r in support), default=_SUPPORT_COLUMNS)
         frames = list(self.track.frames) if self.track is not None else []
         views = np.stack([f[3] for f in frames]) if frames else np.zeros((0, 0, 0), dtype=np.float32)
         return {
             "odometry": np.asarray(self.odometry, dtype=np.float64).reshape(4).copy(),
-            "absorbed": np.asarray([int(k) for k in self.absorbed], dtype=np.int64),  # type: ignore[call-overload]
+            "absorbed": np.asarray([int(cast(int, k)) for k in self.absorbed], dtype=np.int64),
             "hypotheses": np.asarray(rows, dtype=np.float64).reshape(-1, _HYPOTHESIS_COLUMNS),
             "support": np.vstack(support) if support else np.zeros((0, width), dtype=np.float64),
             "banned": np.asarray(banned, dtype=np.float64).reshape(-1, 5),
@@ -110,7 +114,7 @@ class MergerState:
             "track_views": views.astype(np.float32),
             "track_means": np.asarray([f[4] for f in frames], dtype=np.float64),
             "track_total": np.asarray([0.0 if self.track is None else self.track.distance], dtype=np.float64),
-            "readers": np.asarray([int(k) for k, _ in self.readers], dtype=np.int64),  # type: ignore[call-overload]
+            "readers": np.asarray([int(cast(int, k)) for k, _ in self.readers], dtype=np.int64),
             **{f"reader{r}_{name}": v for r, (_, state) in enumerate(self.readers) for name, v in state.items()},
         }
 
@@ -134,12 +138,12 @@ class MergerState:
             made[int(row[0])].support.append(_observation(row))
         for row in np.asarray(arrays.get("hits", np.zeros((0, 9))), dtype=np.float64).reshape(-1, 9):
             made[int(row[0])].hits.append((row[1:5].copy(), row[5:9].copy()))
-        grouped: dict[int, tuple[list[Hypothesis], list[np.ndarray]]] = {}
+        grouped: dict[int, tuple[list[Hypothesis], list[FloatArray]]] = {}
         for r, h in zip(table, made, strict=True):
             grouped.setdefault(int(r[0]), ([], []))[0].append(h)
         for r in np.asarray(arrays["banned"], dtype=np.float64).reshape(-1, 5):
             grouped.setdefault(int(r[0]), ([], []))[1].append(r[1:].copy())
-        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[np.ndarray, ...]]] = {
+        hypotheses: dict[object, tuple[tuple[Hypothesis, ...], tuple[FloatArray, ...]]] = {
             k: (tuple(v[0]), tuple(v[1])) for k, v in sorted(grouped.items())
         }
         track = Track(0.0)
@@ -168,7 +172,7 @@ def _copy(h: Hypothesis) -> Hypothesis:
     )  # fmt: skip
 
 
-def _place_row(place: np.ndarray | None) -> list[float]:
+def _place_row(place: FloatArray | None) -> list[float]:
     return [math.nan] * 4 if place is None else [float(v) for v in place]
 
 
@@ -180,7 +184,25 @@ MERGER_PREFIX = "mg_"
 """Snapshot keys of the merge driver's state (stored with a partial session's map)."""
 
 
-def resume_merger_state(stored: Any, session_id: int, candidates: Sequence[Any]) -> MergerState | None:
+class VersionedMap(Protocol):
+    """A stored map as the resume reads it (``mapserver.atlas.AtlasMap``): its id, version and engine snapshot."""
+
+    @property
+    def id(self) -> int:
+        """Return the map's id in the store."""
+
+    @property
+    def version(self) -> int:
+        """Return the map's version (raised by every write)."""
+
+    @property
+    def snapshot(self) -> Mapping[str, np.ndarray]:
+        """Return the map's engine snapshot (its ``mg_*`` keys: the driver's state)."""
+
+
+def resume_merger_state(
+    stored: VersionedMap, session_id: int, candidates: Sequence[VersionedMap]
+) -> MergerState | None:
     """Return the merge driver's state a partial session left in its map (None: none stored).
 
     Hypotheses are kept only when the map is still at the version the session wrote and the candidate
@@ -195,12 +217,12 @@ def resume_merger_state(stored: Any, session_id: int, candidates: Sequence[Any])
         return state.without(list(state.hypotheses))
     versions = {int(k): int(v) for k, v in np.asarray(snap.get("mg_versions", np.zeros((0, 2))), np.int64)}
     current = {c.id: c.version for c in candidates}
-    stale = [k for k in state.hypotheses if versions.get(int(k)) != current.get(int(k))]  # type: ignore[call-overload]
+    stale = [k for k in state.hypotheses if versions.get(int(cast(int, k))) != current.get(int(cast(int, k)))]
     return state.without(stale)
 
 
 def merger_keys(
-    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[Any]
+    state: MergerState, *, session_id: int, map_version: int, candidates: Sequence[VersionedMap]
 ) -> dict[str, np.ndarray]:
     """Return the ``mg_*`` snapshot keys that let a partial session resume its merge driver."""
     arrays = state.to_arrays()

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core.arrays import IntArray
 from mapserver.errors import MergeError
 
 if TYPE_CHECKING:
@@ -95,7 +96,7 @@ def params_incompatibility(loaded: Params, partial: Params, *, reads_frames: boo
     return None
 
 
-def experiences_by_template(templates: np.ndarray, n_templates: int) -> tuple[np.ndarray, np.ndarray]:
+def experiences_by_template(templates: IntArray, n_templates: int) -> tuple[IntArray, IntArray]:
     """Return (order, starts): experiences of template t are ``order[starts[t]:starts[t + 1]]``, ascending ids."""
     t = np.asarray(templates, dtype=np.int64)
     order = np.argsort(t, kind="stable")

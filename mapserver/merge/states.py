@@ -35,6 +35,7 @@ import numpy as np
 
 from core import LinkKind
 from core.angles import wrap_angle
+from core.arrays import BoolArray, Float32Array, FloatArray, IntArray
 from core.experience_map import per_experience_array
 from core.se3 import alignment, compose, relative, turn_step
 from mapserver.errors import MergeError
@@ -49,7 +50,7 @@ from mapserver.merge.snapshot import (
 )
 
 
-def _heading(rad: float) -> np.ndarray:
+def _heading(rad: float) -> FloatArray:
     return np.array([0.0, 0.0, 0.0, rad])
 
 
@@ -60,10 +61,10 @@ def _check_id(value: int, count: int, what: str, allow_none: bool = False) -> No
         raise MergeError(msg)
 
 
-def _template_map(match: Match, n_loaded: int, n_partial: int) -> np.ndarray:
+def _template_map(match: Match, n_loaded: int, n_partial: int) -> IntArray:
     """Return (P,) merged template ids: identified ones → loaded ids, the rest appended in order.
 
-    A match whose ``partial_template`` is −1 (a manual link, :mod:`mapserver.manual_links`) identifies none.
+    A match whose ``partial_template`` is −1 (a manual link, :mod:`mapserver.atlas.manual_links`) identifies none.
     """
     identified: dict[int, int] = {} if match.partial_template < 0 else {match.partial_template: match.stored_template}
     for z, u in match.pairs:
@@ -78,7 +79,7 @@ def _template_map(match: Match, n_loaded: int, n_partial: int) -> np.ndarray:
     return tmap
 
 
-def _remap(ids: np.ndarray, mapping: np.ndarray) -> np.ndarray:
+def _remap(ids: IntArray, mapping: IntArray) -> IntArray:
     """Map ids ≥ 0 through ``mapping``; −1 (none) stays −1."""
     ids = np.asarray(ids, dtype=np.int64)
     out = np.full(ids.shape, -1, dtype=np.int64)
@@ -87,7 +88,7 @@ def _remap(ids: np.ndarray, mapping: np.ndarray) -> np.ndarray:
     return out
 
 
-def _link_active(state: State) -> np.ndarray:
+def _link_active(state: State) -> BoolArray:
     """Return the state's per-link status (``em_link_active``; every link on when it lists none)."""
     count = np.asarray(state["em_link_from"]).reshape(-1).shape[0]
     active = np.ones(count, dtype=bool)
@@ -111,10 +112,10 @@ def default_identify_within(loaded: State) -> float:
 def _identify_experiences(
     loaded: State,
     partial: State,
-    tmap: np.ndarray,
+    tmap: IntArray,
     n_loaded_templates: int,
-    emap: np.ndarray,
-    T: np.ndarray,
+    emap: IntArray,
+    T: FloatArray,
     within: float,
 ) -> None:
     """Identify partial experiences of identified templates with the nearest loaded experience of that template.
@@ -143,7 +144,7 @@ def _identify_experiences(
 
 
 def _links(
-    loaded: State, partial: State, emap: np.ndarray, kept_e: np.ndarray, n_total: int
+    loaded: State, partial: State, emap: IntArray, kept_e: BoolArray, n_total: int
 ) -> tuple[np.ndarray, ...]:
     """Return the partial links remapped: (keep mask, from, to, kind, joins), self-loops and duplicates dropped.
 
@@ -221,7 +222,7 @@ def merge_states_apart(
     *,
     shift_lattice: bool = True,
     identify_within: float | None = None,
-) -> tuple[dict[str, np.ndarray], MergeRecord, np.ndarray]:
+) -> tuple[dict[str, np.ndarray], MergeRecord, Float32Array]:
     """Return :func:`merge_states`' snapshot less ``lv_templates``, its record, and the partial's kept templates.
 
     The merged map's templates are the loaded map's ``lv_templates`` followed by the kept ones (float32, in the
@@ -240,7 +241,7 @@ def merge_states_apart(
     return state, _merge_record(loaded, match, shift_lattice, tmap, f, experiences, links, state), appended
 
 
-def _four(values: np.ndarray) -> tuple[float, float, float, float]:
+def _four(values: FloatArray) -> tuple[float, float, float, float]:
     """Return a pose (4,) as a tuple of floats."""
     return (float(values[0]), float(values[1]), float(values[2]), float(values[3]))
 
@@ -249,7 +250,7 @@ def _merge_record(
     loaded: State,
     match: Match,
     shift_lattice: bool,
-    tmap: np.ndarray,
+    tmap: IntArray,
     f: LatticeTransform,
     exp: _Experiences,
     links: _Links,
@@ -299,7 +300,7 @@ def _check_inputs(loaded: State, partial: State, match: Match) -> tuple[int, ...
     return dims
 
 
-def _merge_templates(loaded: State, partial: State, match: Match) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _merge_templates(loaded: State, partial: State, match: Match) -> tuple[IntArray, BoolArray, Float32Array]:
     """Operation (i), Eq. 9: the template id map, which partial templates are kept, and the kept templates.
 
     The kept templates (float32, in the loaded map's template shape) follow the loaded map's in the merged map.
@@ -312,7 +313,7 @@ def _merge_templates(loaded: State, partial: State, match: Match) -> tuple[np.nd
     return tmap, kept_t, appended
 
 
-def merged_templates(loaded: State, appended: np.ndarray) -> np.ndarray:
+def merged_templates(loaded: State, appended: Float32Array) -> Float32Array:
     """Return the merged map's templates: the loaded map's (float32) followed by ``appended`` (one new array)."""
     own = np.asarray(loaded["lv_templates"], dtype=np.float32).reshape(-1, *appended.shape[1:])
     return np.concatenate([own, appended])
@@ -333,14 +334,14 @@ def _lattice_transform(loaded: State, match: Match, dims: tuple[int, ...]) -> tu
     return LatticeTransform.between(dims, np.asarray(match.partial_packet, dtype=np.float64), target), delta_u
 
 
-def _moved(f: LatticeTransform | None, coords: np.ndarray, rank: int) -> np.ndarray:
+def _moved(f: LatticeTransform | None, coords: FloatArray, rank: int) -> FloatArray:
     """Return partial lattice coordinates in the loaded lattice (unchanged when f is None: (iii) skipped)."""
     moved = f.apply(coords) if f is not None else np.asarray(coords, dtype=np.float64).copy()
     return moved.reshape(-1, rank)
 
 
 def _merge_pose_cell_links(
-    loaded: State, partial: State, tmap: np.ndarray, kept_t: np.ndarray, f: LatticeTransform | None, rank: int
+    loaded: State, partial: State, tmap: IntArray, kept_t: BoolArray, f: LatticeTransform | None, rank: int
 ) -> dict[str, np.ndarray]:
     """Operation (iii) on the LVC→pose-cell links: the partial links of kept templates, moved by f."""
     p_links = np.asarray(partial["pc_link_template"], dtype=np.int64)
@@ -361,10 +362,10 @@ def _merge_pose_cell_links(
 class _Experiences:
     """Operation (iv)'s outcome for the experiences: T, the id map, and the merged arrays."""
 
-    T: np.ndarray  # (4,) the rigid transform partial → loaded frame
-    anchor_loaded: np.ndarray  # (4,) the matched loaded experience's pose turned by the view's offset
-    emap: np.ndarray  # (n_partial,) merged id of each partial experience
-    kept: np.ndarray  # (n_partial,) partial experiences inserted (not identified)
+    T: FloatArray  # (4,) the rigid transform partial → loaded frame
+    anchor_loaded: FloatArray  # (4,) the matched loaded experience's pose turned by the view's offset
+    emap: IntArray  # (n_partial,) merged id of each partial experience
+    kept: BoolArray  # (n_partial,) partial experiences inserted (not identified)
     n_loaded: int
     n_total: int
     arrays: dict[str, np.ndarray]  # em_pose, em_pc, em_template, em_stamp, em_origin, em_pc_lever
@@ -374,7 +375,7 @@ def _merge_experiences(
     loaded: State,
     partial: State,
     match: Match,
-    tmap: np.ndarray,
+    tmap: IntArray,
     f: LatticeTransform | None,
     identify_within: float | None,
 ) -> _Experiences:
@@ -414,11 +415,11 @@ class _Links:
     """Operation (iv)'s outcome for the links: the merged link arrays and which of them are merge links."""
 
     n_loaded: int
-    merge_links: np.ndarray  # ids (in the merged map) of the links that join the two graphs
+    merge_links: IntArray  # ids (in the merged map) of the links that join the two graphs
     arrays: dict[str, np.ndarray]  # em_link_from, _to, _transform, _dt, _distance, _kind, _active
 
 
-def _joined_status(active: np.ndarray, joins: np.ndarray) -> np.ndarray:
+def _joined_status(active: BoolArray, joins: BoolArray) -> BoolArray:
     """Return the kept partial links' status in the merged map: each keeps its own.
 
     A link the partial map's robust check switched off stays off when it becomes a merge link (an end
@@ -523,7 +524,7 @@ def _tie_links(match: Match, exp: _Experiences) -> dict[str, np.ndarray]:
     }
 
 
-def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, int, np.ndarray]:
+def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, int, FloatArray]:
     """The robot continues in the merged map: (current, previous experience, odometry since it rotated by T)."""
     accum = np.asarray(partial["em_accum"], dtype=np.float64).copy()
     current = int(partial["em_current"])
@@ -538,7 +539,7 @@ def _robot_state(partial: State, match: Match, exp: _Experiences) -> tuple[int, 
     return int(exp.emap[current]), int(exp.emap[previous]) if previous >= 0 else -1, accum
 
 
-def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.ndarray) -> dict[str, np.ndarray]:
+def _merged_reckoning(loaded: State, partial: State, emap: IntArray, kept: BoolArray) -> dict[str, np.ndarray]:
     """Return both maps' reckoning links in merged ids, and the running session's dead reckoning.
 
     Reckoning links hold odometry in their source's frame, which no rigid transform changes. One whose
@@ -555,7 +556,7 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
     imported) have none.
     """
 
-    def links(state: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def links(state: State) -> tuple[IntArray, IntArray, FloatArray]:
         return (np.asarray(state.get("em_reckon_from", np.zeros(0)), dtype=np.int64).reshape(-1),
                 np.asarray(state.get("em_reckon_to", np.zeros(0)), dtype=np.int64).reshape(-1),
                 np.asarray(state.get("em_reckon_link", np.zeros((0, 6))), dtype=np.float64).reshape(-1, 6))  # fmt: skip
@@ -575,7 +576,7 @@ def _merged_reckoning(loaded: State, partial: State, emap: np.ndarray, kept: np.
     }
 
 
-def _lever_arm(f: LatticeTransform | None, coords: np.ndarray) -> np.ndarray:
+def _lever_arm(f: LatticeTransform | None, coords: FloatArray) -> FloatArray:
     """Return each partial coordinate's (x, y) distance in cells from the anchor f rotates about (0: not moved).
 
     Operation (iii) rotates the partial lattice about the matched cell by the heading offset of one view, and
@@ -590,7 +591,7 @@ def _lever_arm(f: LatticeTransform | None, coords: np.ndarray) -> np.ndarray:
     return np.hypot(delta[:, 0], delta[:, 1])
 
 
-def _cat(loaded: State, partial: State, key: str, dtype: type, mask: np.ndarray) -> np.ndarray:
+def _cat(loaded: State, partial: State, key: str, dtype: type, mask: BoolArray) -> np.ndarray:
     """Return the loaded map's ``key`` followed by the partial's rows under ``mask``."""
     return np.concatenate([np.asarray(loaded[key], dtype=dtype), np.asarray(partial[key], dtype=dtype)[mask]])
 
@@ -600,21 +601,21 @@ def _merged_state(
     partial: State,
     match: Match,
     dims: tuple[int, ...],
-    tmap: np.ndarray,
-    kept_t: np.ndarray,
+    tmap: IntArray,
+    kept_t: BoolArray,
     f: LatticeTransform,
     delta_u: float,
     pc_links: dict[str, np.ndarray],
     exp: _Experiences,
     links: _Links,
-    robot: tuple[int, int, np.ndarray],
+    robot: tuple[int, int, FloatArray],
 ) -> dict[str, np.ndarray]:
     """Assemble the merged snapshot less ``lv_templates``: the merged parts and the partial's running state."""
     best = f.apply(np.asarray(partial["pc_best"], dtype=np.float64))
     lv_current = int(partial["lv_current"])
     pc_current = int(partial["pc_current_vt"])
 
-    def scalar(value: int) -> np.ndarray:
+    def scalar(value: int) -> IntArray:
         return np.asarray(_remap(np.asarray(value), tmap), dtype=np.int64)
 
     em_current, em_previous, accum = robot

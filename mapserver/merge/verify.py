@@ -48,14 +48,15 @@ evidence. Passing the probation drops the shadow and its frames.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from core import Action, Engine, StepResult
+from core import Action, Engine, Motion, StepResult
+from core.arrays import FloatArray, UInt8Array
 from core.se3 import alignment, compose
-from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, Hypothesis, HypothesisSet, Track
+from mapserver.merge.hypotheses import HELD, HIT, MISS, MISS_WEIGHT, EvidenceRule, Hypothesis, HypothesisSet, Track
 
 PASSED, REJECTED = "passed", "rejected"
 FOLLOW_LINKS = True
@@ -98,6 +99,22 @@ CUSUM_EVIDENCE = 3.0
 """A CUSUM against the merge of this many ``evidence_m`` rejects it (front-ends with weak misses, ``_cusum``)."""
 
 
+class SessionFrame(Protocol):
+    """A session's frame as a merge reads it (``mapserver.ingest.frames.Frame``; ``sonar`` read where it has one)."""
+
+    @property
+    def stamp_ns(self) -> int:
+        """Return the image's stamp, nanoseconds."""
+
+    @property
+    def image(self) -> UInt8Array:
+        """Return the camera image (H, W) or (H, W, 3)."""
+
+    @property
+    def motion(self) -> Motion | None:
+        """Return the motion since the previous frame (None: visual odometry)."""
+
+
 @dataclass(eq=False)
 class Probation:
     """A merge under verification.
@@ -128,7 +145,7 @@ class Probation:
     links_consensus: int = 0
     """The most disagreeing loop links that agree with one another's alignment (:func:`link_consensus`)."""
     worst_link_m: float = 0.0
-    disagreeing: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
+    disagreeing: list[tuple[FloatArray, FloatArray]] = field(default_factory=list, repr=False)
     """Each disagreeing loop link's (stored experience's pose, the session's odometry then)."""
     hit_places: list[tuple[float, float, float, float]] = field(default_factory=list, repr=False)
     """The stored place (x, y, z) of each hit and the track distance then (:meth:`_note_revisit`)."""
@@ -142,17 +159,17 @@ class Probation:
     cusum_m: float = 0.0
     """Page's CUSUM against the merge, in miss metres (front-ends with weak misses, :meth:`_cusum`)."""
     reason: str = ""
-    created: list[tuple[int, float, Any]] = field(default_factory=list, repr=False)
+    created: list[tuple[int, float, UInt8Array]] = field(default_factory=list, repr=False)
     """Experiences the shadow made (id, stamp, camera image): their evidence if the merge is rolled back."""
     seen: list[tuple[float, int, bool]] = field(default_factory=list, repr=False)
     """The shadow's active template per frame (stamp, template, created): the session's timeline on a rollback."""
-    pending: list[tuple[Any, Any]] = field(default_factory=list, repr=False)
+    pending: list[tuple[SessionFrame, object]] = field(default_factory=list, repr=False)
     """Frames not yet stepped through the shadow, each with the caller's note for it (:meth:`catch_up`)."""
     pending_bytes: int = 0
-    stepped: list[tuple[Any, Any, int, bool]] = field(default_factory=list, repr=False)
+    stepped: list[tuple[SessionFrame, object, int, bool]] = field(default_factory=list, repr=False)
     """Frames the shadow stepped while catching up, (frame, its note, template, created): drained by the caller."""
 
-    def step(self, track: Track, result: StepResult, frame: Any, note: Any = None) -> str | None:
+    def step(self, track: Track, result: StepResult, frame: SessionFrame, note: object = None) -> str | None:
         """Verify the newest frame (``result``: the merged engine's step); return PASSED, REJECTED or None.
 
         ``frame`` (with ``image``, ``motion``, ``stamp_ns``) is held for the shadow engine (:meth:`catch_up`),
@@ -428,7 +445,7 @@ class Probation:
             self.disagreeing.append((np.asarray(stored, dtype=np.float64), np.asarray(odometry, dtype=np.float64)))
             self.links_consensus = link_consensus(self.disagreeing, 2.0 * self.hset.rule.position_tolerance)
 
-    def _follow_link(self, stored: np.ndarray, predicted: np.ndarray, odometry: np.ndarray, distance: float) -> None:
+    def _follow_link(self, stored: FloatArray, predicted: FloatArray, odometry: FloatArray, distance: float) -> None:
         """Put the prediction where an agreeing loop link put the robot, and count the link as a match.
 
         The engine closed a loop onto the stored experience at ``stored`` within twice the position tolerance of
@@ -477,7 +494,7 @@ class Probation:
         }  # fmt: skip
 
 
-def cap_metres(rule: Any, probation_m: float, cap: float) -> float:
+def cap_metres(rule: EvidenceRule, probation_m: float, cap: float) -> float:
     """Return the metres at which a probation of ``probation_m`` ends whatever its matches do (unless held open).
 
     ``rule.probation_max_m`` (``Params.merge_probation_max_m``) when set, never below ``probation_m``; else
@@ -488,13 +505,13 @@ def cap_metres(rule: Any, probation_m: float, cap: float) -> float:
     return cap * probation_m
 
 
-def image_bytes(frame: Any) -> int:
+def image_bytes(frame: SessionFrame) -> int:
     """Return the bytes of a frame's images (camera, and sonar when it has one)."""
     sonar = getattr(frame, "sonar", None)
     return int(np.asarray(frame.image).nbytes) + (0 if sonar is None else int(np.asarray(sonar).nbytes))
 
 
-def link_consensus(links: list[tuple[np.ndarray, np.ndarray]], tolerance: float) -> int:
+def link_consensus(links: list[tuple[FloatArray, FloatArray]], tolerance: float) -> int:
     """Return the most loop links that agree on one alignment of the session's odometry onto the stored map.
 
     Each link (the stored experience's pose ``q``, the session's odometry ``o`` when it closed) implies the

@@ -325,7 +325,8 @@ _GATES_GUARD = threading.Lock()
 def commit_gate(db: Any) -> threading.RLock:
     """Return this process's commit gate of ``db``'s database (one re-entrant lock per URL).
 
-    Every session commit of this process passes the gate; the last of ``mapserver.pipeline.STALE_ATTEMPTS`` runs
+    Every session commit of this process passes the gate; the last of
+    ``mapserver.processing.pipeline.STALE_ATTEMPTS`` runs
     of a session holds it from start to commit, so sessions committed by other threads (the embedded job
     engine's workers, parallel ``process`` calls in one program) cannot make it stale and a long
     session is not starved by a stream of short ones. Writers in other processes are not held back.

@@ -1,7 +1,7 @@
 """Export a stored map: map JSON, TUM poses, PNG plot, g2o pose graph or CSV tables.
 
-Map JSON is the contract's ``mapserver-map/1``; g2o is :mod:`mapserver.formats_g2o`; CSV is
-:mod:`mapserver.formats_csv` (``--out X.csv`` holds the experiences, ``X.links.csv`` beside it the links).
+Map JSON is the contract's ``mapserver-map/1``; g2o is :mod:`mapserver.formats.g2o`; CSV is
+:mod:`mapserver.formats.csv` (``--out X.csv`` holds the experiences, ``X.links.csv`` beside it the links).
 
 JSON, TUM, g2o and CSV are written from :mod:`mapserver.store.streams` (rows read a batch at a time, the
 same bytes as the formatters of a loaded map); the PNG plot is drawn on a figure of its own

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from mapserver.errors import InputError
-from mapserver.formats_g2o import read_g2o_vertices
+from mapserver.formats.g2o import read_g2o_vertices
 from mapserver.store.db import Database
 from mapserver.store.import_msr import ImportResult
 from mapserver.store.mapio import load_map, save_map

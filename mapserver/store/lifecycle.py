@@ -157,7 +157,7 @@ def rename_map(*, conn: Connection, name: str, new_name: str) -> MapRecord:
 def _rename_in_details(conn: Connection, map_id: int, name: str, new_name: str) -> None:
     """Rename the map where its merge events' details name it: an online merge's host, the maps an undo restored.
 
-    A redo finds the maps by these names (:mod:`mapserver.undo`).
+    A redo finds the maps by these names (:mod:`mapserver.atlas.undo`).
     """
     rows = conn.execute(select(MergeEvent.id, MergeEvent.details).where(MergeEvent.map_id == map_id)).all()
     for event_id, details in rows:

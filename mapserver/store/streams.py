@@ -30,8 +30,8 @@ from sqlalchemy import Connection, func, select
 from core.se3 import quaternions_from_yaws
 from mapserver.errors import ConflictError, InputError
 from mapserver.formats import MAP_FORMAT, TUM_HEADER, _plain
-from mapserver.formats_csv import EXPERIENCE_COLUMNS, LINK_COLUMNS
-from mapserver.formats_g2o import edge_lines, manual_lines, vertex_lines
+from mapserver.formats.csv import EXPERIENCE_COLUMNS, LINK_COLUMNS
+from mapserver.formats.g2o import edge_lines, manual_lines, vertex_lines
 from mapserver.store.bulk import iter_tuples
 from mapserver.store.db import Database, small_page_cache
 from mapserver.store.errors import CorruptStateError

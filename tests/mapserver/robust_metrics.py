@@ -15,7 +15,7 @@ from mapserver.evaluation import ape_positions, interpolate_poses
 from mapserver.formats import Trajectory, read_tum
 from mapserver.merge import online as online_module
 from mapserver.params import with_settings
-from mapserver.pipeline import process_log
+from mapserver.processing.pipeline import process_log
 from mapserver.store import list_maps, load_map, open_database
 from tests.simulations import simulate_once
 

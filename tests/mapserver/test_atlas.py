@@ -17,11 +17,12 @@ from fastapi.testclient import TestClient
 from sqlalchemy.engine import make_url as sa_url
 
 from core import preset
-from mapserver import atlas, pipeline
+from mapserver import atlas
 from mapserver.api import Settings, create_app
 from mapserver.errors import ConflictError, MergeError, NoConfirmedMatchError
 from mapserver.ingest.reader import MissionLog
 from mapserver.ingest.simulator import simulate
+from mapserver.processing import pipeline
 from mapserver.store import load_map, open_database, save_map
 from mapserver.store.merge_events import get_merge_event, list_merge_events
 from mapserver.store.sessions import get_reckoning
@@ -301,7 +302,7 @@ def test_the_last_stale_retry_holds_the_commit_gate(monkeypatch: pytest.MonkeyPa
     """A session whose candidate maps keep changing (CI: six uploads over three maps, two worker threads) is
     processed a last time holding this process's commit gate, so other threads' commits wait and it is not
     starved; the earlier tries run without it."""
-    from mapserver import pipeline
+    from mapserver.processing import pipeline
     from mapserver.store import StaleMapError
     from mapserver.store.db import commit_gate
 

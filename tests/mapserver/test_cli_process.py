@@ -207,7 +207,7 @@ def test_merge_no_shift_is_marked_as_a_debug_flag(capsys: pytest.CaptureFixture[
 
 
 def test_the_rate_counts_the_frames_of_this_run() -> None:
-    from mapserver.pipeline import ProcessResult
+    from mapserver.processing.pipeline import ProcessResult
 
     resumed = ProcessResult(frames=100, templates=1, experiences=1, links=0, loop_closures=0, map_name="m",
                             seconds=2.0, frames_run=10)  # fmt: skip
@@ -221,9 +221,9 @@ def test_the_clock_starts_after_the_front_end_is_loaded(
     """Loading the view module's libraries (torch: ~2 s) is program start, not the log's processing."""
     import time
 
-    import mapserver.run
+    import mapserver.processing.run
     from core.config import preset
-    from mapserver.pipeline import process_into_store, process_log
+    from mapserver.processing.pipeline import process_into_store, process_log
 
     loaded = []
 
@@ -232,7 +232,7 @@ def test_the_clock_starts_after_the_front_end_is_loaded(
         loaded.append(params)
         return object
 
-    monkeypatch.setattr(mapserver.run, "view_cells_class", slow_load)
+    monkeypatch.setattr(mapserver.processing.run, "view_cells_class", slow_load)
     started = time.perf_counter()
     if with_db:
         result = process_into_store(small_log, preset("poseidon"), db_url=f"sqlite:///{tmp_path / 'db.sqlite'}")

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapserver import pipeline
 from mapserver.cli.demo import DEMO_PARAMS, DEMO_SCENARIO, DEMO_SEED
 from mapserver.evaluation import evaluate_map
 from mapserver.formats import read_map_json, read_tum
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.report import ReportInputs, timeline
 from tests.mapserver.merge.scenario_metrics import cli_code, cli_json
 from tests.simulations import simulate_once

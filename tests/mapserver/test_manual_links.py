@@ -23,18 +23,18 @@ from scipy.spatial.transform import Rotation
 from core import LinkKind, preset
 from core.links import SWITCHABLE_KINDS
 from core.se3 import compose, relative
-from mapserver import pipeline
 from mapserver.api import Settings, create_app
+from mapserver.atlas.manual_links import LinkRequest, link_experiences
+from mapserver.atlas.undo import redo_merge, unmerge
 from mapserver.errors import ConflictError
 from mapserver.evaluation import evaluate_map, interpolate_poses
 from mapserver.formats import Trajectory, read_tum
-from mapserver.formats_g2o import g2o_text
-from mapserver.manual_links import LinkRequest, link_experiences
+from mapserver.formats.g2o import g2o_text
+from mapserver.processing import pipeline
 from mapserver.store import get_map, load_map, open_database
 from mapserver.store.export import export_map, map_document
 from mapserver.store.manual_links import manual_links
 from mapserver.store.tokens import create_token
-from mapserver.undo import redo_merge, unmerge
 from tests.mapserver.merge.scenario_metrics import cli_code, cli_json
 from tests.mapserver.store.conftest import assert_same_arrays, db_url  # noqa: F401
 from tests.simulations import simulate_once

@@ -1,4 +1,4 @@
-"""Relative pose error (mapserver.rpe): pairs by path length, drift figures by hand, invariance to rigid motion."""
+"""Relative pose error (mapserver.evaluation.rpe): pairs by path length, drift by hand, invariance to rigid motion."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from mapserver.rpe import pairs_by_path, relative_pose_error, yaw_rotations
+from mapserver.evaluation.rpe import pairs_by_path, relative_pose_error, yaw_rotations
 
 
 def test_pairs_close_where_the_path_reaches_the_segment_length() -> None:

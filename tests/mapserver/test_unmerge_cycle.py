@@ -19,9 +19,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from core import preset
-from mapserver import pipeline, undo
 from mapserver.api import create_app
+from mapserver.atlas import undo
 from mapserver.errors import ConflictError
+from mapserver.processing import pipeline
 from mapserver.store import load_map, open_database
 from mapserver.store.archive import delete_archive
 from mapserver.store.merge_events import get_merge_event

@@ -1,6 +1,6 @@
 """``/v1/maps/{name}/links``: manual links — add one (write token), list a map's (read).
 
-``POST`` joins two experiences as the same place or with a stated transform (:mod:`mapserver.manual_links`):
+``POST`` joins two experiences as the same place or with a stated transform (:mod:`mapserver.atlas.manual_links`):
 within the map, or to an experience of another map, which then merges into it. The answer says whether the
 robust check kept the link on or flagged it (switched off: it contradicts the map). The link is a merge event:
 ``POST /v1/merges/{id}/undo`` removes it.
@@ -18,7 +18,7 @@ from mapserver.api.deps import ReadAccess, ServicesDep, WriteAccess
 from mapserver.api.routes.maps import MAP_ERRORS, MAX_ID, MapName
 from mapserver.api.schemas import ErrorPublic
 from mapserver.api.services import Services
-from mapserver.manual_links import LinkRequest, link_experiences
+from mapserver.atlas.manual_links import LinkRequest, link_experiences
 from mapserver.store import get_map
 from mapserver.store.manual_links import manual_links
 from mapserver.store.tokens import TokenRecord

@@ -11,11 +11,11 @@ from mapserver.api.deps import ReadAccess, ServicesDep, WriteAccess
 from mapserver.api.routes.maps import AUTH_ERRORS, MAX_ID
 from mapserver.api.schemas import ErrorPublic
 from mapserver.api.services import Services
+from mapserver.atlas.undo import redo_merge, unmerge
 from mapserver.store import Connection, get_map
 from mapserver.store.identities import PlacedExperience, experiences_at, template_users
 from mapserver.store.merge_events import MergeEventRecord, get_merge_event, list_merge_events
 from mapserver.store.sessions import get_sessions
-from mapserver.undo import redo_merge, unmerge
 
 router = APIRouter(prefix="/v1/merges", tags=["merges"])
 EVENT_ERRORS: dict[int | str, dict[str, Any]] = {**AUTH_ERRORS, 404: {"model": ErrorPublic}}

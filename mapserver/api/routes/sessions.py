@@ -13,9 +13,9 @@ from mapserver.api.errors import raise_server_fault
 from mapserver.api.intake import StoredLog, parse_options, store_log
 from mapserver.api.schemas import ErrorPublic, UploadAccepted
 from mapserver.api.uploads import FILE_FIELD, receive_upload
+from mapserver.atlas.undo import move_session
 from mapserver.store import get_session
 from mapserver.store.jobs import JobRecord
-from mapserver.undo import move_session
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 

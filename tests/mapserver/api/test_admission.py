@@ -39,7 +39,7 @@ def _hold_jobs(api: Api) -> None:
 
 def _run_jobs(api: Api) -> None:
     services = api.client.app.state.services  # type: ignore[attr-defined]
-    engine = EmbeddedJobEngine(services.db, db_url=api.db_url, workers=1, progress_interval_s=0.0)
+    engine = EmbeddedJobEngine(services.db, workers=1, progress_interval_s=0.0)
     engine.start()
     services.jobs = engine
 

@@ -12,8 +12,8 @@ import httpx
 import pytest
 import sqlalchemy as sa
 
-from mapserver import pipeline
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store import open_database
 from mapserver.store.models import Job, Session
 from tests.mapserver.api.cluster import RABBITMQ, Cluster, local_cluster

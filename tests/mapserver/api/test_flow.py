@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapserver import pipeline
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store.health import map_health
 from tests.mapserver.api.conftest import Api
 from tests.mapserver.api.logs import write_strip_log

@@ -33,7 +33,7 @@ def test_one_map_at_a_time_and_maps_in_parallel(tmp_path: Path, monkeypatch: pyt
         with db.write() as conn:
             ids = [create_job(conn=conn, upload_path=f"/x/{k}.bag", map_name=m).id for k, m in
                    enumerate(["a", "a", "b", "a", "b"])]  # fmt: skip
-        engine = jobengine.EmbeddedJobEngine(db, db_url=url, workers=3)
+        engine = jobengine.EmbeddedJobEngine(db, workers=3)
         engine.start()
         deadline = time.monotonic() + 20
         while len(spans) < len(ids) and time.monotonic() < deadline:
@@ -81,7 +81,7 @@ def test_stop_interrupts_a_running_job_and_queues_it_again(tmp_path: Path) -> No
         with db.write() as conn:
             job = create_job(conn=conn, upload_path=str(log), map_name="long", preset="irat",
                              options={"map_given": True, "attempts": 0}).id  # fmt: skip
-        engine = jobengine.EmbeddedJobEngine(db, db_url=url, workers=1, progress_interval_s=0.0)
+        engine = jobengine.EmbeddedJobEngine(db, workers=1, progress_interval_s=0.0)
         engine.start()
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:

@@ -96,7 +96,7 @@ def recorder(monkeypatch: pytest.MonkeyPatch) -> Recorder:
 
 
 def _engine(url: str, db: Database) -> jobengine.EmbeddedJobEngine:
-    return jobengine.EmbeddedJobEngine(db, db_url=url, workers=1, progress_interval_s=0.0, lease_s=LEASE_S)
+    return jobengine.EmbeddedJobEngine(db, workers=1, progress_interval_s=0.0, lease_s=LEASE_S)
 
 
 def _wait(db: Database, job_id: int, until: Any, timeout: float = 30.0) -> Any:

@@ -156,7 +156,7 @@ def test_the_health_reports_an_unreachable_broker_without_its_url() -> None:
 def test_a_job_record_names_the_uploads_request_id_not_the_error(
     api: Api, strip_log: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, error: type[Exception]
 ) -> None:
-    from mapserver import pipeline
+    from mapserver.processing import pipeline
 
     def broken(*_: Any, **__: Any) -> Any:
         raise error(f"database error on {SECRET}")
@@ -177,7 +177,7 @@ def test_a_job_refused_for_its_parameters_shows_the_message(
 ) -> None:
     """The engine's ConfigError is the client's input: the job record shows its message, not an internal error."""
     from core.config import ConfigError
-    from mapserver import pipeline
+    from mapserver.processing import pipeline
 
     def refused(*_: Any, **__: Any) -> Any:
         raise ConfigError("parameter 'frontend_backbone' = 'vgg': must be one of none, shufflenetv2, alexnet")

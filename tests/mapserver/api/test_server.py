@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
-from mapserver import pipeline
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store import open_database
 from mapserver.store.models import Base
 from tests.mapserver.api.conftest import Server, bearer, make_token, wait_job

@@ -11,13 +11,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapserver import pipeline
 from mapserver.api.viewdata import session_ends
 from mapserver.api.viewtruth import in_map_frame, thin
 from mapserver.cli import main
 from mapserver.errors import InputError
 from mapserver.formats import read_tum, write_tum
 from mapserver.params import resolve_params
+from mapserver.processing import pipeline
 from mapserver.store import open_database
 from mapserver.store.ground_truth import decimate_ground_truth, get_ground_truth, session_id_by_name
 from tests.mapserver.api.conftest import Api

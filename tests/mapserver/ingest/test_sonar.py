@@ -14,7 +14,7 @@ from core.neocortex import NeocortexViewCells
 from mapserver.errors import IngestError, InputError
 from mapserver.ingest import open_log
 from mapserver.ingest.topics import TopicInfo, choose_topics, map_topics
-from mapserver.run import run_engine
+from mapserver.processing.run import run_engine
 from tests.mapserver.ingest.conftest import T0_NS, LogFactory, arc_odometry, frame_images, test_image
 
 SONAR = "/robot/sonar/image"

@@ -23,7 +23,7 @@ from core import preset
 from mapserver.ingest import open_log
 from mapserver.ingest.ordering import reorder_window
 from mapserver.ingest.simulator import simulate
-from mapserver.pipeline import process_log
+from mapserver.processing.pipeline import process_log
 
 pytestmark = pytest.mark.slow
 

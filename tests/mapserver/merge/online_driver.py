@@ -12,7 +12,7 @@ import numpy as np
 from core.engine import Engine
 from mapserver.merge.engines import StoredMap
 from mapserver.merge.online import MergeEvent, OnlineMerger, Rollback
-from mapserver.run import run_engine
+from mapserver.processing.run import run_engine
 from tests.mapserver.merge.scenario_metrics import true_alignment
 from tests.simulations import simulate_once
 

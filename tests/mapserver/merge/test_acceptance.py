@@ -290,7 +290,7 @@ def test_sdr_htm_sessions_merge_at_their_true_place_and_never_into_another_cave(
     motion gate holds it): taking the robot to be at its current heading when the anchor view was seen would put
     T 35° off (0.61 rad, outside the bound below)."""
     from core import Engine
-    from mapserver.pipeline import process_into_store
+    from mapserver.processing.pipeline import process_into_store
     from mapserver.store.mapio import load_map
     from tests.mapserver.store.conftest import assert_same_arrays
 

@@ -19,7 +19,7 @@ import pytest
 
 from core import preset
 from mapserver.cli import main
-from mapserver.pipeline import process_log
+from mapserver.processing.pipeline import process_log
 from mapserver.store import load_map, open_database
 from tests.mapserver.merge.scenario_metrics import cli_json, true_alignment
 from tests.simulations import simulate_once

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapserver import pipeline
+from mapserver.processing import pipeline
 from mapserver.store import Database, NewSession, UnknownMapError, load_map, save_map
 from mapserver.store import state_rows_write as rows_module
 from tests.mapserver.store.conftest import (

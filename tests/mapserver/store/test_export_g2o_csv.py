@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapserver.cli import main
-from mapserver.formats_csv import links_csv
-from mapserver.formats_g2o import g2o_text, read_g2o_vertices
+from mapserver.formats.csv import links_csv
+from mapserver.formats.g2o import g2o_text, read_g2o_vertices
 from mapserver.store import load_map, open_database
 from tests.mapserver.store.test_import import LINKS, TX, TY, small_params, write_save_dir
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from core.config import preset
-from mapserver import pipeline
+from mapserver.processing import pipeline
 from mapserver.store import load_map, open_database
 from tests.mapserver.store.conftest import assert_same_arrays, write_loop_log
 

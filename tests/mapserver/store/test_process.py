@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapserver import pipeline
 from mapserver.cli import main
+from mapserver.processing import pipeline
 from mapserver.store import load_map, open_database
 from mapserver.store.evidence import decode_jpeg, get_evidence
 from mapserver.store.sessions import get_reckoning

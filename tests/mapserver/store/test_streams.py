@@ -16,8 +16,8 @@ import pytest
 from core import Engine, preset
 from mapserver.errors import ConflictError, InputError
 from mapserver.formats import write_map_json, write_tum
-from mapserver.formats_csv import experiences_csv, links_csv
-from mapserver.formats_g2o import g2o_text
+from mapserver.formats.csv import experiences_csv, links_csv
+from mapserver.formats.g2o import g2o_text
 from mapserver.store import Database, NewSession, load_map, save_map
 from mapserver.store.errors import UnknownMapError
 from mapserver.store.export import is_planar, map_document, tum_rows

@@ -15,7 +15,7 @@ from mapserver.formats import read_tum
 from mapserver.ingest import open_log
 from mapserver.ingest.simulator import plan_scenario
 from mapserver.params import resolve_params
-from mapserver.run import process_log
+from mapserver.processing.run import process_log
 from tests.simulations import simulate_once
 
 NAV_TOPICS = {"/robot/dvl/twist", "/robot/imu", "/robot/pressure", "/tf_static"}

@@ -1,7 +1,7 @@
 """The one place that runs a mission log through the engine, the store and the merger.
 
 Both faces (``mapserver process`` and the REST API's jobs) call :func:`process_log` (from
-:mod:`mapserver.run`), or :func:`process_into_store` to keep the session in a database.
+:mod:`mapserver.processing.run`), or :func:`process_into_store` to keep the session in a database.
 """
 
 from __future__ import annotations
@@ -10,21 +10,21 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from core import ConfigError, Engine, Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
-from mapserver.ingest import MissionLog, open_log
-from mapserver.names import check_map_name, default_map_name
-from mapserver.reckoning import DeadReckoning
-from mapserver.run import (  # re-exported: the pipeline is where callers find them
+from mapserver.ingest import LogIdentity, MissionLog, open_log
+from mapserver.names import check_map_name, default_map_name, log_stem
+from mapserver.processing.reckoning import DeadReckoning
+from mapserver.processing.run import (  # re-exported: the pipeline is where callers find them
     EngineRun,
     ProcessResult,
     ProgressCallback,
@@ -33,7 +33,17 @@ from mapserver.run import (  # re-exported: the pipeline is where callers find t
     process_log,
     run_engine,
 )
-from mapserver.store import utcnow
+from mapserver.store import Database, utcnow
+
+if TYPE_CHECKING:
+    from mapserver.atlas import AtlasMap
+    from mapserver.ingest.frames import IngestReport
+    from mapserver.merge import OnlineMerger
+    from mapserver.merge.identity import RowIdentities
+    from mapserver.merge.resume import MergerState
+    from mapserver.processing.live import PendingMerge
+    from mapserver.store import Connection, Database, SessionRecord
+    from mapserver.store.evidence import EvidenceCollector
 
 logger = logging.getLogger(__name__)
 
@@ -50,11 +60,9 @@ runs with its session id. The store maps tag 0 to the new session's id when it s
 """
 
 
-def _log_stem(log_path: str | Path) -> str:
-    return Path(log_path).name.split(".")[0] or "map"
-
-
-def _existing_result(db: Any, session: Any, map_id: int, started: float, out: str | Path | None) -> ProcessResult:
+def _existing_result(
+    db: Database, session: SessionRecord, map_id: int, started: float, out: str | Path | None
+) -> ProcessResult:
     """Answer with a stored session (no processing); write ``out`` from the stored map."""
     from mapserver.store import load_map
     from mapserver.store.export import map_document
@@ -88,6 +96,8 @@ def process_into_store(
     params: Params,
     *,
     db_url: str | None,
+    db: Database | None = None,
+    identity: LogIdentity | None = None,
     map_name: str | None = None,
     topics: Mapping[str, str] | None = None,
     merge: bool = True,
@@ -115,7 +125,11 @@ def process_into_store(
     Args:
         log_path: the mission log.
         params: engine parameters (a continued session must use the ones it was stored with).
-        db_url: SQLAlchemy URL (None: the default SQLite file); an empty database gets the schema.
+        db_url: SQLAlchemy URL (None: the default SQLite file); an empty database gets the schema. Opened
+            here, unless ``db`` is given.
+        db: the process's open database (the server's or a worker's), used instead of opening ``db_url``.
+        identity: the log's identity read when it was first opened (the upload's check); None reads it
+            here (hashing the log).
         map_name: name of the new map when the session connects to none (an error if it breaks the map
             name rule, :func:`mapserver.names.check_map_name`, or a map of that name exists and the log is
             not one of its sessions).
@@ -140,8 +154,8 @@ def process_into_store(
         ConflictError: concurrent writers changed the maps this session reads or may merge into during
             each of ``STALE_ATTEMPTS`` runs.
     """
-    from mapserver.live import LiveSession  # noqa: F401  (with the store: loaded before the clock starts)
-    from mapserver.store import StaleMapError, open_database
+    from mapserver.processing.live import LiveSession  # noqa: F401  (with the store: loaded before the clock starts)
+    from mapserver.store import StaleMapError
     from mapserver.store.db import commit_gate
     from mapserver.store.evidence import EvidenceCollector  # noqa: F401
 
@@ -157,19 +171,31 @@ def process_into_store(
     load_frontend(params)
     started = time.perf_counter()
     options = _Options(map_name, merge, stop_after, out, progress, started, confirm, shift_lattice, utcnow(), into)
-    with open_log(log_path, topics) as log, open_database(db_url) as db:
-        identity = {"sha256": log.sha256, "mapping": log.mapping.as_dict(), "total": log.count_frames()}
+    with open_log(log_path, topics) as log, _database(db, db_url) as store:
+        known = LogIdentity.of(log) if identity is None else identity
         for attempt in range(1, STALE_ATTEMPTS + 1):
             try:
                 if attempt < STALE_ATTEMPTS:
-                    return _process_session(db, log_path, log, params, identity, options)
-                with commit_gate(db):  # the last try: no session of this process commits meanwhile
-                    return _process_session(db, log_path, log, params, identity, options)
+                    return _process_session(store, log_path, log, params, known, options)
+                with commit_gate(store):  # the last try: no session of this process commits meanwhile
+                    return _process_session(store, log_path, log, params, known, options)
             except StaleMapError as err:
                 if attempt == STALE_ATTEMPTS:
                     raise
                 logger.warning("%s; processing the log again", err)
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+@contextlib.contextmanager
+def _database(db: Database | None, db_url: str | None) -> Iterator[Database]:
+    """Yield ``db`` as it is (its owner closes it), or the database at ``db_url``, opened and closed here."""
+    if db is not None:
+        yield db
+        return
+    from mapserver.store import open_database
+
+    with open_database(db_url) as opened:
+        yield opened
 
 
 @dataclass(frozen=True)
@@ -215,16 +241,16 @@ def _require_merged_into(into: str | None, holder_id: int | None, candidates: li
 
 
 def _process_session(
-    db: Any, log_path: str | Path, log: MissionLog, params: Params, identity: Mapping[str, Any], opts: _Options
+    db: Database, log_path: str | Path, log: MissionLog, params: Params, identity: LogIdentity, opts: _Options
 ) -> ProcessResult:
     """One attempt of :func:`process_into_store`: read the atlas, run the log, store (redone when stale)."""
-    from mapserver.live import Holder, LiveSession
     from mapserver.merge import OnlineMerger
     from mapserver.merge.relevance import ViewLog
+    from mapserver.processing.live import Holder, LiveSession
     from mapserver.store.evidence import EvidenceCollector
 
     name = opts.map_name or default_map_name(log_path)
-    total = int(identity["total"])
+    total = identity.frames
     read = _read_atlas(db, log_path, params, identity, opts, name)
     if isinstance(read, ProcessResult):
         return read
@@ -247,7 +273,7 @@ def _process_session(
     )  # fmt: skip
     on_probation = None if merger is None or opts.stop_after is None else lambda: merger.probation is not None
     run = run_engine(engine, log, start=start, stop=stop, progress=opts.progress, on_step=live.on_step,
-                     overrun=on_probation)  # fmt: skip
+                     overrun=on_probation, identity=identity, reckoning=reckoning)  # fmt: skip
     if run.frames == 0 and own is None:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
@@ -270,7 +296,7 @@ def _process_session(
         session=session, own=own, name=name, engine=engine, ids=ids, pending=live.pending,
         merger=merger if not complete else None, candidates=candidates, progress=progress, collector=live.collector,
         frames_run=run.frames, activations=(read.activations, live.activation_rows),
-        relevance=(set() if merger is None else merger.observed, live.views), dropped=run.info["dropped"],
+        relevance=(set() if merger is None else merger.observed, live.views), dropped=run.dropped,
         ground_truth=truth,
     ))  # fmt: skip
 
@@ -296,16 +322,16 @@ def log_ground_truth_rows(log: MissionLog) -> np.ndarray | None:
 class _AtlasRead:
     """What a run starts from: the session stored already (resumed) and its map, and the merge candidates."""
 
-    session: Any = None
-    own: Any = None  # the resumed session's map (mapserver.atlas.AtlasMap)
+    session: SessionRecord | None = None
+    own: AtlasMap | None = None  # the resumed session's map
     rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # stored dead reckoning
-    pose: Any = None  # its final pose
+    pose: tuple[float, ...] | None = None  # its final pose
     activations: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 4)))  # None: stored before 0005
-    candidates: list[Any] = field(default_factory=list)
+    candidates: list[AtlasMap] = field(default_factory=list)
 
 
 def _read_atlas(
-    db: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, name: str
+    db: Database, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, name: str
 ) -> _AtlasRead | ProcessResult:
     """Read the stored session of this log (if any), its map and the merge candidates, in one read.
 
@@ -321,7 +347,7 @@ def _read_atlas(
 
     read = _AtlasRead()
     with db.read() as conn:
-        session = find_session(conn=conn, log_sha256=identity["sha256"], topics=identity["mapping"])
+        session = find_session(conn=conn, log_sha256=identity.sha256, topics=identity.mapping)
         if session is not None:
             record = get_map_by_id(conn=conn, map_id=_check_stored_session(log_path, params, session))
             if record.archived_at is not None:
@@ -337,7 +363,7 @@ def _read_atlas(
                     f"it cannot be stored in map {wanted!r}"
                 )
                 raise InputError(msg)
-            done, total = session.frames_processed, int(identity["total"])
+            done, total = session.frames_processed, identity.frames
             if session.complete or (opts.stop_after is not None and done >= opts.stop_after):
                 logger.warning(
                     "%s is stored already as session %r of map %r (%d of %d frames): answering with it",
@@ -368,7 +394,7 @@ def _read_atlas(
     return read
 
 
-def _check_stored_session(log_path: str | Path, params: Params, session: Any) -> int:
+def _check_stored_session(log_path: str | Path, params: Params, session: SessionRecord) -> int:
     """Check that a stored session can be continued with ``params``; return its map's id.
 
     A parameter the stored session does not name (it was stored before the parameter existed) takes its
@@ -394,7 +420,9 @@ def _check_stored_session(log_path: str | Path, params: Params, session: Any) ->
     return int(session.map_id)
 
 
-def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, int, DeadReckoning, Any]:
+def _start_engine(
+    params: Params, read: _AtlasRead
+) -> tuple[Engine, RowIdentities, int, int, DeadReckoning, MergerState | None]:
     """Return (engine, row identities, origin tag, first frame, dead reckoning, merge driver state) to run from.
 
     A resumed session continues its map's stored engine from its next frame; a new one starts empty.
@@ -418,25 +446,26 @@ def _start_engine(params: Params, read: _AtlasRead) -> tuple[Engine, Any, int, i
 class _RunOutcome:
     """What a run of the log leaves to store: the session and map it ran in, its engine, merges and records."""
 
-    session: Any  # the stored session it continued (None: a new session)
-    own: Any  # that session's map (mapserver.atlas.AtlasMap)
+    session: SessionRecord | None  # the stored session it continued (None: a new session)
+    own: AtlasMap | None  # that session's map
     name: str  # the new map's name when the session joined none
     engine: Engine
-    ids: Any  # row identities (mapserver.merge.identity.RowIdentities)
-    pending: list[Any]  # its merges, applied or rejected (mapserver.live.PendingMerge)
-    merger: Any  # the online merger whose state a resume needs (None: none, or the session is complete)
-    candidates: list[Any]  # the maps it was matched against (mapserver.atlas.AtlasMap)
+    ids: RowIdentities  # row identities
+    pending: list[PendingMerge]  # its merges, applied or rejected
+    merger: OnlineMerger | None  # the online merger whose state a resume needs (None: none, or the session is complete)
+    candidates: list[AtlasMap]  # the maps it was matched against
     progress: _Progress
-    collector: Any  # the evidence collector (mapserver.store.evidence.EvidenceCollector)
+    collector: EvidenceCollector  # the evidence collector
     frames_run: int
-    activations: tuple[np.ndarray | None, Any]  # the stored timeline (None: stored before it existed), live rows
+    activations: tuple[np.ndarray | None, Callable[[dict[int, int]], np.ndarray]]
+    """The stored timeline (None: stored before it existed), and the live rows (``LiveSession.activation_rows``)."""
     relevance: tuple[set[object], Any]  # the maps the merger observed, the session's views
-    dropped: Any = None  # what reading the log dropped (mapserver.ingest.frames.IngestReport)
+    dropped: IngestReport | None = None  # what reading the log dropped
     ground_truth: np.ndarray | None = None  # the log's ground-truth rows, kept with the session once it is complete
 
 
 def _store_session(
-    db: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], opts: _Options, run: _RunOutcome
+    db: Database, log_path: str | Path, params: Params, identity: LogIdentity, opts: _Options, run: _RunOutcome
 ) -> ProcessResult:
     """Write the session, its map (merged or not), its merge events and evidence in one transaction.
 
@@ -489,10 +518,10 @@ def _store_session(
 
 
 def _merges_to_write(
-    conn: Any, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
+    conn: Connection, run: _RunOutcome, session_id: int, params: Params, session_ids: list[int]
 ) -> tuple[list[Any], list[Any]]:
     """Return the session's applied and rejected merges as the store writes them (with every session's frames)."""
-    from mapserver.live import merge_to_write
+    from mapserver.processing.live import merge_to_write
     from mapserver.store.sessions import get_sessions
 
     frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
@@ -518,7 +547,7 @@ class _Progress:
 
 
 def _write_session_row(
-    conn: Any, log_path: str | Path, params: Params, identity: Mapping[str, Any], run: _RunOutcome,
+    conn: Connection, log_path: str | Path, params: Params, identity: LogIdentity, run: _RunOutcome,
     started_at: datetime,
 ) -> int:
     """Create the session's row (or update a resumed one) with its dead reckoning and timeline; return its id."""
@@ -537,8 +566,8 @@ def _write_session_row(
         created = create_session(
             conn=conn,
             spec=NewSession(
-                name=_log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity["sha256"],
-                topics=identity["mapping"], params=plain_params(params), status=progress.status,
+                name=log_stem(log_path), log_name=Path(log_path).name, log_sha256=identity.sha256,
+                topics=identity.mapping, params=plain_params(params), status=progress.status,
                 frames_processed=progress.processed, frames_total=progress.total,
                 first_stamp=stamps[0] if stamps else None, last_stamp=stamps[-1] if stamps else None,
                 origin=NEW_SESSION_ORIGIN, reckoning=progress.rows, reckoning_pose=progress.pose,  # type: ignore[arg-type]
@@ -557,7 +586,9 @@ def _write_session_row(
     return session_id
 
 
-def _claim_host(conn: Any, session_id: int, run: _RunOutcome, params: Params) -> tuple[dict[int, int], int, list[int]]:
+def _claim_host(
+    conn: Connection, session_id: int, run: _RunOutcome, params: Params
+) -> tuple[dict[int, int], int, list[int]]:
     """Return the maps this write claims (id → version read), the host map and the map's sessions.
 
     The host is the oldest map involved; a new map (named ``name``) when the session joined none.

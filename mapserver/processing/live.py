@@ -1,12 +1,14 @@
 """A session being mapped with online merging: the per-frame bookkeeping between engine, merger and store.
 
-:func:`mapserver.pipeline.process_into_store` feeds every frame to :meth:`LiveSession.on_step`.
+:func:`mapserver.processing.pipeline.process_into_store` feeds every frame to :meth:`LiveSession.on_step`.
 It keeps what the store will need when the session is written: the map the session is in at the
 moment (its own, or the stored map it merged into), the stable row identities of that map, the
-merges made (:class:`PendingMerge`, each ``applied`` or ``rejected``), the frames' stamps, the
-dead reckoning and the evidence images. A merge swaps the engine for the merged one; a merge
-rolled back by its verification swaps it back for the session's own engine, restores the map
-it was in before and keeps the merge as ``rejected`` with its evidence.
+merges made (:class:`PendingMerge`, each ``applied`` or ``rejected``), the frames' stamps and the
+evidence images. The dead reckoning is the run's: :func:`mapserver.processing.run.run_engine` integrates each
+frame's motion into it before the frame is booked here, and a merge records the pose it has reached.
+A merge swaps the engine for the merged one; a merge rolled back by its verification swaps it back
+for the session's own engine, restores the map it was in before and keeps the merge as ``rejected``
+with its evidence.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,6 +25,11 @@ from mapserver.merge import MergeEvent, OnlineMerger, Rollback
 from mapserver.merge.identity import RowIdentities
 from mapserver.merge.provenance import match_to_dict, record_summary
 from mapserver.merge.relevance import ViewLog
+from mapserver.merge.verify import SessionFrame
+
+if TYPE_CHECKING:
+    from mapserver.atlas import AtlasMap
+    from mapserver.processing.reckoning import DeadReckoning
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +54,7 @@ class PendingMerge:
     """
 
     event: MergeEvent
-    target: Any  # mapserver.atlas.AtlasMap
+    target: AtlasMap
     before: Holder  # the map the session was in before the merge (partial side; restored by a rollback)
     frames_at: int
     reckoning_pose: list[float]
@@ -87,9 +94,9 @@ class LiveSession:
     tag: int
     start: int
     merger: OnlineMerger | None
-    targets: dict[int, Any]  # stored map id → AtlasMap (the merge candidates)
+    targets: dict[int, AtlasMap]  # stored map id → the merge candidates
     collector: Any  # mapserver.store.evidence.EvidenceCollector
-    reckoning: Any  # mapserver.reckoning.DeadReckoning
+    reckoning: DeadReckoning  # the run's, read here (run_engine integrates each frame)
     stamps: list[float] = field(default_factory=list)
     pending: list[PendingMerge] = field(default_factory=list)
     activations: list[tuple[float, int, int, float]] = field(default_factory=list)
@@ -102,7 +109,7 @@ class LiveSession:
         """Return the merges that stand."""
         return [m for m in self.pending if m.status == "applied"]
 
-    def on_step(self, frame: Any, result: StepResult) -> Engine | None:
+    def on_step(self, frame: SessionFrame, result: StepResult) -> Engine | None:
         """Book one frame; return the engine to continue in when a merge or a rollback changed it."""
         holder = self.holder
         holder.ids.extend(holder.engine.template_count, holder.engine.experience_count, self.tag)
@@ -112,7 +119,6 @@ class LiveSession:
         self.collector.observe(stamp, frame.image)
         if result.action == Action.CREATE_NODE:
             self.collector.experience(holder.ids.experience_identity(result.experience)[1], stamp)
-        self.reckoning.add(stamp, result.motion)
         if self.views is not None:
             self.views.add(holder.engine.local_view.last_view)
         if self.merger is None:
@@ -195,7 +201,7 @@ class LiveSession:
 
 
 def merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, frames_now: Mapping[int, int]) -> Any:
-    """Return the store's view of one online merge (:class:`mapserver.live.PendingMerge`) with its provenance."""
+    """Return the store's view of one online merge (:class:`PendingMerge`) with its provenance."""
     from mapserver import atlas
 
     ev = m.event

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,7 +25,7 @@ from mapserver.merge.identity import RowIdentities
 from mapserver.merge.places import merged_template_places
 from mapserver.merge.provenance import match_from_dict
 from mapserver.merge.resume import MergerState, merger_keys
-from mapserver.names import check_map_name, default_map_name
+from mapserver.names import check_map_name, default_map_name, unique_map_name
 from mapserver.store import Connection, Database, drop_map, find_map, get_map_by_id
 from mapserver.store.archive import (
     ArchivedState,
@@ -54,6 +54,9 @@ from mapserver.store.sessions import (
 )
 from mapserver.store.state import write_map_state
 
+if TYPE_CHECKING:
+    from mapserver.store.merge_events import MergeEventRecord
+
 
 @dataclass(frozen=True)
 class UnmergeOutcome:
@@ -81,7 +84,7 @@ class MoveOutcome:
     frames: int | None = None
 
 
-def _event_sessions(event: Any) -> set[int]:
+def _event_sessions(event: MergeEventRecord) -> set[int]:
     return {int(s) for s in event.sessions}
 
 
@@ -300,10 +303,7 @@ def _free_map_name(conn: Connection, wanted: str | None, default: str) -> str:
             msg = f"a map named {wanted!r} already exists"
             raise ConflictError(msg)
         return wanted
-    name, k = default, 2
-    while find_map(conn=conn, name=name) is not None:
-        name, k = f"{default[:56]}-{k}", k + 1
-    return name
+    return unique_map_name(default, lambda name: find_map(conn=conn, name=name) is not None)
 
 
 def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
@@ -324,7 +324,7 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
             msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
             raise ConflictError(msg)
         if event.merged_archive is None:
-            if event.mode == "manual":  # mapserver.manual_links.MANUAL_MODE: no view match to replay
+            if event.mode == "manual":  # mapserver.atlas.manual_links.MANUAL_MODE: no view match to replay
                 msg = (f"merge event {event_id} is a manual link undone without an archive of its map; add it "
                        "again to redo it (mapserver link, POST /v1/maps/{name}/links)")
                 raise ConflictError(msg)

@@ -1,7 +1,7 @@
 """Running a mission log through the engine alone: frames in, the map out (no store, no merging).
 
 :func:`run_engine` feeds a log's frames to an engine (the per-frame hook is where the pipeline books a
-live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.pipeline`
+live session); :func:`process_log` is ``mapserver process`` without ``--db``. :mod:`mapserver.processing.pipeline`
 re-exports both.
 
 Importing this module loads the log reader but not the engine (scipy and the rest load on first use):
@@ -25,9 +25,10 @@ from threadpoolctl import threadpool_limits
 from core.config import Params
 from mapserver.errors import InputError
 from mapserver.formats import SessionInfo, map_json, write_map_json
-from mapserver.ingest import Frame, MissionLog, open_log
+from mapserver.ingest import Frame, LogIdentity, MissionLog, open_log
 from mapserver.ingest.frames import IngestReport
-from mapserver.reckoning import DeadReckoning
+from mapserver.names import log_stem
+from mapserver.processing.reckoning import DeadReckoning
 
 if TYPE_CHECKING:
     from core.engine import Engine, StepResult
@@ -110,15 +111,19 @@ def load_frontend(params: Params, frames: int | None = None) -> None:
 
 @dataclass
 class EngineRun:
-    """What :func:`run_engine` did: the engine the log ended in, frames run, dead reckoning, log identity."""
+    """What :func:`run_engine` did: the engine the log ended in, frames run, dead reckoning, log identity.
+
+    ``dropped``: what reading the log dropped (:class:`~mapserver.ingest.frames.IngestReport`).
+    """
 
     engine: Engine
     frames: int
     reckoning: DeadReckoning
-    info: dict[str, Any]
+    identity: LogIdentity
+    dropped: IngestReport
 
 
-StepHook = Callable[[Any, "StepResult"], "Engine | None"]
+StepHook = Callable[[Frame, "StepResult"], "Engine | None"]
 """``on_step(frame, result)``: called after every frame; returning an engine continues in it (a merge)."""
 
 
@@ -133,6 +138,8 @@ def run_engine(
     on_step: StepHook | None = None,
     overrun: Callable[[], bool] | None = None,
     frames: Iterable[Frame] | None = None,
+    identity: LogIdentity | None = None,
+    reckoning: DeadReckoning | None = None,
 ) -> EngineRun:
     """Feed frames ``[start, stop)`` of a log through ``engine`` and return the run.
 
@@ -140,10 +147,13 @@ def run_engine(
     goes on past ``stop`` (to the log's end at most) — a session stopped during a merge's probation runs on
     until the probation concludes, so that no stored merge is left unverified.
 
-    ``log`` is a path (opened here) or a log opened by the caller (its SHA-256 is then computed at
-    most once, whoever asks first). ``on_step(frame, result)`` is called after every frame (the
-    merger and the evidence collector hook in here); when it returns an engine, the next frames go
-    to that one (an online merge replaced the map the session maps in).
+    ``log`` is a path (opened here) or a log opened by the caller. ``identity``: the log's identity read when
+    it was first opened (None: read here, hashing the log). ``reckoning``: the session's dead reckoning to go
+    on with (None: a new one from the preset's initial heading); each frame's motion is integrated into it
+    here, once, before ``on_step`` (whoever books the frame reads the pose from it).
+    ``on_step(frame, result)`` is called after every frame (the merger and the evidence collector hook in
+    here); when it returns an engine, the next frames go to that one (an online merge replaced the map the
+    session maps in).
 
     The frames are read and decoded ahead by a worker (:class:`~mapserver.ingest.reader.ReadAhead`) while the
     engine steps, in the same order; ``frames``, when given, are the log's frames from ``start`` on, already
@@ -155,11 +165,13 @@ def run_engine(
     with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
         opened = log if isinstance(log, MissionLog) else stack.enter_context(open_log(log, topics))
         _check_modalities(opened, engine.params)
-        total = opened.count_frames()
+        known = LogIdentity.of(opened) if identity is None else identity
+        total = known.frames
         end = total if stop is None else min(stop, total)
         if frames is None:
             frames = stack.enter_context(opened.frames_ahead(start, total if overrun is not None else end))
-        reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
+        if reckoning is None:
+            reckoning = DeadReckoning(math.radians(engine.params.exp_initial_em_deg))
         count = 0
         for frame in frames:
             if start + count >= end and (overrun is None or not overrun()):
@@ -179,9 +191,8 @@ def run_engine(
             if progress is not None:
                 progress(count, max(end - start, count))
         report = getattr(frames, "report", None)  # a reader ahead counted in its own copy of the log
-        info = {"sha256": opened.sha256, "mapping": opened.mapping.as_dict(), "total_frames": total,
-                "dropped": opened.report if report is None else report}  # fmt: skip
-    return EngineRun(engine, count, reckoning, info)
+        dropped = opened.report if report is None else report
+    return EngineRun(engine, count, reckoning, known, dropped)
 
 
 def _check_modalities(opened: MissionLog, params: Params) -> None:
@@ -215,10 +226,10 @@ def process_log(
     Raises:
         InputError: the log cannot be read (``IngestError``) or the parameters are invalid.
     """
-    name = Path(log_path).name.split(".")[0] or "map"
+    name = log_stem(log_path)
     frame_rows: list[tuple[float, int, int]] = []  # the map JSON "frames" extension
 
-    def record(frame: Any, result: StepResult) -> None:
+    def record(frame: Frame, result: StepResult) -> None:
         frame_rows.append((frame.stamp_ns * 1e-9, int(result.template), int(result.template_created)))
 
     engine = _new_engine(params) if params.frontend != "lvc" else None  # torch's front-end checks its settings first
@@ -229,8 +240,9 @@ def process_log(
                 engine = _new_engine(params)
             load_frontend(params, opened.count_frames())
             started = time.perf_counter()
-            run = run_engine(engine, opened, progress=progress, on_step=record, frames=frames)
-    frames_run, reckoning, info = run.frames, run.reckoning, run.info
+            identity = LogIdentity.of(opened)
+            run = run_engine(engine, opened, progress=progress, on_step=record, frames=frames, identity=identity)
+    frames_run, reckoning = run.frames, run.reckoning
     if frames_run == 0:
         msg = f"{log_path}: the camera topic has no frames"
         raise InputError(msg)
@@ -239,7 +251,7 @@ def process_log(
     document = map_json(
         params=params.to_dict(),
         snapshot=snapshot,
-        sessions=[SessionInfo(name=name, log_sha256=info["sha256"], frames=frames_run)],
+        sessions=[SessionInfo(name=name, log_sha256=identity.sha256, frames=frames_run)],
         session_name_by_origin={0: name},
         odometry=reckoning.array(),
         frames=frame_rows,
@@ -258,5 +270,5 @@ def process_log(
         engine=engine,
         document=document,
         frames_run=frames_run,
-        dropped=info["dropped"],
+        dropped=run.dropped,
     )

@@ -3,7 +3,7 @@
 The glue between :mod:`mapserver.merge` (pure merging of engine states) and :mod:`mapserver.store`
 (rows, archives, merge events). ``pipeline.process_into_store`` writes the merges a session makes
 online through :func:`write_merges`; ``mapserver merge`` calls :func:`merge_stored_maps`; undo and redo
-(``mapserver unmerge``, ``mapserver merge --redo``) are :mod:`mapserver.undo`.
+(``mapserver unmerge``, ``mapserver merge --redo``) are :mod:`mapserver.atlas.undo`.
 
 One merge event, in one write transaction (docs/architecture.md, "Merge", "Unmerge"): every stored
 map involved is claimed at the version it was read (a concurrent writer → ``StaleMapError``, nothing
@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -51,6 +51,9 @@ from mapserver.store.merge_events import (
 )
 from mapserver.store.sessions import get_sessions, sessions_of_map
 from mapserver.store.state import WriteResult, read_map_state, read_map_templates, write_map_state
+
+if TYPE_CHECKING:
+    from mapserver.store import MapRecord
 
 logger = logging.getLogger(__name__)
 
@@ -408,7 +411,7 @@ def write_rejected_merges(conn: Connection, *, merges: Sequence[MergeToWrite], t
     return [record_merge_event(conn=conn, spec=spec) for spec in specs]
 
 
-def get_map_by_id_or_stale(conn: Connection, map_id: int) -> Any:
+def get_map_by_id_or_stale(conn: Connection, map_id: int) -> MapRecord:
     """Return a map's row; a vanished map means another writer was first (``StaleMapError``)."""
     from mapserver.store.maps import get_map_by_id
 
