@@ -74,9 +74,10 @@ def upgrade(db: Database, revision: str = "head") -> str | None:
         StoreError: a migration failed (nothing is changed: the transaction is rolled back).
     """
     try:
-        with db.write() as conn:
+        with db.write(check_foreign_keys=False) as conn:
             _lock(conn)
             command.upgrade(alembic_config(conn), revision)
+            _check_references(conn)
             return _current(conn)
     except DBAPIError as err:
         msg = f"schema upgrade of {db.display_url()} failed: {' '.join(str(err.orig).split())}"
@@ -85,10 +86,28 @@ def upgrade(db: Database, revision: str = "head") -> str | None:
 
 def downgrade(db: Database, revision: str) -> str | None:
     """Downgrade the schema to ``revision`` (``base`` drops everything) in one locked transaction."""
-    with db.write() as conn:
+    with db.write(check_foreign_keys=False) as conn:
         _lock(conn)
         command.downgrade(alembic_config(conn), revision)
+        _check_references(conn)
         return _current(conn)
+
+
+def _check_references(conn: Connection) -> None:
+    """Refuse (StoreError, rolled back) a migration that left a row referring to a missing one (SQLite).
+
+    SQLite changes a column by copying its table to a new one and dropping the old (Alembic's batch mode); with
+    foreign keys enforced, dropping a table deletes every row that refers to it (``ON DELETE CASCADE``): a
+    downgrade that dropped ``maps.archived_at`` emptied ``map_states``. Migrations therefore run with
+    enforcement off (:meth:`Database.write`), and this checks every reference once they are done.
+    """
+    if conn.dialect.name != "sqlite":
+        return
+    broken = conn.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+    if broken:
+        tables = sorted({str(row[0]) for row in broken})
+        msg = f"the migration left {len(broken)} rows referring to missing rows (tables: {', '.join(tables)})"
+        raise StoreError(msg)
 
 
 def ensure_schema(db: Database, *, upgrade_empty: bool = True) -> None:

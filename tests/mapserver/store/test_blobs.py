@@ -109,16 +109,21 @@ def test_a_database_of_revision_0005_upgrades_and_its_maps_read_as_before(
     db_url: str, engine: Engine, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A map written before the ``blobs`` table existed (its projection inline) reads the same after
-    ``db upgrade``; writing it again moves the projection into a blob."""
+    ``db upgrade``; writing it again moves the projection into a blob.
+
+    Today's models name columns of later revisions, so the map is written as the code before 0006 wrote it (the
+    projection inline) at the head revision, and the database is then taken down to 0005 (which keeps the map's
+    rows and drops every later table and column) before the upgrade under test."""
     from mapserver.store import create_db_engine, upgrade
-    from mapserver.store.migrate import HEAD_REVISION
+    from mapserver.store.migrate import HEAD_REVISION, downgrade
 
     projection = _projection()
     with Database(create_db_engine(db_url)) as old:
-        assert upgrade(old, "0005") == "0005"
+        assert upgrade(old) == HEAD_REVISION
         monkeypatch.setattr(blob_module, "SHARED_KEYS", ())  # what the code before 0006 wrote
         _save(old, engine, "old", projection)
         monkeypatch.undo()
+        assert downgrade(old, "0005") == "0005"
         assert upgrade(old) == HEAD_REVISION
         before = load_map(old, name="old")
         assert before.snapshot["nc_projection"].tobytes() == projection.tobytes()
