@@ -30,6 +30,7 @@ from mapserver.errors import InputError, NotFoundError
 from mapserver.evaluation import evaluate_map, plot_map_vs_ground_truth
 from mapserver.formats import Trajectory, atomic_write_bytes, odometry_trajectory
 from mapserver.plotting import add_segments, new_figure, png_bytes
+from mapserver.statuses import MergeStatus
 from mapserver.store import Connection, Database, find_map, get_map_by_id, load_map
 from mapserver.store.export import map_document
 from mapserver.store.identities import template_ids_by_identity, template_ids_matching
@@ -80,7 +81,7 @@ def resolve_target(db: Database, name: str) -> tuple[str, str | None]:
 
 def _template_places(db: Database, map_id: int, events: list[MergeEventRecord]) -> list[list[int]]:
     """Return, per identified template pair of the map's applied merges, the experiences using it today."""
-    uids = [tuple(p["target_uid"]) for e in events if e.status == "applied"
+    uids = [tuple(p["target_uid"]) for e in events if e.status == MergeStatus.APPLIED
             for p in (e.matches or {}).get("templates", []) if "target_uid" in p]  # fmt: skip
     if not uids:
         return []

@@ -30,8 +30,8 @@ BASE = frozenset({"core", "mapserver", "mapserver.errors", "mapserver.bounds"})
 of values from outside."""
 
 SHARED = frozenset({"mapserver.names", "mapserver.pairs", "mapserver.formats", "mapserver.formats.csv",
-                    "mapserver.formats.g2o", "mapserver.plotting"})  # fmt: skip
-"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats, figures."""
+                    "mapserver.formats.g2o", "mapserver.plotting", "mapserver.statuses"})  # fmt: skip
+"""Leaf modules the domain packages may use: map names, KEY=VALUE pairs, file formats, figures, merge statuses."""
 
 HELPERS = SHARED | {"mapserver.params", "mapserver.processing.reckoning", "mapserver.evaluation"}
 """Every leaf module: the shared ones, choosing parameters, dead reckoning, evaluation against ground truth."""
@@ -56,6 +56,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     "mapserver.processing": BASE,
     "mapserver.names": BASE,
     "mapserver.pairs": BASE,
+    "mapserver.statuses": BASE,
     "mapserver.formats": BASE,
     "mapserver.formats.csv": BASE | {"mapserver.formats"},
     "mapserver.formats.g2o": BASE | {"mapserver.formats"},

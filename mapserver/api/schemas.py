@@ -7,6 +7,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from mapserver.statuses import MergeStatus
+
 JobStatus = Literal["queued", "running", "done", "failed"]
 
 
@@ -197,7 +199,7 @@ class MergeEventPublic(BaseModel):
 
     id: int
     mode: str
-    status: str
+    status: MergeStatus
     confirmations: int
     created_at: datetime
     undone_at: datetime | None

@@ -41,6 +41,7 @@ from mapserver.merge.offline_evidence import confirmed_offline_match
 from mapserver.merge.provenance import match_to_dict, record_summary, transform7
 from mapserver.merge.relevance import ViewLog
 from mapserver.merge.snapshot import params_incompatibility
+from mapserver.statuses import MergeStatus
 from mapserver.store import Connection, Database, StaleMapError, UnknownMapError, claim_map, drop_map, get_map
 from mapserver.store.archive import archive_map_state, archive_state
 from mapserver.store.identities import index_maxima
@@ -374,7 +375,7 @@ def _event_spec(
 def _record_applied_event(conn: Connection, merge: MergeToWrite, tags: Mapping[int, int]) -> int:
     """Record an applied merge's event, archive the stored maps it joins as they are; return the event id."""
     details = {**merge.details, "host": {"name": merge.host_name, "map_id": merge.host_id}}
-    spec = _event_spec(merge, tags, merge.host_id, merge.host_name, details, "applied")
+    spec = _event_spec(merge, tags, merge.host_id, merge.host_name, details, MergeStatus.APPLIED)
     event_id = record_merge_event(conn=conn, spec=spec)
     archive_map_state(conn=conn, map_id=merge.target.id, event_id=event_id, role="target")
     if merge.partial.from_store and merge.partial.map_id is not None:
@@ -407,7 +408,7 @@ def write_rejected_merges(conn: Connection, *, merges: Sequence[MergeToWrite], t
     keeps the transform, the matches and the evidence, under the stored map the session was wrongly
     merged into.
     """
-    specs = [_event_spec(m, tags, m.target.id, m.target.name, dict(m.details), "rejected") for m in merges]
+    specs = [_event_spec(m, tags, m.target.id, m.target.name, dict(m.details), MergeStatus.REJECTED) for m in merges]
     return [record_merge_event(conn=conn, spec=spec) for spec in specs]
 
 
@@ -438,7 +439,7 @@ def merge_summary(event_id: int, merge: MergeToWrite, host_name: str) -> dict[st
         "lattice_offset": [float(v) for v in r.lattice_offset],
         "lattice_shifted": r.lattice_shifted,
         "transform": {"x": x, "y": y, "z": z, "yaw": yaw},
-        "status": merge.details.get("status", "applied"),
+        "status": merge.details.get("status", MergeStatus.APPLIED),
         "evidence": merge.details.get("evidence"),
     }
 

@@ -26,6 +26,7 @@ from mapserver.merge.places import merged_template_places
 from mapserver.merge.provenance import match_from_dict
 from mapserver.merge.resume import MergerState, merger_keys
 from mapserver.names import check_map_name, default_map_name, unique_map_name
+from mapserver.statuses import MergeStatus
 from mapserver.store import Connection, Database, drop_map, find_map, get_map_by_id
 from mapserver.store.archive import (
     ArchivedState,
@@ -123,7 +124,7 @@ def _unmerge_in(
         drop_map(conn=conn, map_id=holder.id)  # no archive takes its name back: its content is archived
     restored = restore_map_states(conn=conn, archive_ids=event.archive_ids, names=names)
     session, frames, status = _cut_online_session(conn, details, rewind)
-    set_merge_status(conn=conn, event_id=event.id, status="undone")
+    set_merge_status(conn=conn, event_id=event.id, status=MergeStatus.UNDONE)
     restored_names = [names.get(a.id, a.map_name) for a in archives]
     details["undo"] = {n: r.version for n, r in zip(restored_names, restored, strict=True)}
     details["undo_host"] = holder.name
@@ -160,11 +161,11 @@ def _restore_names(
 def _undoable_event(conn: Connection, event_id: int) -> MergeEventRecord:
     """Return the merge event if it can be undone now: applied, and no later applied event shares its sessions."""
     event = get_merge_event(conn=conn, event_id=event_id)
-    if event.status != "applied":
+    if event.status != MergeStatus.APPLIED:
         msg = f"merge event {event_id} is {event.status} already"
         raise ConflictError(msg)
     mine = _event_sessions(event)
-    later = [e.id for e in list_merge_events(conn=conn) if e.id > event.id and e.status == "applied"
+    later = [e.id for e in list_merge_events(conn=conn) if e.id > event.id and e.status == MergeStatus.APPLIED
              and _event_sessions(e) & mine]  # fmt: skip
     if later:
         msg = (
@@ -260,7 +261,7 @@ def _moved_session(conn: Connection, session: str) -> tuple[int, Any]:
 
 def _event_that_brought_in(conn: Connection, sid: int, session: str, holder: Any) -> MergeEventRecord:
     """Return the newest applied merge event of the session (refused when there is none or it cannot be undone)."""
-    events = [e for e in list_merge_events(conn=conn) if e.status == "applied" and sid in e.sessions]
+    events = [e for e in list_merge_events(conn=conn) if e.status == MergeStatus.APPLIED and sid in e.sessions]
     if not events:
         msg = f"no applied merge event brought session {session!r} into map {holder.name!r}; it cannot be moved out"
         raise ConflictError(msg)
@@ -320,7 +321,7 @@ def redo_merge(db: Database, *, event_id: int) -> MergeOutcome:
     """
     with db.write() as conn:
         event = get_merge_event(conn=conn, event_id=event_id)
-        if event.status != "undone":
+        if event.status != MergeStatus.UNDONE:
             msg = f"merge event {event_id} is {event.status}; only an undone event can be redone"
             raise ConflictError(msg)
         if event.merged_archive is None:
@@ -348,7 +349,7 @@ def _redo_from_archive(conn: Connection, event: MergeEventRecord, archive_id: in
     (result,) = restore_map_states(conn=conn, archive_ids=[archive_id], names={archive_id: host_name})
     restore_progress(conn=conn, archived=archived)
     delete_archive(conn=conn, archive_id=archive_id)
-    set_merge_status(conn=conn, event_id=event.id, status="applied")
+    set_merge_status(conn=conn, event_id=event.id, status=MergeStatus.APPLIED)
     for key in ("undo", "undo_host"):
         details.pop(key, None)
     details["host"] = {**details.get("host", {}), "map_id": result.map_id}
@@ -404,7 +405,7 @@ def _redo_by_merging(conn: Connection, event: MergeEventRecord) -> MergeOutcome:
         session_ids=sessions, template_index=identities.template_arrays()[1],
         experience_index=identities.experience_arrays()[1],
     )  # fmt: skip
-    set_merge_status(conn=conn, event_id=event_id, status="applied")
+    set_merge_status(conn=conn, event_id=event_id, status=MergeStatus.APPLIED)
     details.pop("undo", None)
     details["host"] = {**details["host"], "map_id": result.map_id}
     update_merge_details(conn=conn, event_id=event_id, details=details)

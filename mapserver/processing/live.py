@@ -26,6 +26,7 @@ from mapserver.merge.identity import RowIdentities
 from mapserver.merge.provenance import match_to_dict, record_summary
 from mapserver.merge.relevance import ViewLog
 from mapserver.merge.verify import SessionFrame
+from mapserver.statuses import MergeStatus
 
 if TYPE_CHECKING:
     from mapserver.atlas import AtlasMap
@@ -60,7 +61,7 @@ class PendingMerge:
     reckoning_pose: list[float]
     host_id: int
     host_name: str
-    status: str = "applied"
+    status: MergeStatus = MergeStatus.APPLIED
     rejected_at: int | None = None
     activations_before: list[tuple[float, int, int, float]] = field(default_factory=list, repr=False)
     """The activation timeline as booked when the merge was made (a rollback restores it)."""
@@ -107,7 +108,7 @@ class LiveSession:
     @property
     def applied(self) -> list[PendingMerge]:
         """Return the merges that stand."""
-        return [m for m in self.pending if m.status == "applied"]
+        return [m for m in self.pending if m.status == MergeStatus.APPLIED]
 
     def on_step(self, frame: SessionFrame, result: StepResult) -> Engine | None:
         """Book one frame; return the engine to continue in when a merge or a rollback changed it."""
@@ -183,7 +184,7 @@ class LiveSession:
     def _rolled_back(self, rollback: Rollback) -> Engine:
         """Go back to the map the session was in before the merge, in the engine that never merged."""
         merge = next(m for m in self.pending if m.event is rollback.event)
-        merge.status, merge.rejected_at = "rejected", self.start + len(self.stamps)
+        merge.status, merge.rejected_at = MergeStatus.REJECTED, self.start + len(self.stamps)
         before = merge.before
         ids = before.ids.copy()
         first_new = ids.experiences
@@ -216,7 +217,7 @@ def merge_to_write(m: Any, pending: list[Any], session_id: int, params: Params, 
         "match": match_to_dict(ev.match), "record": record_summary(ev.record),
         "target": {"name": m.target.name, "map_id": m.target.id},
         "source": {"name": m.partial_name, "map_id": m.partial_map_id},
-        "absorbed": [e.target.name for e in pending[: pending.index(m)] if e.status == "applied"],
+        "absorbed": [e.target.name for e in pending[: pending.index(m)] if e.status == MergeStatus.APPLIED],
         "session_frames": {str(k): int(v) for k, v in frames_now.items()},
         "evidence": ev.evidence, "status": m.status,
     }  # fmt: skip

@@ -33,6 +33,7 @@ from mapserver.processing.run import (  # re-exported: the pipeline is where cal
     process_log,
     run_engine,
 )
+from mapserver.statuses import MergeStatus
 from mapserver.store import Database, utcnow
 
 if TYPE_CHECKING:
@@ -527,7 +528,8 @@ def _merges_to_write(
     frames_now = {s.id: s.frames_processed for s in get_sessions(conn=conn, session_ids=session_ids)}
     writes = [merge_to_write(m, run.pending, session_id, params, frames_now) for m in run.pending]
     pairs = list(zip(writes, run.pending, strict=True))
-    return [w for w, m in pairs if m.status == "applied"], [w for w, m in pairs if m.status == "rejected"]
+    applied = [w for w, m in pairs if m.status == MergeStatus.APPLIED]
+    return applied, [w for w, m in pairs if m.status == MergeStatus.REJECTED]
 
 
 @dataclass(frozen=True)
@@ -598,7 +600,7 @@ def _claim_host(
 
     own = run.own
     claimed: dict[int, int] = {} if own is None else {own.id: own.version}
-    applied = [m for m in run.pending if m.status == "applied"]
+    applied = [m for m in run.pending if m.status == MergeStatus.APPLIED]
     claimed.update({m.target.id: m.target.version for m in applied})
     if claimed:
         host_id = min(claimed)

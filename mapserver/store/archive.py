@@ -14,7 +14,7 @@ Unmerge recipe (what ``mapserver unmerge`` does, issue 5)::
     with db.write() as conn:
         event = get_merge_event(conn=conn, event_id=...)
         restore_map_states(conn=conn, archive_ids=event.archive_ids)   # every map as it was
-        set_merge_status(conn=conn, event_id=event.id, status="undone")
+        set_merge_status(conn=conn, event_id=event.id, status=MergeStatus.UNDONE)
 
 Restoring several archives in one call is order-independent: every map named by an archive is emptied
 first, so identities the merged map held are free again when the pre-merge maps are written back.

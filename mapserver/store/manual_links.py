@@ -13,6 +13,7 @@ from typing import Any
 
 from sqlalchemy import Connection, select
 
+from mapserver.statuses import MergeStatus
 from mapserver.store.merge_events import list_merge_events
 from mapserver.store.models import Experience, Link
 
@@ -58,7 +59,7 @@ def _events_by_ends(conn: Connection) -> dict[tuple[tuple[int, int], tuple[int, 
     out: dict[tuple[tuple[int, int], tuple[int, int]], Any] = {}
     for event in list_merge_events(conn=conn):
         link = (event.details or {}).get("link") or {}
-        if event.mode != MANUAL_EVENT_MODE or event.status != "applied" or "from_uid" not in link:
+        if event.mode != MANUAL_EVENT_MODE or event.status != MergeStatus.APPLIED or "from_uid" not in link:
             continue
         ends = (tuple(int(v) for v in link["from_uid"]), tuple(int(v) for v in link["to_uid"]))
         out[ends] = event  # type: ignore[index]

@@ -13,6 +13,7 @@ from typing import Any, NamedTuple, cast
 
 from sqlalchemy import Connection, func, insert, select, update
 
+from mapserver.statuses import MergeStatus
 from mapserver.store.errors import MapExistsError, StaleMapError, UnknownMapError
 from mapserver.store.models import (
     MERGE_STATUSES,
@@ -269,7 +270,7 @@ def _merge_counts(conn: Connection) -> dict[int, dict[str, int]]:
     for map_id, status, n in conn.execute(counted.group_by(MergeEvent.map_id, MergeEvent.status)):
         merges.setdefault(int(cast(int, map_id)), _no_merges())[str(status)] = int(n)
     applied = select(MergeEvent.map_id, MergeEvent.details).where(
-        MergeEvent.map_id.is_not(None), MergeEvent.status == "applied", MergeEvent.mode == "online"
+        MergeEvent.map_id.is_not(None), MergeEvent.status == MergeStatus.APPLIED, MergeEvent.mode == "online"
     )
     for map_id, details in conn.execute(applied):
         verification = ((details or {}).get("evidence") or {}).get("verification") or {}

@@ -17,6 +17,7 @@ from typing import Any, cast
 from sqlalchemy import Connection, func, insert, select, update
 
 from mapserver.errors import NotFoundError, StoreError
+from mapserver.statuses import MergeStatus
 from mapserver.store.models import MERGE_STATUSES, MapArchive, MergeEvent, MergeEventSession, utcnow
 
 MERGED_ARCHIVE_ROLE = "merged"
@@ -52,7 +53,7 @@ class MergeEventSpec:
     target_sessions: Sequence[int]
     source_sessions: Sequence[int]
     details: Mapping[str, Any] | None = None
-    status: str = "applied"
+    status: str = MergeStatus.APPLIED
 
 
 @dataclass(frozen=True)
@@ -156,7 +157,7 @@ def set_merge_status(*, conn: Connection, event_id: int, status: str) -> None:
     result = conn.execute(
         update(MergeEvent)
         .where(MergeEvent.id == event_id)
-        .values(status=status, undone_at=utcnow() if status == "undone" else None)
+        .values(status=status, undone_at=utcnow() if status == MergeStatus.UNDONE else None)
     )
     if result.rowcount != 1:
         msg = f"no merge event with id {event_id!r}"

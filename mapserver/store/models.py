@@ -49,6 +49,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
 from mapserver.formats import LINK_KIND_NAMES
+from mapserver.statuses import MergeStatus
 
 NAMING_CONVENTION: dict[str, str] = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -64,7 +65,7 @@ Id = BigInteger().with_variant(Integer(), "sqlite")
 SESSION_STATUSES: tuple[str, ...] = ("partial", "complete")
 JOB_STATUSES: tuple[str, ...] = ("queued", "running", "done", "failed")
 TOKEN_SCOPES: tuple[str, ...] = ("read", "write")
-MERGE_STATUSES: tuple[str, ...] = ("applied", "undone", "rejected")
+MERGE_STATUSES: tuple[str, ...] = tuple(MergeStatus)
 
 
 def utcnow() -> datetime:
