@@ -171,10 +171,32 @@ class ExperienceMapSnapshot(_Part):
     reckon: np.ndarray | None = None
     last_created: np.ndarray | None = None
 
-    #: The per-link arrays, in schema order (field names).
-    LINK_FIELDS: ClassVar[tuple[str, ...]] = (
-        "link_from", "link_to", "link_transform", "link_dt", "link_distance", "link_kind",
-    )  # fmt: skip
+    def link_status(self) -> np.ndarray:
+        """Return (n_links,) bool: each link's status (``link_active``; links it lists none for are on)."""
+        count = np.asarray(self.link_from).reshape(-1).shape[0]
+        active = np.ones(count, dtype=bool)
+        given = np.asarray(self.link_active if self.link_active is not None else np.zeros(0, dtype=bool), dtype=bool)
+        given = given.reshape(-1)
+        active[: min(given.size, count)] = given[:count]
+        return active
+
+    def levers(self, n: int) -> np.ndarray:
+        """Return (n,) float64 ``pc_lever`` fitted to n experiences (0 past its end or when absent)."""
+        out = np.zeros(n, dtype=np.float64)
+        given = np.asarray(self.pc_lever if self.pc_lever is not None else np.zeros(0), dtype=np.float64)
+        given = given.reshape(-1)[:n]
+        out[: given.size] = given
+        return out
+
+    def reckoning_links(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the reckoning links (from (k,) int64, to (k,) int64, odometry (k, 6) float64); none when absent."""
+        return (
+            np.asarray(self.reckon_from if self.reckon_from is not None else np.zeros(0), dtype=np.int64).reshape(-1),
+            np.asarray(self.reckon_to if self.reckon_to is not None else np.zeros(0), dtype=np.int64).reshape(-1),
+            np.asarray(
+                self.reckon_link if self.reckon_link is not None else np.zeros((0, 6)), dtype=np.float64
+            ).reshape(-1, 6),
+        )
 
 
 @dataclass(eq=False)
