@@ -8,7 +8,7 @@ go in and come out, so the round trip is bit for bit; the keys come back in the 
 
 A part's optional fields (``None`` by default) are keys that older snapshots, or merged snapshots before the
 engine restored them, may lack: ``None`` means the key is absent. Keys no part names (other front-ends' and
-pose-cell models' arrays: ``lv_sdr``, ``nc_*``, ``ns_*``, ``ml_*``, …) travel untouched in
+pose-cell models' arrays: ``nc_*``, ``ns_*``, ``ml_*``, …) travel untouched in
 :attr:`EngineSnapshot.extra`.
 """
 
@@ -101,7 +101,7 @@ class _Part:
 
 @dataclass(eq=False)
 class ViewSnapshot(_Part):
-    """The view cells and the engine's per-template records (keys ``lv_*``)."""
+    """The view cells and the engine's per-template records (keys ``lv_*``; ``sdr``: the ``sdr-htm`` codes)."""
 
     PREFIX: ClassVar[str] = "lv_"
     templates: np.ndarray
@@ -113,6 +113,7 @@ class ViewSnapshot(_Part):
     place: np.ndarray | None = None
     place_offset: np.ndarray | None = None
     place_yaw: np.ndarray | None = None
+    sdr: np.ndarray | None = None
 
 
 @dataclass(eq=False)

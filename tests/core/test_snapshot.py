@@ -51,9 +51,9 @@ def _minimal() -> dict[str, np.ndarray]:
 
 def test_keys_come_back_in_the_order_they_went_in_with_unnamed_keys_untouched() -> None:
     arrays = _minimal()
-    arrays = {"ns_codes": np.arange(3), **arrays, "lv_sdr": np.ones((2, 4), dtype=bool)}
+    arrays = {"ns_codes": np.arange(3), **arrays, "nc_history": np.ones((2, 4), dtype=bool)}
     typed = EngineSnapshot.from_arrays(arrays)
-    assert set(typed.extra) == {"ns_codes", "lv_sdr"}
+    assert set(typed.extra) == {"ns_codes", "nc_history"}
     _assert_identical(typed.to_arrays(), arrays)
     assert typed.map.pc_lever is None and "em_pc_lever" not in typed.to_arrays()  # absent stays absent
 
