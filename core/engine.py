@@ -37,6 +37,7 @@ from core.motion import ZERO_MOTION, Motion
 from core.neuroslam.posecells import NeuroslamPoseCells
 from core.paths import ExperienceGraph, NoPath, PathResult, Weight
 from core.posecells import PoseCellNetwork
+from core.snapshot import EngineSnapshot
 from core.visual_odometry import VisualOdometry
 
 if TYPE_CHECKING:
@@ -307,6 +308,10 @@ class Engine:
         state["eng_last_stamp"] = np.asarray(self.last_stamp, dtype=np.float64)
         state["eng_loop_closures"] = np.asarray(self.loop_closures, dtype=np.int64)
         return state
+
+    def typed_snapshot(self) -> EngineSnapshot:
+        """Return :meth:`snapshot` as typed parts (:class:`core.snapshot.EngineSnapshot`)."""
+        return EngineSnapshot.from_arrays(self.snapshot())
 
     @classmethod
     def restore(cls, params: Params, state: Mapping[str, np.ndarray], origin: int = 0) -> Engine:

@@ -55,6 +55,7 @@ import numpy as np
 
 from core.arrays import Float32Array, FloatArray, IntArray, UInt8Array
 from core.neocortex.viewcells import NeocortexViewCells, code_bytes, unpack_codes
+from core.snapshot import ViewSnapshot
 from mapserver.merge.places import template_places
 
 if TYPE_CHECKING:
@@ -78,6 +79,7 @@ def structural_difference(loaded: Params, partial: Params) -> str | None:
     return None
 
 
+TEMPLATES, MEANS = ViewSnapshot.key("templates"), ViewSnapshot.key("means")  # the view cells' snapshot arrays
 NULL_SAMPLE = 1024  # view cells (evenly spaced ids) whose codes estimate a map's look-alike overlaps
 NULL_MIN_CELLS = 16  # fewer placed view cells than this: no estimate (the gate stays as given)
 
@@ -247,13 +249,13 @@ class CortexReader:
 
         A view cell without a remembered descriptor (made before a resume) gets an empty prototype.
         """
-        n = int(np.shape(partial["lv_means"])[0])
+        n = int(np.shape(partial[MEANS])[0])
         rows = np.full((n, self.topk), -1, dtype=np.int64)
         for template, d in self.translations.items():
             if template < n:
                 rows[template] = d
         sizes = (rows >= 0).sum(axis=1)
-        return {**partial, "lv_templates": rows.astype(np.float32)[:, None, :], "lv_means": sizes.astype(np.float64)}
+        return {**partial, TEMPLATES: rows.astype(np.float32)[:, None, :], MEANS: sizes.astype(np.float64)}
 
     def state(self) -> dict[str, np.ndarray]:
         """Return what the reader changed since it was restored: the sequence state and the translations."""
@@ -285,7 +287,7 @@ def translate_offline(
     at every frame (``sdr-htm`` makes one nearly every frame), a sparser one where it recognised its own cells.
     """
     reader = CortexReader(params, loaded, row=0)
-    codes = np.asarray(partial["lv_sdr"], dtype=np.uint8)
+    codes = np.asarray(partial[ViewSnapshot.key("sdr")], dtype=np.uint8)
     for template in range(codes.shape[0]):
         reader.remember(template, reader.read(np.zeros(0), code=codes[template])[None, :])
     return reader.translated(partial), reader.cortex()

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from core import Engine, LinkKind
 from core.arrays import Float32Array, IntArray
+from core.snapshot import EngineSnapshot, ExperienceMapSnapshot, ViewSnapshot
 from mapserver.errors import MergeError
 from mapserver.merge.offline_views import offline_incompatibility
 from mapserver.merge.places import merged_template_codes, merged_template_places
@@ -20,6 +22,9 @@ from mapserver.merge.states import merge_states_apart, merged_templates
 if TYPE_CHECKING:
     from core import Params
     from core.localview import LocalViewCells
+
+#: The keys of the view cells' templates and their means in snapshot arrays.
+TEMPLATES, MEANS = ViewSnapshot.key("templates"), ViewSnapshot.key("means")
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,6 +40,11 @@ class StoredMap:
     key: object
     params: Params
     state: Mapping[str, np.ndarray]
+
+    @cached_property
+    def snapshot(self) -> EngineSnapshot:
+        """Return :attr:`state` as typed parts (the same arrays)."""
+        return EngineSnapshot.from_arrays(self.state)
 
 
 def restore_merged(
@@ -53,22 +63,24 @@ def restore_merged(
     if tail and not np.array_equal(record.merge_links, np.arange(links - tail, links)):
         msg = "merge links must be the last links of the merged snapshot"
         raise MergeError(msg)
-    head = dict(state)
-    for key in ("em_link_from", "em_link_to", "em_link_transform", "em_link_dt", "em_link_distance", "em_link_kind"):
-        head[key] = np.asarray(state[key])[: links - tail]
-    head["em_relax_pending"] = np.asarray(False)
-    engine = Engine.restore(params, head, origin=origin)
-    active = np.ones(links, dtype=bool)
-    given = np.asarray(state.get("em_link_active", active), dtype=bool).reshape(-1)
-    active[: min(given.size, links)] = given[:links]
-    for link in range(links - tail, links):
+    snapshot = EngineSnapshot.from_arrays(state)
+    em, cut = snapshot.map, links - tail
+    head = em.replace(
+        link_from=np.asarray(em.link_from)[:cut], link_to=np.asarray(em.link_to)[:cut],
+        link_transform=np.asarray(em.link_transform)[:cut], link_dt=np.asarray(em.link_dt)[:cut],
+        link_distance=np.asarray(em.link_distance)[:cut], link_kind=np.asarray(em.link_kind)[:cut],
+        relax_pending=np.asarray(False),
+    )  # fmt: skip
+    engine = Engine.restore(params, snapshot.replace(map=head).to_arrays(), origin=origin)
+    active = em.link_status()
+    for link in range(cut, links):
         engine.map.add_link_raw(
-            int(state["em_link_from"][link]),
-            int(state["em_link_to"][link]),
-            np.asarray(state["em_link_transform"][link], dtype=np.float64),
-            float(state["em_link_dt"][link]),
-            float(state["em_link_distance"][link]),
-            LinkKind(int(state["em_link_kind"][link])),
+            int(em.link_from[link]),
+            int(em.link_to[link]),
+            np.asarray(em.link_transform[link], dtype=np.float64),
+            float(em.link_dt[link]),
+            float(em.link_distance[link]),
+            LinkKind(int(em.link_kind[link])),
             active=bool(active[link]),
         )
     return engine
@@ -114,10 +126,10 @@ def _restore_sharing(
     the joined snapshot. ``sdr-htm`` view cells restore from the joined snapshot.
     """
     if params.frontend == "sdr-htm":
-        return restore_merged(params, {"lv_templates": merged_templates(loaded, appended), **state}, record, origin)
-    means = np.asarray(state["lv_means"])
+        return restore_merged(params, {TEMPLATES: merged_templates(loaded, appended), **state}, record, origin)
+    means = np.asarray(state[MEANS])
     n_loaded = means.shape[0] - appended.shape[0]
-    head = {**state, "lv_templates": loaded["lv_templates"], "lv_means": means[:n_loaded]}
+    head = {**state, TEMPLATES: loaded[TEMPLATES], MEANS: means[:n_loaded]}
     engine = restore_merged(params, head, record, origin=origin)
     cast("LocalViewCells", engine.local_view).add_templates(appended, means[n_loaded:], share=True)  # lvc here
     return engine
@@ -125,8 +137,9 @@ def _restore_sharing(
 
 def stored_links(state: Mapping[str, np.ndarray]) -> int:
     """Return how many of a snapshot's first links a finished session left (``em_stored_links``; all when absent)."""
-    links = int(np.shape(state["em_link_from"])[0])
-    return min(int(state.get("em_stored_links", links)), links)
+    em = ExperienceMapSnapshot.from_arrays(state)
+    links = int(np.shape(em.link_from)[0])
+    return min(int(em.stored_links if em.stored_links is not None else links), links)
 
 
 def merge_engine(
@@ -161,7 +174,7 @@ def merge_engine(
         raise MergeError(msg)
     partial = engine.snapshot() if partial is None else partial
     state, record, appended = _merged_state(stored.state, partial, match, shift_lattice, identify_within, cortex)
-    state["em_stored_links"] = np.asarray(stored_links(stored.state), dtype=np.int64)
+    state[ExperienceMapSnapshot.key("stored_links")] = np.asarray(stored_links(stored.state), dtype=np.int64)
     merged = _restore_sharing(engine.params, stored.state, state, appended, record, engine.origin)
     merged.loop_closures = engine.loop_closures
     return merged, record
@@ -201,7 +214,7 @@ def merge_snapshots(
         partial_state, cortex = translate_offline(loaded.params, loaded.state, partial.state)
     state, record, appended = _merged_state(loaded.state, partial_state, match, shift_lattice, identify_within, cortex)
     merged = _restore_sharing(loaded.params, loaded.state, state, appended, record, origin=0)
-    _close_loops(merged, int(np.shape(loaded.state["em_pose"])[0]), record.experience_map, closures)
+    _close_loops(merged, int(np.shape(loaded.snapshot.map.pose)[0]), record.experience_map, closures)
     if settle:
         merged.settle()
     return merged, record

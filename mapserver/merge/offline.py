@@ -80,7 +80,7 @@ def candidate_matches(
     """
     needed = _needed_confirmations(partial, loaded, confirm)
     tolerance = position_tolerance if position_tolerance is not None else default_position_tolerance(loaded)
-    n_a, n_b = int(np.shape(partial.state["lv_means"])[0]), int(np.shape(loaded.state["lv_means"])[0])
+    n_a, n_b = int(np.shape(partial.snapshot.view.means)[0]), int(np.shape(loaded.snapshot.view.means)[0])
     if n_a == 0 or n_b == 0:
         empty = partial.key if n_a == 0 else loaded.key
         msg = f"map {empty!r} has no templates to match"

@@ -225,8 +225,8 @@ class _OfflineTest:
             self.unit_of_view = np.full(mine.means.shape[0], -1, dtype=np.int64)
             self.unit_of_view[seen] = np.arange(seen.size)
         else:  # A's experiences, each with its template
-            self.a_pose = np.asarray(partial.state["em_pose"], dtype=np.float64).reshape(-1, 4)
-            template_of = np.asarray(partial.state["em_template"], dtype=np.int64)
+            self.a_pose = np.asarray(partial.snapshot.map.pose, dtype=np.float64).reshape(-1, 4)
+            template_of = np.asarray(partial.snapshot.map.template, dtype=np.int64)
         self.views = (mine.views, mine.means, template_of)
         self.steps = np.zeros(self.a_pose.shape[0])
         if self.a_pose.shape[0] > 1:
@@ -383,7 +383,7 @@ def _run(steps: FloatArray, miss: BoolArray) -> float:
 
 def offline_alignment(loaded: StoredMap, match: Match) -> FloatArray:
     """Return the alignment (4,) taking A's map frame onto B's that ``match`` proposes (Eqs. 13–14)."""
-    b_pose = np.asarray(loaded.state["em_pose"], dtype=np.float64).reshape(-1, 4)
+    b_pose = np.asarray(loaded.snapshot.map.pose, dtype=np.float64).reshape(-1, 4)
     seen = compose(b_pose[match.stored_experience], np.array([0.0, 0.0, 0.0, match.relative_rad]))
     return alignment(seen, np.asarray(match.partial_pose, dtype=np.float64))
 
@@ -438,7 +438,7 @@ def confirmed_offline_match(
     best, match = weighed[0]
     if best.evidence_m > 0 and best.passed:  # the other way round: B's chain against A's places
         back = _OfflineTest(b, a, evidence_m, None, DEFAULT_YAW_TOLERANCE)
-        b_pose = np.asarray(b.state["em_pose"], dtype=np.float64).reshape(-1, 4)[match.stored_experience]
+        b_pose = np.asarray(b.snapshot.map.pose, dtype=np.float64).reshape(-1, 4)[match.stored_experience]
         anchor = back.unit_of(match.stored_template, b_pose)
         best = replace(best, reverse=back.walk(inverse(offline_alignment(b, match)), anchor))
     if not best.passed:

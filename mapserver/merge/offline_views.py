@@ -91,8 +91,8 @@ def missing_codes(stored: StoredMap) -> str | None:
 
     Its view cells need codes and places; maps stored before ``lv_sdr``/``lv_place`` existed have neither.
     """
-    codes = stored.state.get("lv_sdr")
-    n = int(np.shape(stored.state["lv_means"])[0])
+    codes = stored.snapshot.view.sdr
+    n = int(np.shape(stored.snapshot.view.means)[0])
     if n and (codes is None or not np.asarray(codes).any()):
         return (
             f"map {stored.key!r} keeps no view-cell codes (lv_sdr: stored before they existed), so its sdr-htm view "
@@ -108,22 +108,22 @@ def missing_codes(stored: StoredMap) -> str | None:
 
 def partial_views(partial: StoredMap) -> PartialViews:
     """Return map A's views (:class:`PartialViews`): templates at their first experience, or codes at their places."""
-    state = partial.state
-    n = int(np.shape(state["lv_means"])[0])
-    em_pose = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
-    em_pc = np.asarray(state["em_pc"], dtype=np.float64).reshape(em_pose.shape[0], -1)
+    state, view, em = partial.state, partial.snapshot.view, partial.snapshot.map
+    n = int(np.shape(view.means)[0])
+    em_pose = np.asarray(em.pose, dtype=np.float64).reshape(-1, 4)
+    em_pc = np.asarray(em.pc, dtype=np.float64).reshape(em_pose.shape[0], -1)
     if uses_codes(partial):
         poses, experiences = template_places(state)
-        views = code_rows(np.asarray(state["lv_sdr"], dtype=np.uint8), partial.params.sv_tm_topk)
+        views = code_rows(np.asarray(view.sdr, dtype=np.uint8), partial.params.sv_tm_topk)
         means = np.zeros(n)
     else:
-        order, starts = experiences_by_template(np.asarray(state["em_template"]), n)
+        order, starts = experiences_by_template(np.asarray(em.template), n)
         first = np.append(order, -1)[starts[:-1]]  # each template's first experience (its lowest id)
         experiences = np.where(starts[1:] > starts[:-1], first, -1).astype(np.int64)
         poses = np.full((n, 4), np.nan)
         poses[experiences >= 0] = em_pose[experiences[experiences >= 0]]
-        views = np.asarray(state["lv_templates"], dtype=np.float32)
-        means = np.asarray(state["lv_means"], dtype=np.float64)
+        views = np.asarray(view.templates, dtype=np.float32)
+        means = np.asarray(view.means, dtype=np.float64)
     packets = np.zeros((n, em_pc.shape[1]))
     packets[experiences >= 0] = em_pc[experiences[experiences >= 0]]
     return PartialViews(views, means, poses, packets, experiences)
@@ -143,10 +143,10 @@ def stored_views(loaded: StoredMap, params: Params, far_m: float) -> StoredViews
     (:func:`mapserver.merge.cortex.null_overlap`).
     """
     state = loaded.state
-    poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
-    templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
+    poses = np.asarray(loaded.snapshot.map.pose, dtype=np.float64).reshape(-1, 4)
+    templates = np.asarray(loaded.snapshot.map.template, dtype=np.int64).reshape(-1)
     experiences = np.arange(poses.shape[0], dtype=np.int64)
-    n = int(np.shape(state["lv_means"])[0])
+    n = int(np.shape(loaded.snapshot.view.means)[0])
     matcher: LocalViewCells | CortexReader
     if uses_codes(loaded):
         from mapserver.merge.cortex import CortexReader  # torch only for sdr-htm maps

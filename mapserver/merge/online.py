@@ -54,6 +54,7 @@ from core import Engine, LinkKind, Params, StepResult
 from core.arrays import FloatArray, IntArray, UInt8Array
 from core.localview import LocalViewCells
 from core.se3 import compose, relative
+from core.snapshot import ExperienceMapSnapshot
 from mapserver.merge.confirm import Observation
 from mapserver.merge.engines import StoredMap, merge_engine
 from mapserver.merge.hypotheses import EvidenceRule, Hypothesis, HypothesisSet, StoredPlaces, Track, decide
@@ -158,8 +159,8 @@ def map_spacing(stored: StoredMap) -> float:
 
     A map without links falls back to the experience threshold in metres.
     """
-    kind = np.asarray(stored.state["em_link_kind"])
-    distance = np.asarray(stored.state["em_link_distance"], dtype=np.float64)[kind == LinkKind.ODOMETRY]
+    kind = np.asarray(stored.snapshot.map.link_kind)
+    distance = np.asarray(stored.snapshot.map.link_distance, dtype=np.float64)[kind == LinkKind.ODOMETRY]
     distance = distance[distance > 0]
     p = stored.params
     floor = p.exp_delta_pc_threshold * p.pc_cell_x_size
@@ -278,7 +279,7 @@ class OnlineMerger:
             state = stored.state
             views = template_places(state) if engine.params.frontend == "sdr-htm" else None
             poses, templates, anchors = _predicting_places(state, views)
-            order, starts = experiences_by_template(templates, int(np.shape(state["lv_means"])[0]))
+            order, starts = experiences_by_template(templates, int(np.shape(stored.snapshot.view.means)[0]))
             cells = self._matcher(engine, state, stored.key, self._tolerance(stored), views)
             rule = self._rule(stored, engine.params, cells)
             places = StoredPlaces(cells, poses, templates, engine.params.vt_match_threshold, engine.params.vt_panoramic,
@@ -581,7 +582,7 @@ class OnlineMerger:
             if frame is None:
                 msg = "a merge on probation needs the frames: call observe(engine, result, frame)"
                 raise ValueError(msg)
-            n_loaded = int(np.shape(candidate.stored.state["em_pose"])[0])
+            n_loaded = int(np.shape(candidate.stored.snapshot.map.pose)[0])
             self.probation = Probation(
                 candidate.stored.key, winner, candidate.hypotheses, engine, self._track.distance, n_loaded
             )
@@ -678,8 +679,9 @@ def _predicting_places(
     The experiences; with ``views`` (sdr-htm maps: every view cell's own place and the experience it was made
     after, :func:`mapserver.merge.places.template_places`) also those places.
     """
-    poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
-    templates = np.asarray(state["em_template"], dtype=np.int64).reshape(-1)
+    em = ExperienceMapSnapshot.from_arrays(state)
+    poses = np.asarray(em.pose, dtype=np.float64).reshape(-1, 4)
+    templates = np.asarray(em.template, dtype=np.int64).reshape(-1)
     anchors = np.arange(poses.shape[0], dtype=np.int64)
     if views is None:
         return poses, templates, anchors

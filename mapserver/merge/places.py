@@ -29,14 +29,18 @@ from core.angles import wrap_angle
 from core.arrays import FloatArray, IntArray, UInt8Array
 from core.engine import template_place_rows, template_place_yaws, template_rows
 from core.se3 import compose
+from core.snapshot import ExperienceMapSnapshot, ViewSnapshot
 from mapserver.merge.record import MergeRecord
 
 State = Mapping[str, np.ndarray]
 
+MEANS, SDR = ViewSnapshot.key("means"), ViewSnapshot.key("sdr")
+POSE = ExperienceMapSnapshot.key("pose")
+
 
 def _rows(state: State) -> tuple[IntArray, FloatArray]:
     """Return (place (N,), offset (N, 4)) of a snapshot's templates; rows without one: −1 and zeros."""
-    return template_place_rows(state, int(np.shape(state["lv_means"])[0]))
+    return template_place_rows(state, int(np.shape(state[MEANS])[0]))
 
 
 def template_places(state: State) -> tuple[FloatArray, IntArray]:
@@ -47,7 +51,7 @@ def template_places(state: State) -> tuple[FloatArray, IntArray]:
     the offset's heading + t.
     """
     place, offset = _rows(state)
-    poses = np.asarray(state["em_pose"], dtype=np.float64).reshape(-1, 4)
+    poses = np.asarray(state[POSE], dtype=np.float64).reshape(-1, 4)
     place[(place < 0) | (place >= poses.shape[0])] = -1
     out = np.full((place.size, 4), np.nan)
     ok = place >= 0
@@ -71,10 +75,11 @@ def merged_template_places(loaded: State, partial: State, record: MergeRecord) -
     p_place = np.where(has, emap[np.clip(p_place, 0, max(emap.size - 1, 0))] if emap.size else -1, -1)
     yaw = float(record.transform[3])
     p_offset = compose(np.array([0.0, 0.0, 0.0, yaw]), p_offset)  # turned by T's yaw, as the robot's odometry
+    view = ViewSnapshot
     return {
-        "lv_place": np.concatenate([l_place, p_place]).astype(np.int64),
-        "lv_place_offset": np.concatenate([l_offset, p_offset]),
-        "lv_place_yaw": np.concatenate([l_yaw, wrap_angle(p_yaw + yaw)]),  # NaN (unknown) stays NaN
+        view.key("place"): np.concatenate([l_place, p_place]).astype(np.int64),
+        view.key("place_offset"): np.concatenate([l_offset, p_offset]),
+        view.key("place_yaw"): np.concatenate([l_yaw, wrap_angle(p_yaw + yaw)]),  # NaN (unknown) stays NaN
     }
 
 
@@ -84,10 +89,10 @@ def merged_template_codes(loaded: State, partial: State, record: MergeRecord) ->
     ``sdr-htm`` view cells keep the packed SDR of the frame that made it (``core.neocortex``); a map made
     before the key existed has zero codes. Empty when neither snapshot has codes (``lvc`` maps).
     """
-    if "lv_sdr" not in loaded and "lv_sdr" not in partial:
+    if SDR not in loaded and SDR not in partial:
         return {}
-    width = int(np.shape(loaded["lv_sdr"] if "lv_sdr" in loaded else partial["lv_sdr"])[1])
-    l_codes, p_codes = (template_rows(s, "lv_sdr", int(np.shape(s["lv_means"])[0]), 0, np.uint8, width)
+    width = int(np.shape(loaded[SDR] if SDR in loaded else partial[SDR])[1])
+    l_codes, p_codes = (template_rows(s, SDR, int(np.shape(s[MEANS])[0]), 0, np.uint8, width)
                         for s in (loaded, partial))  # fmt: skip
     kept = np.asarray(record.template_map) >= record.template_offset
-    return {"lv_sdr": np.concatenate([l_codes, p_codes[kept]])}
+    return {SDR: np.concatenate([l_codes, p_codes[kept]])}

@@ -10,6 +10,7 @@ import numpy as np
 
 from core.arrays import FloatArray, IntArray
 from core.se3 import to_matrix
+from core.snapshot import ExperienceMapSnapshot
 
 
 @dataclass(frozen=True)
@@ -71,9 +72,10 @@ class Match:
 
         The partial side is the experience's pose and lattice coordinates; its template is z.
         """
-        pose = np.asarray(partial["em_pose"], dtype=np.float64).reshape(-1, 4)[partial_experience]
-        packet = np.asarray(partial["em_pc"], dtype=np.float64)[partial_experience]
-        template = int(np.asarray(partial["em_template"])[partial_experience])
+        em = ExperienceMapSnapshot
+        pose = np.asarray(partial[em.key("pose")], dtype=np.float64).reshape(-1, 4)[partial_experience]
+        packet = np.asarray(partial[em.key("pc")], dtype=np.float64)[partial_experience]
+        template = int(np.asarray(partial[em.key("template")])[partial_experience])
         return cls(
             stored_template=stored_template,
             stored_experience=stored_experience,

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from core.arrays import IntArray
+from core.snapshot import EngineSnapshot, ExperienceMapSnapshot, PoseCellSnapshot
 from mapserver.errors import MergeError
 
 if TYPE_CHECKING:
@@ -15,23 +16,15 @@ if TYPE_CHECKING:
 
 State = Mapping[str, np.ndarray]
 
-# The documented keys a merge reads and writes (docs/architecture.md, "Engine state snapshot").
-SNAPSHOT_KEYS: tuple[str, ...] = (
-    "lv_templates", "lv_means", "lv_origin", "lv_current", "lv_previous", "lv_relative_rad",
-    "vo_prev_vtrans", "vo_prev_vrot",
-    "pc_activity", "pc_best", "pc_link_template", "pc_link_coords", "pc_link_strength", "pc_link_decay",
-    "pc_current_vt", "pc_prev_vt", "pc_vt_delta_th",
-    "em_pose", "em_pc", "em_template", "em_stamp", "em_origin",
-    "em_link_from", "em_link_to", "em_link_transform", "em_link_dt", "em_link_distance", "em_link_kind",
-    "em_current", "em_previous", "em_accum", "em_relax_pending",
-    "gate_history", "gate_state", "eng_frames", "eng_last_stamp",
-)
+#: The documented keys a merge reads and writes (owned by :mod:`core.snapshot`; docs/architecture.md).
+SNAPSHOT_KEYS: tuple[str, ...] = EngineSnapshot.required_keys()
 
-#: Keys a merge writes that older states may lack (``em_pc_lever``: 0, no merge moved them; ``em_link_active``:
+#: Keys a merge writes that older states may lack (``pc_lever``: 0, no merge moved them; ``link_active``:
 #: every link on when missing; the reckoning keys: none kept, no experience created since).
-OPTIONAL_SNAPSHOT_KEYS: tuple[str, ...] = (
-    "em_pc_lever", "em_link_active", "em_reckon_from", "em_reckon_to", "em_reckon_link", "em_reckon", "em_last_created",
-)  # fmt: skip
+OPTIONAL_SNAPSHOT_KEYS: tuple[str, ...] = tuple(
+    ExperienceMapSnapshot.key(name)
+    for name in ("pc_lever", "link_active", "reckon_from", "reckon_to", "reckon_link", "reckon", "last_created")
+)
 
 
 def check_state(state: State, name: str) -> None:
@@ -42,20 +35,35 @@ def check_state(state: State, name: str) -> None:
         raise MergeError(msg)
 
 
-def lattice_shape(state: State) -> tuple[int, ...]:
+def typed_state(state: State, name: str) -> tuple[EngineSnapshot, PoseCellSnapshot]:
+    """Return a checked snapshot (:func:`check_state`) as typed parts, and its pose cells."""
+    check_state(state, name)
+    snapshot = EngineSnapshot.from_arrays(state)
+    return snapshot, pose_cells_of(snapshot)
+
+
+def pose_cells_of(snapshot: EngineSnapshot) -> PoseCellSnapshot:
+    """Return a snapshot's continuous-attractor pose cells; MergeError for other pose-cell models."""
+    if snapshot.pose_cells is None:
+        msg = "only maps of the continuous-attractor pose cells merge"
+        raise MergeError(msg)
+    return snapshot.pose_cells
+
+
+def lattice_shape(state: EngineSnapshot) -> tuple[int, ...]:
     """Return the pose-cell lattice shape of a snapshot."""
-    return tuple(int(d) for d in np.shape(state["pc_activity"]))
+    return tuple(int(d) for d in np.shape(pose_cells_of(state).activity))
 
 
-def template_shape(state: State) -> tuple[int, ...] | None:
+def template_shape(state: EngineSnapshot) -> tuple[int, ...] | None:
     """Return the (ty, tx) template shape of a snapshot, None when it holds no template."""
-    templates = np.asarray(state["lv_templates"])
+    templates = np.asarray(state.view.templates)
     if templates.ndim != 3 or templates.shape[0] == 0:
         return None
     return (int(templates.shape[1]), int(templates.shape[2]))
 
 
-def incompatibility(loaded: State, partial: State) -> str | None:
+def incompatibility(loaded: EngineSnapshot, partial: EngineSnapshot) -> str | None:
     """Return why two snapshots cannot be merged (lattice or template shapes differ), None if they can."""
     a, b = lattice_shape(loaded), lattice_shape(partial)
     if a != b:
