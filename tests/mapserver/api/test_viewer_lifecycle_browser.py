@@ -96,3 +96,39 @@ def test_a_read_token_sees_no_lifecycle_actions(browser: Any, live: dict[str, An
     assert page.locator(".map-delete, .map-rename").count() == 0
     assert page.is_hidden("#archived-box")
     page.context.close()
+
+
+def _sent_fields(page: Any, tmp_path: Path) -> dict[str, str]:
+    """Upload a small file from the form and return the text fields of the form the page sent."""
+    log = tmp_path / "walk.bag"
+    log.write_bytes(b"not a bag")
+    page.set_input_files("#upload-file", str(log))
+    page.evaluate("""() => {
+      window.sentForms = [];
+      if (!window.plainFetch) window.plainFetch = window.fetch;
+      window.fetch = (url, options) => {
+        if (options && options.body instanceof FormData) {
+          const texts = [...options.body.entries()].filter(([, v]) => typeof v === "string");
+          window.sentForms.push(Object.fromEntries(texts));
+        }
+        return window.plainFetch(url, options);
+      };
+    }""")
+    page.click("#upload-form button[type=submit]")
+    page.wait_for_function("() => window.sentForms.length === 1")
+    return dict(page.evaluate("() => window.sentForms[0]"))
+
+
+def test_the_upload_form_merges_into_a_chosen_map(browser: Any, live: dict[str, Any], tmp_path: Path) -> None:  # noqa: F811
+    page = _page(browser, live, "write")
+    page.goto(live["url"] + "/#/jobs")
+    page.wait_for_selector("#upload-into option[value=lab]", state="attached")
+    choices = page.eval_on_selector_all("#upload-into option", "os => os.map(o => o.value)")
+    assert choices[0] == "" and "lab" in choices and len(choices) == 3  # the live maps (the other may be renamed)
+    page.fill("#upload-map", "walk")
+    plain = _sent_fields(page, tmp_path)  # no map chosen: the name is a new map's, and no "into" is sent
+    assert plain.get("map") == "walk" and "into" not in plain
+    page.select_option("#upload-into", "lab")
+    assert page.is_disabled("#upload-map") and page.is_disabled("#upload-merge")
+    into = _sent_fields(page, tmp_path)  # "into": the map's name, no new map's name, merging on
+    assert into.get("into") == "lab" and "map" not in into and into.get("merge") == "true"

@@ -86,6 +86,7 @@ async function loadMaps() {
     const details = await Promise.all(maps.map((m) => api("/v1/maps/" + encodeURIComponent(m.name)).catch(() => ({}))));
     mapsState.rows = maps.map((m, i) => Object.assign({}, m, { updated_at: details[i].updated_at || "" }));
     renderMaps();
+    renderIntoChoices(maps.map((m) => m.name));
     await loadArchived();
   } catch (err) { banner(err.message); }
 }
@@ -515,7 +516,7 @@ function mergeItem(m) {
                            (m.link.active ? "" : " · flagged: it contradicts the map, switched off")) : "");
   const buttons = el("div", {}, el("button", { class: "show", onclick: () => showMerge(m, item) }, "show on map"));
   if (m.status === "applied") buttons.append(el("button", { class: "undo", onclick: () => mergeAction(m.id, "undo") }, "undo"));
-  if (m.status === "undone" && m.mode !== "manual") buttons.append(el("button", { class: "redo", onclick: () => mergeAction(m.id, "redo") }, "redo"));
+  if (m.status === "undone") buttons.append(el("button", { class: "redo", onclick: () => mergeAction(m.id, "redo") }, "redo"));
   item.append(buttons);
   return item;
 }
@@ -665,6 +666,22 @@ function renderTruth() {
 }
 
 /* ------------------------------------------------------------------ uploads and jobs */
+// the upload form's "into" choice: the live maps; choosing one merges the log into it (POST /v1/sessions into=)
+function renderIntoChoices(names) {
+  const select = $("#upload-into");
+  const chosen = select.value;
+  select.replaceChildren(el("option", { value: "" }, "(a new map, or wherever it merges)"),
+    ...names.map((n) => el("option", { value: n }, n)));
+  select.value = names.includes(chosen) ? chosen : "";
+  intoChanged();
+}
+
+function intoChanged() {
+  const into = $("#upload-into").value !== "";
+  $("#upload-map").disabled = into;  // a name is for a new map: with "into" the log joins an existing one
+  $("#upload-merge").disabled = into;
+}
+
 let jobList = [];  // the newest jobs as GET /v1/jobs lists them: sent from this tab, another one, or curl
 let queuedBanner = null;  // the job whose "queued" banner shows, cleared when it ends
 
@@ -675,8 +692,10 @@ async function upload(e) {
   const form = new FormData();
   form.append("file", file, file.name);
   form.append("preset", $("#upload-preset").value);
-  if ($("#upload-map").value) form.append("map", $("#upload-map").value);
-  form.append("merge", $("#upload-merge").checked ? "true" : "false");
+  const into = $("#upload-into").value;
+  if (into) form.append("into", into);  // merge into that map, or be refused before the job starts
+  else if ($("#upload-map").value) form.append("map", $("#upload-map").value);
+  form.append("merge", into || $("#upload-merge").checked ? "true" : "false");
   try {
     const res = await api("/v1/sessions", { method: "POST", body: form });
     banner(`job ${res.job} ${res.duplicate ? "(already uploaded)" : "queued"}`, true);
@@ -732,6 +751,7 @@ function start() {
   }
   $("#path-go").addEventListener("click", findPath);
   $("#upload-form").addEventListener("submit", upload);
+  $("#upload-into").addEventListener("change", intoChanged);
   setupCanvas();
   window.addEventListener("hashchange", route);
   refreshAccess().then(route);
