@@ -119,7 +119,7 @@ def _check_pixels(width: int, height: int, limit: int, topic: str) -> None:
     if width * height > limit:
         msg = (
             f"image on {topic} is {width}x{height} = {width * height} pixels, more than the limit "
-            f"max_image_pixels = {limit} (--max-image-pixels)"
+            f"max_image_pixels = {limit}"
         )
         raise LimitError(msg, limit="max_image_pixels")
 

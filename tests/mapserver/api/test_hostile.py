@@ -230,6 +230,7 @@ def test_the_pixel_limit_pairs_and_a_later_bomb_fails_its_job(make_api: Any, tmp
     assert response.status_code == 202  # the upload check decodes the first frame only
     job = at.wait(response.json()["job"])
     assert job["status"] == "failed" and "max_image_pixels = 1280" in job["error"]
+    assert "--" not in job["error"]  # a job's message names the limit's key (GET /v1/limits), never a CLI flag
     at.client.__exit__(None, None, None)
     below = make_api(max_image_pixels=1279, upload_dir=tmp_path / "u2", db_url=f"sqlite:///{tmp_path / 'b.db'}")
     _refused(below, log, "max_image_pixels")
