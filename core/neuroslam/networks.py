@@ -141,21 +141,21 @@ class ConjunctivePoseCells:
         return self.codes
 
     def snapshot(self) -> dict[str, FloatArray]:
-        """Both networks' activity, as arrays (the store's boundary)."""
-        return {"grid_activity": self.grid.activity.copy(), "head_activity": self.head.activity.copy(),
-                "codes": self.codes.as_array()}
+        """Both networks' activity and the codes, as arrays (keys ``ns_*``: the engine snapshot's)."""
+        return {"ns_grid_activity": self.grid.activity.copy(), "ns_head_activity": self.head.activity.copy(),
+                "ns_codes": self.codes.as_array()}
 
     @classmethod
     def restore(cls, state: Mapping[str, FloatArray], grid: GridCellParams | None = None,
                 head: HeadDirectionParams | None = None) -> ConjunctivePoseCells:
         """The networks as :meth:`snapshot` saved them."""
         cells = cls(grid, head)
-        if state["grid_activity"].shape != cells.grid.activity.shape or (
-                state["head_activity"].shape != cells.head.activity.shape):
+        if state["ns_grid_activity"].shape != cells.grid.activity.shape or (
+                state["ns_head_activity"].shape != cells.head.activity.shape):
             raise ValueError("the saved networks' sizes differ from these parameters")
-        cells.grid.activity = np.array(state["grid_activity"], dtype=np.float64)
-        cells.head.activity = np.array(state["head_activity"], dtype=np.float64)
-        codes = state["codes"]
+        cells.grid.activity = np.array(state["ns_grid_activity"], dtype=np.float64)
+        cells.head.activity = np.array(state["ns_head_activity"], dtype=np.float64)
+        codes = state["ns_codes"]
         cells.codes = _codes(codes[:3], codes[3:5])
         return cells
 

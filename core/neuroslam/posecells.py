@@ -83,10 +83,8 @@ class NeuroslamPoseCells:
 
     def snapshot(self) -> dict[str, FloatArray]:
         """Both networks, the codes and the view links, as arrays (keys ``ns_*`` and ``nl_*``)."""
-        networks = self.cells.snapshot()
-        state = {"ns_grid_activity": networks["grid_activity"], "ns_head_activity": networks["head_activity"],
-                 "ns_codes": networks["codes"],
-                 "ns_vt": np.asarray([self.current_vt, self.prev_vt], dtype=np.float64)}
+        state = self.cells.snapshot()
+        state["ns_vt"] = np.asarray([self.current_vt, self.prev_vt], dtype=np.float64)
         state.update(self.links.snapshot())
         return state
 
@@ -94,9 +92,7 @@ class NeuroslamPoseCells:
     def restore(cls, params: Params, state: Mapping[str, FloatArray]) -> NeuroslamPoseCells:
         """The pose cells as :meth:`snapshot` saved them."""
         net = cls(params)
-        net.cells = ConjunctivePoseCells.restore(
-            {"grid_activity": state["ns_grid_activity"], "head_activity": state["ns_head_activity"],
-             "codes": state["ns_codes"]}, net.cells.grid_params, net.cells.head_params)
+        net.cells = ConjunctivePoseCells.restore(state, net.cells.grid_params, net.cells.head_params)
         net.links = ViewLinks.restore(state, net.links.decay_params)
         net.best = net.cells.codes.as_array()
         vt = np.asarray(state["ns_vt"]).astype(np.int64)

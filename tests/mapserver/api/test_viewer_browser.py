@@ -352,22 +352,28 @@ def test_panning_a_100k_map_redraws_under_50_ms(page: Any, live: dict[str, Any],
     assert max(draws) < REDRAW_BUDGET_MS and max(draws_zoomed) < REDRAW_BUDGET_MS, figures
 
 
-def test_api_docs_render_with_every_outside_request_blocked(browser: Any, live: dict[str, Any], tmp_path: Path) -> None:
-    """/docs (Swagger UI) and /redoc draw the API's operations from this server's files alone.
-
-    Every request to another host is aborted and counted: must be none; must still: the operations appear.
-    """
-    context = browser.new_context(viewport={"width": 1400, "height": 900})
+def block_other_hosts(context: Any, url: str) -> list[str]:
+    """Abort every request of ``context`` to a host other than ``url``'s; return the list they are counted in."""
     outside: list[str] = []
 
     def only_this_server(route: Any) -> None:
-        if route.request.url.startswith(live["url"]):
+        if route.request.url.startswith(url):
             route.continue_()
         else:
             outside.append(route.request.url)
             route.abort()
 
     context.route("**/*", only_this_server)
+    return outside
+
+
+def test_api_docs_render_with_every_outside_request_blocked(browser: Any, live: dict[str, Any], tmp_path: Path) -> None:
+    """/docs (Swagger UI) and /redoc draw the API's operations from this server's files alone.
+
+    Every request to another host is aborted and counted: must be none; must still: the operations appear.
+    """
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    outside = block_other_hosts(context, live["url"])
     pg = context.new_page()
     pg.set_default_timeout(20_000)
     errors: list[str] = []
@@ -394,16 +400,7 @@ def offline_page(browser: Any, live: dict[str, Any]) -> Iterator[Any]:
     Must not happen, checked at the end: a request to another host, a JavaScript error, an error on the console.
     """
     context = browser.new_context(viewport={"width": 1400, "height": 800})
-    outside: list[str] = []
-
-    def only_this_server(route: Any) -> None:
-        if route.request.url.startswith(live["url"]):
-            route.continue_()
-        else:
-            outside.append(route.request.url)
-            route.abort()
-
-    context.route("**/*", only_this_server)
+    outside = block_other_hosts(context, live["url"])
     pg = context.new_page()
     pg.set_default_timeout(20_000)
     errors: list[str] = []
